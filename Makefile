@@ -1,0 +1,40 @@
+# polspike: two commands set everything up on a fresh Debian 12 machine.
+#   make demo  -> install (venv, pip, apt) then run the end-to-end demo
+#   make test  -> install then run the test suite
+SHELL := /bin/bash
+PY ?= python3
+VENV := .venv
+BIN := $(VENV)/bin
+STAMP := $(VENV)/.installed
+OUT ?= out/demo
+export DRJIT_LIBLLVM_PATH ?= /usr/lib/x86_64-linux-gnu/libLLVM.so.19.1
+export MPLBACKEND := Agg
+
+.PHONY: install demo test bench clean system-deps
+
+install: $(STAMP)
+
+system-deps:
+	@bash .ci/system-deps.sh
+
+$(STAMP): pyproject.toml .ci/system-deps.sh
+	@bash .ci/system-deps.sh
+	@test -d $(VENV) || $(PY) -m venv $(VENV)
+	$(BIN)/pip install --quiet --upgrade pip
+	$(BIN)/pip install --quiet -e '.[test]'
+	@touch $(STAMP)
+
+demo: install
+	$(BIN)/polspike demo --out $(OUT)
+
+test: install
+	$(BIN)/python -m pytest -q -m "not slow" $(PYTEST_ARGS)
+
+test-all: install
+	$(BIN)/python -m pytest -q $(PYTEST_ARGS)
+
+bench: install
+	$(BIN)/polspike bench all --out out/bench
+
+clean:
+	rm -rf out build *.egg-info
