@@ -1,0 +1,94 @@
+"""Atomic file output: write to a temporary name in the same folder, then rename.
+
+Nothing is ever half-written under its final name: a crash leaves at most a
+``*.tmp-*`` file, which the next run may delete.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import errno
+import json
+import os
+import tempfile
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+from polspike.errors import OutputError
+
+__all__ = ["atomic_path", "write_bytes", "write_json", "write_text", "ensure_dir"]
+
+
+def ensure_dir(path: str | os.PathLike) -> Path:
+    """Create ``path`` (and parents) or raise :class:`OutputError` saying why."""
+    p = Path(path)
+    try:
+        p.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise OutputError(f"cannot create output folder {p}: {exc.strerror}; choose a writable --out") from None
+    if not os.access(p, os.W_OK):
+        raise OutputError(f"output folder {p} is not writable; choose a writable --out")
+    return p
+
+
+@contextlib.contextmanager
+def atomic_path(final: str | os.PathLike, suffix: str | None = None) -> Iterator[Path]:
+    """Yield a temporary path beside ``final``; rename it to ``final`` on success.
+
+    Args:
+        final: the destination file.
+        suffix: suffix of the temporary name (defaults to the final suffix, so
+            writers that look at extensions, such as image libraries, work).
+    """
+    final = Path(final)
+    ensure_dir(final.parent)
+    sfx = final.suffix if suffix is None else suffix
+    fd, tmp = tempfile.mkstemp(prefix=f".{final.stem}.tmp-", suffix=sfx, dir=final.parent)
+    os.close(fd)
+    tmp_path = Path(tmp)
+    try:
+        yield tmp_path
+        os.replace(tmp_path, final)
+    except OSError as exc:
+        tmp_path.unlink(missing_ok=True)
+        if exc.errno in (errno.ENOSPC, errno.EDQUOT):
+            raise OutputError(f"disk full while writing {final}; free space or choose another --out") from None
+        if exc.errno in (errno.EACCES, errno.EROFS, errno.EPERM):
+            raise OutputError(f"cannot write {final}: {exc.strerror}; choose a writable --out") from None
+        raise
+    except BaseException:
+        tmp_path.unlink(missing_ok=True)
+        raise
+
+
+def write_bytes(final: str | os.PathLike, data: bytes) -> Path:
+    """Atomically write ``data`` to ``final`` (fsync before rename)."""
+    with atomic_path(final) as tmp:
+        with open(tmp, "wb") as fh:
+            fh.write(data)
+            fh.flush()
+            os.fsync(fh.fileno())
+    return Path(final)
+
+
+def write_text(final: str | os.PathLike, text: str) -> Path:
+    """Atomically write UTF-8 ``text`` to ``final``."""
+    return write_bytes(final, text.encode("utf-8"))
+
+
+def write_json(final: str | os.PathLike, obj: Any) -> Path:
+    """Atomically write ``obj`` as indented JSON (NaN/Inf rejected)."""
+    return write_text(final, json.dumps(obj, indent=2, sort_keys=True, allow_nan=False, default=_json_default) + "\n")
+
+
+def _json_default(o: Any) -> Any:
+    import numpy as np
+
+    if isinstance(o, np.generic):
+        return o.item()
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, Path):
+        return str(o)
+    raise TypeError(f"not JSON serialisable: {type(o).__name__}")
