@@ -1,0 +1,7 @@
+"""Polarization physics shared by every stage (pure numpy, no Mitsuba).
+
+Modules: :mod:`.fresnel` (interface and pane coefficients), :mod:`.geometry`
+(pinhole camera, pane plane, per-pixel theta and phi_perp), :mod:`.zeta`
+(paper Eq. (1)-(2) and their Stokes form), :mod:`.stokes` (polarizer, DoP,
+AoLP), :mod:`.polarizer` (the rotating polarizer phi(t) and its step integral).
+"""
