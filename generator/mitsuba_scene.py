@@ -1,0 +1,269 @@
+"""Translate a glass-pane scene into a Mitsuba 3 scene dict (``mi.load_dict``).
+
+The translation works on small neutral geometry records (:class:`CameraSpec`,
+:class:`PaneSpec`, :class:`LayerPlane`) so that it does not depend on how a
+scene file spells things; :func:`specs_from_scene` builds them from a
+:class:`generator.scene.SceneConfig`.
+
+Geometry (world frame, metres):
+
+* Camera: Mitsuba ``perspective`` sensor, ``fov_axis = "x"``, ``to_world =
+  look_at(position, look_at, up)``.  Its pixel (x, y) ray is
+  ``f + ((x+.5)/W*2-1) tan(fovx/2) r - ((y+.5)/H*2-1) tan(fovx/2) (H/W) u``,
+  the pinhole camera of :mod:`polspike.physics.geometry` (pinned by a test).
+  Mitsuba's ``stokes`` integrator expresses Stokes vectors per ray with the
+  reference axis ``x_ref = normalize(cross(d, up))`` (image right) and S2 > 0
+  toward ``cross(x_ref, d)`` (image up): the project convention.
+* Pane: finite rectangle(s) with Mitsuba's smooth ``dielectric`` BSDF.
+  ``single`` is one interface (glass on the far side of the camera);
+  ``thin_slab`` and ``thick_slab`` are two parallel interfaces
+  ``thickness`` apart.  ``thindielectric`` is NOT used: it depolarizes (it
+  returns an unpolarized Mueller matrix; measured in
+  ``tests/generator/test_mitsuba_scene.py``), see the README note.
+* Layers: textured ``area`` emitters on rectangles (``bitmap`` radiance,
+  nearest-neighbour lookup, raw linear values).  The texture's row 0 is the
+  top edge of the plane as the (mirrored) camera sees it.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any
+
+import numpy as np
+
+from polspike.errors import SceneError
+
+__all__ = [
+    "CameraSpec",
+    "PaneSpec",
+    "LayerPlane",
+    "pane_interfaces",
+    "build_scene_dict",
+    "specs_from_scene",
+]
+
+
+def _unit(v, what: str) -> np.ndarray:
+    v = np.asarray(v, dtype=np.float64).reshape(3)
+    n = float(np.linalg.norm(v))
+    if not np.isfinite(n) or n < 1e-12:
+        raise SceneError(f"{what} must be a non-zero finite 3-vector, got {v.tolist()}")
+    return v / n
+
+
+@dataclasses.dataclass(frozen=True)
+class CameraSpec:
+    """Pinhole camera.
+
+    Attributes:
+        width, height: image size in pixels (W, H).
+        fovx_rad: horizontal field of view, radians.
+        position, look_at, up: world-frame 3-vectors (m).
+    """
+
+    width: int
+    height: int
+    fovx_rad: float
+    position: tuple[float, float, float]
+    look_at: tuple[float, float, float]
+    up: tuple[float, float, float] = (0.0, 1.0, 0.0)
+
+    def frame(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Forward f, right r, true up u (unit world vectors)."""
+        f = _unit(np.subtract(self.look_at, self.position), "camera look_at - position")
+        r = _unit(np.cross(f, self.up), "camera right (forward x up)")
+        return f, r, np.cross(r, f)
+
+    def pixel_dirs(self, sub: int = 1) -> np.ndarray:
+        """Unit ray directions (H*sub, W*sub, 3) through sub-pixel centres."""
+        f, r, u = self.frame()
+        W, H = self.width * sub, self.height * sub
+        t = np.tan(0.5 * self.fovx_rad)
+        xs = ((np.arange(W) + 0.5) / W * 2 - 1) * t
+        ys = ((np.arange(H) + 0.5) / H * 2 - 1) * t * (self.height / self.width)
+        d = f[None, None] + xs[None, :, None] * r[None, None] - ys[:, None, None] * u[None, None]
+        return d / np.linalg.norm(d, axis=-1, keepdims=True)
+
+
+@dataclasses.dataclass(frozen=True)
+class PaneSpec:
+    """Glass pane.
+
+    Attributes:
+        model: ``"single"``, ``"thin_slab"`` or ``"thick_slab"``.
+        n: refractive index (for a mono render, or the index at the band
+            being rendered).
+        center: pane centre (m); for slabs the mid-plane.
+        normal: unit normal pointing toward the camera side.
+        size: (width, height) of the rectangle in metres.
+        thickness_m: slab thickness (ignored for ``single``).
+        absorption_per_m: bulk absorption coefficient of the glass (1/m).
+        u_axis: in-plane direction of the rectangle's width (optional).
+    """
+
+    model: str
+    n: float
+    center: tuple[float, float, float]
+    normal: tuple[float, float, float]
+    size: tuple[float, float]
+    thickness_m: float = 0.0
+    absorption_per_m: float = 0.0
+    u_axis: tuple[float, float, float] | None = None
+
+    def axes(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Pane frame (u, v, n) with cross(u, v) = n."""
+        n = _unit(self.normal, "pane normal")
+        if self.u_axis is not None:
+            u = np.asarray(self.u_axis, dtype=np.float64)
+            u = _unit(u - n * float(u @ n), "pane u_axis (projected onto the pane)")
+        else:
+            ref = np.array([0.0, 1.0, 0.0]) if abs(n[1]) < 0.9 else np.array([1.0, 0.0, 0.0])
+            u = _unit(np.cross(ref, n), "pane u axis")
+        return u, np.cross(n, u), n
+
+
+@dataclasses.dataclass(frozen=True)
+class LayerPlane:
+    """A textured emitting rectangle.
+
+    Attributes:
+        center: centre (m).
+        u_axis: unit vector along the texture's +x (columns) on the plane.
+        v_axis: unit vector along the texture's -y (toward row 0, i.e. "up").
+        half_size: (half width along u, half height along v) in metres.
+        texture: (H_tex, W_tex) float radiance (linear, >= 0), row 0 at +v.
+        name: short label used in the scene dict.
+
+    The emitting side faces ``cross(u_axis, v_axis)``.
+    """
+
+    center: tuple[float, float, float]
+    u_axis: tuple[float, float, float]
+    v_axis: tuple[float, float, float]
+    half_size: tuple[float, float]
+    texture: np.ndarray
+    name: str = "layer"
+
+
+def _rect_matrix(center, u, v, hu: float, hv: float) -> np.ndarray:
+    """4x4 to_world of Mitsuba's ``rectangle`` ([-1,1]^2 in local xy, normal +z)."""
+    u, v = np.asarray(u, float), np.asarray(v, float)
+    m = np.eye(4)
+    m[:3, 0] = u * hu
+    m[:3, 1] = v * hv
+    m[:3, 2] = np.cross(u, v)
+    m[:3, 3] = np.asarray(center, float)
+    return m
+
+
+def pane_interfaces(pane: PaneSpec) -> list[tuple[np.ndarray, np.ndarray]]:
+    """The dielectric interfaces of a pane model: list of (to_world 4x4, outward normal).
+
+    ``single``: one interface at ``center`` with normal toward the camera (glass
+    behind it).  Slabs: the front face at ``center + n t/2`` (normal +n) and the
+    back face at ``center - n t/2`` (normal -n), so both normals point out of the glass.
+    """
+    if pane.model not in ("single", "thin_slab", "thick_slab"):
+        raise SceneError(f"unknown pane model {pane.model!r}; use single, thin_slab or thick_slab")
+    if not (np.isfinite(pane.n) and 1.0 < pane.n < 5.0):
+        raise SceneError(f"non-physical pane refractive index n = {pane.n}; use 1 < n < 5 (glass is about 1.5)")
+    u, v, n = pane.axes()
+    hu, hv = 0.5 * float(pane.size[0]), 0.5 * float(pane.size[1])
+    c = np.asarray(pane.center, float)
+    if pane.model == "single":
+        return [(_rect_matrix(c, u, v, hu, hv), n)]
+    t = float(pane.thickness_m)
+    if not (np.isfinite(t) and t > 0):
+        raise SceneError(f"pane model {pane.model} needs thickness > 0, got {t} m")
+    front = _rect_matrix(c + 0.5 * t * n, u, v, hu, hv)
+    back = _rect_matrix(c - 0.5 * t * n, -u, v, hu, hv)  # cross(-u, v) = -n
+    return [(front, n), (back, -n)]
+
+
+def build_scene_dict(
+    mi,
+    camera: CameraSpec,
+    pane: PaneSpec,
+    layers: list[LayerPlane] = (),
+    *,
+    integrator: dict[str, Any] | None = None,
+    spp: int = 4,
+    seed: int = 0,
+    sampler: str = "independent",
+    polarizer_deg: float | None = None,
+    film_size: tuple[int, int] | None = None,
+) -> dict[str, Any]:
+    """Mitsuba scene dict for ``mi.load_dict`` (a variant must be set).
+
+    Args:
+        mi: the mitsuba module (variant already set).
+        camera, pane, layers: geometry records.
+        integrator: integrator dict (default: ``stokes`` around ``path``, max_depth 16).
+        spp, seed, sampler: sampling settings.
+        polarizer_deg: if given, Mitsuba's ``polarizer`` BSDF on a rectangle just
+            in front of the camera, rotated by this angle about the view axis
+            (it passes phi = -angle in the project convention: see notes).
+        film_size: override (W, H) of the film.
+
+    Returns:
+        dict ready for ``mi.load_dict``.
+    """
+    T = mi.ScalarTransform4f
+    f, r, u = camera.frame()
+    W, H = film_size if film_size is not None else (camera.width, camera.height)
+    d: dict[str, Any] = {
+        "type": "scene",
+        "sensor": {
+            "type": "perspective",
+            "fov": float(np.degrees(camera.fovx_rad)),
+            "fov_axis": "x",
+            "near_clip": 1e-4,
+            "far_clip": 1e5,
+            "to_world": T().look_at(origin=list(map(float, camera.position)), target=list(map(float, camera.look_at)), up=list(map(float, camera.up))),
+            "film": {"type": "hdrfilm", "width": int(W), "height": int(H), "rfilter": {"type": "box"}, "pixel_format": "luminance"},
+            "sampler": {"type": sampler, "sample_count": int(spp), "seed": int(seed)},
+        },
+        "integrator": integrator if integrator is not None else {"type": "stokes", "inner": {"type": "path", "max_depth": 16, "rr_depth": 1000}},
+    }
+    for i, (m, _) in enumerate(pane_interfaces(pane)):
+        d[f"pane_{i}"] = {
+            "type": "rectangle",
+            "to_world": T(m.tolist()),
+            "bsdf": {"type": "dielectric", "int_ior": float(pane.n), "ext_ior": 1.0},
+        }
+    for k, layer in enumerate(layers):
+        tex = np.asarray(layer.texture, dtype=np.float32)
+        if tex.ndim != 2:
+            raise SceneError(f"layer {layer.name}: texture must be (H, W), got shape {tex.shape}")
+        if not np.all(np.isfinite(tex)) or float(tex.min(initial=0.0)) < 0:
+            raise SceneError(f"layer {layer.name}: texture must be finite and >= 0 (min {np.nanmin(tex)})")
+        m = _rect_matrix(layer.center, _unit(layer.u_axis, "layer u"), _unit(layer.v_axis, "layer v"), *map(float, layer.half_size))
+        # rectangle uv: u = (x+1)/2 along +x, v = (y+1)/2 along +y; the bitmap's row 0
+        # is looked up at v = 0, so flip the rows to put row 0 at +v_axis (top).
+        data = np.ascontiguousarray(tex[::-1, :, None])
+        d[f"layer_{k}_{layer.name}"] = {
+            "type": "rectangle",
+            "to_world": T(m.tolist()),
+            "bsdf": {"type": "diffuse", "reflectance": 0.0},
+            "emitter": {"type": "area", "radiance": {"type": "bitmap", "data": mi.TensorXf(data), "raw": True, "filter_type": "nearest", "wrap_mode": "clamp"}},
+        }
+    if polarizer_deg is not None:
+        dist = 1e-3
+        side = 4.0 * dist * np.tan(0.5 * camera.fovx_rad) + 1e-3
+        c = np.asarray(camera.position, float) + dist * f
+        ang = np.radians(float(polarizer_deg))
+        # rectangle facing the camera (normal -f), its local x rotated by the angle about f
+        ax = np.cos(ang) * r + np.sin(ang) * u
+        ay = np.cross(-f, ax)
+        d["polarizer"] = {
+            "type": "rectangle",
+            "to_world": T(_rect_matrix(c, ax, ay, side, side).tolist()),
+            "bsdf": {"type": "polarizer", "theta": 0.0},
+        }
+    return d
+
+
+def specs_from_scene(scene, t_s: float = 0.0):  # pragma: no cover - filled in when generator.scene lands
+    """Geometry records from a :class:`generator.scene.SceneConfig` (see tiers_mitsuba)."""
+    raise NotImplementedError
