@@ -46,6 +46,9 @@ def atomic_path(final: str | os.PathLike, suffix: str | None = None) -> Iterator
     sfx = final.suffix if suffix is None else suffix
     fd, tmp = tempfile.mkstemp(prefix=f".{final.stem}.tmp-", suffix=sfx, dir=final.parent)
     os.close(fd)
+    umask = os.umask(0)
+    os.umask(umask)
+    os.chmod(tmp, 0o666 & ~umask)  # mkstemp makes 0600; give the usual file mode
     tmp_path = Path(tmp)
     try:
         yield tmp_path
