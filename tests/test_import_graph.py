@@ -3,7 +3,8 @@
 - reconstruct never imports generator (it must run on real captures);
 - spike_sim never imports generator;
 - only generator imports mitsuba/drjit, and only inside functions (lazy);
-- polspike's library modules (not the CLI) import no pipeline stage.
+- polspike's library modules (not the CLI, commands or the pipeline orchestration layer) import no stage;
+- no stage imports polspike.pipeline or the CLI.
 """
 
 from __future__ import annotations
@@ -53,7 +54,14 @@ def test_mitsuba_only_lazily_in_generator():
 
 def test_polspike_library_imports_no_stage():
     for f in _files("polspike"):
-        if "commands" in f.parts or f.name == "cli.py":
+        if "commands" in f.parts or "pipeline" in f.parts or f.name == "cli.py":
             continue
         _, allimp = _imports(f)
         assert not ({"generator", "spike_sim", "reconstruct"} & allimp), f"{f} imports a pipeline stage"
+
+
+def test_stages_do_not_import_orchestration():
+    for pkg in ("generator", "spike_sim", "reconstruct"):
+        for f in _files(pkg):
+            src = f.read_text()
+            assert "polspike.pipeline" not in src and "polspike.cli" not in src and "polspike.commands" not in src, f
