@@ -2,7 +2,7 @@
 
 Sources (``LayerConfig.source``):
     ``skimage:NAME``   a scikit-image bundled image (grey; works offline),
-    ``procedural:KIND``  checker | stripes | noise | gradient | disk | rings,
+    ``procedural:KIND``  checker | stripes | noise | gradient | disk | rings | flat (1.0),
     ``image:PATH``     one image file,
     ``folder:PATH``    a folder of frames (sorted by name) at ``content_fps``,
     ``video:PATH``     a video file (imageio/ffmpeg) at ``content_fps``.
@@ -36,7 +36,7 @@ __all__ = ["LayerPlane", "LayerContent", "load_source", "PROCEDURAL_KINDS", "SKI
 
 log = logging.getLogger(__name__)
 
-PROCEDURAL_KINDS = ("checker", "stripes", "noise", "gradient", "disk", "rings")
+PROCEDURAL_KINDS = ("checker", "stripes", "noise", "gradient", "disk", "rings", "flat")
 SKIMAGE_NAMES = (
     "astronaut", "brick", "camera", "cat", "chelsea", "clock", "coffee", "coins", "colorwheel", "grass", "gravel",
     "horse", "hubble_deep_field", "immunohistochemistry", "moon", "page", "retina", "rocket", "text",
@@ -59,6 +59,8 @@ def _to_gray01(img: np.ndarray) -> np.ndarray:
 def _procedural(kind: str, shape: tuple[int, int], seed: int) -> np.ndarray:
     h, w = shape
     y, x = np.mgrid[0:h, 0:w] / max(h, w)
+    if kind == "flat":
+        return np.ones((h, w))
     if kind == "checker":
         return ((np.floor(x * 12) + np.floor(y * 12)) % 2).astype(np.float64) * 0.8 + 0.1
     if kind == "stripes":
