@@ -40,6 +40,6 @@ def test_wrong_model_fails(tiny_scene, tmp_path):
     assert tiny_scene.pane.model == "thin_slab"
     s = validate_zeta(tiny_scene, tmp_path / "v", model="single", tolerance=1e-3)
     assert s["verdict"] == "fail"
-    # the slab doubles R roughly: the error is of the order of R itself
+    # slab minus single = R1 (1 - R1) / (1 + R1): of the order of R itself
     m = analytic_maps(tiny_scene)
-    assert s["errors"]["R_perp"]["max"] > 0.3 * float(m.R_perp.max())
+    assert s["errors"]["R_perp"]["max"] > 0.2 * float(m.R_perp.max())
