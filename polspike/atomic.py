@@ -55,13 +55,16 @@ def atomic_path(final: str | os.PathLike, suffix: str | None = None) -> Iterator
         os.replace(tmp_path, final)
     except OSError as exc:
         tmp_path.unlink(missing_ok=True)
-        if exc.errno in (errno.ENOSPC, errno.EDQUOT):
-            raise OutputError(f"disk full while writing {final}; free space or choose another --out") from None
+        if exc.errno in (errno.ENOSPC, errno.EDQUOT, errno.EFBIG):
+            raise OutputError(f"no space left (or file size limit reached) while writing {final}; free space or choose another --out") from None
         if exc.errno in (errno.EACCES, errno.EROFS, errno.EPERM):
             raise OutputError(f"cannot write {final}: {exc.strerror}; choose a writable --out") from None
         raise
-    except BaseException:
+    except BaseException as exc:
         tmp_path.unlink(missing_ok=True)
+        errno_ = getattr(exc, "errno", None) or getattr(getattr(exc, "__cause__", None), "errno", None)
+        if errno_ in (errno.ENOSPC, errno.EDQUOT, errno.EFBIG) or "No space left" in str(exc) or "File too large" in str(exc):
+            raise OutputError(f"no space left (or file size limit reached) while writing {final}; free space or choose another --out") from None
         raise
 
 

@@ -139,6 +139,8 @@ def _coerce(tp: Any, val: Any, key: str, where: str, md: dict) -> Any:
         if isinstance(val, bool) or not isinstance(val, (int, float)):
             raise ConfigError(f"{where}: {key} = {val!r} must be a number")
         val = float(val)
+        if not math.isfinite(val):
+            raise ConfigError(f"{where}: {key} = {val} must be a finite number")
         _check_range(val, md, key, where)
         return val
     if tp is int:

@@ -63,3 +63,9 @@ def test_pane_not_covering_view_is_a_scene_error():
     s = scene_from_dict({"pane": {"size_m": [0.2, 0.2]}})
     with pytest.raises(SceneError, match="does not cover the view"):
         check_scene_geometry(s)
+
+
+@pytest.mark.parametrize("bad", [float("inf"), float("nan"), -float("inf")])
+def test_non_finite_numbers_rejected(bad):
+    with pytest.raises(ConfigError, match="camera.position"):
+        scene_from_dict({"camera": {"position": [0.0, bad, 0.0]}})
