@@ -28,7 +28,8 @@ demo: install
 	$(BIN)/polspike demo --out $(OUT)
 
 test: install
-	$(BIN)/python -m pytest -q -m "not slow" $(PYTEST_ARGS)
+	@bash .ci/system-deps.sh --test
+	$(BIN)/python -m pytest -q -m "not slow" -p no:cacheprovider $(PYTEST_ARGS)
 
 test-all: install
 	$(BIN)/python -m pytest -q $(PYTEST_ARGS)
