@@ -19,7 +19,7 @@ follows BOTH lobes at every glass hit:
    (it sees the T layer).  Its accumulated Mueller product ``M_1 M_2 ... M_k``
    applied to unpolarized unit radiance (first column) is the Stokes vector
    it delivers to the camera.  Slabs sum all interreflections until the
-   branch weight falls below ``min_weight`` (incoherent sum, the
+   branch weight falls below ``min_weight`` (default 1e-7; incoherent sum, the
    ``2R/(1+R)`` law for a lossless slab; bulk absorption multiplies each
    internal segment by ``exp(-alpha * length)``).
 5. The summed Stokes vectors are rotated into the camera frame of the
@@ -63,6 +63,14 @@ def _mueller_np(M) -> np.ndarray:
     return np.moveaxis(a.reshape(4, 4, -1), -1, 0)
 
 
+def _scatter_add(acc: np.ndarray, idx: np.ndarray, val: np.ndarray) -> None:
+    """acc[idx] += val with repeated indices summed (bincount per column; faster than np.add.at)."""
+    if len(idx) == 0:
+        return
+    for c in range(acc.shape[1]):
+        acc[:, c] += np.bincount(idx, weights=val[:, c], minlength=acc.shape[0])
+
+
 def stokes_to_coefficients(s: np.ndarray, phi_perp_rad: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Invert the Stokes form of paper Eq. (2) given the s-direction angle.
 
@@ -90,7 +98,7 @@ def pane_coefficients(
     sub: int = 2,
     absorption_per_m: float = 0.0,
     max_depth: int = 64,
-    min_weight: float = 1e-9,
+    min_weight: float = 1e-7,
     chunk_rays: int = 1 << 20,
     progress: Callable[[int, int], None] | None = None,
 ) -> dict[str, np.ndarray]:
@@ -115,8 +123,10 @@ def pane_coefficients(
     Returns:
         dict of (H, W) float64 maps: ``theta`` (incidence angle, rad, of the
         camera ray on the first interface), ``phi_perp`` (rad, [0, pi)),
-        ``R_perp``, ``R_par``, ``T_perp``, ``T_par``, ``coverage`` (fraction
-        of sub-pixel rays that hit the pane), plus ``S_R`` and ``S_T``
+        ``R_perp``, ``R_par``, ``T_perp``, ``T_par``, ``G_perp``, ``G_par``
+        (the part of R after the first surface: the slab's ghost), ``coverage``
+        (fraction of sub-pixel rays that hit the pane), plus ``S_R``, ``S_R1``
+        (first-surface reflection only) and ``S_T``
         (3, H, W): camera-frame Stokes of unit unpolarized R / T layers.
     """
     import drjit as dr
@@ -130,6 +140,7 @@ def pane_coefficients(
     N = W * H * K * K
     s_r = np.zeros((4, N))
     s_t = np.zeros((4, N))
+    s_r1 = np.zeros((4, N))
     cos_i = np.zeros(N)
     hit0 = np.zeros(N, dtype=bool)
     phi_geo_xy = np.zeros((2, N))
@@ -137,13 +148,13 @@ def pane_coefficients(
     # evaluated (non-symbolic) BSDF calls: far lower per-launch overhead here
     with dr.scoped_set_flag(dr.JitFlag.SymbolicCalls, False):
         for ci, start in enumerate(chunks):
-            _trace_chunk(mi, dr, scene, sensor, start, min(N, start + chunk_rays), W, H, K, n_pane, up, absorption_per_m, max_depth, min_weight, s_r, s_t, cos_i, hit0, phi_geo_xy)
+            _trace_chunk(mi, dr, scene, sensor, start, min(N, start + chunk_rays), W, H, K, n_pane, up, absorption_per_m, max_depth, min_weight, s_r, s_t, s_r1, cos_i, hit0, phi_geo_xy)
             if progress is not None:
                 progress(ci + 1, len(chunks))
-    return _finish(s_r, s_t, cos_i, hit0, phi_geo_xy, W, H, K, model, n)
+    return _finish(s_r, s_t, s_r1, cos_i, hit0, phi_geo_xy, W, H, K, model, n)
 
 
-def _trace_chunk(mi, dr, scene, sensor, start, stop, W, H, K, n_pane, up, absorption_per_m, max_depth, min_weight, s_r, s_t, cos_i, hit0, phi_geo_xy) -> None:
+def _trace_chunk(mi, dr, scene, sensor, start, stop, W, H, K, n_pane, up, absorption_per_m, max_depth, min_weight, s_r, s_t, s_r1, cos_i, hit0, phi_geo_xy) -> None:
     """Trace rays start..stop (lane = pixel-major, sub-pixel minor) into the accumulators."""
     if True:
         idx = np.arange(start, stop)
@@ -168,13 +179,17 @@ def _trace_chunk(mi, dr, scene, sensor, start, stop, W, H, K, n_pane, up, absorp
         d = d0
         M = np.broadcast_to(np.eye(4), (len(lane), 4, 4)).copy()
         inside = np.zeros(len(lane), dtype=bool)
+        primary = np.zeros(len(lane), dtype=bool)
         acc_r = np.zeros((len(lane), 4))
         acc_t = np.zeros((len(lane), 4))
+        acc_r1 = np.zeros((len(lane), 4))  # first-surface reflection only (thick-slab primary image)
+        def ray_of(o, d):
+            return mi.Ray3f(mi.Point3f(*[mi.Float(o[:, k].astype(np.float32)) for k in range(3)]), mi.Vector3f(*[mi.Float(d[:, k].astype(np.float32)) for k in range(3)]))
+
         for depth in range(max_depth + 1):
             if len(lane) == 0:
                 break
-            r = mi.Ray3f(mi.Point3f(*[mi.Float(o[:, k].astype(np.float32)) for k in range(3)]), mi.Vector3f(*[mi.Float(d[:, k].astype(np.float32)) for k in range(3)]))
-            si = scene.ray_intersect(r)
+            si = scene.ray_intersect(ray_of(o, d))
             dr.eval(si.t, si.wi)
             valid = np.asarray(si.is_valid(), dtype=bool).reshape(-1)
             if depth == 0:
@@ -185,43 +200,51 @@ def _trace_chunk(mi, dr, scene, sensor, start, stop, W, H, K, n_pane, up, absorp
             if esc.any():
                 col = M[esc, :, 0]
                 toward_cam = (d[esc] @ n_pane) > 0
-                np.add.at(acc_r, lane[esc][toward_cam], col[toward_cam])
-                np.add.at(acc_t, lane[esc][~toward_cam], col[~toward_cam])
+                _scatter_add(acc_r, lane[esc][toward_cam], col[toward_cam])
+                _scatter_add(acc_t, lane[esc][~toward_cam], col[~toward_cam])
+                if depth == 1:
+                    first = esc & primary
+                    _scatter_add(acc_r1, lane[first], M[first, :, 0])
             if depth == max_depth or not valid.any():
                 if valid.any():
                     log.debug("two-lobe tracer: %d branches cut at max_depth %d", int(valid.sum()), max_depth)
                 break
+            if esc.any():  # compact to the branches that hit glass, then re-intersect them
+                lane, o, d, M, inside, primary = lane[valid], o[valid], d[valid], M[valid], inside[valid], primary[valid]
+                si = scene.ray_intersect(ray_of(o, d))
             seg = _np(si.t).reshape(-1)
-            atten = np.where(inside & valid, np.exp(-absorption_per_m * np.where(valid, seg, 0.0)), 1.0)
-            kids = []
-            active = mi.Bool(valid)
+            atten = np.where(inside, np.exp(-absorption_per_m * seg), 1.0) if absorption_per_m > 0 else None
+            Ma = M * atten[:, None, None] if atten is not None else M
             outs = []
             for comp in (0, 1):
                 ctx = mi.BSDFContext()
                 ctx.component = comp
-                bs, wt = si.bsdf().sample(ctx, si, 0.5, mi.Point2f(0.5, 0.5), active)
+                bs, wt = si.bsdf().sample(ctx, si, 0.5, mi.Point2f(0.5, 0.5))
                 outs.append((si.to_world_mueller(wt, -bs.wo, si.wi), si.spawn_ray(si.to_world(bs.wo))))
-            dr.eval(outs)  # one kernel for both lobes
+            dr.eval(outs)
+            kids = []
             for comp, (Mw_dr, nr) in enumerate(outs):
-                Mw = _mueller_np(Mw_dr)
-                kid_M = np.einsum("nij,njk->nik", M * atten[:, None, None], Mw)
-                ok = valid & np.isfinite(kid_M).all(axis=(1, 2)) & (kid_M[:, 0, 0] > min_weight)
-                kids.append((ok, _np(nr.o).T, _np(nr.d).T, kid_M, inside ^ (comp == 1)))
+                kid_M = Ma @ _mueller_np(Mw_dr)
+                ok = np.isfinite(kid_M).all(axis=(1, 2)) & (kid_M[:, 0, 0] > min_weight)
+                kids.append((ok, _np(nr.o).T, _np(nr.d).T, kid_M, inside ^ (comp == 1), np.full(len(ok), comp == 0 and depth == 0)))
             lane = np.concatenate([lane[k[0]] for k in kids])
             o = np.concatenate([k[1][k[0]] for k in kids])
             d = np.concatenate([k[2][k[0]] for k in kids])
             M = np.concatenate([k[3][k[0]] for k in kids])
             inside = np.concatenate([k[4][k[0]] for k in kids])
-        s_r[:, start:stop] = np.einsum("nij,nj->in", rot, acc_r)
-        s_t[:, start:stop] = np.einsum("nij,nj->in", rot, acc_t)
+            primary = np.concatenate([k[5][k[0]] for k in kids])
+        s_r[:, start:stop] = (rot @ acc_r[:, :, None])[:, :, 0].T
+        s_t[:, start:stop] = (rot @ acc_t[:, :, None])[:, :, 0].T
+        s_r1[:, start:stop] = (rot @ acc_r1[:, :, None])[:, :, 0].T
 
 
-def _finish(s_r, s_t, cos_i, hit0, phi_geo_xy, W, H, K, model, n) -> dict[str, np.ndarray]:
+def _finish(s_r, s_t, s_r1, cos_i, hit0, phi_geo_xy, W, H, K, model, n) -> dict[str, np.ndarray]:
     def per_pixel(a: np.ndarray) -> np.ndarray:
         return a.reshape(*a.shape[:-1], H, W, K * K).mean(axis=-1)
 
     S_R = per_pixel(s_r[:3])
     S_T = per_pixel(s_t[:3])
+    S_R1 = per_pixel(s_r1[:3])
     if model == "single":
         S_T = S_T * float(n) ** 2  # undo Mitsuba's 1/n^2 radiance scaling into glass: T = 1 - R
     cov = per_pixel(hit0.astype(np.float64))
@@ -234,7 +257,8 @@ def _finish(s_r, s_t, cos_i, hit0, phi_geo_xy, W, H, K, model, n) -> dict[str, n
     phi_perp = np.where(pol > 1e-7, phi_st, phi_geo)
     R_perp, R_par = stokes_to_coefficients(S_R, phi_perp)
     T_perp, T_par = stokes_to_coefficients(S_T, phi_perp)
-    out = {"theta": theta, "phi_perp": phi_perp, "R_perp": R_perp, "R_par": R_par, "T_perp": T_perp, "T_par": T_par, "coverage": cov, "S_R": S_R, "S_T": S_T, "phi_perp_geometric": phi_geo}
+    R1_perp, R1_par = stokes_to_coefficients(S_R1, phi_perp)
+    out = {"theta": theta, "phi_perp": phi_perp, "R_perp": R_perp, "R_par": R_par, "T_perp": T_perp, "T_par": T_par, "coverage": cov, "G_perp": R_perp - R1_perp, "G_par": R_par - R1_par, "S_R": S_R, "S_R1": S_R1, "S_T": S_T, "phi_perp_geometric": phi_geo}
     for k, v in out.items():
         if not np.all(np.isfinite(v)):
             raise SceneError(f"two-lobe tracer produced non-finite values in {k}; check the pane geometry")

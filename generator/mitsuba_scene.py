@@ -134,8 +134,8 @@ class LayerPlane:
         half_size: (half width along u, half height along v) in metres.
         texture: (H_tex, W_tex) float radiance (linear, >= 0), row 0 at +v.
         name: short label used in the scene dict.
-
-    The emitting side faces ``cross(u_axis, v_axis)``.
+        normal: emitting side (default ``cross(u_axis, v_axis)``); give it for
+            a mirrored (left-handed) frame such as the R plane's.
     """
 
     center: tuple[float, float, float]
@@ -144,15 +144,16 @@ class LayerPlane:
     half_size: tuple[float, float]
     texture: np.ndarray
     name: str = "layer"
+    normal: tuple[float, float, float] | None = None
 
 
-def _rect_matrix(center, u, v, hu: float, hv: float) -> np.ndarray:
+def _rect_matrix(center, u, v, hu: float, hv: float, normal=None) -> np.ndarray:
     """4x4 to_world of Mitsuba's ``rectangle`` ([-1,1]^2 in local xy, normal +z)."""
     u, v = np.asarray(u, float), np.asarray(v, float)
     m = np.eye(4)
     m[:3, 0] = u * hu
     m[:3, 1] = v * hv
-    m[:3, 2] = np.cross(u, v)
+    m[:3, 2] = np.cross(u, v) if normal is None else _unit(normal, "layer normal")
     m[:3, 3] = np.asarray(center, float)
     return m
 
@@ -238,7 +239,7 @@ def build_scene_dict(
             raise SceneError(f"layer {layer.name}: texture must be (H, W), got shape {tex.shape}")
         if not np.all(np.isfinite(tex)) or float(tex.min(initial=0.0)) < 0:
             raise SceneError(f"layer {layer.name}: texture must be finite and >= 0 (min {np.nanmin(tex)})")
-        m = _rect_matrix(layer.center, _unit(layer.u_axis, "layer u"), _unit(layer.v_axis, "layer v"), *map(float, layer.half_size))
+        m = _rect_matrix(layer.center, _unit(layer.u_axis, "layer u"), _unit(layer.v_axis, "layer v"), *map(float, layer.half_size), normal=layer.normal)
         # rectangle uv: u = (x+1)/2 along +x, v = (y+1)/2 along +y; the bitmap's row 0
         # is looked up at v = 0, so flip the rows to put row 0 at +v_axis (top).
         data = np.ascontiguousarray(tex[::-1, :, None])
@@ -264,6 +265,26 @@ def build_scene_dict(
     return d
 
 
-def specs_from_scene(scene, t_s: float = 0.0):  # pragma: no cover - filled in when generator.scene lands
-    """Geometry records from a :class:`generator.scene.SceneConfig` (see tiers_mitsuba)."""
-    raise NotImplementedError
+def specs_from_scene(scene, n: float | None = None) -> tuple[CameraSpec, PaneSpec]:
+    """Camera and pane records of a :class:`generator.scene.SceneConfig`.
+
+    The pane's ``pane_plane()`` is its FRONT surface (as in the analytic tier);
+    slabs extend ``thickness`` behind it, so the mid-plane is shifted.
+
+    Args:
+        scene: the scene.
+        n: refractive index to use (default: ``scene.pane.index(550 nm)``).
+    """
+    cam = scene.camera_model()
+    plane = scene.pane_plane()
+    nrm = _unit(plane.normal, "pane normal")
+    e_w, _ = scene.pane_axes()
+    idx = float(scene.pane.index(550.0) if n is None else n)
+    t = scene.pane.thickness_m if scene.pane.model != "single" else 0.0
+    center = np.asarray(plane.point, float) - 0.5 * t * nrm
+    camera = CameraSpec(
+        int(cam.width), int(cam.height), float(cam.fov_x_rad),
+        tuple(map(float, cam.position)), tuple(map(float, cam.position + cam.forward)), tuple(map(float, cam.up)),
+    )
+    pane = PaneSpec(scene.pane.model, idx, tuple(map(float, center)), tuple(map(float, nrm)), tuple(map(float, scene.pane.size_m)), t, float(scene.pane.absorption_per_m), tuple(map(float, e_w)))
+    return camera, pane
