@@ -1,0 +1,211 @@
+"""Reflection-Invariant Registration (RIR), supp. Sec. 6.
+
+Within a window of N frames the reflection layer flickers with the polarizer
+(it is strongly polarized), the transmission barely does.  Registering raw
+frames therefore locks onto the flickering reflection.  RIR instead:
+
+1. fits the per-pixel harmonic model (supp. Eq. (1)) and its DoP (supp. Eq. (2));
+2. keeps low-DoP, well-exposed pixels (:func:`registration_mask`);
+3. estimates the translation of each frame to the centre frame by masked
+   phase correlation (scikit-image's ``phase_cross_correlation`` with
+   ``reference_mask``/``moving_mask``, Padfield 2010), which is whole-pixel
+   only, then refines it to sub-pixel precision by a masked Gauss-Newton
+   (Lucas-Kanade) fit of translation plus gain/offset on the same pixels;
+4. warps frames *and* the per-frame coefficient maps (zeta) with one
+   differentiable bilinear warp (:func:`warp`, ``grid_sample``).
+
+Shift convention: ``shift = (dy, dx)`` in pixels is the translation that,
+applied to frame k, registers it onto the centre frame:
+``warp(I_k, shift)(y, x) = I_k(y - dy, x - dx)``, the same convention as
+``skimage.registration.phase_cross_correlation``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from polspike.config import opt
+from polspike.errors import ShapeError
+
+from reconstruct.harmonic_fit import dop, harmonic_fit
+
+__all__ = ["RirConfig", "registration_mask", "warp", "estimate_shifts", "align_window"]
+
+log = logging.getLogger(__name__)
+
+
+@dataclasses.dataclass(frozen=True)
+class RirConfig:
+    """Parameters of reflection-invariant registration."""
+
+    dop_max: float = opt(0.12, "pixels with DoP above this are excluded (reflection-dominated)", lo=0.0, hi=10.0)
+    exposure_lo: float = opt(0.05, "exclude pixels darker than this fraction of the 99th-percentile a0", lo=0.0, hi=1.0)
+    exposure_hi: float = opt(0.98, "exclude pixels brighter than this fraction of the max a0 (saturation)", lo=0.0, hi=1.0)
+    min_fraction: float = opt(0.05, "if fewer pixels pass, keep this fraction of well-exposed pixels with the lowest DoP", lo=0.0, hi=1.0)
+    smooth_sigma_px: float = opt(1.0, "Gaussian pre-smoothing of frames before registration, pixels (0 = none)", lo=0.0, hi=20.0)
+    refine_iters: int = opt(8, "Gauss-Newton sub-pixel refinement iterations (0 = whole-pixel only)", lo=0, hi=100)
+    max_shift_px: float = opt(16.0, "shifts larger than this are treated as failed registrations and set to 0", lo=0.0, hi=1e4)
+    erode_px: int = opt(4, "erosion of the mask for sub-pixel refinement, pixels", lo=0, hi=100)
+    overlap_ratio: float = opt(0.3, "minimum overlap for skimage's masked correlation", lo=0.0, hi=1.0)
+
+
+def registration_mask(I: torch.Tensor, phi: torch.Tensor, config: RirConfig = RirConfig()) -> torch.Tensor:
+    """Low-DoP, well-exposed pixels of a window.
+
+    Args:
+        I: frames (N, H, W).
+        phi: angles (N,) radians.
+
+    Returns:
+        bool mask (H, W).
+    """
+    with torch.no_grad():
+        a0, ac, as_ = harmonic_fit(I, phi)
+        p = dop(a0, ac, as_, eps=1e-6 * float(a0.abs().max().clamp_min(1e-30)))
+        ref = torch.quantile(a0.flatten().float(), 0.99).to(a0.dtype)
+        well = (a0 >= config.exposure_lo * ref) & (a0 <= config.exposure_hi * a0.max())
+        mask = well & (p <= config.dop_max)
+        need = int(config.min_fraction * mask.numel())
+        if int(mask.sum()) < need and int(well.sum()) > 0:
+            pw = torch.where(well, p, torch.full_like(p, float("inf")))
+            k = min(need, int(well.sum()))
+            thr = torch.kthvalue(pw.flatten(), k).values
+            mask = well & (pw <= thr)
+    return mask
+
+
+def warp(x: torch.Tensor, shifts: torch.Tensor) -> torch.Tensor:
+    """Differentiable sub-pixel translation of images, ``out(y, x) = in(y - dy, x - dx)``.
+
+    Args:
+        x: images (..., N, H, W) (frames or per-frame coefficient maps).
+        shifts: (..., N, 2) as (dy, dx) in pixels, broadcast over the leading dims.
+
+    Returns:
+        warped images, same shape as x (bilinear, border values replicated).
+    """
+    if x.dim() < 3 or shifts.shape[-1] != 2:
+        raise ShapeError(f"warp needs x (..., N, H, W) and shifts (..., N, 2); got {tuple(x.shape)} and {tuple(shifts.shape)}", actual_shape=tuple(shifts.shape), expected_shape="(..., N, 2)")
+    H, W = x.shape[-2:]
+    shifts = torch.broadcast_to(shifts.to(x.dtype), x.shape[:-2] + (2,))
+    flat = x.reshape(-1, 1, H, W)
+    s = shifts.reshape(-1, 2)
+    ys = (2.0 * torch.arange(H, dtype=x.dtype, device=x.device) + 1.0) / H - 1.0
+    xs = (2.0 * torch.arange(W, dtype=x.dtype, device=x.device) + 1.0) / W - 1.0
+    gy, gx = torch.meshgrid(ys, xs, indexing="ij")
+    gx = gx[None] - (2.0 * s[:, 1] / W)[:, None, None]
+    gy = gy[None] - (2.0 * s[:, 0] / H)[:, None, None]
+    grid = torch.stack([gx, gy], dim=-1)
+    out = F.grid_sample(flat, grid, mode="bilinear", padding_mode="border", align_corners=False)
+    return out.reshape(x.shape)
+
+
+def _smooth(img: np.ndarray, sigma: float) -> np.ndarray:
+    if sigma <= 0:
+        return img
+    from scipy.ndimage import gaussian_filter
+
+    return gaussian_filter(img, sigma)
+
+
+def _erode(mask: np.ndarray, px: int) -> np.ndarray:
+    if px <= 0:
+        return mask
+    from scipy.ndimage import binary_erosion
+
+    return binary_erosion(mask, iterations=px, border_value=0)
+
+
+def _refine(ref: torch.Tensor, mov: torch.Tensor, mask: torch.Tensor, s0: torch.Tensor, iters: int) -> torch.Tensor:
+    """Masked Gauss-Newton: min_{s, g, o} sum_mask (g warp(mov, s) + o - ref)^2, from s0. float64 (H, W)."""
+    s = s0.clone()
+    m = mask.to(ref.dtype)
+    nm = m.sum().clamp_min(1.0)
+    for _ in range(iters):
+        J = warp(mov[None], s[None])[0]
+        # photometric gain/offset by weighted LS on the mask
+        mj, mr = (m * J).sum() / nm, (m * ref).sum() / nm
+        vj = (m * (J - mj) ** 2).sum().clamp_min(1e-30)
+        g = (m * (J - mj) * (ref - mr)).sum() / vj
+        o = mr - g * mj
+        gy, gx = torch.gradient(J)
+        r = ref - (g * J + o)
+        # warp(mov, s + d) ~= J - grad J . d   =>   r ~= -g (gy dy + gx dx)
+        ay, ax = -g * gy, -g * gx
+        Hm = torch.stack([torch.stack([(m * ay * ay).sum(), (m * ay * ax).sum()]), torch.stack([(m * ax * ay).sum(), (m * ax * ax).sum()])])
+        rhs = torch.stack([(m * ay * r).sum(), (m * ax * r).sum()])
+        Hm = Hm + 1e-9 * Hm.diagonal().sum() * torch.eye(2, dtype=ref.dtype) + 1e-30 * torch.eye(2, dtype=ref.dtype)
+        d = torch.linalg.solve(Hm, rhs)
+        d = d.clamp(-1.0, 1.0)
+        s = s + d
+        if float(d.abs().max()) < 1e-4:
+            break
+    return s
+
+
+def estimate_shifts(
+    I: torch.Tensor, phi: torch.Tensor, center: int | None = None, mask: torch.Tensor | None = None, config: RirConfig = RirConfig()
+) -> torch.Tensor:
+    """Translation of every frame of a window onto its centre frame (sub-pixel).
+
+    Args:
+        I: frames (N, H, W) (any device; registration runs on CPU in float64).
+        phi: angles (N,) radians.
+        center: index of the reference frame (default N // 2).
+        mask: bool (H, W) registration mask (default :func:`registration_mask`).
+
+    Returns:
+        shifts (N, 2) as (dy, dx) pixels, float64, on I's device; the centre row is 0.
+    """
+    from skimage.registration import phase_cross_correlation
+
+    if I.dim() != 3:
+        raise ShapeError(f"estimate_shifts needs one window (N, H, W); got {tuple(I.shape)}", actual_shape=tuple(I.shape), expected_shape="(N, H, W)")
+    N = I.shape[0]
+    c = N // 2 if center is None else center
+    if mask is None:
+        mask = registration_mask(I, phi, config)
+    frames = I.detach().to("cpu", torch.float64).numpy()
+    m_np = mask.detach().cpu().numpy().astype(bool)
+    sm = [_smooth(f, config.smooth_sigma_px) for f in frames]
+    ref_t = torch.from_numpy(sm[c])
+    # the refinement samples neighbours (bilinear warp, finite-difference gradients, smoothing):
+    # erode its mask so no excluded (reflection) pixel or image border leaks in
+    m_t = torch.from_numpy(_erode(m_np, config.erode_px))
+    out = torch.zeros(N, 2, dtype=torch.float64)
+    for k in range(N):
+        if k == c or not m_np.any():
+            continue
+        shift = phase_cross_correlation(sm[c], sm[k], reference_mask=m_np, moving_mask=m_np, overlap_ratio=config.overlap_ratio)[0]
+        s0 = torch.as_tensor(np.asarray(shift, dtype=np.float64))
+        if config.refine_iters > 0:
+            s0 = _refine(ref_t, torch.from_numpy(sm[k]), m_t, s0, config.refine_iters)
+        if not torch.isfinite(s0).all() or float(s0.abs().max()) > config.max_shift_px:
+            log.debug("frame %d: registration failed (shift %s), using 0", k, s0.tolist())
+            s0 = torch.zeros(2, dtype=torch.float64)
+        out[k] = s0
+    return out.to(I.device)
+
+
+def align_window(
+    I: torch.Tensor, phi: torch.Tensor, coeffs: torch.Tensor | None = None, config: RirConfig = RirConfig()
+) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor]:
+    """RIR on one window: estimate shifts and warp frames and per-frame maps alike.
+
+    Args:
+        I: frames (N, H, W).
+        phi: angles (N,) radians.
+        coeffs: optional per-frame maps (N, H, W) or (C, N, H, W) (e.g. zeta) warped with the same shifts.
+
+    Returns:
+        (aligned I, aligned coeffs or None, shifts (N, 2)).
+    """
+    shifts = estimate_shifts(I, phi, config=config)
+    sI = warp(I, shifts.to(I.dtype))
+    sc = None if coeffs is None else warp(coeffs, shifts.to(coeffs.dtype))
+    return sI, sc, shifts

@@ -1,0 +1,243 @@
+"""Physics solvers for the stacked mixing system, supp. Eq. (3)-(15).
+
+Per pixel, a window of N = 2K+1 observations gives (supp. Eq. (3)-(5))
+
+    A x ~= b,   A_k = [zeta_k, 1 - zeta_k],   b_k = 2 I(i+k),   x = [R, T].
+
+Every solver here reduces to the weighted ridge normal equations (supp. Eq. (9))
+
+    (A^T W A + lambda' I) x = A^T W b,     lambda' = lambda * sum_k w_k,
+
+solved in closed form per pixel (2x2 adjugate / determinant): no per-pixel
+Python loop, batched over any leading dimensions, any device, differentiable.
+
+Scaling of lambda (documented choice): supp. Eq. (7) is written for the raw
+weights; we multiply lambda by sum_k w_k, i.e. the data term is the weighted
+*mean* squared residual.  Then lambda is dimensionless, independent of N and of
+the scale of w (uniform weights and softmax weights give the same solution).
+
+Solvers (all share :func:`solve_weighted_ridge`):
+
+* ``ls``: plain least squares (lambda = 0 plus the numerical floor below).
+* ``ridge``: a fixed lambda (:attr:`SolverConfig.ridge_lambda`).
+* ``irls``: least squares followed by ``irls_iters`` Huber reweightings,
+  supp. Eq. (10)-(11).
+* ``rwps``: reliability weights w in [0, 1], per-pixel lambda from Conf,
+  supp. Eq. (8), then the same IRLS reweighting (supp. Sec. 8: "IRLS on top
+  of RWPS").
+
+Conf (supp. Eq. (12)-(15)) is det(M) of the weighted moment matrix.  Since
+det(M) = sum_{j<k} w_j w_k (zeta_j - zeta_k)^2 = (sum w)^2 Var_w(zeta), we
+normalise it as
+
+    d = 4 det(M) / (sum_k w_k)^2 = 4 Var_w(zeta)      in [0, 1]
+    Conf = d (1 + kappa) / (d + kappa)                 in [0, 1]
+
+(d = 1 only when half the weight sits at zeta = 0 and half at zeta = 1).
+kappa is the value of d at which Conf = 1/(2) (1 + kappa) ~ 0.5; the default
+kappa = 0.01 puts Conf = 0.5 at a zeta standard deviation of 0.05, the middle
+of what glass produces (R_perp - R_par from 0 to ~0.3).  Conf is per pixel,
+invariant to the scale of w, monotone in det(M) and smooth.
+
+Numerical floor: the 2x2 system gets lambda' + eps * tr(M) + tiny on its
+diagonal, eps = 1e-12 (float64) or 1e-7 (float32).  With all zeta equal or all
+weights zero the result is finite (no NaN, no inf): the near minimum-norm
+solution, or 0 when every weight is zero.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import torch
+
+from polspike.config import opt
+from polspike.errors import ConfigError, ShapeError
+
+__all__ = [
+    "SOLVERS",
+    "SolverConfig",
+    "SolverResult",
+    "moments",
+    "confidence",
+    "lambda_from_conf",
+    "solve_weighted_ridge",
+    "huber_factor",
+    "solve",
+    "poisson_reliability",
+]
+
+SOLVERS = ("ls", "ridge", "irls", "rwps")
+"""Solver names accepted by :func:`solve`."""
+
+
+@dataclasses.dataclass(frozen=True)
+class SolverConfig:
+    """Parameters of the physics solvers (dimensionless unless stated)."""
+
+    ridge_lambda: float = opt(3e-3, "lambda of the fixed-lambda ridge solver (times sum of weights)", lo=0.0, hi=1e6)
+    lambda_low: float = opt(1e-4, "RWPS lambda at Conf = 1, supp. Eq. (8)", lo=0.0, hi=1e6)
+    lambda_high: float = opt(3e-2, "RWPS lambda at Conf = 0, supp. Eq. (8); must exceed lambda_low", lo=0.0, hi=1e6)
+    conf_kappa: float = opt(0.01, "Conf normalisation: value of 4 Var_w(zeta) giving Conf ~ 0.5", lo=1e-9, hi=1.0)
+    irls_iters: int = opt(3, "Huber reweighting iterations after the first solve, supp. Sec. 8", lo=0, hi=100)
+    huber_c: float = opt(1.345, "Huber threshold delta in units of the per-pixel robust residual scale", lo=1e-3, hi=100.0)
+    huber_floor: float = opt(1e-3, "absolute floor on delta, in units of b (2 I)", lo=0.0, hi=1e6)
+
+
+@dataclasses.dataclass
+class SolverResult:
+    """Solver output: layers (..., H, W), Conf (..., H, W), final weights (..., N, H, W)."""
+
+    R: torch.Tensor
+    T: torch.Tensor
+    conf: torch.Tensor
+    weights: torch.Tensor
+    lam: torch.Tensor
+
+
+def _eps(dtype: torch.dtype) -> float:
+    return 1e-12 if dtype == torch.float64 else 1e-7
+
+
+def moments(zeta: torch.Tensor, w: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Weighted moments S_rr, S_rt, S_tt (supp. Eq. (14)) and sum w, over the window axis -3."""
+    a = zeta
+    bt = 1.0 - zeta
+    S_rr = (w * a * a).sum(-3)  # supp. Eq. (14)
+    S_rt = (w * a * bt).sum(-3)
+    S_tt = (w * bt * bt).sum(-3)
+    return S_rr, S_rt, S_tt, w.sum(-3)
+
+
+def confidence(zeta: torch.Tensor, w: torch.Tensor | None = None, kappa: float = 0.01) -> torch.Tensor:
+    """Solver confidence in [0, 1] from det of the weighted moment matrix, supp. Eq. (12)-(15).
+
+    Args:
+        zeta: mixing coefficients (..., N, H, W) in [0, 1].
+        w: weights broadcastable to zeta (default 1).
+        kappa: normalisation constant (module docstring).
+
+    Returns:
+        Conf (..., H, W) = d (1 + kappa) / (d + kappa), d = 4 det(M) / (sum w)^2.
+    """
+    w = torch.ones_like(zeta) if w is None else torch.broadcast_to(w.to(zeta.dtype), zeta.shape)
+    S_rr, S_rt, S_tt, sw = moments(zeta, w)
+    det = (S_rr * S_tt - S_rt * S_rt).clamp_min(0.0)  # supp. Eq. (15)
+    tiny = torch.finfo(zeta.dtype).tiny ** 0.5
+    d = (4.0 * det / (sw * sw + tiny)).clamp(0.0, 1.0)
+    return d * (1.0 + kappa) / (d + kappa)
+
+
+def lambda_from_conf(conf: torch.Tensor, lambda_low: float, lambda_high: float) -> torch.Tensor:
+    """Per-pixel ridge strength, supp. Eq. (8): lambda_low Conf + lambda_high (1 - Conf)."""
+    return lambda_low * conf + lambda_high * (1.0 - conf)  # supp. Eq. (8)
+
+
+def solve_weighted_ridge(
+    zeta: torch.Tensor, b: torch.Tensor, w: torch.Tensor, lam: torch.Tensor | float = 0.0
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Closed-form (A^T W A + lambda sum(w) I)^{-1} A^T W b per pixel, supp. Eq. (9).
+
+    Args:
+        zeta: (..., N, H, W) mixing coefficients.
+        b: (..., N, H, W) right sides, b_k = 2 I(i+k).
+        w: (..., N, H, W) non-negative weights.
+        lam: scalar or (..., H, W) dimensionless ridge strength.
+
+    Returns:
+        (R, T), each (..., H, W).
+    """
+    S_rr, S_rt, S_tt, sw = moments(zeta, w)
+    r_R = (w * zeta * b).sum(-3)
+    r_T = (w * (1.0 - zeta) * b).sum(-3)
+    tr = S_rr + S_tt
+    tiny = torch.finfo(zeta.dtype).tiny ** 0.5
+    diag = lam * sw + _eps(zeta.dtype) * tr + tiny
+    m11 = S_rr + diag
+    m22 = S_tt + diag
+    det = m11 * m22 - S_rt * S_rt  # >= diag * tr > 0
+    R = (m22 * r_R - S_rt * r_T) / det  # supp. Eq. (9), 2x2 adjugate
+    T = (m11 * r_T - S_rt * r_R) / det
+    return R, T
+
+
+def huber_factor(r: torch.Tensor, delta: torch.Tensor, eps: float = 1e-12) -> torch.Tensor:
+    """Huber-style factor q = min(1, delta / (|r| + eps)), supp. Eq. (11)."""
+    return torch.clamp(delta / (r.abs() + eps), max=1.0)  # supp. Eq. (11)
+
+
+def _robust_scale(r: torch.Tensor) -> torch.Tensor:
+    """Per-pixel residual scale 1.4826 * median_k |r_k| over the window axis -3."""
+    return 1.4826 * r.abs().median(dim=-3).values
+
+
+def poisson_reliability(I: torch.Tensor, floor: float = 1e-3) -> torch.Tensor:
+    """Classical reliability weights in (0, 1] for spike-count frames.
+
+    The variance of a spike-count frame grows with its rate (Poisson), so the
+    inverse-variance weight of frame k relative to the window's least-exposed
+    frame is w_k = (min_j I_j + c) / (I_k + c), c = floor * max(mean I, tiny).
+    Used by RWPS when no learned reliability (issue 9) is given.
+
+    Args:
+        I: frames (..., N, H, W), non-negative.
+        floor: relative offset c that keeps dark pixels at w = 1.
+
+    Returns:
+        weights (..., N, H, W) in (0, 1].
+    """
+    c = floor * I.mean(dim=(-3, -2, -1), keepdim=True).clamp_min(torch.finfo(I.dtype).tiny) + torch.finfo(I.dtype).tiny
+    Ic = I.clamp_min(0.0) + c
+    return Ic.min(dim=-3, keepdim=True).values / Ic
+
+
+def solve(
+    method: str,
+    zeta: torch.Tensor,
+    I: torch.Tensor,
+    weights: torch.Tensor | None = None,
+    config: SolverConfig = SolverConfig(),
+) -> SolverResult:
+    """Recover (R, T) from a window of observations with one of :data:`SOLVERS`.
+
+    Args:
+        method: ``ls``, ``ridge``, ``irls`` or ``rwps``.
+        zeta: (..., N, H, W) mixing coefficients in [0, 1] (paper Eq. (2)).
+        I: (..., N, H, W) observations I(i+k) in radiance units (paper Eq. (1):
+            I = 1/2 (zeta R + (1 - zeta) T)); b = 2 I, supp. Eq. (3).
+        weights: reliability weights in [0, 1] broadcastable to I (rwps only;
+            default :func:`poisson_reliability` of I); ignored by other solvers.
+        config: solver parameters.
+
+    Returns:
+        :class:`SolverResult` with R, T, Conf (computed with the initial weights),
+        the final effective weights and lambda.
+    """
+    if method not in SOLVERS:
+        raise ConfigError(f"unknown solver {method!r}; choose one of {list(SOLVERS)}")
+    if zeta.shape != I.shape and torch.broadcast_shapes(zeta.shape, I.shape) != I.shape:
+        raise ShapeError(f"zeta {tuple(zeta.shape)} must broadcast to I {tuple(I.shape)}", actual_shape=tuple(zeta.shape), expected_shape=tuple(I.shape))
+    if I.dim() < 3:
+        raise ShapeError(f"I must be (..., N, H, W); got {tuple(I.shape)}", actual_shape=tuple(I.shape), expected_shape="(..., N, H, W)")
+    zeta = torch.broadcast_to(zeta.to(I.dtype), I.shape)
+    b = 2.0 * I  # supp. Eq. (3)
+    if method == "rwps":
+        w0 = poisson_reliability(I) if weights is None else torch.broadcast_to(weights.to(I.dtype), I.shape).clamp(0.0, 1.0)
+    else:
+        w0 = torch.ones_like(I)
+    conf = confidence(zeta, w0, config.conf_kappa)
+    if method == "rwps":
+        lam = lambda_from_conf(conf, config.lambda_low, config.lambda_high)
+    elif method == "ridge":
+        lam = torch.full_like(conf, config.ridge_lambda)
+    else:
+        lam = torch.zeros_like(conf)
+    R, T = solve_weighted_ridge(zeta, b, w0, lam)
+    w = w0
+    if method in ("irls", "rwps"):
+        for _ in range(config.irls_iters):
+            r = b - (zeta * R.unsqueeze(-3) + (1.0 - zeta) * T.unsqueeze(-3))  # supp. Eq. (10)
+            delta = (config.huber_c * _robust_scale(r)).clamp_min(config.huber_floor).unsqueeze(-3)
+            w = w0 * huber_factor(r, delta)  # supp. Eq. (11): w^(j+1) = w q^(j)
+            R, T = solve_weighted_ridge(zeta, b, w, lam)
+    return SolverResult(R=R, T=T, conf=conf, weights=w, lam=lam)

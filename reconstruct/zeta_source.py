@@ -1,0 +1,107 @@
+"""Where the mixing coefficients zeta come from: ground truth, physics, or a learned estimator.
+
+* ``gt``: per-pixel pane maps R_perp, R_par, phi_perp shipped with a dataset
+  group (the oracle, for evaluation), turned into zeta by paper Eq. (2).
+* ``physics``: a calibrated pane geometry (camera, pane plane, index, pane
+  model) -> theta(p), phi_perp(p) by :mod:`polspike.physics.geometry`, Fresnel
+  reflectances by :mod:`polspike.physics.fresnel`, then paper Eq. (2).
+* ``learned``: the estimator of issue 9 (not implemented yet).
+
+A spike frame integrates over an aggregation window during which the polarizer
+turns by ``span`` radians (0.65 ms at 30 rev/s = 7 deg).  The frame's zeta is the
+window average of Eq. (2): cos 2(phi - phi_perp) is multiplied by
+sinc_span = sin(span) / span (exact for constant rotation speed).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+import torch
+
+from polspike.errors import ConfigError, ShapeError
+
+__all__ = ["ZETA_SOURCES", "zeta_eq2", "PaneMaps", "zeta_from_maps", "pane_maps_from_geometry", "zeta_learned"]
+
+ZETA_SOURCES = ("gt", "physics", "learned")
+"""Names accepted by the evaluation harness's ``--zeta`` option."""
+
+
+def _span_factor(span_rad: float) -> float:
+    return 1.0 if span_rad == 0.0 else math.sin(span_rad) / span_rad
+
+
+def zeta_eq2(
+    phi: torch.Tensor, R_perp: torch.Tensor, R_par: torch.Tensor, phi_perp: torch.Tensor, span_rad: float = 0.0
+) -> torch.Tensor:
+    """Paper Eq. (2) in torch, averaged over a polarizer sweep of ``span_rad``.
+
+    zeta = R_perp cos^2(phi - phi_perp) + R_par sin^2(phi - phi_perp)
+         = (R_perp + R_par)/2 + (R_perp - R_par)/2 cos 2(phi - phi_perp)
+
+    Args:
+        phi: polarizer angles (N,) or (..., N), radians (window centres).
+        R_perp, R_par, phi_perp: maps (..., H, W).
+        span_rad: polarizer rotation during one aggregation window (0 = instantaneous).
+
+    Returns:
+        zeta (..., N, H, W) in [min(R_perp, R_par), max(R_perp, R_par)].
+    """
+    ph = phi[..., None, None]
+    mean = 0.5 * (R_perp + R_par).unsqueeze(-3)
+    amp = 0.5 * (R_perp - R_par).unsqueeze(-3)
+    return mean + amp * _span_factor(span_rad) * torch.cos(2.0 * (ph - phi_perp.unsqueeze(-3)))  # paper Eq. (2)
+
+
+@dataclasses.dataclass(frozen=True)
+class PaneMaps:
+    """Per-pixel pane response: R_perp, R_par (reflectances), phi_perp (radians), each (H, W) float."""
+
+    R_perp: np.ndarray
+    R_par: np.ndarray
+    phi_perp: np.ndarray
+
+    def __post_init__(self) -> None:
+        shapes = {np.shape(self.R_perp), np.shape(self.R_par), np.shape(self.phi_perp)}
+        if len(shapes) != 1 or len(next(iter(shapes))) != 2:
+            raise ShapeError(f"PaneMaps needs three (H, W) maps of one shape; got {sorted(shapes)}", actual_shape=None, expected_shape="(H, W)")
+
+
+def zeta_from_maps(
+    maps: PaneMaps, phi: torch.Tensor | np.ndarray, span_rad: float = 0.0, *, dtype: torch.dtype = torch.float32, device: str | torch.device = "cpu"
+) -> torch.Tensor:
+    """zeta (..., N, H, W) for polarizer angles phi (..., N) from pane maps, paper Eq. (2).
+
+    Agrees with :func:`polspike.physics.zeta.zeta` at span_rad = 0 (tested).
+    """
+    t = lambda a: torch.as_tensor(np.asarray(a), dtype=dtype, device=device)  # noqa: E731
+    phi_t = torch.as_tensor(phi, dtype=dtype, device=device)
+    return zeta_eq2(phi_t, t(maps.R_perp), t(maps.R_par), t(maps.phi_perp), span_rad)
+
+
+def pane_maps_from_geometry(camera, plane, n: float, model: str = "single", thickness_m: float = 0.0, absorption_per_m: float = 0.0) -> PaneMaps:
+    """Calibrated pane geometry -> per-pixel R_perp, R_par, phi_perp (the ``physics`` source).
+
+    Args:
+        camera: :class:`polspike.physics.geometry.PinholeCamera` (calibrated intrinsics/pose).
+        plane: :class:`polspike.physics.geometry.Plane` of the pane's front surface.
+        n: relative refractive index of the glass.
+        model: pane model, one of :data:`polspike.physics.fresnel.PANE_MODELS`.
+        thickness_m, absorption_per_m: slab parameters.
+
+    Returns:
+        :class:`PaneMaps` with (H, W) float64 maps.
+    """
+    from polspike.physics.fresnel import pane_coefficients
+    from polspike.physics.geometry import incidence_geometry
+
+    geo = incidence_geometry(camera, plane)
+    co = pane_coefficients(geo["theta"], n, model=model, thickness_m=thickness_m, absorption_per_m=absorption_per_m)
+    return PaneMaps(R_perp=co["R_perp"], R_par=co["R_par"], phi_perp=geo["phi_perp"])
+
+
+def zeta_learned(*_args, **_kwargs) -> torch.Tensor:
+    """Placeholder for the learned zeta estimator (issue 9)."""
+    raise ConfigError("zeta source 'learned' is not available yet (issue 9: learned estimator); use --zeta gt or --zeta physics")
