@@ -59,9 +59,14 @@ def test_singular_systems_no_nan(method, dtype):
     for z in cases:
         out = solve(method, z, I, weights=torch.ones_like(I))
         assert torch.isfinite(out.R).all() and torch.isfinite(out.T).all() and torch.isfinite(out.conf).all()
-        # the fitted mixture still explains the window mean (the observable combination)
-        fit = z * out.R + (1 - z) * out.T
-        assert torch.allclose(fit.mean(0), (2 * I).mean(0), rtol=0.05, atol=0.05)
+        # the observable combination zeta R + (1 - zeta) T is a location estimate of b = 2 I:
+        # the mean for ls/ridge, a Huber M-estimate (inside the data range) for irls/rwps
+        fit = (z * out.R + (1 - z) * out.T)[0]
+        b = 2 * I
+        if method in ("ls", "ridge"):
+            assert torch.allclose(fit, b.mean(0), rtol=0.05, atol=1e-3)
+        else:
+            assert (fit >= b.min(0).values * 0.95 - 1e-3).all() and (fit <= b.max(0).values + 1e-3).all()
     zero_w = solve("rwps", cases[0], I, weights=torch.zeros_like(I))
     assert torch.isfinite(zero_w.R).all() and torch.isfinite(zero_w.T).all()
     R, T = solve_weighted_ridge(cases[0], 2 * I, torch.zeros_like(I), 0.0)
