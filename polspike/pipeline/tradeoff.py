@@ -1,0 +1,255 @@
+"""The speed/accuracy trade, measured: ``polspike bench tradeoff``.
+
+For each scene, every candidate (tier, spp, mono/spectral, backend, keyframe
+rate, simulator step) renders the scene's first keyframe in this process, and
+is compared with a high-fidelity reference rendered in the same run (full tier,
+spectral where the glass disperses, high spp).  Errors are measured where they
+matter:
+
+* radiance: p99 over pixels of the worst case over 4 polarizer angles of
+  |I_candidate(phi) - I_reference(phi)| (I from the Stokes images), and the
+  mean |S0 error|; the reference's own Monte Carlo noise (two seeds) is
+  reported as the first row of each scene: errors near it are unresolved;
+* spike frames: both radiances drive the spike simulator with the same seed
+  and noise realisation for a short burst; the RMS difference of the paper
+  Eq. (3) frames I(i) is compared with the RMS difference between two seeds of
+  the reference (the spike noise).  A candidate whose spike-frame error is far
+  below the spike noise is accurate enough for training data; more accuracy is
+  wasted there.
+
+Cost: seconds per frame (measured) and per 1 s group
+= one-off cost + frames per second needed x per-frame cost + simulator cost.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import math
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+
+from polspike.atomic import ensure_dir, write_json, write_text
+from polspike.physics.stokes import polarizer_intensity
+
+log = logging.getLogger(__name__)
+
+__all__ = ["Candidate", "run_tradeoff", "default_candidates"]
+
+PHIS = np.deg2rad([0.0, 45.0, 90.0, 135.0])
+
+
+@dataclasses.dataclass(frozen=True)
+class Candidate:
+    """One point of the trade: a tier and its knobs."""
+
+    label: str
+    tier: str
+    spp: int = 1
+    spectral: bool = False
+    variant: str = "auto"
+    keyframe_hz: float | None = None
+
+
+def default_candidates(quick: bool = False) -> list[Candidate]:
+    """The grid measured by the bench (``quick``: a reduced grid for tests)."""
+    if quick:
+        return [Candidate("analytic", "analytic"), Candidate("maps 1spp", "maps", 1), Candidate("full 4spp llvm", "full", 4, variant="llvm")]
+    return [
+        Candidate("analytic", "analytic"),
+        Candidate("maps 1spp mono", "maps", 1),
+        Candidate("maps 4spp mono", "maps", 4),
+        Candidate("maps 16spp mono", "maps", 16),
+        Candidate("maps 4spp spectral", "maps", 4, spectral=True),
+        Candidate("full 4spp mono llvm", "full", 4, variant="llvm"),
+        Candidate("full 16spp mono llvm", "full", 16, variant="llvm"),
+        Candidate("full 64spp mono llvm", "full", 64, variant="llvm"),
+        Candidate("full 16spp spectral llvm", "full", 16, spectral=True, variant="llvm"),
+        Candidate("full 4spp scalar", "full", 4, variant="scalar"),
+        Candidate("full 16spp scalar", "full", 16, variant="scalar"),
+    ]
+
+
+def _render_first(scene, cand: Candidate, seed: int = 0) -> tuple[np.ndarray, float, float]:
+    """Stokes (3, H, W) of the first keyframe, one-off seconds, per-frame seconds."""
+    from generator.analytic import analytic_maps, frame_stokes, sample_layers
+    from generator.layers import LayerContent
+    from generator.render import RenderOptions
+
+    opts = RenderOptions(tier=cand.tier, spp=cand.spp, spectral=cand.spectral, variant=cand.variant, seed=seed, keyframe_hz=cand.keyframe_hz)
+    info: dict = {"modelled": {}}
+    H, W = scene.camera.height, scene.camera.width
+    t0 = time.perf_counter()
+    if cand.tier == "full":
+        from generator.tiers_mitsuba import FullRenderer
+
+        fr = FullRenderer(scene, opts, info)
+        t1 = time.perf_counter()
+        S = fr.stokes(0.0, 0)
+        return np.asarray(S, np.float64), t1 - t0, time.perf_counter() - t1
+    if cand.tier == "maps":
+        from generator.tiers_mitsuba import render_pane_maps
+
+        maps = render_pane_maps(scene, opts, info)
+    else:
+        maps = analytic_maps(scene)
+    t1 = time.perf_counter()
+    tc = LayerContent(scene.layers.transmission, (H, W))
+    rc = LayerContent(scene.layers.reflection, (H, W))
+    t2 = time.perf_counter()
+    L_T, L_R, L_G = sample_layers(maps, tc, rc, 0.0)
+    S = frame_stokes(maps, L_T, L_R, L_G)
+    return S, (t1 - t0) + (t2 - t1), time.perf_counter() - t2
+
+
+def _radiance_error(S: np.ndarray, ref: np.ndarray) -> float:
+    err = np.max([np.abs(polarizer_intensity(*S, p) - polarizer_intensity(*ref, p)) for p in PHIS], axis=0)
+    return float(np.percentile(err, 99))
+
+
+def _spike_frames(S: np.ndarray, seed: int, steps: int, polarizer) -> np.ndarray | None:
+    """Eq. (3) frames from a static Stokes image through the spike simulator; None without spike_sim."""
+    try:
+        from spike_sim.simulate import simulate_frames
+    except ImportError:
+        return None
+    return simulate_frames(S, seed=seed, steps=steps, polarizer=polarizer)
+
+
+def run_tradeoff(
+    scenes: list,
+    out_dir: str | Path,
+    candidates: list[Candidate] | None = None,
+    ref: Candidate = Candidate("reference full 256spp spectral llvm", "full", 256, spectral=True, variant="llvm"),
+    keyframe_rates_hz: tuple[float, ...] = (25.0, 50.0, 100.0, 200.0),
+    spike_steps: int = 260,
+    progress: Callable[[int, int], None] | None = None,
+) -> dict:
+    """Measure the trade for each scene; write ``tradeoff.json``, ``tradeoff.md`` and ``pareto.png``."""
+    out = ensure_dir(out_dir)
+    cands = candidates or default_candidates()
+    rows: list[dict] = []
+    total = len(scenes) * (len(cands) + 1 + len(keyframe_rates_hz))
+    done = 0
+    for scene in scenes:
+        S_ref, one_ref, frame_ref = _render_first(scene, ref, seed=1)
+        S_ref2, _, _ = _render_first(scene, ref, seed=2)
+        ref_noise = _radiance_error(S_ref, S_ref2) / math.sqrt(2.0)  # the reference's own Monte Carlo noise
+        rows.append({"scene": scene.name, "candidate": ref.label + " (its own noise: seed 1 vs 2, / sqrt 2)", "tier": "full", "spp": ref.spp,
+                     "spectral": ref.spectral, "variant": ref.variant, "one_off_s": one_ref, "per_frame_s": frame_ref,
+                     "per_1s_group_s": one_ref + scene.render.fps * frame_ref, "radiance_err_p99": ref_noise,
+                     "radiance_err_mean": float(np.mean(np.abs(S_ref[0] - S_ref2[0]))) / math.sqrt(2.0),
+                     "spike_frame_rmse": None, "spike_noise_rmse": None})
+        done += 1
+        if progress:
+            progress(done, total)
+        pol = scene.polarizer
+        spk_ref = _spike_frames(S_ref, 7, spike_steps, pol)
+        spk_ref2 = _spike_frames(S_ref, 8, spike_steps, pol)
+        spike_noise = float(np.sqrt(np.mean((spk_ref - spk_ref2) ** 2))) if spk_ref is not None else None
+        fps = scene.render.fps
+        for c in cands:
+            try:
+                S, one, per = _render_first(scene, c)
+            except Exception as exc:  # a backend missing on this machine: reported, not fatal
+                log.warning("%s: %s skipped (%s)", scene.name, c.label, exc)
+                rows.append({"scene": scene.name, "candidate": c.label, "skipped": str(exc).splitlines()[0]})
+                done += 1
+                continue
+            spk = _spike_frames(S, 7, spike_steps, pol)
+            group_s = one + fps * per  # fps keyframes per second of video
+            rows.append({
+                "scene": scene.name, "candidate": c.label, "tier": c.tier, "spp": c.spp, "spectral": c.spectral, "variant": c.variant,
+                "one_off_s": one, "per_frame_s": per, "per_1s_group_s": group_s,
+                "radiance_err_p99": _radiance_error(S, S_ref),
+                "radiance_err_mean": float(np.mean(np.abs(S[0] - S_ref[0]))),
+                "spike_frame_rmse": float(np.sqrt(np.mean((spk - spk_ref) ** 2))) if spk is not None else None,
+                "spike_noise_rmse": spike_noise,
+            })
+            done += 1
+            if progress:
+                progress(done, total)
+        rows.extend(_keyframe_rows(scene, keyframe_rates_hz, frame_ref))
+        done += len(keyframe_rates_hz)
+        if progress:
+            progress(done, total)
+    result = {"reference": dataclasses.asdict(ref), "rows": rows}
+    write_json(out / "tradeoff.json", result)
+    write_text(out / "tradeoff.md", _markdown(rows))
+    _pareto_plot(rows, out / "pareto.png")
+    return result
+
+
+def _keyframe_rows(scene, rates, full_frame_s: float) -> list[dict]:
+    """Keyframe-rate knob: Stokes interpolated between keyframes vs rendered at every 1 ms (analytic motion)."""
+    from generator.analytic import analytic_maps, frame_stokes, sample_layers
+    from generator.layers import LayerContent
+
+    H, W = scene.camera.height, scene.camera.width
+    maps = analytic_maps(scene)
+    tc = LayerContent(scene.layers.transmission, (H, W))
+    rc = LayerContent(scene.layers.reflection, (H, W))
+    if tc.is_static and rc.is_static:
+        return [{"scene": scene.name, "candidate": f"keyframes {r:g} Hz", "skipped": "static scene: one keyframe is exact"} for r in rates]
+
+    def S(t):
+        return frame_stokes(maps, *sample_layers(maps, tc, rc, t))
+
+    rows = []
+    for r in rates:
+        dt = 1.0 / r
+        ts = np.linspace(0.0, dt, 6)[1:-1]  # inside the first interval
+        a, b = S(0.0), S(dt)
+        errs = [_radiance_error((1 - t / dt) * a + (t / dt) * b, S(t)) for t in ts]
+        rows.append({
+            "scene": scene.name, "candidate": f"keyframes {r:g} Hz (full tier cost model)", "tier": "full-keyframes", "keyframe_hz": r,
+            "per_frame_s": full_frame_s, "per_1s_group_s": r * full_frame_s, "radiance_err_p99": float(max(errs)),
+            "spike_frame_rmse": None, "spike_noise_rmse": None,
+        })
+    return rows
+
+
+def _markdown(rows: list[dict]) -> str:
+    head = "| scene | candidate | s/frame | s per 1 s group | radiance err p99 | S0 err mean | spike-frame RMSE | spike noise RMSE |\n|---|---|---|---|---|---|---|---|\n"
+    lines = []
+    for r in rows:
+        if "skipped" in r:
+            lines.append(f"| {r['scene']} | {r['candidate']} | skipped: {r['skipped']} | | | | | |")
+            continue
+        f = lambda v, p=3: "n/a" if v is None else f"{v:.{p}g}"  # noqa: E731
+        lines.append(f"| {r['scene']} | {r['candidate']} | {f(r['per_frame_s'])} | {f(r['per_1s_group_s'])} | {f(r['radiance_err_p99'])} | {f(r.get('radiance_err_mean'))} | {f(r['spike_frame_rmse'])} | {f(r['spike_noise_rmse'])} |")
+    return head + "\n".join(lines) + "\n"
+
+
+def _pareto_plot(rows: list[dict], path: Path) -> None:
+    import matplotlib.pyplot as plt
+
+    from polspike.plotting import save_figure
+
+    fig, ax = plt.subplots(figsize=(8, 5))
+    scenes = sorted({r["scene"] for r in rows})
+    markers = dict(zip(scenes, "osD^v<>"))
+    for r in rows:
+        if "skipped" in r or r["radiance_err_p99"] is None:
+            continue
+        x, y = r["per_1s_group_s"], max(r["radiance_err_p99"], 1e-9)
+        colour = {"analytic": "C0", "maps": "C1", "full": "C2", "full-keyframes": "C3"}.get(r["tier"], "k")
+        ax.scatter(x, y, marker=markers[r["scene"]], c=colour, s=36)
+        ax.annotate(r["candidate"].split(" (")[0], (x, y), fontsize=6, alpha=0.7)
+    for t, c in (("analytic", "C0"), ("maps", "C1"), ("full", "C2"), ("keyframe rate", "C3")):
+        ax.scatter([], [], c=c, label=t)
+    for s, m in markers.items():
+        ax.scatter([], [], marker=m, c="grey", label=s)
+    noise = [r["spike_noise_rmse"] for r in rows if r.get("spike_noise_rmse")]
+    if noise:
+        ax.axhline(float(np.median(noise)), ls=":", c="k", label="spike noise (RMSE of I(i), median)")
+    ax.set_xscale("log")
+    ax.set_yscale("log")
+    ax.set_xlabel("cost: seconds per 1 s group (400x250, this machine)")
+    ax.set_ylabel("error vs reference: p99 worst-case |I(phi)| (radiance)")
+    ax.set_title("speed / accuracy trade (Pareto)")
+    ax.legend(fontsize=7, ncol=2)
+    save_figure(fig, path)
