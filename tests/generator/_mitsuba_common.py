@@ -1,0 +1,38 @@
+"""Helpers shared by the Mitsuba tests: skip logic and small scenes (80x50 pixels)."""
+
+from __future__ import annotations
+
+import pytest
+
+from polspike.config import to_dict
+
+
+def require_mitsuba(backend: str = "llvm"):
+    """Set a working polarized mono variant and return mitsuba, or skip the test."""
+    try:
+        from generator.mitsuba_backend import load_mitsuba, resolve_backend
+
+        resolve_backend(backend)
+        return load_mitsuba()
+    except Exception as exc:  # BackendUnavailableError or a broken install
+        pytest.skip(f"mitsuba {backend} backend unavailable: {exc}")
+
+
+def small_scene(name: str = "brewster", width: int = 80, height: int = 50, **pane):
+    """A default scene shrunk to width x height, with pane fields overridden."""
+    from generator.scene import load_scene, scene_from_dict
+
+    d = to_dict(load_scene(name))
+    d["camera"].update(width=width, height=height)
+    d["pane"].update(pane)
+    return scene_from_dict(d)
+
+
+def uniform_layers(scene, t_level: float = 0.6, r_level: float = 1.0):
+    """The same scene with spatially uniform, static T and R layers (no geometry sensitivity)."""
+    from generator.scene import scene_from_dict
+
+    d = to_dict(scene)
+    d["layers"]["transmission"] = {"source": "procedural:gradient", "brightness": 0.0, "offset": t_level, "distance_m": 4.0}
+    d["layers"]["reflection"] = {"source": "procedural:gradient", "brightness": 0.0, "offset": r_level, "distance_m": 2.0}
+    return scene_from_dict(d)
