@@ -1,0 +1,30 @@
+"""bench tradeoff on a tiny scene: table, plot, and the expected ordering of errors."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+
+import pytest
+
+pytest.importorskip("mitsuba")
+
+
+@pytest.mark.mitsuba
+def test_tradeoff_tiny(tiny_scene, tmp_path):
+    from polspike.pipeline.tradeoff import Candidate, default_candidates, run_tradeoff
+
+    ref = Candidate("ref full 32spp", "full", 32, variant="llvm")
+    res = run_tradeoff([tiny_scene], tmp_path, default_candidates(quick=True), ref=ref, keyframe_rates_hz=(25.0, 200.0), spike_steps=140)
+    assert (tmp_path / "pareto.png").is_file() and (tmp_path / "tradeoff.md").is_file()
+    rows = {r["candidate"]: r for r in json.loads((tmp_path / "tradeoff.json").read_text())["rows"]}
+    a, f = rows["analytic"], rows["full 4spp llvm"]
+    for r in (a, f):
+        assert math.isfinite(r["radiance_err_p99"]) and math.isfinite(r["spike_frame_rmse"]) and r["per_frame_s"] > 0
+    # a 4-spp path-traced frame carries its own noise on top of the reference's
+    assert f["radiance_err_p99"] > a["radiance_err_p99"]
+    # interpolating between keyframes: the faster the keyframes, the smaller the error
+    k25, k200 = rows["keyframes 25 Hz (full tier cost model)"], rows["keyframes 200 Hz (full tier cost model)"]
+    assert k200["radiance_err_p99"] < k25["radiance_err_p99"]
+    assert k200["per_1s_group_s"] > k25["per_1s_group_s"]
