@@ -1,0 +1,94 @@
+"""Checkpoints of :class:`reconstruct.network.PolSpikeNet`: save, load, validate.
+
+A checkpoint is a ``torch.save`` dict (loaded with ``weights_only=True``: plain
+data only, no pickled code) with keys
+
+``format`` ("polspike-ckpt/1"), ``net`` and ``solver`` (plain config dicts),
+``state_dict``, ``param_count``, and for training checkpoints ``train``
+(config dict), ``optimizer``, ``step``, ``metrics``.
+
+Any problem (missing file, not a checkpoint, wrong format, config or tensors
+that do not fit the network) raises :class:`polspike.errors.CheckpointError`
+with one line saying what and what to do.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from polspike.atomic import atomic_path
+from polspike.config import from_dict, to_dict
+from polspike.errors import CheckpointError, ConfigError
+
+from reconstruct.network import NetConfig, PolSpikeNet, count_parameters
+from reconstruct.solvers import SolverConfig
+
+__all__ = ["CKPT_FORMAT", "DEFAULT_WEIGHTS", "save_checkpoint", "read_checkpoint", "load_model"]
+
+CKPT_FORMAT = "polspike-ckpt/1"
+DEFAULT_WEIGHTS = Path(__file__).resolve().parent / "weights" / "polspike_v0.pt"
+"""The shipped checkpoint (see ``reconstruct/weights/MODEL_CARD.md``)."""
+
+
+def save_checkpoint(path: str | os.PathLike, model: PolSpikeNet, *, extra: dict[str, Any] | None = None) -> Path:
+    """Write ``model`` (and optional training state in ``extra``) atomically to ``path``."""
+    data: dict[str, Any] = {
+        "format": CKPT_FORMAT,
+        "net": to_dict(model.cfg),
+        "solver": to_dict(model.solver_cfg_in),
+        "state_dict": {k: v.detach().cpu() for k, v in model.state_dict().items()},
+        "param_count": count_parameters(model),
+    }
+    if extra:
+        data.update(extra)
+    with atomic_path(path) as tmp:
+        torch.save(data, tmp)
+    return Path(path)
+
+
+def read_checkpoint(path: str | os.PathLike) -> dict[str, Any]:
+    """Load and validate the raw checkpoint dict (CPU tensors)."""
+    p = Path(path)
+    if not p.is_file():
+        raise CheckpointError(f"checkpoint not found: {p}; pass --weights PATH or train one with `polspike train`")
+    try:
+        data = torch.load(p, map_location="cpu", weights_only=True)
+    except Exception as exc:  # torch raises many types for corrupt files
+        raise CheckpointError(f"{p} is not a readable checkpoint ({type(exc).__name__}: {str(exc).splitlines()[0][:120]}); re-download or retrain it") from None
+    if not isinstance(data, dict) or data.get("format") != CKPT_FORMAT:
+        seen = data.get("format") if isinstance(data, dict) else type(data).__name__
+        raise CheckpointError(f"{p}: format {seen!r} is not {CKPT_FORMAT!r}; this file is not a polspike checkpoint")
+    for key in ("net", "solver", "state_dict"):
+        if key not in data:
+            raise CheckpointError(f"{p}: checkpoint lacks {key!r}; it is truncated or from another tool")
+    return data
+
+
+def load_model(path: str | os.PathLike = DEFAULT_WEIGHTS, device: str | torch.device = "cpu", **overrides: Any) -> tuple[PolSpikeNet, dict[str, Any]]:
+    """Build the network recorded in a checkpoint and load its weights.
+
+    Args:
+        path: checkpoint file.
+        device: torch device for the model.
+        overrides: NetConfig fields to change at load time (ablation-neutral
+            ones such as ``use_rir``); architecture fields must match.
+
+    Returns:
+        (model in eval mode, raw checkpoint dict).
+    """
+    data = read_checkpoint(path)
+    try:
+        net = from_dict(NetConfig, {**data["net"], **overrides}, where=f"{path} [net]")
+        solver = from_dict(SolverConfig, data["solver"], where=f"{path} [solver]")
+    except ConfigError as exc:
+        raise CheckpointError(f"incompatible checkpoint: {exc}") from None
+    model = PolSpikeNet(net, solver)
+    try:
+        model.load_state_dict(data["state_dict"], strict=True)
+    except RuntimeError as exc:
+        raise CheckpointError(f"{path}: weights do not fit the network ({str(exc).splitlines()[0][:160]}); the checkpoint is from an incompatible version") from None
+    return model.to(device).eval(), data

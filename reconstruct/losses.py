@@ -1,0 +1,117 @@
+"""Training losses, paper Eq. (8)-(12).
+
+All maps are (B, H, W) in radiance units (1.0 = brightest layer value),
+per-observation tensors (B, N, H, W).  Norms are per-pixel means (the paper's
+sums divided by the number of pixels), so the weights do not depend on the crop.
+
+Reflection-dominance mask M (paper Eq. (8), "a soft mask constructed from the
+synthetic mixing ratio"): with the centre-frame ground-truth zeta_c,
+
+    rho = zeta_c R_gt / (zeta_c R_gt + (1 - zeta_c) T_gt + eps)     (reflected share of the mixed light)
+    M   = m_floor + (1 - m_floor) * clip(rho / rho_ref, 0, 1)        in [m_floor, 1]
+
+so pixels where the reflection carries a share >= rho_ref of the light get full
+weight and reflection-free pixels keep weight m_floor (our documented choice:
+the paper does not give the formula).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import torch
+
+from polspike.config import opt
+
+__all__ = ["LossConfig", "reflection_mask", "image_grad", "loss_rec", "loss_grad", "loss_phys", "loss_excl", "total_loss"]
+
+
+@dataclasses.dataclass(frozen=True)
+class LossConfig:
+    """Weights of paper Eq. (12) and the mask / exclusion constants."""
+
+    lambda_r: float = opt(0.5, "weight of the R term in L_rec, paper Eq. (8)", lo=0.0, hi=100.0)
+    lambda_g: float = opt(0.5, "weight of L_grad, paper Eq. (12)", lo=0.0, hi=100.0)
+    lambda_p: float = opt(0.1, "weight of L_phys, paper Eq. (12) (paper: 0.1)", lo=0.0, hi=100.0)
+    lambda_e: float = opt(0.01, "weight of L_excl, paper Eq. (12) (paper: 0.01)", lo=0.0, hi=100.0)
+    lambda_zeta: float = opt(1.0, "weight of the zeta term inside L_phys, paper Eq. (10)", lo=0.0, hi=100.0)
+    lambda_ex: float = opt(4.0, "tanh scale lambda_ex of the exclusion loss, paper Eq. (11), per radiance unit per pixel", lo=0.0, hi=1e4)
+    lambda_base: float = opt(0.5, "weight of L1 on the solver outputs (T^, R^), times (0.2 + 0.8 alpha): supervision shifts to the refined output as alpha drops", lo=0.0, hi=100.0)
+    m_floor: float = opt(0.5, "reflection mask M value where there is no reflection", lo=0.0, hi=1.0)
+    rho_ref: float = opt(0.3, "reflected share of the mixed light at which M reaches 1", lo=1e-6, hi=1.0)
+
+
+def reflection_mask(T_gt: torch.Tensor, R_gt: torch.Tensor, zeta_c: torch.Tensor, cfg: LossConfig = LossConfig()) -> torch.Tensor:
+    """Soft reflection-dominance mask M in [m_floor, 1] (module docstring), (B, H, W)."""
+    num = zeta_c * R_gt.clamp_min(0)
+    rho = num / (num + (1 - zeta_c) * T_gt.clamp_min(0) + 1e-6)
+    return cfg.m_floor + (1 - cfg.m_floor) * (rho / cfg.rho_ref).clamp(0, 1)
+
+
+def image_grad(x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Forward differences (gx (..., H, W-1), gy (..., H-1, W))."""
+    return x[..., :, 1:] - x[..., :, :-1], x[..., 1:, :] - x[..., :-1, :]
+
+
+def _wmean(x: torch.Tensor, m: torch.Tensor | None) -> torch.Tensor:
+    return x.abs().mean() if m is None else (m * x.abs()).mean()
+
+
+def loss_rec(T, R, T_gt, R_gt, M, cfg: LossConfig = LossConfig()) -> torch.Tensor:
+    """L_rec = ||T - T_gt||_{1,M} + lambda_r ||R - R_gt||_1, paper Eq. (8)."""
+    return _wmean(T - T_gt, M) + cfg.lambda_r * _wmean(R - R_gt, None)  # Eq. (8)
+
+
+def loss_grad(T, T_gt, M) -> torch.Tensor:
+    """L_grad = ||grad T - grad T_gt||_{1,M}, paper Eq. (8) (M averaged onto the difference grid)."""
+    gx, gy = image_grad(T - T_gt)
+    mx = 0.5 * (M[..., :, 1:] + M[..., :, :-1])
+    my = 0.5 * (M[..., 1:, :] + M[..., :-1, :])
+    return 0.5 * (_wmean(gx, mx) + _wmean(gy, my))  # Eq. (8)
+
+
+def loss_phys(T, R, zeta_hat, I, zeta_gt, cfg: LossConfig = LossConfig()) -> torch.Tensor:
+    """L_phys = mean_k ||I^_k - I_k||_1 + lambda_zeta ||zeta^ - zeta_gt||_1, paper Eq. (9)-(10).
+
+    I^_k = 1/2 (zeta^_k R + (1 - zeta^_k) T) re-renders every observation from the
+    final layers (paper Eq. (9)); the zeta term is dropped when zeta_gt is None.
+    """
+    I_hat = 0.5 * (zeta_hat * R.unsqueeze(1) + (1 - zeta_hat) * T.unsqueeze(1))  # Eq. (9)
+    out = (I_hat - I).abs().mean()  # Eq. (10), first term
+    if zeta_gt is not None:
+        out = out + cfg.lambda_zeta * (zeta_hat - zeta_gt).abs().mean()
+    return out
+
+
+def loss_excl(T, R, cfg: LossConfig = LossConfig()) -> torch.Tensor:
+    """L_excl = ||tanh(lambda_ex |grad T|) * tanh(lambda_ex |grad R|)||_1, paper Eq. (11)."""
+    tx, ty = image_grad(T)
+    rx, ry = image_grad(R)
+    k = cfg.lambda_ex
+    return 0.5 * ((torch.tanh(k * tx.abs()) * torch.tanh(k * rx.abs())).mean() + (torch.tanh(k * ty.abs()) * torch.tanh(k * ry.abs())).mean())  # Eq. (11)
+
+
+def total_loss(out, T_gt: torch.Tensor, R_gt: torch.Tensor, alpha: float, cfg: LossConfig = LossConfig()) -> tuple[torch.Tensor, dict[str, float]]:
+    """Total objective, paper Eq. (12), plus the solver-output term (``lambda_base``).
+
+    Args:
+        out: :class:`reconstruct.network.NetOutput` (its ``I`` and ``zeta_gt`` are the RIR-aligned ones).
+        T_gt, R_gt: centre-frame ground truth (B, H, W).
+        alpha: current teacher-forcing ratio (scales the solver-output term).
+        cfg: weights.
+
+    Returns:
+        (scalar loss, dict of the components as floats).
+    """
+    c = out.I.shape[1] // 2
+    zc = out.zeta_gt[:, c] if out.zeta_gt is not None else out.zeta_hat[:, c].detach()
+    M = reflection_mask(T_gt, R_gt, zc, cfg)
+    l_rec = loss_rec(out.T, out.R, T_gt, R_gt, M, cfg)
+    l_grad = loss_grad(out.T, T_gt, M)
+    l_phys = loss_phys(out.T, out.R, out.zeta_hat, out.I, out.zeta_gt, cfg)
+    l_excl = loss_excl(out.T, out.R, cfg)
+    l_base = loss_rec(out.T_base, out.R_base, T_gt, R_gt, M, cfg)
+    total = l_rec + cfg.lambda_g * l_grad + cfg.lambda_p * l_phys + cfg.lambda_e * l_excl  # Eq. (12)
+    total = total + cfg.lambda_base * (0.2 + 0.8 * alpha) * l_base
+    parts = {"loss": float(total.detach()), "l_rec": float(l_rec.detach()), "l_grad": float(l_grad.detach()), "l_phys": float(l_phys.detach()), "l_excl": float(l_excl.detach()), "l_base": float(l_base.detach())}
+    return total, parts

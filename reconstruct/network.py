@@ -1,0 +1,302 @@
+"""The learned reconstructor: parameter branch with angle attention, RWPS, refinement.
+
+Paper Sec. 3.2-3.3 and supp. Sec. 10 ("Network architecture"):
+
+1. **RIR** (optional, :mod:`reconstruct.rir`): the window is aligned to its centre
+   frame; the shift estimate is not differentiated, the warp is.
+2. **Parameter branch**: each of the N = 2K+1 observations is encoded by three
+   64-channel ConvBlocks and two 3x3 convolutions (weights shared over k); a
+   two-head **angle attention** block projects features to queries, injects the
+   angle embedding [cos 2phi_k, sin 2phi_k] into keys and values, takes a softmax
+   over the N observations at every pixel, and adds the attended feature back.
+   Heads predict per-pixel (a0, ac, as) and per-observation reliability logits;
+   zeta_k = sigmoid(a0 + ac cos 2phi_k + as sin 2phi_k) (supp. Eq. (19)) and
+   w_k = softmax_k(logits) (supp. Sec. 10).
+3. **RWPS** (:func:`reconstruct.solvers.solve`, method ``rwps``) with those zeta
+   and w; during training the zeta fed to the solver is
+   alpha zeta_gt + (1 - alpha) zeta_hat (teacher forcing, paper Sec. 3.4).
+4. **Refinement** on x = [T^, R^, 2I, 2I_min, Conf, 2Res] of the centre frame,
+   Res = I - I^ the back-projection residual of paper Eq. (7); a shared encoder
+   and two light decoders predict Delta_t, Delta_r; T = T^ + Delta_t,
+   R = R^ + Delta_r (paper Sec. 3.3).
+
+Units: I in radiance units of paper Eq. (1) (I = 1/2 (zeta R + (1 - zeta) T),
+1.0 = brightest layer value); T, R in the same units.  Ablation switches
+(paper Table 1): ``use_rir``, ``use_attention``, ``use_conf``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Callable
+
+import torch
+import torch.nn as nn
+import torch.nn.functional as F
+
+from polspike.config import opt
+from polspike.errors import ShapeError
+
+from reconstruct.solvers import SolverConfig, solve
+
+__all__ = ["NetConfig", "NetOutput", "AngleAttention", "ParameterBranch", "Refinement", "PolSpikeNet", "count_parameters", "init_weights"]
+
+
+@dataclasses.dataclass(frozen=True)
+class NetConfig:
+    """Architecture and ablation switches of :class:`PolSpikeNet`."""
+
+    n_obs: int = opt(7, "observations per window N = 2K+1", lo=3, hi=31)
+    feat_ch: int = opt(64, "channels of the parameter branch ConvBlocks (supp. Sec. 10: 64)", lo=4, hi=512)
+    heads: int = opt(2, "angle attention heads (supp. Sec. 10: 2)", lo=1, hi=16)
+    ref_ch: tuple[int, int, int] = opt((32, 64, 80), "refinement encoder widths at scales 1, 1/2, 1/4", lo=4, hi=1024)
+    dec_ch: tuple[int, int, int] = opt((40, 32, 32), "each refinement decoder's widths at scales 1/4->1/2, 1/2->1, full", lo=4, hi=1024)
+    use_rir: bool = opt(True, "align the window with RIR before the network (ablation: without RIR)")
+    use_attention: bool = opt(True, "angle attention block (ablation: without angle attention)")
+    use_conf: bool = opt(True, "Conf-driven lambda in RWPS and Conf input to the refinement (ablation: without Conf)")
+    solver_method: str = opt("rwps", "physics solver run on the predicted zeta and w", choices=("ls", "ridge", "irls", "rwps"))
+    span_rad: float = opt(math.radians(7.02), "polarizer rotation inside one aggregation window (0.65 ms at 30 rev/s), rad", lo=0.0, hi=math.pi)
+
+
+@dataclasses.dataclass
+class NetOutput:
+    """Forward results; maps (B, H, W), per-observation tensors (B, N, H, W)."""
+
+    T: torch.Tensor
+    R: torch.Tensor
+    T_base: torch.Tensor
+    R_base: torch.Tensor
+    zeta_hat: torch.Tensor
+    zeta_used: torch.Tensor
+    weights: torch.Tensor
+    conf: torch.Tensor
+    res: torch.Tensor
+    I: torch.Tensor
+    zeta_gt: torch.Tensor | None
+
+
+class ConvBlock(nn.Module):
+    """3x3 convolution + LeakyReLU(0.1)."""
+
+    def __init__(self, cin: int, cout: int, stride: int = 1):
+        super().__init__()
+        self.conv = nn.Conv2d(cin, cout, 3, stride=stride, padding=1)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return F.leaky_relu(self.conv(x), 0.1)
+
+
+class AngleAttention(nn.Module):
+    """Two-head attention over the N observations at each pixel (paper Sec. 3.3).
+
+    Queries come from the features only; the angle embedding e_k =
+    [cos 2phi_k, sin 2phi_k] is projected and added to keys and values; the
+    softmax runs over the N observations of one pixel; the attended feature is
+    projected and added back to the input feature (residual).
+    """
+
+    def __init__(self, ch: int, heads: int = 2):
+        super().__init__()
+        if ch % heads:
+            raise ShapeError(f"attention channels {ch} must be divisible by heads {heads}", actual_shape=(ch,), expected_shape=f"multiple of {heads}")
+        self.heads = heads
+        self.q = nn.Linear(ch, ch)
+        self.k = nn.Linear(ch, ch)
+        self.v = nn.Linear(ch, ch)
+        self.ek = nn.Linear(2, ch, bias=False)
+        self.ev = nn.Linear(2, ch, bias=False)
+        self.o = nn.Linear(ch, ch)
+
+    def forward(self, f: torch.Tensor, phi: torch.Tensor) -> torch.Tensor:
+        """f (B, N, C, H, W), phi (B, N) radians -> (B, N, C, H, W)."""
+        B, N, C, H, W = f.shape
+        x = f.permute(0, 3, 4, 1, 2).reshape(B * H * W, N, C)
+        e = torch.stack([torch.cos(2 * phi), torch.sin(2 * phi)], -1).to(f.dtype)  # (B, N, 2) angle embedding
+        e = e[:, None, None].expand(B, H, W, N, 2).reshape(B * H * W, N, 2)
+        d = C // self.heads
+        q = self.q(x).view(-1, N, self.heads, d).transpose(1, 2)
+        k = (self.k(x) + self.ek(e)).view(-1, N, self.heads, d).transpose(1, 2)  # angle into keys
+        v = (self.v(x) + self.ev(e)).view(-1, N, self.heads, d).transpose(1, 2)  # and values
+        att = torch.softmax(q @ k.transpose(-1, -2) / math.sqrt(d), dim=-1)  # softmax over the N observations
+        y = (att @ v).transpose(1, 2).reshape(-1, N, C)
+        y = x + self.o(y)  # attended feature added back
+        return y.view(B, H, W, N, C).permute(0, 3, 4, 1, 2)
+
+
+class ParameterBranch(nn.Module):
+    """Predicts zeta_hat (B, N, H, W) and reliability weights w (B, N, H, W)."""
+
+    IN_CH = 3
+
+    def __init__(self, cfg: NetConfig):
+        super().__init__()
+        c = cfg.feat_ch
+        self.cfg = cfg
+        self.enc = nn.Sequential(ConvBlock(self.IN_CH, c), ConvBlock(c, c), ConvBlock(c, c))  # three 64-ch ConvBlocks
+        self.conv1 = nn.Conv2d(c, c, 3, padding=1)  # two 3x3 convolutions
+        self.conv2 = nn.Conv2d(c, c, 3, padding=1)
+        self.att = AngleAttention(c, cfg.heads) if cfg.use_attention else None
+        self.rel = nn.Conv2d(c, 1, 1)  # reliability logit per observation
+        self.par1 = nn.Conv2d(c, c // 2, 3, padding=1)  # (a0, ac, as) head on the window-pooled feature
+        self.par2 = nn.Conv2d(c // 2, 3, 1)
+
+    def forward(self, I: torch.Tensor, phi: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """I (B, N, H, W) radiance units, phi (B, N) -> (zeta_hat, w, (a0, ac, as) stacked (B, 3, H, W))."""
+        B, N, H, W = I.shape
+        scale = I.mean(dim=(1, 2, 3), keepdim=True).clamp_min(1e-4)
+        x = I / scale  # brightness-normalised stack
+        mean = x.mean(1, keepdim=True).expand_as(x)
+        inp = torch.stack([x, mean, x - mean], 2).reshape(B * N, self.IN_CH, H, W)
+        f = self.enc(inp)
+        f = F.leaky_relu(self.conv1(f), 0.1)
+        f = self.conv2(f).view(B, N, -1, H, W)
+        if self.att is not None:
+            f = self.att(f, phi)
+        logits = self.rel(f.reshape(B * N, -1, H, W)).view(B, N, H, W)
+        w = torch.softmax(logits, dim=1)  # w_k: softmax over the window, supp. Sec. 10
+        g = F.leaky_relu(self.par1(f.mean(1)), 0.1)
+        a = self.par2(g)
+        a0, ac, as_ = a[:, 0:1], a[:, 1:2], a[:, 2:3]
+        c2 = torch.cos(2 * phi)[..., None, None].to(I.dtype)
+        s2 = torch.sin(2 * phi)[..., None, None].to(I.dtype)
+        zeta = torch.sigmoid(a0 - 2.0 + ac * c2 + as_ * s2)  # supp. Eq. (19); -2 centres the init near glass reflectance
+        return zeta, w, a
+
+
+class Refinement(nn.Module):
+    """Shared encoder, two light decoders predicting Delta_t and Delta_r (paper Sec. 3.3)."""
+
+    IN_CH = 6
+
+    def __init__(self, cfg: NetConfig):
+        super().__init__()
+        c1, c2, c3 = cfg.ref_ch
+        self.e1 = nn.Sequential(ConvBlock(self.IN_CH, c1), ConvBlock(c1, c1))
+        self.e2 = nn.Sequential(ConvBlock(c1, c2, stride=2), ConvBlock(c2, c2))
+        self.e3 = nn.Sequential(ConvBlock(c2, c3, stride=2), ConvBlock(c3, c3))
+        self.dec_t = _Decoder(cfg.ref_ch, cfg.dec_ch)
+        self.dec_r = _Decoder(cfg.ref_ch, cfg.dec_ch)
+
+    def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """x (B, 6, H, W), H and W multiples of 4 -> (Delta_t, Delta_r), each (B, H, W)."""
+        f1 = self.e1(x)
+        f2 = self.e2(f1)
+        f3 = self.e3(f2)
+        return self.dec_t(f1, f2, f3), self.dec_r(f1, f2, f3)
+
+
+class _Decoder(nn.Module):
+    def __init__(self, enc: tuple[int, int, int], dec: tuple[int, int, int]):
+        super().__init__()
+        c1, c2, c3 = enc
+        d1, d2, d3 = dec
+        self.u1 = ConvBlock(c3, d1)
+        self.m1 = ConvBlock(d1 + c2, d2)
+        self.m2 = ConvBlock(d2 + c1, d3)
+        self.out = nn.Conv2d(d3, 1, 3, padding=1)
+
+    def forward(self, f1, f2, f3):
+        y = self.u1(f3)
+        y = F.interpolate(y, size=f2.shape[-2:], mode="bilinear", align_corners=False)
+        y = self.m1(torch.cat([y, f2], 1))
+        y = F.interpolate(y, size=f1.shape[-2:], mode="bilinear", align_corners=False)
+        y = self.m2(torch.cat([y, f1], 1))
+        return self.out(y)[:, 0]
+
+
+class PolSpikeNet(nn.Module):
+    """Full reconstructor: (RIR) -> parameter branch -> RWPS -> refinement."""
+
+    def __init__(self, cfg: NetConfig = NetConfig(), solver: SolverConfig = SolverConfig()):
+        super().__init__()
+        self.cfg = cfg
+        self.solver_cfg_in = solver
+        self.solver_cfg = solver if cfg.use_conf else dataclasses.replace(solver, lambda_low=solver.ridge_lambda, lambda_high=solver.ridge_lambda)
+        self.param = ParameterBranch(cfg)
+        self.refine = Refinement(cfg)
+
+    def align(self, I: torch.Tensor, phi: torch.Tensor, zeta_gt: torch.Tensor | None) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """RIR per batch item (shift estimates are not differentiated; the warp is)."""
+        from reconstruct.rir import estimate_shifts, warp
+
+        outI, outZ = [], []
+        for b in range(I.shape[0]):
+            with torch.no_grad():
+                sh = estimate_shifts(I[b].detach().double().cpu(), phi[b].detach().double().cpu()).to(I.device, I.dtype)
+            if bool((sh == 0).all()):
+                outI.append(I[b])
+                outZ.append(None if zeta_gt is None else zeta_gt[b])
+                continue
+            outI.append(warp(I[b], sh))
+            outZ.append(None if zeta_gt is None else warp(zeta_gt[b], sh))
+        return torch.stack(outI), (None if zeta_gt is None else torch.stack(outZ))
+
+    def forward(
+        self,
+        I: torch.Tensor,
+        phi: torch.Tensor,
+        zeta_gt: torch.Tensor | None = None,
+        alpha: float = 0.0,
+    ) -> NetOutput:
+        """Reconstruct the centre frame of each window.
+
+        Args:
+            I: (B, N, H, W) observations, radiance units (I = 1/2 mix, paper Eq. (1)); H, W multiples of 4.
+            phi: (B, N) polarizer angles (window centres), radians.
+            zeta_gt: optional (B, N, H, W) ground-truth zeta for teacher forcing and L_phys.
+            alpha: teacher-forcing ratio in [0, 1] (needs ``zeta_gt`` when > 0).
+
+        Returns:
+            :class:`NetOutput`.
+        """
+        if I.dim() != 4 or I.shape[1] != self.cfg.n_obs:
+            raise ShapeError(f"I must be (B, {self.cfg.n_obs}, H, W); got {tuple(I.shape)}", actual_shape=tuple(I.shape), expected_shape=f"(B, {self.cfg.n_obs}, H, W)")
+        if phi.shape != I.shape[:2]:
+            raise ShapeError(f"phi must be (B, N) = {tuple(I.shape[:2])}; got {tuple(phi.shape)}", actual_shape=tuple(phi.shape), expected_shape=tuple(I.shape[:2]))
+        H, W = I.shape[-2:]
+        if H % 4 or W % 4:
+            raise ShapeError(f"H and W must be multiples of 4 (pad the input); got {H}x{W}", actual_shape=(H, W), expected_shape="multiples of 4")
+        if alpha > 0 and zeta_gt is None:
+            raise ShapeError("teacher forcing alpha > 0 needs zeta_gt", actual_shape=None, expected_shape="(B, N, H, W)")
+        if self.cfg.use_rir:
+            I, zeta_gt = self.align(I, phi, zeta_gt)
+        zeta_hat, w, _ = self.param(I, phi)
+        zeta_used = zeta_hat if (alpha <= 0 or zeta_gt is None) else alpha * zeta_gt + (1 - alpha) * zeta_hat  # teacher forcing
+        res = solve(self.cfg.solver_method, zeta_used, I, w, self.solver_cfg)
+        T0, R0 = res.T, res.R
+        c = I.shape[1] // 2
+        I_c = I[:, c]
+        I_hat = 0.5 * (zeta_used[:, c] * R0 + (1 - zeta_used[:, c]) * T0)  # paper Eq. (7)
+        resid = I_c - I_hat
+        conf = res.conf if self.cfg.use_conf else torch.zeros_like(res.conf)
+        x = torch.stack([T0, R0, 2 * I_c, 2 * I.min(1).values, conf, 2 * resid], 1)
+        dT, dR = self.refine(x)
+        return NetOutput(T=T0 + dT, R=R0 + dR, T_base=T0, R_base=R0, zeta_hat=zeta_hat, zeta_used=zeta_used, weights=w, conf=res.conf, res=resid, I=I, zeta_gt=zeta_gt)
+
+
+def count_parameters(model: nn.Module) -> int:
+    """Number of trainable parameters."""
+    return sum(p.numel() for p in model.parameters() if p.requires_grad)
+
+
+def init_weights(model: nn.Module, generator: torch.Generator) -> nn.Module:
+    """Re-initialise every conv/linear layer from ``generator`` (no global RNG).
+
+    Kaiming-uniform weights (LeakyReLU 0.1 gain), zero biases; the last layers
+    of the decoders start at zero so the untrained network returns the solver output.
+    """
+    with torch.no_grad():
+        for name, m in model.named_modules():
+            if isinstance(m, (nn.Conv2d, nn.Linear)):
+                nn.init.kaiming_uniform_(m.weight, a=0.1, nonlinearity="leaky_relu", generator=generator)
+                if m.bias is not None:
+                    m.bias.zero_()
+        if isinstance(model, PolSpikeNet):
+            for dec in (model.refine.dec_t, model.refine.dec_r):
+                dec.out.weight.mul_(0.01)
+            model.param.par2.weight.mul_(0.1)
+    return model
+
+
+ProgressFn = Callable[[int, int], None]

@@ -1,0 +1,307 @@
+"""Training loop with the paper's curriculum, resumable and deterministic (paper Sec. 3.4).
+
+* Adam, lr 3e-4, batch 8 (paper Sec. 3.4); every loss weight is a
+  :class:`reconstruct.losses.LossConfig` value.
+* Curriculum on the teacher-forcing ratio alpha (paper Sec. 3.4): epochs 1-5 of
+  60 alpha = 1.0, epochs 6-15 alpha = 0.5, then 0.0; for other epoch counts the
+  same *fractions* of the run (``curriculum_fracs`` = (5/60, 15/60)).
+* Determinism on CPU: weights are initialised from a ``torch.Generator``
+  seeded with ``seed``; batch b of step s is a pure function of (seed, epoch,
+  position) through a per-epoch permutation drawn from a seeded generator; no
+  global RNG is used, so a run killed and resumed from ``last.pt`` follows the
+  same trajectory as an uninterrupted one.
+* Outputs in the run directory: ``last.pt`` (model + optimizer + step, written
+  atomically every ``ckpt_every`` steps and at the end), ``config.json``,
+  ``log.csv`` (one row per logged step, validation PSNR columns where
+  evaluated) and ``curves.png``.
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import io
+import logging
+import math
+import os
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from polspike.atomic import ensure_dir, write_json, write_text
+from polspike.config import from_dict, opt, to_dict
+from polspike.errors import CheckpointError, ConfigError
+
+from reconstruct.checkpoint import read_checkpoint, save_checkpoint
+from reconstruct.losses import LossConfig, total_loss
+from reconstruct.network import NetConfig, PolSpikeNet, count_parameters, init_weights
+from reconstruct.onthefly import WindowConfig
+from reconstruct.solvers import SolverConfig
+
+__all__ = ["TrainConfig", "alpha_at", "collate", "evaluate_model", "train", "TINY"]
+
+log = logging.getLogger(__name__)
+
+ProgressFn = Callable[[int, int], None]
+
+
+@dataclasses.dataclass(frozen=True)
+class TrainConfig:
+    """Everything a training run depends on (written to ``config.json``)."""
+
+    seed: int = opt(0, "seed of initialisation, data order and on-the-fly items", lo=0, hi=2**31 - 1)
+    epochs: int = opt(60, "epochs (paper: 60)", lo=1, hi=100000)
+    steps_per_epoch: int = opt(0, "optimizer steps per epoch; 0 = len(train set) // batch_size", lo=0, hi=10**9)
+    batch_size: int = opt(8, "windows per step (paper: 8)", lo=1, hi=4096)
+    lr: float = opt(3e-4, "Adam learning rate (paper: 3e-4)", lo=1e-8, hi=1.0)
+    grad_clip: float = opt(1.0, "gradient-norm clip (0 = off)", lo=0.0, hi=1e6)
+    curriculum_fracs: tuple[float, float] = opt((5 / 60, 15 / 60), "end of the alpha=1.0 and alpha=0.5 phases as fractions of the epochs (paper: 5/60, 15/60)", lo=0.0, hi=1.0)
+    curriculum_alphas: tuple[float, float, float] = opt((1.0, 0.5, 0.0), "teacher-forcing ratio in the three phases (paper: 1.0, 0.5, 0.0)", lo=0.0, hi=1.0)
+    val_every: int = opt(0, "validate every this many steps (0 = at each epoch end)", lo=0, hi=10**9)
+    ckpt_every: int = opt(50, "write last.pt every this many steps", lo=1, hi=10**9)
+    log_every: int = opt(10, "write a loss row every this many steps", lo=1, hi=10**9)
+    device: str = opt("auto", "auto | cpu | cuda", choices=("auto", "cpu", "cuda"))
+    net: NetConfig = opt(factory=NetConfig, doc="network architecture and ablation switches")
+    solver: SolverConfig = opt(factory=SolverConfig, doc="physics solver parameters")
+    loss: LossConfig = opt(factory=LossConfig, doc="loss weights, paper Eq. (8)-(12)")
+    window: WindowConfig = opt(factory=WindowConfig, doc="window geometry and on-the-fly spike model")
+    train_items: int = opt(200000, "on-the-fly training items (index space)", lo=1, hi=10**12)
+    val_items: int = opt(64, "on-the-fly validation items", lo=1, hi=10**7)
+
+
+TINY = TrainConfig(
+    epochs=4, steps_per_epoch=2, batch_size=2, ckpt_every=2, log_every=1, val_items=4, train_items=64,
+    net=NetConfig(feat_ch=8, ref_ch=(8, 8, 8), dec_ch=(8, 8, 8), use_rir=False),
+    window=WindowConfig(crop=16),
+)
+"""Shrunken preset for tests: a few steps on 16x16 crops in seconds."""
+
+
+def alpha_at(epoch: int, cfg: TrainConfig) -> float:
+    """Teacher-forcing ratio for 0-based ``epoch`` (paper Sec. 3.4 curriculum)."""
+    f = epoch / cfg.epochs
+    a1, a2, a3 = cfg.curriculum_alphas
+    e1, e2 = cfg.curriculum_fracs
+    return a1 if f < e1 - 1e-12 else (a2 if f < e2 - 1e-12 else a3)
+
+
+def collate(items: list[dict[str, torch.Tensor]]) -> dict[str, torch.Tensor]:
+    """Stack a list of item dicts (common keys) into a batch."""
+    keys = set(items[0]).intersection(*items[1:]) if len(items) > 1 else set(items[0])
+    return {k: torch.stack([it[k] for it in items]) for k in sorted(keys) if isinstance(items[0][k], torch.Tensor)}
+
+
+def _device(name: str) -> torch.device:
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    if name == "cuda" and not torch.cuda.is_available():
+        raise ConfigError("device = 'cuda' but no CUDA device is available; use device = 'auto' or 'cpu'")
+    return torch.device(name)
+
+
+def _psnr(x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+    """Per-image PSNR (dB) with data range 1 after clipping x to [0, 1]; (B,)."""
+    mse = ((x.clamp(0, 1) - y) ** 2).flatten(1).mean(1).clamp_min(1e-10)
+    return -10 * torch.log10(mse)
+
+
+@torch.no_grad()
+def evaluate_model(model: PolSpikeNet, dataset, batch_size: int = 8, device: torch.device | str = "cpu", ssim: bool = False) -> dict[str, float]:
+    """Mean PSNR (and optionally SSIM) of T: full network, solver output, oracle RWPS (GT zeta).
+
+    Args:
+        model: network (put in eval mode here).
+        dataset: items with ``I``, ``phi``, ``T``, ``R``, ``zeta``.
+        batch_size: windows per forward pass.
+        device: torch device.
+        ssim: also compute SSIM (scikit-image, data range 1).
+
+    Returns:
+        dict with ``psnr_T`` (final), ``psnr_T_base`` (RWPS with learned zeta and w,
+        before refinement), ``psnr_T_oracle`` (RWPS with GT zeta and Poisson weights),
+        ``psnr_R``, and ``ssim_*`` counterparts when requested.
+    """
+    from reconstruct.solvers import solve
+
+    was = model.training
+    model.eval()
+    acc: dict[str, list[float]] = {}
+    for s in range(0, len(dataset), batch_size):
+        b = collate([dataset[i] for i in range(s, min(len(dataset), s + batch_size))])
+        I, phi, T, R, z = (b[k].to(device) for k in ("I", "phi", "T", "R", "zeta"))
+        out = model(I, phi)
+        orc = solve("rwps", z, I, None, model.solver_cfg_in)
+        ests = {"T": out.T, "T_base": out.T_base, "T_oracle": orc.T, "R": out.R}
+        for name, est in ests.items():
+            ref = R if name == "R" else T
+            acc.setdefault(f"psnr_{name}", []).extend(_psnr(est, ref).cpu().tolist())
+            if ssim:
+                from skimage.metrics import structural_similarity
+
+                for e, r in zip(est.clamp(0, 1).cpu().numpy(), ref.cpu().numpy()):
+                    acc.setdefault(f"ssim_{name}", []).append(float(structural_similarity(r, e, data_range=1.0)))
+    model.train(was)
+    return {k: float(np.mean(v)) for k, v in acc.items()}
+
+
+_LOG_FIELDS = ["step", "epoch", "alpha", "loss", "l_rec", "l_grad", "l_phys", "l_excl", "l_base", "val_psnr_T", "val_psnr_T_base", "val_psnr_T_oracle", "seconds"]
+
+
+def _write_log(run: Path, rows: list[dict[str, Any]]) -> None:
+    buf = io.StringIO()
+    w = csv.DictWriter(buf, fieldnames=_LOG_FIELDS, extrasaction="ignore")
+    w.writeheader()
+    for r in rows:
+        w.writerow(r)
+    write_text(run / "log.csv", buf.getvalue())
+
+
+def _plot(run: Path, rows: list[dict[str, Any]]) -> None:
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+
+        from polspike.plotting import save_figure
+    except Exception:  # pragma: no cover - plotting is optional
+        return
+    tr = [r for r in rows if r.get("loss") not in (None, "")]
+    va = [r for r in rows if r.get("val_psnr_T") not in (None, "")]
+    fig, ax = plt.subplots(1, 2, figsize=(10, 3.6))
+    if tr:
+        st = [int(r["step"]) for r in tr]
+        for k in ("loss", "l_rec", "l_phys"):
+            ax[0].plot(st, [float(r[k]) for r in tr], label=k)
+        ax[0].set_yscale("log")
+    ax[0].set_xlabel("step")
+    ax[0].set_title("training losses (paper Eq. (8)-(12))")
+    ax[0].legend()
+    if va:
+        st = [int(r["step"]) for r in va]
+        for k, lab in (("val_psnr_T", "full network"), ("val_psnr_T_base", "RWPS (learned zeta, w)"), ("val_psnr_T_oracle", "RWPS (GT zeta)")):
+            ax[1].plot(st, [float(r[k]) for r in va], marker="o", label=lab)
+    ax[1].set_xlabel("step")
+    ax[1].set_ylabel("PSNR of T (dB)")
+    ax[1].set_title("validation")
+    if va:
+        ax[1].legend()
+    save_figure(fig, run / "curves.png")
+    plt.close(fig)
+
+
+def _read_log(run: Path, max_step: int) -> list[dict[str, Any]]:
+    p = run / "log.csv"
+    if not p.is_file():
+        return []
+    with open(p, newline="") as fh:
+        return [r for r in csv.DictReader(fh) if int(r["step"]) <= max_step]
+
+
+def train(
+    cfg: TrainConfig,
+    train_set,
+    val_set,
+    run_dir: str | os.PathLike,
+    *,
+    progress: ProgressFn | None = None,
+    stop_after: int | None = None,
+    max_seconds: float | None = None,
+) -> dict[str, Any]:
+    """Train (or resume) a :class:`PolSpikeNet`.
+
+    Args:
+        cfg: training configuration.
+        train_set, val_set: map-style datasets of window items
+            (:class:`reconstruct.onthefly.OnTheFlyWindows` or a stored-window dataset).
+        run_dir: output directory; an existing ``last.pt`` there is resumed
+            (its config must equal ``cfg``, else CheckpointError).
+        progress: optional ``(done_steps, total_steps)`` callback.
+        stop_after: stop (after checkpointing) once this global step is reached;
+            for time-boxed runs and the resume test.
+        max_seconds: stop (after checkpointing) once this much wall time has
+            passed in this call; a later call resumes.
+
+    Returns:
+        dict with ``step``, ``total_steps``, ``param_count`` and the last validation metrics.
+    """
+    run = ensure_dir(run_dir)
+    dev = _device(cfg.device)
+    spe = cfg.steps_per_epoch or max(1, len(train_set) // cfg.batch_size)
+    total = cfg.epochs * spe
+    model = PolSpikeNet(cfg.net, cfg.solver)
+    init_weights(model, torch.Generator().manual_seed(cfg.seed))
+    model.to(dev)
+    opt_ = torch.optim.Adam(model.parameters(), lr=cfg.lr)
+    step = 0
+    metrics: dict[str, float] = {}
+    ck = run / "last.pt"
+    if ck.exists():
+        data = read_checkpoint(ck)
+        if data.get("train") != to_dict(cfg):
+            raise CheckpointError(f"{ck} was written with a different training config; use a new --out directory or the same config")
+        model.load_state_dict(data["state_dict"])
+        opt_.load_state_dict(data["optimizer"])
+        step = int(data["step"])
+        metrics = dict(data.get("metrics", {}))
+        log.info("resumed %s at step %d/%d", ck, step, total)
+    write_json(run / "config.json", to_dict(cfg))
+    rows = _read_log(run, step)
+    n_par = count_parameters(model)
+    log.info("PolSpikeNet: %d trainable parameters; %d steps (%d epochs x %d)", n_par, total, cfg.epochs, spe)
+
+    def checkpoint() -> None:
+        save_checkpoint(ck, model, extra={"train": to_dict(cfg), "optimizer": opt_.state_dict(), "step": step, "metrics": metrics})
+        _write_log(run, rows)
+        _plot(run, rows)
+
+    perm_epoch, perm = -1, None
+    t0 = time.perf_counter()
+    model.train()
+    end = total if stop_after is None else min(total, stop_after)
+    while step < end:
+        epoch, pos = divmod(step, spe)
+        if epoch != perm_epoch:
+            g = torch.Generator().manual_seed(cfg.seed * 1_000_003 + epoch)
+            perm = torch.randperm(len(train_set), generator=g)
+            perm_epoch = epoch
+        idx = [int(perm[(pos * cfg.batch_size + j) % len(train_set)]) for j in range(cfg.batch_size)]
+        b = collate([train_set[i] for i in idx])
+        alpha = alpha_at(epoch, cfg)
+        I, phi, T, R, z = (b[k].to(dev) for k in ("I", "phi", "T", "R", "zeta"))
+        out = model(I, phi, zeta_gt=z, alpha=alpha)
+        loss, parts = total_loss(out, T, R, alpha, cfg.loss)
+        if not math.isfinite(parts["loss"]):
+            raise FloatingPointError(f"non-finite loss at step {step}: {parts}")
+        opt_.zero_grad(set_to_none=True)
+        loss.backward()
+        if cfg.grad_clip > 0:
+            torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.grad_clip)
+        opt_.step()
+        step += 1
+        row: dict[str, Any] = {}
+        if step % cfg.log_every == 0 or step == total:
+            row = {"step": step, "epoch": epoch + 1, "alpha": alpha, **{k: f"{v:.6g}" for k, v in parts.items()}, "seconds": f"{time.perf_counter() - t0:.1f}"}
+        val_now = (cfg.val_every and step % cfg.val_every == 0) or (not cfg.val_every and step % spe == 0) or step == total
+        if val_now and val_set is not None and len(val_set):
+            metrics = evaluate_model(model, val_set, cfg.batch_size, dev)
+            row = row or {"step": step, "epoch": epoch + 1, "alpha": alpha, "seconds": f"{time.perf_counter() - t0:.1f}"}
+            row.update({f"val_{k}": f"{v:.4f}" for k, v in metrics.items()})
+            log.info("step %d: val PSNR T %.2f dB (solver %.2f, oracle %.2f)", step, metrics["psnr_T"], metrics["psnr_T_base"], metrics["psnr_T_oracle"])
+        if row:
+            rows.append(row)
+        out_of_time = max_seconds is not None and time.perf_counter() - t0 > max_seconds
+        if step % cfg.ckpt_every == 0 or step == end or out_of_time:
+            checkpoint()
+        if progress is not None:
+            progress(step, total)
+        if out_of_time:
+            log.info("time budget of %.0f s reached at step %d; resume with the same command", max_seconds, step)
+            break
+    if step == end and not (run / "log.csv").exists():
+        checkpoint()
+    return {"step": step, "total_steps": total, "param_count": n_par, "metrics": metrics, "run_dir": str(run)}
