@@ -136,6 +136,9 @@ class LayerPlane:
         name: short label used in the scene dict.
         normal: emitting side (default ``cross(u_axis, v_axis)``); give it for
             a mirrored (left-handed) frame such as the R plane's.
+        keep_side: optional half-space (point, normal): texels outside it
+            (e.g. the part of a tilted R plane that pokes through the pane to
+            the far side) neither emit nor block (``mask`` BSDF, opacity 0).
     """
 
     center: tuple[float, float, float]
@@ -145,6 +148,19 @@ class LayerPlane:
     texture: np.ndarray
     name: str = "layer"
     normal: tuple[float, float, float] | None = None
+    keep_side: tuple[tuple[float, float, float], tuple[float, float, float]] | None = None
+
+    def side_mask(self) -> np.ndarray | None:
+        """(H_tex, W_tex) float 1 where a texel centre lies in ``keep_side``, else 0 (None: no clipping)."""
+        if self.keep_side is None:
+            return None
+        th, tw = np.asarray(self.texture).shape
+        X = ((np.arange(tw) + 0.5) / tw * 2 - 1) * self.half_size[0]
+        Y = (1 - (np.arange(th) + 0.5) / th * 2) * self.half_size[1]  # row 0 at +v
+        u, v = _unit(self.u_axis, "layer u"), _unit(self.v_axis, "layer v")
+        P = np.asarray(self.center, float) + X[None, :, None] * u + Y[:, None, None] * v
+        pt, nn = np.asarray(self.keep_side[0], float), _unit(self.keep_side[1], "keep_side normal")
+        return ((P - pt) @ nn > 0).astype(np.float64)
 
 
 def _rect_matrix(center, u, v, hu: float, hv: float, normal=None) -> np.ndarray:
@@ -202,9 +218,11 @@ def build_scene_dict(
         camera, pane, layers: geometry records.
         integrator: integrator dict (default: ``stokes`` around ``path``, max_depth 16).
         spp, seed, sampler: sampling settings.
-        polarizer_deg: if given, Mitsuba's ``polarizer`` BSDF on a rectangle just
-            in front of the camera, rotated by this angle about the view axis
-            (it passes phi = -angle in the project convention: see notes).
+        polarizer_deg: if given, Mitsuba's ``polarizer`` BSDF (its own ``theta``
+            = 0) on a rectangle 1 mm in front of the camera whose local x axis
+            is turned by this angle from image +x toward image up: it passes
+            phi = +angle in the project convention (pinned by a test; turning
+            the BSDF's ``theta`` parameter instead passes phi = -theta).
         film_size: override (W, H) of the film.
 
     Returns:
@@ -242,11 +260,17 @@ def build_scene_dict(
         m = _rect_matrix(layer.center, _unit(layer.u_axis, "layer u"), _unit(layer.v_axis, "layer v"), *map(float, layer.half_size), normal=layer.normal)
         # rectangle uv: u = (x+1)/2 along +x, v = (y+1)/2 along +y; the bitmap's row 0
         # is looked up at v = 0, so flip the rows to put row 0 at +v_axis (top).
+        mask = layer.side_mask()
+        bsdf: dict[str, Any] = {"type": "diffuse", "reflectance": 0.0}
+        if mask is not None and mask.min() < 1.0:
+            tex = tex * mask.astype(np.float32)
+            opac = np.ascontiguousarray(mask[::-1, :, None].astype(np.float32))
+            bsdf = {"type": "mask", "opacity": {"type": "bitmap", "data": mi.TensorXf(opac), "raw": True, "filter_type": "nearest", "wrap_mode": "clamp"}, "bsdf": bsdf}
         data = np.ascontiguousarray(tex[::-1, :, None])
         d[f"layer_{k}_{layer.name}"] = {
             "type": "rectangle",
             "to_world": T(m.tolist()),
-            "bsdf": {"type": "diffuse", "reflectance": 0.0},
+            "bsdf": bsdf,
             "emitter": {"type": "area", "radiance": {"type": "bitmap", "data": mi.TensorXf(data), "raw": True, "filter_type": "nearest", "wrap_mode": "clamp"}},
         }
     if polarizer_deg is not None:

@@ -229,7 +229,7 @@ def render_stokes_image(mi, scene_dict: dict, spp: int, seed: int) -> np.ndarray
     return np.nan_to_num(s, nan=0.0, posinf=0.0, neginf=0.0)
 
 
-def _layer_plane_spec(plane, cam_forward, texture: np.ndarray, name: str):
+def _layer_plane_spec(plane, cam_forward, texture: np.ndarray, name: str, keep_side=None):
     from generator.mitsuba_scene import LayerPlane as MiPlane
 
     return MiPlane(
@@ -240,7 +240,18 @@ def _layer_plane_spec(plane, cam_forward, texture: np.ndarray, name: str):
         texture=texture,
         name=name,
         normal=tuple(map(float, -np.asarray(cam_forward))),
+        keep_side=keep_side,
     )
+
+
+def layer_sides(scene):
+    """Half-spaces the layers must stay in: R on the camera side of the pane's front face, T beyond its back face."""
+    plane = scene.pane_plane()
+    n = np.asarray(plane.normal, float) / np.linalg.norm(plane.normal)
+    t = scene.pane.thickness_m if scene.pane.model != "single" else 0.0
+    front = tuple(map(float, plane.point))
+    back = tuple(map(float, np.asarray(plane.point) - (t + 1e-6) * n))
+    return (back, tuple(map(float, -n))), (front, tuple(map(float, n)))
 
 
 def _texture(content, t_s: float) -> np.ndarray:
@@ -287,6 +298,7 @@ class FullRenderer:
         cam = scene.camera_model()
         self.fwd_t = cam.forward
         self.fwd_r = cam.mirrored(scene.pane_plane()).forward
+        self.side_t, self.side_r = layer_sides(scene)
         self._cache: dict[int, np.ndarray] = {}
         self.n_keyframes_rendered = 0
         self.render_s = 0.0
@@ -301,7 +313,7 @@ class FullRenderer:
             "spectral": note,
             "keyframes": "static scene: one render" if self.static else f"path-traced at {self.kf_hz} Hz, Stokes linearly interpolated between",
             "pane_extent": f"finite rectangle {tuple(scene.pane.size_m)} m",
-            "layers": "textured area emitters (bilinear), T plane facing the camera, R plane facing the mirrored camera",
+            "layers": "textured area emitters (bilinear), T plane facing the camera, R plane facing the mirrored camera; each clipped (mask BSDF) to its side of the pane",
             "max_depth": MAX_DEPTH_FULL,
             "backend": self.be.to_dict(),
         }
@@ -321,8 +333,8 @@ class FullRenderer:
             cam, pane = specs_from_scene(self.scene, n=n_b)
             scale_t = n_b**2 if pane.model == "single" else 1.0
             layers = [
-                _layer_plane_spec(self.t_plane, self.fwd_t, tex_t * scale_t, "T"),
-                _layer_plane_spec(self.r_plane, self.fwd_r, tex_r, "R"),
+                _layer_plane_spec(self.t_plane, self.fwd_t, tex_t * scale_t, "T", self.side_t),
+                _layer_plane_spec(self.r_plane, self.fwd_r, tex_r, "R", self.side_r),
             ]
             integ = {"type": "stokes", "inner": {"type": "path", "max_depth": MAX_DEPTH_FULL, "rr_depth": MAX_DEPTH_FULL + 1}}
             d = build_scene_dict(self.mi, cam, pane, layers, integrator=integ, spp=self.spp_band, seed=self.seed)
