@@ -1,0 +1,225 @@
+"""Polarizer calibration from spikes: phase phi0 and rotation rate, as on the real rig.
+
+Supp. "Hardware calibration": a polarized flat target (a smartphone screen) is
+filmed; the darkest observed state gives the polarizer orientation, the motor
+speed maps timestamps to angles.  Here, behind an ideal polarizer, the response
+of a target polarized at angle psi is ``I ~ a + b cos(2 phi(t) - 2 psi)`` with
+phi(t) = phi0 + 2 pi f t, darkest at phi = psi + pi/2.  We estimate
+
+* the rate f from the modulation itself: the frequency 2f maximising the
+  summed power sum_b |A_b(f)|^2 of spatially binned spike counts (incoherent
+  over bins, so it works on ANY modulated scene, whatever its AoLP);
+* the phase from the complex amplitude at 2f: ``A ~ b e^{i (2 phi0 - 2 psi)}``,
+  so ``phi0 = psi + arg(sum_b A_b e^{2 i psi_b}) / 2`` (mod pi) for a flat
+  target (:func:`calibrate_flat_target`), and, for a general scene whose
+  per-pixel polarization axis psi_p is known only up to a 90 deg flip (glass:
+  reflection along the s-direction phi_perp, transmission across it),
+  ``4 phi0 = arg(sum_b (A_b e^{2 i psi_b})^2)`` with the pi/2 ambiguity broken by
+  a prior (:func:`calibrate_from_modulation`).
+
+The darkest-window estimate the rig uses is :func:`darkest_phase` (coarse, for
+comparison).  Errors against the true phi(t) come from :func:`phase_error`.
+Angles in radians; the polarizer is pi-periodic, so phases are reported mod pi.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from polspike.errors import ConfigError, ShapeError
+
+__all__ = [
+    "PolarizerCalibration",
+    "binned_counts",
+    "estimate_rate",
+    "calibrate_flat_target",
+    "calibrate_from_modulation",
+    "darkest_phase",
+    "phase_error",
+]
+
+
+@dataclasses.dataclass(frozen=True)
+class PolarizerCalibration:
+    """Result: phi(t) = phi0_rad + 2 pi rate_hz t (mod pi)."""
+
+    phi0_rad: float
+    rate_hz: float
+    method: str
+    modulation: float
+
+    def phi(self, t_s) -> np.ndarray:
+        """Calibrated angle at times ``t_s``."""
+        return self.phi0_rad + 2.0 * np.pi * self.rate_hz * np.asarray(t_s, dtype=np.float64)
+
+
+def _wrap_pi(a):
+    """Wrap to (-pi/2, pi/2]: the polarizer angle is defined mod pi."""
+    return (np.asarray(a) + np.pi / 2) % np.pi - np.pi / 2
+
+
+def binned_counts(source, bin_px: int = 10, chunk_steps: int = 2000) -> np.ndarray:
+    """Spike counts per step summed over ``bin_px`` x ``bin_px`` blocks.
+
+    Args:
+        source: (T, H, W) 0/1 array or a :class:`~spike_sim.store.SpikeGroup`.
+        bin_px: block size (edge blocks dropped).
+
+    Returns:
+        (T, nb) float32, nb = (H // bin_px) * (W // bin_px).
+    """
+    if hasattr(source, "iter_chunks"):
+        parts = [_bin(chunk, bin_px) for _, chunk in source.iter_chunks(chunk_steps)]
+        return np.concatenate(parts, axis=0)
+    arr = np.asarray(source)
+    if arr.ndim != 3:
+        raise ShapeError(f"spikes must be (T, H, W), got {arr.shape}", arr.shape, "(T, H, W)")
+    return np.concatenate([_bin(arr[i : i + chunk_steps], bin_px) for i in range(0, arr.shape[0], chunk_steps)], axis=0)
+
+
+def _bin(x: np.ndarray, b: int) -> np.ndarray:
+    T, H, W = x.shape
+    hb, wb = H // b, W // b
+    if hb == 0 or wb == 0:
+        raise ShapeError(f"bin_px = {b} is larger than the {H}x{W} frame", x.shape, f"(T, >= {b}, >= {b})")
+    y = x[:, : hb * b, : wb * b].reshape(T, hb, b, wb, b).sum(axis=(2, 4), dtype=np.int32)
+    return y.reshape(T, hb * wb).astype(np.float32)
+
+
+def _amplitudes(y: np.ndarray, t: np.ndarray, f_hz) -> np.ndarray:
+    """Complex amplitudes at modulation frequency 2 f: (n_f, nb)."""
+    f = np.atleast_1d(np.asarray(f_hz, dtype=np.float64))
+    yc = y - y.mean(axis=0, keepdims=True)
+    E = np.exp(-1j * 4.0 * np.pi * f[:, None] * t[None, :])  # (n_f, T)
+    return (E @ yc.astype(np.float64)) * (2.0 / len(t))
+
+
+def estimate_rate(y: np.ndarray, dt_s: float, rate_guess_hz: float = 30.0, search_frac: float = 0.1) -> float:
+    """Rotation rate maximising the binned modulation power at 2 f (coarse grid + golden refinement).
+
+    Args:
+        y: (T, nb) binned counts (:func:`binned_counts`).
+        dt_s: step length.
+        rate_guess_hz: nominal rate; the search spans +-search_frac around it.
+    """
+    T = y.shape[0]
+    t = (np.arange(T) + 0.5) * dt_s
+    dur = T * dt_s
+    if rate_guess_hz * dur < 1.0:
+        raise ConfigError(f"{dur:.3f} s of stream holds less than one polarizer turn at {rate_guess_hz} rev/s; record longer")
+    lo, hi = rate_guess_hz * (1 - search_frac), rate_guess_hz * (1 + search_frac)
+    # grid finer than the spectral resolution 1 / (2 dur) of the 2f line
+    n = max(9, int(np.ceil((hi - lo) / (0.25 / (2.0 * dur)))) + 1)
+    grid = np.linspace(lo, hi, min(n, 401))
+
+    def power(f):
+        return float(np.sum(np.abs(_amplitudes(y, t, f)) ** 2))
+
+    p = np.array([np.sum(np.abs(_amplitudes(y, t, g)) ** 2) for g in grid])
+    k = int(np.argmax(p))
+    a, b = grid[max(k - 1, 0)], grid[min(k + 1, len(grid) - 1)]
+    g = (np.sqrt(5) - 1) / 2
+    c, d = b - g * (b - a), a + g * (b - a)
+    pc, pd = power(c), power(d)
+    for _ in range(40):
+        if pc > pd:
+            b, d, pd = d, c, pc
+            c = b - g * (b - a)
+            pc = power(c)
+        else:
+            a, c, pc = c, d, pd
+            d = a + g * (b - a)
+            pd = power(d)
+    return 0.5 * (a + b)
+
+
+def calibrate_flat_target(
+    source, dt_s: float, target_aolp_rad: float = 0.0, rate_hz: float | None = None, rate_guess_hz: float = 30.0, bin_px: int = 10
+) -> PolarizerCalibration:
+    """phi0 and rate from a stream of a flat target linearly polarized at ``target_aolp_rad``.
+
+    Args:
+        source: (T, H, W) spikes or a SpikeGroup of the target.
+        dt_s: step length in seconds.
+        target_aolp_rad: polarization angle of the target (image frame).
+        rate_hz: known rate (skip the search) or None to estimate it.
+    """
+    y = binned_counts(source, bin_px)
+    f = rate_hz if rate_hz is not None else estimate_rate(y, dt_s, rate_guess_hz)
+    t = (np.arange(y.shape[0]) + 0.5) * dt_s
+    A = _amplitudes(y.sum(axis=1, keepdims=True), t, f)[0, 0]
+    phi0 = target_aolp_rad + 0.5 * np.angle(A)  # A ~ b exp(i(2 phi0 - 2 psi))
+    mod = float(np.abs(A) / max(y.sum(axis=1).mean(), 1e-12))
+    return PolarizerCalibration(float(_wrap_pi(phi0)), float(f), "flat-target fit", mod)
+
+
+def calibrate_from_modulation(
+    source,
+    dt_s: float,
+    axis_rad,
+    prior_phi0_rad: float = 0.0,
+    rate_hz: float | None = None,
+    rate_guess_hz: float = 30.0,
+    bin_px: int = 10,
+) -> PolarizerCalibration:
+    """phi0 and rate from the modulation of a scene whose polarization AXIS is known up to 90 deg.
+
+    Args:
+        source: (T, H, W) spikes or a SpikeGroup.
+        dt_s: step length.
+        axis_rad: scalar or (H, W) polarization axis per pixel, modulo pi/2
+            (e.g. the pane's phi_perp map).
+        prior_phi0_rad: a rough phase (e.g. the nominal one) choosing among the
+            four solutions phi0 + k pi/2 (mod pi: two candidates).
+        rate_hz: known rate or None to estimate it.
+    """
+    y = binned_counts(source, bin_px)
+    f = rate_hz if rate_hz is not None else estimate_rate(y, dt_s, rate_guess_hz)
+    t = (np.arange(y.shape[0]) + 0.5) * dt_s
+    A = _amplitudes(y, t, f)[0]  # (nb,)
+    ax = np.asarray(axis_rad, dtype=np.float64)
+    if ax.ndim == 2:
+        if hasattr(source, "height"):
+            H, W = source.height, source.width
+        else:
+            H, W = np.asarray(source).shape[1:]
+        if ax.shape != (H, W):
+            raise ShapeError(f"axis map is {ax.shape}, the stream is {H}x{W}", ax.shape, f"({H}, {W})")
+        b = bin_px
+        hb, wb = H // b, W // b
+        # average the axis over each block on the doubled-angle circle
+        z = np.exp(2j * ax[: hb * b, : wb * b]).reshape(hb, b, wb, b).mean(axis=(1, 3)).ravel()
+        psi = 0.5 * np.angle(z)
+    else:
+        psi = np.full(A.shape, float(ax))
+    r = A * np.exp(2j * psi)  # ~ +-|b| exp(2 i phi0)
+    base = 0.25 * np.angle(np.sum(r * r))  # 4 phi0 known, phi0 mod pi/2
+    cands = base + np.array([0.0, np.pi / 2])
+    k = int(np.argmin(np.abs(_wrap_pi(cands - prior_phi0_rad))))
+    mod = float(np.sqrt(np.abs(np.sum(r * r))) / max(y.sum(axis=1).mean(), 1e-12))
+    return PolarizerCalibration(float(_wrap_pi(cands[k])), float(f), "modulation fit", mod)
+
+
+def darkest_phase(source, dt_s: float, rate_hz: float, target_aolp_rad: float = 0.0, window_steps: int = 13) -> PolarizerCalibration:
+    """The rig's method: the angle at the darkest (smoothed) frame of the first turn is psi + pi/2."""
+    y = binned_counts(source, 10).sum(axis=1)
+    n_turn = int(round(0.5 / (rate_hz * dt_s)))  # half a turn covers a full intensity period
+    y = y[: max(n_turn, window_steps)]
+    sm = np.convolve(y, np.ones(window_steps) / window_steps, mode="same")
+    h = window_steps // 2
+    k = h + int(np.argmin(sm[h : len(sm) - h]))
+    t_dark = (k + 0.5) * dt_s
+    phi0 = target_aolp_rad + np.pi / 2 - 2.0 * np.pi * rate_hz * t_dark
+    return PolarizerCalibration(float(_wrap_pi(phi0)), float(rate_hz), "darkest window", float("nan"))
+
+
+def phase_error(cal: PolarizerCalibration, t_s, phi_true_rad) -> dict[str, float]:
+    """Error of the calibrated phi(t) against the true angles (mod pi), degrees.
+
+    Returns:
+        {"phi0_err_deg": error at t = first sample, "rms_deg", "max_abs_deg"}.
+    """
+    e = _wrap_pi(cal.phi(t_s) - np.asarray(phi_true_rad))
+    return {"phi0_err_deg": float(np.rad2deg(e[0])), "rms_deg": float(np.rad2deg(np.sqrt(np.mean(e**2)))), "max_abs_deg": float(np.rad2deg(np.max(np.abs(e))))}

@@ -1,0 +1,190 @@
+"""Raw Vidar ``.dat`` spike files, read and written exactly as SpikeCV and spikezoo do.
+
+Layout (see ../shared/data/real_spikes/README.md):
+
+* no header; frames of H x W bits are concatenated (H W / 8 bytes per frame);
+  a file whose size is not a whole number of frames is malformed;
+* inside a frame, row-major, pixel 8k + i is bit i of byte k (LSB first), i.e.
+  ``np.packbits(frame, bitorder="little")``;
+* the file stores the image UPSIDE DOWN: readers flip rows after unpacking,
+  writers flip before packing;
+* camera files may be 416 columns wide: 16 extra header columns, dropped on
+  read (spikezoo's ``remove_head``: the last 16 columns after the flip).
+
+Streams in memory are (T, H, W) uint8 0/1, upright (row 0 at the top).
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+
+from polspike.atomic import atomic_path
+from polspike.errors import DataFormatError, OutputError, ShapeError
+
+__all__ = ["read_dat", "iter_dat", "write_dat", "DatWriter", "dat_frame_count", "CAMERA_WIDTH", "HEAD_COLUMNS"]
+
+CAMERA_WIDTH = 416
+"""Width of raw camera files that carry 16 header columns."""
+HEAD_COLUMNS = 16
+
+
+def _layout(path: Path, height: int, width: int) -> tuple[int, int]:
+    """(stored width, frame count) of a .dat file; DataFormatError when malformed."""
+    if not path.is_file():
+        raise DataFormatError(f"spike file not found: {path}")
+    size = path.stat().st_size
+    for w in (width, width + HEAD_COLUMNS):
+        fb = height * w // 8
+        if (height * w) % 8 == 0 and fb > 0 and size % fb == 0:
+            return w, size // fb
+    raise DataFormatError(
+        f"{path}: {size} bytes is not a whole number of {height}x{width} frames ({height * width // 8} bytes each)"
+        f" nor of {height}x{width + HEAD_COLUMNS} camera frames; check --height/--width"
+    )
+
+
+def dat_frame_count(path: str | os.PathLike, height: int = 250, width: int = 400) -> int:
+    """Number of frames in a .dat file."""
+    return _layout(Path(path), height, width)[1]
+
+
+def _decode(raw: np.ndarray, n: int, height: int, stored_w: int, width: int, flip: bool) -> np.ndarray:
+    bits = np.unpackbits(raw.reshape(n, height * stored_w // 8), axis=1, bitorder="little")
+    frames = bits.reshape(n, height, stored_w)
+    if flip:
+        frames = frames[:, ::-1, :]
+    if stored_w != width:
+        frames = frames[:, :, :width]
+    return np.ascontiguousarray(frames)
+
+
+def iter_dat(
+    path: str | os.PathLike, height: int = 250, width: int = 400, chunk_frames: int = 1000, flip: bool = True
+) -> Iterator[np.ndarray]:
+    """Yield (t, H, W) uint8 chunks of a .dat file, memory bounded by ``chunk_frames``."""
+    p = Path(path)
+    stored_w, n = _layout(p, height, width)
+    fb = height * stored_w // 8
+    with open(p, "rb") as fh:
+        for start in range(0, n, chunk_frames):
+            m = min(chunk_frames, n - start)
+            raw = np.frombuffer(fh.read(m * fb), dtype=np.uint8)
+            yield _decode(raw, m, height, stored_w, width, flip)
+
+
+def read_dat(
+    path: str | os.PathLike,
+    height: int = 250,
+    width: int = 400,
+    frames: slice | None = None,
+    flip: bool = True,
+) -> np.ndarray:
+    """Read a raw Vidar .dat file.
+
+    Args:
+        path: the file.
+        height, width: frame size of the image (a 416-wide camera file is
+            recognised and its 16 header columns dropped).
+        frames: optional slice of frame indices (read lazily via memory map).
+        flip: undo the upside-down storage (True = what SpikeCV / spikezoo do).
+            ``flip=False`` exists to show what a reader that forgets it sees.
+
+    Returns:
+        (T, H, W) uint8 spikes, upright when ``flip``.
+
+    Raises:
+        DataFormatError: missing file or size not a whole number of frames.
+    """
+    p = Path(path)
+    stored_w, n = _layout(p, height, width)
+    fb = height * stored_w // 8
+    mm = np.memmap(p, dtype=np.uint8, mode="r", shape=(n, fb))
+    sel = range(n)[frames] if frames is not None else range(n)
+    if len(sel) == 0:
+        return np.zeros((0, height, width), np.uint8)
+    raw = np.asarray(mm[sel.start : sel.stop : sel.step]) if frames is not None else np.asarray(mm)
+    return _decode(raw, raw.shape[0], height, stored_w, width, flip)
+
+
+def _encode(spikes: np.ndarray, flip: bool) -> bytes:
+    if spikes.ndim != 3:
+        raise ShapeError(f"spikes must be (T, H, W), got shape {spikes.shape}", spikes.shape, "(T, H, W)")
+    T, H, W = spikes.shape
+    if (H * W) % 8:
+        raise ShapeError(f"a .dat frame needs H*W divisible by 8, got {H}x{W}", spikes.shape, "(T, H, W) with H*W % 8 == 0")
+    f = spikes[:, ::-1, :] if flip else spikes
+    return np.packbits(np.ascontiguousarray(f, dtype=np.uint8).reshape(T, H * W) != 0, axis=1, bitorder="little").tobytes()
+
+
+def write_dat(path: str | os.PathLike, spikes: np.ndarray, flip: bool = True) -> Path:
+    """Write (T, H, W) 0/1 spikes as a raw .dat file (atomically), upside down like SpikeCV."""
+    with DatWriter(path, flip=flip) as w:
+        w.write(spikes)
+    return Path(path)
+
+
+class DatWriter:
+    """Streaming .dat writer: append (t, H, W) chunks; the file appears only on close.
+
+    Use as a context manager; on an exception the temporary file is removed.
+    Also accepts packed upright frames (t, H*W/8) via :meth:`write_packed`.
+    """
+
+    def __init__(self, path: str | os.PathLike, flip: bool = True):
+        self.path = Path(path)
+        self.flip = flip
+        self._ctx = atomic_path(self.path)
+        self._tmp = self._ctx.__enter__()
+        self._fh = open(self._tmp, "wb")
+        self.frames = 0
+        self.shape: tuple[int, int] | None = None
+
+    def write(self, spikes: np.ndarray) -> None:
+        """Append upright (t, H, W) 0/1 frames."""
+        spikes = np.asarray(spikes)
+        if self.shape is None:
+            self.shape = spikes.shape[1:]
+        elif spikes.shape[1:] != self.shape:
+            raise ShapeError(f"chunk frames are {spikes.shape[1:]}, earlier ones were {self.shape}", spikes.shape, f"(t, {self.shape[0]}, {self.shape[1]})")
+        self._fh.write(_encode(spikes, self.flip))
+        self.frames += spikes.shape[0]
+
+    def write_packed(self, packed: np.ndarray, height: int, width: int) -> None:
+        """Append upright frames packed LSB-first per frame, (t, ceil(H W / 8)) uint8."""
+        if self.flip and width % 8 == 0:
+            rows = packed.reshape(packed.shape[0], height, width // 8)[:, ::-1, :]
+            self._fh.write(np.ascontiguousarray(rows).tobytes())
+            self.frames += packed.shape[0]
+            self.shape = (height, width)
+        else:
+            bits = np.unpackbits(packed, axis=1, bitorder="little", count=height * width).reshape(-1, height, width)
+            self.write(bits)
+
+    def close(self, ok: bool = True) -> None:
+        """Finish the file (rename into place) or discard it."""
+        if self._fh.closed:
+            return
+        self._fh.flush()
+        os.fsync(self._fh.fileno())
+        self._fh.close()
+        if ok:
+            try:
+                self._ctx.__exit__(None, None, None)
+            except OSError as exc:  # pragma: no cover - disk errors
+                raise OutputError(f"cannot write {self.path}: {exc}") from None
+        else:
+            err = RuntimeError("aborted")
+            try:
+                self._ctx.__exit__(RuntimeError, err, None)
+            except RuntimeError:
+                pass
+
+    def __enter__(self) -> DatWriter:
+        return self
+
+    def __exit__(self, et, ev, tb) -> None:
+        self.close(ok=et is None)
