@@ -123,7 +123,7 @@ def evaluate_model(model: PolSpikeNet, dataset, batch_size: int = 8, device: tor
     Returns:
         dict with ``psnr_T`` (final), ``psnr_T_base`` (RWPS with learned zeta and w,
         before refinement), ``psnr_T_oracle`` (RWPS with GT zeta and Poisson weights),
-        ``psnr_R``, and ``ssim_*`` counterparts when requested.
+        ``psnr_T_tfp`` (2 x window mean of I, the plain TFP image), ``psnr_R``, and ``ssim_*`` counterparts when requested.
     """
     from reconstruct.solvers import solve
 
@@ -135,7 +135,7 @@ def evaluate_model(model: PolSpikeNet, dataset, batch_size: int = 8, device: tor
         I, phi, T, R, z = (b[k].to(device) for k in ("I", "phi", "T", "R", "zeta"))
         out = model(I, phi)
         orc = solve("rwps", z, I, None, model.solver_cfg_in)
-        ests = {"T": out.T, "T_base": out.T_base, "T_oracle": orc.T, "R": out.R}
+        ests = {"T": out.T, "T_base": out.T_base, "T_oracle": orc.T, "T_tfp": 2.0 * I.mean(1), "R": out.R}
         for name, est in ests.items():
             ref = R if name == "R" else T
             acc.setdefault(f"psnr_{name}", []).extend(_psnr(est, ref).cpu().tolist())
@@ -254,10 +254,11 @@ def train(
     n_par = count_parameters(model)
     log.info("PolSpikeNet: %d trainable parameters; %d steps (%d epochs x %d)", n_par, total, cfg.epochs, spe)
 
-    def checkpoint() -> None:
+    def checkpoint(plot: bool = False) -> None:
         save_checkpoint(ck, model, extra={"train": to_dict(cfg), "optimizer": opt_.state_dict(), "step": step, "metrics": metrics})
         _write_log(run, rows)
-        _plot(run, rows)
+        if plot:
+            _plot(run, rows)
 
     perm_epoch, perm = -1, None
     t0 = time.perf_counter()
@@ -296,12 +297,12 @@ def train(
             rows.append(row)
         out_of_time = max_seconds is not None and time.perf_counter() - t0 > max_seconds
         if step % cfg.ckpt_every == 0 or step == end or out_of_time:
-            checkpoint()
+            checkpoint(plot=step == end or out_of_time or step % (10 * cfg.ckpt_every) == 0)
         if progress is not None:
             progress(step, total)
         if out_of_time:
             log.info("time budget of %.0f s reached at step %d; resume with the same command", max_seconds, step)
             break
     if step == end and not (run / "log.csv").exists():
-        checkpoint()
+        checkpoint(plot=True)
     return {"step": step, "total_steps": total, "param_count": n_par, "metrics": metrics, "run_dir": str(run)}

@@ -1,0 +1,110 @@
+"""PolSpikeNet: parameter count, shapes, supp. Eq. (19), softmax weights, ablations, gradients."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import pytest
+import torch
+
+from polspike.errors import ShapeError
+from reconstruct.network import AngleAttention, NetConfig, PolSpikeNet, count_parameters, init_weights
+
+PAPER_PARAMS = 0.51e6  # supp. Sec. 10: "about 0.51M parameters"
+
+
+def _window(B=2, N=7, H=16, W=16, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    I = 0.1 + 0.3 * torch.rand(B, N, H, W, generator=g)
+    phi = (torch.arange(N) - N // 2).float() * math.radians(31.5) + torch.rand(B, 1, generator=g)
+    return I, phi
+
+
+def test_parameter_count_matches_paper():
+    n = count_parameters(PolSpikeNet(NetConfig()))
+    print(f"PolSpikeNet trainable parameters: {n:,} (paper: about 0.51 M)")
+    assert abs(n - PAPER_PARAMS) <= 0.10 * PAPER_PARAMS
+
+
+def test_forward_shapes_and_zeta_weights():
+    m = init_weights(PolSpikeNet(NetConfig(use_rir=False)), torch.Generator().manual_seed(0))
+    I, phi = _window()
+    out = m(I, phi)
+    assert out.T.shape == (2, 16, 16) and out.R.shape == (2, 16, 16)
+    assert out.zeta_hat.shape == I.shape and out.weights.shape == I.shape
+    assert torch.all((out.zeta_hat > 0) & (out.zeta_hat < 1))
+    torch.testing.assert_close(out.weights.sum(1), torch.ones(2, 16, 16), atol=1e-5, rtol=0)  # softmax over the window
+    for t in (out.T, out.R, out.conf, out.res):
+        assert torch.isfinite(t).all()
+
+
+def test_zeta_follows_supp_eq19():
+    """zeta_k = sigmoid(a0 + ac cos 2phi_k + as sin 2phi_k): logit(zeta) is a harmonic of 2phi."""
+    m = init_weights(PolSpikeNet(NetConfig(use_rir=False)), torch.Generator().manual_seed(1))
+    I, phi = _window(seed=3)
+    zeta, _, _ = m.param(I, phi)
+    logit = torch.log(zeta / (1 - zeta))
+    c, s = torch.cos(2 * phi)[..., None, None], torch.sin(2 * phi)[..., None, None]
+    A = torch.stack([torch.ones_like(c), c, s], -1).expand(*logit.shape, 3).permute(0, 2, 3, 1, 4)  # (B,H,W,N,3)
+    y = logit.permute(0, 2, 3, 1)[..., None]
+    coef = torch.linalg.lstsq(A.double(), y.double()).solution
+    torch.testing.assert_close((A.double() @ coef)[..., 0], y[..., 0].double(), atol=1e-4, rtol=0)
+
+
+def test_untrained_refinement_returns_solver_output_nearly():
+    m = init_weights(PolSpikeNet(NetConfig(use_rir=False)), torch.Generator().manual_seed(0))
+    out = m(*_window())
+    assert (out.T - out.T_base).abs().max() < 0.05
+
+
+def test_teacher_forcing_alpha_one_uses_gt_zeta():
+    m = init_weights(PolSpikeNet(NetConfig(use_rir=False)), torch.Generator().manual_seed(0))
+    I, phi = _window()
+    z = torch.full_like(I, 0.2)
+    out = m(I, phi, zeta_gt=z, alpha=1.0)
+    torch.testing.assert_close(out.zeta_used, z)
+    half = m(I, phi, zeta_gt=z, alpha=0.5)
+    torch.testing.assert_close(half.zeta_used, 0.5 * z + 0.5 * half.zeta_hat)
+    with pytest.raises(ShapeError):
+        m(I, phi, alpha=0.5)
+
+
+@pytest.mark.parametrize("switch", ["use_rir", "use_attention", "use_conf"])
+def test_ablation_switches_run(switch):
+    cfg = dataclasses.replace(NetConfig(use_rir=False), **{switch: not getattr(NetConfig(use_rir=False), switch)})
+    m = init_weights(PolSpikeNet(cfg), torch.Generator().manual_seed(0))
+    out = m(*_window(B=1))
+    assert torch.isfinite(out.T).all()
+    if switch == "use_attention":
+        assert m.param.att is None and count_parameters(m) < count_parameters(PolSpikeNet(NetConfig()))
+    if switch == "use_conf":
+        assert m.solver_cfg.lambda_low == m.solver_cfg.lambda_high
+
+
+def test_attention_is_equivariant_to_observation_order():
+    """Softmax over the N observations: permuting them (with their angles) permutes the output."""
+    att = AngleAttention(8, 2)
+    init_weights(att, torch.Generator().manual_seed(0))
+    f = torch.randn(1, 5, 8, 3, 3, generator=torch.Generator().manual_seed(1))
+    phi = torch.rand(1, 5, generator=torch.Generator().manual_seed(2))
+    p = torch.tensor([3, 0, 4, 1, 2])
+    torch.testing.assert_close(att(f, phi)[:, p], att(f[:, p], phi[:, p]), atol=1e-5, rtol=1e-5)
+
+
+def test_gradients_reach_both_branches():
+    m = init_weights(PolSpikeNet(NetConfig(use_rir=False)), torch.Generator().manual_seed(0))
+    I, phi = _window(B=1)
+    out = m(I, phi)
+    (out.T.mean() + out.R.mean()).backward()
+    assert m.param.enc[0].conv.weight.grad.abs().sum() > 0
+    assert m.refine.e1[0].conv.weight.grad.abs().sum() > 0
+
+
+def test_bad_shapes_raise():
+    m = PolSpikeNet(NetConfig(use_rir=False))
+    I, phi = _window()
+    with pytest.raises(ShapeError):
+        m(I[:, :5], phi[:, :5])
+    with pytest.raises(ShapeError):
+        m(I[..., :15, :], phi)
