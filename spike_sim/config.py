@@ -50,7 +50,7 @@ class SpikeSimConfig:
     rate_hz: float = opt(20000.0, "readout rate: one bit per pixel per step of 1/rate_hz seconds", lo=1.0, hi=1e8)
     exposure: float = opt(1.0, "photocurrent per unit intensity behind the polarizer, in thresholds per step (ISO-like knob)", lo=0.0, hi=1e6)
     shot_noise: bool = opt(True, "photon shot noise (Poisson photoelectron count per step)")
-    photons_per_threshold: float = opt(1500.0, "photoelectrons that fill one threshold (shot-noise ISI CV ~ 1/sqrt of this)", lo=1.0, hi=1e9)
+    photons_per_threshold: float = opt(1000.0, "photoelectrons that fill one threshold (shot-noise ISI CV ~ 1/sqrt of this)", lo=1.0, hi=1e9)
     dark_current: bool = opt(True, "dark current (per-pixel, with hot pixels)")
     dark_mean: float = opt(5e-4, "mean dark current, thresholds per step (5e-4 = 10 Hz dark rate at 20 kHz)", lo=0.0, hi=1.0)
     dark_std: float = opt(1.95e-4, "per-pixel spread of the dark current, thresholds per step (SCSim relative spread 0.39)", lo=0.0, hi=1.0)
@@ -94,7 +94,7 @@ IDEAL = dataclasses.replace(
 )
 """Noise-free integrate-and-fire, zero initial state: exactly floor(n g) spikes in n steps at constant g."""
 
-NOISY = dataclasses.replace(DEFAULT, photons_per_threshold=150.0, reset_sigma=0.02)
+NOISY = dataclasses.replace(DEFAULT, photons_per_threshold=100.0, reset_sigma=0.02)
 """A deliberately noisier camera (10x fewer photoelectrons per threshold), for robustness studies."""
 
 PRESETS: dict[str, SpikeSimConfig] = {"ideal": IDEAL, "default": DEFAULT, "noisy": NOISY}

@@ -17,8 +17,9 @@ Defaults: f = 30 rev/s, so the output cadence at a 31.5 deg stride is
 10800 / 31.5 = 342.9 frames/s (supp. Eq. (17)-(18)).
 
 Step integral.  Inside one simulator step ``[t_a, t_b]`` the angle is taken as
-linear in time between its exact end values (the step is 50 us; wobble at a few
-Hz bends it by < 1e-9 rad) and the intensity behind the polarizer
+linear in time between its exact end values (the step is 50 us; a wobble bends
+it by at most 2 pi f a 2 pi f_w dt^2 / 8 rad: 1e-9 rad at a = 1 %, f_w = 2 Hz,
+tested) and the intensity behind the polarizer
 ``I = 1/2 ((1 + k) S0 + (1 - k)(S1 cos 2phi + S2 sin 2phi))`` (k = 1/ER, ideal
 k = 0) is integrated in CLOSED FORM.  With ``u in [0, 1]`` the fraction of the
 step, ``2 phi(u) = alpha + beta u``, over a sub-range of mid ``u_m``, length
