@@ -56,6 +56,10 @@ DEFAULT_RESPONSE = "cie_y"
 DEFAULT_BANDS = 8
 """Wavelength bands of the spectral quadrature (400-700 nm)."""
 
+MAX_SUB = 4
+"""Largest sub-pixel grid of the maps tier (spp is clamped to MAX_SUB^2 = 16 rays per pixel):
+the pane response is smooth, so more rays only refine pane-edge pixels."""
+
 MAX_DEPTH_FULL = 24
 """Path depth of the full tier (slab interreflections plus the emitter hit)."""
 
@@ -144,7 +148,8 @@ def render_pane_maps(scene, opts, info: dict, *, response: str = DEFAULT_RESPONS
     Args:
         scene: :class:`generator.scene.SceneConfig`.
         opts: :class:`generator.render.RenderOptions` (uses ``spp`` -> sub-pixel
-            grid ``round(sqrt(spp))``^2, ``variant``, ``spectral``).
+            grid ``round(sqrt(spp))``^2 capped at :data:`MAX_SUB`^2, or 2x2 when
+            ``opts.tier == "full"`` (maps.exr only), ``variant``, ``spectral``).
         info: dict updated in place with ``modelled``, ``variant``, ``spp``.
         response, n_bands: spectral quadrature (see :func:`spectral_bands`).
 
@@ -157,7 +162,9 @@ def render_pane_maps(scene, opts, info: dict, *, response: str = DEFAULT_RESPONS
 
     be, mi = _resolve(opts, need_jit=True)
     spp = int(opts.spp or scene.render.spp)
-    sub = max(1, int(round(math.sqrt(spp))))
+    sub = min(MAX_SUB, max(1, int(round(math.sqrt(spp)))))
+    if getattr(opts, "tier", "maps") == "full":
+        sub = min(sub, 2)  # the full tier only needs maps.exr and the GT sampling grid
     spectral = bool(scene.render.spectral if opts.spectral is None else opts.spectral)
     idx, wts, note = _bands_for(scene, spectral, n_bands, response)
     t0 = time.perf_counter()
@@ -298,6 +305,7 @@ class FullRenderer:
         cam = scene.camera_model()
         self.fwd_t = cam.forward
         self.fwd_r = cam.mirrored(scene.pane_plane()).forward
+        prev_modelled = dict(info.get("modelled") or {})
         self.side_t, self.side_r = layer_sides(scene)
         self._cache: dict[int, np.ndarray] = {}
         self.n_keyframes_rendered = 0
@@ -317,6 +325,8 @@ class FullRenderer:
             "max_depth": MAX_DEPTH_FULL,
             "backend": self.be.to_dict(),
         }
+        if "subpixel_rays" in prev_modelled:  # maps.exr of this render came from the two-lobe tracer
+            info["modelled"]["maps_exr"] = prev_modelled
         self.info = info
 
     def _keyframe(self, j: int) -> np.ndarray:
