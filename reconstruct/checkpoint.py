@@ -27,7 +27,7 @@ from polspike.errors import CheckpointError, ConfigError
 from reconstruct.network import NetConfig, PolSpikeNet, count_parameters
 from reconstruct.solvers import SolverConfig
 
-__all__ = ["CKPT_FORMAT", "DEFAULT_WEIGHTS", "save_checkpoint", "read_checkpoint", "load_model"]
+__all__ = ["CKPT_FORMAT", "DEFAULT_WEIGHTS", "save_checkpoint", "read_checkpoint", "load_model", "export_weights"]
 
 CKPT_FORMAT = "polspike-ckpt/1"
 DEFAULT_WEIGHTS = Path(__file__).resolve().parent / "weights" / "polspike_v0.pt"
@@ -92,3 +92,14 @@ def load_model(path: str | os.PathLike = DEFAULT_WEIGHTS, device: str | torch.de
     except RuntimeError as exc:
         raise CheckpointError(f"{path}: weights do not fit the network ({str(exc).splitlines()[0][:160]}); the checkpoint is from an incompatible version") from None
     return model.to(device).eval(), data
+
+
+def export_weights(src: str | os.PathLike, dest: str | os.PathLike, *, note: dict[str, Any] | None = None) -> Path:
+    """Copy a training checkpoint without its optimizer state (a shippable few-MB file)."""
+    data = read_checkpoint(src)
+    data.pop("optimizer", None)
+    if note:
+        data["note"] = note
+    with atomic_path(dest) as tmp:
+        torch.save(data, tmp)
+    return Path(dest)

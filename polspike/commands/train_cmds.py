@@ -133,3 +133,49 @@ def reconstruct_cmd(
     if s["tfp_corr_mean"] is not None:
         c.print(f"correlation of T with the plain TFP image: {s['tfp_corr_mean']:.3f}")
     c.print(f"wrote {', '.join(s['outputs']) or 'no video'} to {out} ({s['seconds']:.1f} s)")
+
+
+def heldout_test_set(crop: int = 64, items: int = 96, seed: int = 20_000):
+    """The model card's synthetic test set: on-the-fly windows on held-out images (:data:`HELDOUT_IMAGES`)."""
+    from reconstruct.onthefly import ImageLayerProvider, OnTheFlyWindows, WindowConfig
+
+    return OnTheFlyWindows(ImageLayerProvider(generator_images(heldout=True)), WindowConfig(crop=crop), length=items, seed=seed)
+
+
+@app_typer.command("evaluate-checkpoint")
+def evaluate_checkpoint_cmd(
+    weights: Optional[Path] = typer.Argument(None, help="checkpoint [default: the shipped reconstruct/weights/polspike_v0.pt]"),
+    out: Optional[Path] = typer.Option(None, "--out", help="write scores.json and scores.md here"),
+    items: int = typer.Option(96, "--items", help="test windows"),
+    crop: int = typer.Option(64, "--crop", help="test crop side (multiple of 4)"),
+    seed: int = typer.Option(20_000, "--seed", help="test-set seed (training used seed 0 on other images)"),
+    rir: Optional[bool] = typer.Option(None, "--rir/--no-rir", help="RIR alignment [default: as trained]"),
+    device: str = typer.Option("auto", "--device", help="auto | cpu | cuda"),
+) -> None:
+    """PSNR / SSIM of T on the held-out synthetic test set: full network, RWPS-only (learned zeta, w), RWPS with GT zeta, TFP."""
+    import torch
+    from rich.console import Console
+    from rich.table import Table
+
+    from polspike.atomic import ensure_dir, write_json, write_text
+    from reconstruct.checkpoint import DEFAULT_WEIGHTS, load_model
+    from reconstruct.train import evaluate_model
+
+    dev = "cuda" if device == "auto" and torch.cuda.is_available() else ("cpu" if device == "auto" else device)
+    model, data = load_model(weights or DEFAULT_WEIGHTS, dev, **({} if rir is None else {"use_rir": rir}))
+    ds = heldout_test_set(crop, items, seed)
+    m = evaluate_model(model, ds, batch_size=8, device=dev, ssim=True)
+    rows = [("full network (T)", "T"), ("RWPS-only, learned zeta and w (T^)", "T_base"), ("RWPS, ground-truth zeta (oracle)", "T_oracle"), ("TFP: 2 x window mean", "T_tfp"), ("full network (R)", "R")]
+    tab = Table(title=f"held-out synthetic test set: {items} windows of {crop}x{crop}, seed {seed}")
+    tab.add_column("method")
+    tab.add_column("PSNR (dB)", justify="right")
+    tab.add_column("SSIM", justify="right")
+    md = ["| method | PSNR (dB) | SSIM |", "|---|---:|---:|"]
+    for name, k in rows:
+        tab.add_row(name, f"{m[f'psnr_{k}']:.2f}", f"{m[f'ssim_{k}']:.3f}")
+        md.append(f"| {name} | {m[f'psnr_{k}']:.2f} | {m[f'ssim_{k}']:.3f} |")
+    Console().print(tab)
+    if out:
+        ensure_dir(out)
+        write_json(out / "scores.json", {"weights": str(weights or DEFAULT_WEIGHTS), "items": items, "crop": crop, "seed": seed, "step": data.get("step"), "metrics": m})
+        write_text(out / "scores.md", "\n".join(md) + "\n")
