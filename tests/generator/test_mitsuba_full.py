@@ -126,3 +126,6 @@ def test_full_tier_keyframes_static_once_and_interpolation():
     assert "25.0 Hz" in info["modelled"]["keyframes"]
     for arr in (k0, k1, mid):
         assert np.all(np.isfinite(arr))
+    # deterministic for a given seed
+    again = tm.FullRenderer(moving, _opts(spp=4, fps=100.0, keyframe_hz=25.0), {}).stokes(0.04)
+    assert np.array_equal(again, k1)
