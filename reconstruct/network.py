@@ -29,8 +29,6 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from collections.abc import Callable
-
 import torch
 import torch.nn as nn
 import torch.nn.functional as F
@@ -56,7 +54,7 @@ class NetConfig:
     use_attention: bool = opt(True, "angle attention block (ablation: without angle attention)")
     use_conf: bool = opt(True, "Conf-driven lambda in RWPS and Conf input to the refinement (ablation: without Conf)")
     solver_method: str = opt("rwps", "physics solver run on the predicted zeta and w", choices=("ls", "ridge", "irls", "rwps"))
-    span_rad: float = opt(math.radians(7.02), "polarizer rotation inside one aggregation window (0.65 ms at 30 rev/s), rad", lo=0.0, hi=math.pi)
+    span_rad: float = opt(math.radians(7.02), "polarizer rotation inside one aggregation window (0.65 ms at 30 rev/s), rad; recorded with the weights, not used by the layers", lo=0.0, hi=math.pi)
 
 
 @dataclasses.dataclass
@@ -298,5 +296,3 @@ def init_weights(model: nn.Module, generator: torch.Generator) -> nn.Module:
             model.param.par2.weight.mul_(0.1)
     return model
 
-
-ProgressFn = Callable[[int, int], None]

@@ -323,3 +323,25 @@ def reconstruct_stream(
     }
     write_json(out / "reconstruct.json", summary)
     return summary
+
+
+def bench_full_network(model, height: int = 250, width: int = 400, frames: int = 2, device: str | torch.device = "cpu", tile: int = 128, seed: int = 0) -> dict[str, Any]:
+    """Output frames per second of the full network (RWPS + both branches) at height x width.
+
+    Random windows in radiance units (content does not change the cost);
+    one warm-up pass, then ``frames`` timed single-frame passes.
+    """
+    g = np.random.default_rng(seed)
+    N = model.cfg.n_obs
+    I = (0.1 + 0.3 * g.random((1, N, height, width))).astype(np.float32)
+    phi = (np.arange(N, dtype=np.float32) - N // 2)[None] * np.float32(math.radians(31.5))
+    run_model_on_windows(model, I, phi, device, tile)
+    if str(device).startswith("cuda"):
+        torch.cuda.synchronize()
+    t0 = time.perf_counter()
+    for _ in range(frames):
+        run_model_on_windows(model, I, phi, device, tile)
+    if str(device).startswith("cuda"):
+        torch.cuda.synchronize()
+    dt = (time.perf_counter() - t0) / frames
+    return {"device": str(device), "height": height, "width": width, "tile": tile, "seconds_per_frame": dt, "frames_per_second": 1.0 / dt, "threads": torch.get_num_threads()}

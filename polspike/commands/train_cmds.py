@@ -179,3 +179,32 @@ def evaluate_checkpoint_cmd(
         ensure_dir(out)
         write_json(out / "scores.json", {"weights": str(weights or DEFAULT_WEIGHTS), "items": items, "crop": crop, "seed": seed, "step": data.get("step"), "metrics": m})
         write_text(out / "scores.md", "\n".join(md) + "\n")
+
+
+from polspike.cli import bench_app  # noqa: E402
+
+
+@bench_app.command("reconstruct-net")
+def bench_reconstruct_net_cmd(
+    weights: Optional[Path] = typer.Option(None, "--weights", help="checkpoint [default: shipped]"),
+    height: int = typer.Option(250, "--height"),
+    width: int = typer.Option(400, "--width"),
+    frames: int = typer.Option(2, "--frames", help="timed output frames per device"),
+    json_out: Optional[Path] = typer.Option(None, "--json", help="write the results here as JSON"),
+) -> None:
+    """Output frames per second of the full network (parameter branch, RWPS, refinement) on CPU and on CUDA when present."""
+    import torch
+    from rich.console import Console
+
+    from polspike.atomic import write_json
+    from reconstruct.checkpoint import DEFAULT_WEIGHTS, load_model
+    from reconstruct.video import bench_full_network
+
+    res = []
+    for dev in ["cpu"] + (["cuda"] if torch.cuda.is_available() else []):
+        model, _ = load_model(weights or DEFAULT_WEIGHTS, dev, use_rir=False)
+        res.append(bench_full_network(model, height, width, frames, dev, tile=128 if dev == "cpu" else 0))
+    for r in res:
+        Console().print(f"{r['device']}: {r['frames_per_second']:.3f} output frames/s at {width}x{height} ({r['seconds_per_frame']:.2f} s/frame, {r['threads']} threads)")
+    if json_out:
+        write_json(json_out, {"results": res})
