@@ -46,6 +46,7 @@ class RirConfig:
     dop_max: float = opt(0.12, "pixels with DoP above this are excluded (reflection-dominated)", lo=0.0, hi=10.0)
     exposure_lo: float = opt(0.05, "exclude pixels darker than this fraction of the 99th-percentile a0", lo=0.0, hi=1.0)
     exposure_hi: float = opt(0.98, "exclude pixels brighter than this fraction of the max a0 (saturation)", lo=0.0, hi=1.0)
+    mask_sigma_px: float = opt(2.0, "Gaussian smoothing of frames before the DoP fit (noisy spike frames), pixels", lo=0.0, hi=50.0)
     min_fraction: float = opt(0.05, "if fewer pixels pass, keep this fraction of well-exposed pixels with the lowest DoP", lo=0.0, hi=1.0)
     smooth_sigma_px: float = opt(1.0, "Gaussian pre-smoothing of frames before registration, pixels (0 = none)", lo=0.0, hi=20.0)
     refine_iters: int = opt(8, "Gauss-Newton sub-pixel refinement iterations (0 = whole-pixel only)", lo=0, hi=100)
@@ -57,14 +58,20 @@ class RirConfig:
 def registration_mask(I: torch.Tensor, phi: torch.Tensor, config: RirConfig = RirConfig()) -> torch.Tensor:
     """Low-DoP, well-exposed pixels of a window.
 
+    Frames are smoothed (``mask_sigma_px``) before the per-pixel harmonic fit so
+    that spike noise does not inflate the DoP of every pixel.
+
     Args:
         I: frames (N, H, W).
         phi: angles (N,) radians.
 
     Returns:
-        bool mask (H, W).
+        bool mask (H, W) on the CPU.
     """
     with torch.no_grad():
+        if config.mask_sigma_px > 0:
+            I = torch.from_numpy(np.stack([_smooth(f, config.mask_sigma_px) for f in I.detach().cpu().double().numpy()]))
+            phi = phi.detach().cpu().double()
         a0, ac, as_ = harmonic_fit(I, phi)
         p = dop(a0, ac, as_, eps=1e-6 * float(a0.abs().max().clamp_min(1e-30)))
         ref = torch.quantile(a0.flatten().float(), 0.99).to(a0.dtype)

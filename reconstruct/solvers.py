@@ -75,12 +75,13 @@ SOLVERS = ("ls", "ridge", "irls", "rwps")
 class SolverConfig:
     """Parameters of the physics solvers (dimensionless unless stated)."""
 
-    ridge_lambda: float = opt(3e-3, "lambda of the fixed-lambda ridge solver (times sum of weights)", lo=0.0, hi=1e6)
-    lambda_low: float = opt(1e-4, "RWPS lambda at Conf = 1, supp. Eq. (8)", lo=0.0, hi=1e6)
-    lambda_high: float = opt(3e-2, "RWPS lambda at Conf = 0, supp. Eq. (8); must exceed lambda_low", lo=0.0, hi=1e6)
+    ridge_lambda: float = opt(3e-2, "lambda of the fixed-lambda ridge solver (times sum of weights)", lo=0.0, hi=1e6)
+    lambda_low: float = opt(1e-2, "RWPS lambda at Conf = 1, supp. Eq. (8)", lo=0.0, hi=1e6)
+    lambda_high: float = opt(1e-1, "RWPS lambda at Conf = 0, supp. Eq. (8); must exceed lambda_low", lo=0.0, hi=1e6)
     conf_kappa: float = opt(0.01, "Conf normalisation: value of 4 Var_w(zeta) giving Conf ~ 0.5", lo=1e-9, hi=1.0)
     irls_iters: int = opt(3, "Huber reweighting iterations after the first solve, supp. Sec. 8", lo=0, hi=100)
-    huber_c: float = opt(1.345, "Huber threshold delta in units of the per-pixel robust residual scale", lo=1e-3, hi=100.0)
+    huber_c: float = opt(2.0, "Huber threshold delta in units of the per-pixel robust residual scale", lo=1e-3, hi=100.0)
+    # defaults tuned on the closed-form synthetic set (reconstruct/README.md, "Solver defaults")
     huber_floor: float = opt(1e-3, "absolute floor on delta, in units of b (2 I)", lo=0.0, hi=1e6)
 
 
@@ -171,24 +172,28 @@ def _robust_scale(r: torch.Tensor) -> torch.Tensor:
     return 1.4826 * r.abs().median(dim=-3).values
 
 
-def poisson_reliability(I: torch.Tensor, floor: float = 1e-3) -> torch.Tensor:
-    """Classical reliability weights in (0, 1] for spike-count frames.
+def poisson_reliability(zeta: torch.Tensor, I: torch.Tensor, floor: float = 0.05) -> torch.Tensor:
+    """Classical reliability weights in (0, 1] for spike-count frames (used when no learned w is given).
 
-    The variance of a spike-count frame grows with its rate (Poisson), so the
-    inverse-variance weight of frame k relative to the window's least-exposed
-    frame is w_k = (min_j I_j + c) / (I_k + c), c = floor * max(mean I, tiny).
-    Used by RWPS when no learned reliability (issue 9) is given.
+    A spike count's variance grows with its expected rate (Poisson), so frame k
+    gets the inverse-variance weight relative to the window's least-exposed frame,
+    w_k = (min_j p_j + c) / (p_k + c).  The expected rate p_k is the smooth
+    first-pass prediction zeta_k R + (1 - zeta_k) T of an unweighted least-squares
+    solve (never the raw count, whose zeros would get all the weight);
+    c = floor * mean_k p_k keeps dark pixels near w = 1.
 
     Args:
-        I: frames (..., N, H, W), non-negative.
-        floor: relative offset c that keeps dark pixels at w = 1.
+        zeta: (..., N, H, W) mixing coefficients.
+        I: (..., N, H, W) observations.
+        floor: relative offset c.
 
     Returns:
         weights (..., N, H, W) in (0, 1].
     """
-    c = floor * I.mean(dim=(-3, -2, -1), keepdim=True).clamp_min(torch.finfo(I.dtype).tiny) + torch.finfo(I.dtype).tiny
-    Ic = I.clamp_min(0.0) + c
-    return Ic.min(dim=-3, keepdim=True).values / Ic
+    R, T = solve_weighted_ridge(zeta, 2.0 * I, torch.ones_like(I), 0.0)
+    p = (zeta * R.unsqueeze(-3) + (1.0 - zeta) * T.unsqueeze(-3)).clamp_min(0.0)
+    c = floor * p.mean(dim=-3, keepdim=True) + torch.finfo(I.dtype).tiny ** 0.5
+    return (p.min(dim=-3, keepdim=True).values + c) / (p + c)
 
 
 def solve(
@@ -222,7 +227,7 @@ def solve(
     zeta = torch.broadcast_to(zeta.to(I.dtype), I.shape)
     b = 2.0 * I  # supp. Eq. (3)
     if method == "rwps":
-        w0 = poisson_reliability(I) if weights is None else torch.broadcast_to(weights.to(I.dtype), I.shape).clamp(0.0, 1.0)
+        w0 = poisson_reliability(zeta, I) if weights is None else torch.broadcast_to(weights.to(I.dtype), I.shape).clamp(0.0, 1.0)
     else:
         w0 = torch.ones_like(I)
     conf = confidence(zeta, w0, config.conf_kappa)

@@ -104,7 +104,7 @@ def test_irls_downweights_an_outlier(np_rng):
     ls = solve("ls", zeta, I_bad)
     irls = solve("irls", zeta, I_bad)
     assert (irls.T - T).abs().mean() < 0.5 * (ls.T - T).abs().mean()
-    assert (irls.weights[:, 2] < 0.5).all()
+    assert irls.weights[:, 2].mean() < 0.5 * irls.weights[:, [0, 1, 3, 4, 5, 6]].mean()
 
 
 def test_noise_ordering_rwps_beats_ls(np_rng):

@@ -1,0 +1,293 @@
+"""Evaluation harness: physics solvers and baselines on every window of every test group.
+
+For each group, output frames i with K = N // 2 frames on either side and a GT
+frame are reconstructed from the window {I(i+k), phi(i+k)}, k in [-K, K]:
+RIR (optional, supp. Sec. 6) aligns frames and zeta maps to the centre frame,
+then each solver of :mod:`reconstruct.solvers` recovers (R, T).
+
+Baselines, in the same table:
+
+* ``tfp``: texture from playback, T = 2 * mean_k I(i+k), the window mean of
+  spikes (unaligned) in radiance units.  It keeps the mean reflection.
+* ``best_frame``: the best single observation 2 I(i+k), chosen per output frame
+  by PSNR against the GT (an oracle pick: an upper bound for any rule that
+  selects one frame).
+
+Scores: PSNR / SSIM (:mod:`reconstruct.metrics`) of T and R per frame,
+averaged per group and over all frames (``overall``).  Outputs (see
+:func:`write_report`): ``results.csv``, ``results.md``, ``results.json``,
+``figure.png`` (input / TFP / solver T / GT for a few frames), ``config.json``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import time
+from collections import defaultdict
+from collections.abc import Callable, Iterable
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from polspike.config import opt, to_dict
+from polspike.errors import ConfigError, DataFormatError
+
+from reconstruct.groups import EvalGroup
+from reconstruct.metrics import LPIPS_NA, lpips_status, psnr, score
+from reconstruct.rir import RirConfig, estimate_shifts, warp
+from reconstruct.solvers import SOLVERS, SolverConfig, solve
+from reconstruct.zeta_source import ZETA_SOURCES, PaneMaps, zeta_from_maps, zeta_learned
+
+__all__ = ["EvalConfig", "EvalReport", "BASELINES", "group_zeta", "evaluate_groups", "write_report", "parse_methods"]
+
+log = logging.getLogger(__name__)
+
+BASELINES = ("tfp", "best_frame")
+"""Reference rows in every table (module docstring)."""
+
+
+@dataclasses.dataclass(frozen=True)
+class EvalConfig:
+    """Evaluation harness parameters (window, stride, solvers, zeta source)."""
+
+    n_obs: int = opt(7, "observations per output frame N = 2K + 1 (odd)", lo=1, hi=101)
+    dt_ms: float = opt(0.65, "aggregation window dt, milliseconds (rounded to an odd number of steps)", lo=0.01, hi=1000.0)
+    stride_deg: float = opt(31.5, "polarizer rotation between output frames, degrees", lo=0.01, hi=360.0)
+    methods: str = opt("ls,ridge,irls,rwps", "comma-separated solvers from ls, ridge, irls, rwps")
+    zeta: str = opt("gt", "where zeta comes from", choices=ZETA_SOURCES)
+    rir: bool = opt(True, "align each window with reflection-invariant registration")
+    max_frames: int = opt(0, "evaluate at most this many output frames per group (0 = all)", lo=0, hi=10**9)
+    figure_frames: int = opt(3, "frames shown in the figure grid", lo=0, hi=20)
+    batch: int = opt(4, "windows solved together", lo=1, hi=4096)
+    pane_n: float = opt(1.5, "physics zeta: calibrated refractive index of the pane", lo=1.0, hi=4.0)
+    pane_model: str = opt("single", "physics zeta: pane model", choices=("single", "thin_slab", "thick_slab"))
+    dtype: str = opt("float32", "solver dtype", choices=("float32", "float64"))
+    device: str = opt("cpu", "torch device for the solvers (cpu, cuda)")
+
+
+def parse_methods(methods: str) -> list[str]:
+    """Split and validate a comma-separated solver list."""
+    out = [m.strip().lower() for m in methods.split(",") if m.strip()]
+    bad = [m for m in out if m not in SOLVERS]
+    if bad or not out:
+        raise ConfigError(f"unknown solver(s) {bad or methods!r}; choose from {list(SOLVERS)}, comma-separated")
+    return out
+
+
+@dataclasses.dataclass
+class EvalReport:
+    """Per-frame scores and summaries.
+
+    Attributes:
+        frames: list of dicts (group, frame, method, psnr_T, ssim_T, psnr_R, ssim_R).
+        rows: per-(group, method) means plus ``overall`` rows.
+        figure: {"frames": [...], "columns": [...], "images": [[(H, W) arrays]]}.
+        timings: seconds per stage.
+        config: resolved configuration (plain data).
+    """
+
+    frames: list[dict]
+    rows: list[dict]
+    figure: dict
+    timings: dict
+    config: dict
+
+
+def group_zeta(group: EvalGroup, cfg: EvalConfig) -> np.ndarray:
+    """zeta (M, H, W) for every frame of a group from the configured source.
+
+    ``gt``: the group's pane maps at the true window-mean angles (paper Eq. (2),
+    window-averaged); ``physics``: Fresnel reflectances of the calibrated pane
+    (``pane_n``, ``pane_model``) at the group's incidence-angle map, with the
+    nominal (calibrated) angles; ``learned``: issue 9.
+    """
+    if cfg.zeta == "learned":
+        zeta_learned()
+    if cfg.zeta == "gt":
+        if group.maps is not None:
+            return zeta_from_maps(group.maps, group.phi_true, group.span_rad, dtype=torch.float64).numpy()
+        if group.gt_zeta is not None:
+            return np.asarray(group.gt_zeta, np.float64)
+        raise DataFormatError(f"group {group.name}: no pane maps or GT zeta; use --zeta physics with a calibrated pane")
+    from polspike.physics.fresnel import pane_coefficients
+
+    if group.theta is None or group.maps is None:
+        raise DataFormatError(f"group {group.name}: no incidence-angle / phi_perp maps for --zeta physics")
+    co = pane_coefficients(group.theta, cfg.pane_n, model=cfg.pane_model)
+    maps = PaneMaps(R_perp=co["R_perp"], R_par=co["R_par"], phi_perp=group.maps.phi_perp)
+    return zeta_from_maps(maps, group.phi_nominal, group.span_rad, dtype=torch.float64).numpy()
+
+
+def _means(items: list[dict], keys: tuple[str, ...]) -> dict:
+    out = {}
+    for k in keys:
+        v = [x[k] for x in items if x.get(k) is not None and np.isfinite(x[k])]
+        out[k] = float(np.mean(v)) if v else None
+    return out
+
+
+def evaluate_groups(
+    groups: Iterable[EvalGroup],
+    cfg: EvalConfig = EvalConfig(),
+    solver_cfg: SolverConfig = SolverConfig(),
+    rir_cfg: RirConfig = RirConfig(),
+    weights_fn: Callable[[torch.Tensor, torch.Tensor], torch.Tensor] | None = None,
+    progress: Callable[[int, int], None] | None = None,
+) -> EvalReport:
+    """Run the solvers and baselines over every window of every group.
+
+    Args:
+        groups: :class:`EvalGroup` instances (already aggregated with cfg's window and stride).
+        cfg: harness configuration.
+        solver_cfg: solver parameters.
+        rir_cfg: registration parameters.
+        weights_fn: optional reliability weights (I, phi) -> (B, N, H, W) in [0, 1] for rwps
+            (the learned branch); default: :func:`reconstruct.solvers.poisson_reliability`.
+        progress: optional (done, total) callback, counted in groups.
+
+    Returns:
+        :class:`EvalReport`.
+    """
+    methods = parse_methods(cfg.methods)
+    if cfg.n_obs % 2 == 0:
+        raise ConfigError(f"n_obs = {cfg.n_obs} must be odd (N = 2K + 1); use {cfg.n_obs + 1}")
+    K = cfg.n_obs // 2
+    dtype = torch.float64 if cfg.dtype == "float64" else torch.float32
+    dev = torch.device(cfg.device)
+    groups = list(groups)
+    frames: list[dict] = []
+    fig = {"frames": [], "columns": ["input 2I", "tfp", *methods, "GT T"], "images": []}
+    t = defaultdict(float)
+    for gi, g in enumerate(groups):
+        t0 = time.perf_counter()
+        Z = group_zeta(g, cfg)
+        t["zeta"] += time.perf_counter() - t0
+        M = g.I.shape[0]
+        has = np.ones(M, bool) if g.has_gt is None else g.has_gt
+        centres = [i for i in range(K, M - K) if has[i] and g.T is not None]
+        if cfg.max_frames:
+            centres = centres[: cfg.max_frames]
+        if not centres:
+            log.warning("group %s: no frame with %d neighbours on each side and GT; skipped", g.name, K)
+        for b0 in range(0, len(centres), cfg.batch):
+            cb = centres[b0 : b0 + cfg.batch]
+            Iw = torch.stack([torch.from_numpy(np.ascontiguousarray(g.I[i - K : i + K + 1])) for i in cb]).to(dev, dtype)
+            Zw = torch.stack([torch.from_numpy(np.ascontiguousarray(Z[i - K : i + K + 1])) for i in cb]).to(dev, dtype)
+            Pw = torch.stack([torch.from_numpy(np.asarray(g.phi_nominal[i - K : i + K + 1], np.float64)) for i in cb]).to(dev, dtype)
+            raw = Iw
+            if cfg.rir and cfg.n_obs > 1:
+                t0 = time.perf_counter()
+                sh = torch.stack([estimate_shifts(Iw[j], Pw[j], config=rir_cfg) for j in range(len(cb))]).to(dtype)
+                Iw, Zw = warp(Iw, sh), warp(Zw, sh)
+                t["rir"] += time.perf_counter() - t0
+            t0 = time.perf_counter()
+            est = {}
+            for m in methods:
+                w = weights_fn(Iw, Pw) if (m == "rwps" and weights_fn is not None) else None
+                r = solve(m, Zw, Iw, weights=w, config=solver_cfg)
+                est[m] = (r.T.cpu().numpy(), r.R.cpu().numpy())
+            t["solve"] += time.perf_counter() - t0
+            t0 = time.perf_counter()
+            tfp = (2.0 * raw.mean(1)).cpu().numpy()
+            raw_np = (2.0 * raw).cpu().numpy()
+            for j, i in enumerate(cb):
+                gtT = g.T[i]
+                gtR = None if g.R is None else g.R[i]
+                rows = {"tfp": (tfp[j], None)}
+                best = max(range(cfg.n_obs), key=lambda k: psnr(raw_np[j, k], gtT))
+                rows["best_frame"] = (raw_np[j, best], None)
+                rows.update(est_j := {m: (est[m][0][j], est[m][1][j]) for m in methods})
+                for name, (Th, Rh) in rows.items():
+                    sT = score(Th, gtT)
+                    sR = score(Rh, gtR) if (Rh is not None and gtR is not None) else {"psnr": None, "ssim": None}
+                    frames.append({"group": g.name, "frame": int(i), "method": name, "psnr_T": sT["psnr"], "ssim_T": sT["ssim"], "psnr_R": sR["psnr"], "ssim_R": sR["ssim"]})
+                if gi == 0 and len(fig["frames"]) < cfg.figure_frames:
+                    fig["frames"].append(f"{g.name} #{i}")
+                    fig["images"].append([raw_np[j, K], tfp[j], *[est_j[m][0] for m in methods], gtT])
+            t["metrics"] += time.perf_counter() - t0
+        if progress is not None:
+            progress(gi + 1, len(groups))
+    keys = ("psnr_T", "ssim_T", "psnr_R", "ssim_R")
+    order = [*BASELINES, *methods]
+    rows = []
+    by = defaultdict(list)
+    for f in frames:
+        by[(f["group"], f["method"])].append(f)
+    for g in dict.fromkeys(f["group"] for f in frames):
+        for m in order:
+            items = by.get((g, m), [])
+            if items:
+                rows.append({"group": g, "method": m, "n_frames": len(items), **_means(items, keys), "lpips_T": lpips_status()})
+    for m in order:
+        items = [f for f in frames if f["method"] == m]
+        if items:
+            rows.append({"group": "overall", "method": m, "n_frames": len(items), **_means(items, keys), "lpips_T": lpips_status()})
+    conf = {"eval": to_dict(cfg), "solver": to_dict(solver_cfg), "rir": to_dict(rir_cfg), "groups": [g.name for g in groups]}
+    return EvalReport(frames=frames, rows=rows, figure=fig, timings=dict(t), config=conf)
+
+
+def _fmt(v, nd=3) -> str:
+    return "n/a" if v is None else (f"{v:.{nd}f}" if isinstance(v, float) else str(v))
+
+
+def markdown_table(report: EvalReport, overall_only: bool = False) -> str:
+    """Markdown table of per-group and overall means (PSNR dB / SSIM for T and R)."""
+    head = "| group | method | frames | PSNR T (dB) | SSIM T | PSNR R (dB) | SSIM R | LPIPS T |\n|---|---|---:|---:|---:|---:|---:|---|\n"
+    lines = []
+    for r in report.rows:
+        if overall_only and r["group"] != "overall":
+            continue
+        lines.append(
+            f"| {r['group']} | {r['method']} | {r['n_frames']} | {_fmt(r['psnr_T'], 2)} | {_fmt(r['ssim_T'])} | {_fmt(r['psnr_R'], 2)} | {_fmt(r['ssim_R'])} | {r['lpips_T']} |"
+        )
+    return head + "\n".join(lines) + "\n"
+
+
+def write_report(report: EvalReport, out_dir: str | Path) -> dict[str, Path]:
+    """Write results.csv, results.md, results.json, config.json and figure.png (atomically)."""
+    import csv
+    import io
+
+    from polspike.atomic import atomic_path, ensure_dir, write_json, write_text
+
+    out = ensure_dir(out_dir)
+    paths = {}
+    buf = io.StringIO()
+    cols = ["group", "method", "n_frames", "psnr_T", "ssim_T", "psnr_R", "ssim_R", "lpips_T"]
+    wr = csv.DictWriter(buf, fieldnames=cols)
+    wr.writeheader()
+    for r in report.rows:
+        wr.writerow({k: ("n/a" if r.get(k) is None else r[k]) for k in cols})
+    paths["csv"] = write_text(out / "results.csv", buf.getvalue())
+    md = "# Evaluation\n\n" + markdown_table(report) + f"\nLPIPS: {LPIPS_NA}: LPIPS needs pretrained backbone weights and there is no download here.\n"
+    md += f"\nBaselines: tfp = 2 x window mean of I (unaligned); best_frame = best single 2 I(i+k) by PSNR (oracle pick).\n\nTimings (s): {', '.join(f'{k} {v:.2f}' for k, v in report.timings.items())}\n"
+    paths["md"] = write_text(out / "results.md", md)
+    paths["json"] = write_json(out / "results.json", {"rows": report.rows, "timings": report.timings, "config": report.config})
+    paths["config"] = write_json(out / "config.json", report.config)
+    if report.figure["images"]:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+
+        imgs = report.figure["images"]
+        cols_ = report.figure["columns"]
+        fig, axes = plt.subplots(len(imgs), len(cols_), figsize=(2.2 * len(cols_), 1.6 * len(imgs) + 0.4), squeeze=False)
+        for r, row in enumerate(imgs):
+            for c, im in enumerate(row):
+                ax = axes[r, c]
+                ax.imshow(np.clip(im, 0, 1), cmap="gray", vmin=0, vmax=1)
+                ax.set_xticks([])
+                ax.set_yticks([])
+                if r == 0:
+                    ax.set_title(cols_[c], fontsize=8)
+                if c == 0:
+                    ax.set_ylabel(report.figure["frames"][r], fontsize=7)
+        fig.tight_layout()
+        with atomic_path(out / "figure.png") as tmp:
+            fig.savefig(tmp, dpi=110)
+        plt.close(fig)
+        paths["figure"] = out / "figure.png"
+    return paths

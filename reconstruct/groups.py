@@ -1,0 +1,192 @@
+"""Evaluation inputs: a group's observation frames, angles, ground truth and pane maps.
+
+Sources:
+
+* a simulated group store (``spike_sim.store``, ``GROUP/spikes.h5``), aggregated
+  here by paper Eq. (3) with any window / stride (:func:`load_store_group`);
+* a dataset directory listing groups and their split (:func:`list_groups`);
+* the in-process closed-form set of :mod:`reconstruct.synthetic`.
+
+Dataset layout accepted by :func:`list_groups` (paths relative to DATASET)::
+
+    DATASET/dataset.json   {"groups": [{"name": "g000", "path": "groups/g000", "split": "test"}, ...]}
+                       or  {"splits": {"train": ["groups/g000", ...], "test": [...]}}
+    DATASET/<group>/spikes.h5 + group.json     (one spike_sim group store each)
+
+A DATASET that is itself a group directory, or a directory of group
+directories without dataset.json, is accepted too (every group is then used,
+whatever the split).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import logging
+import os
+from pathlib import Path
+
+import numpy as np
+
+from polspike.errors import DataFormatError
+
+from reconstruct.zeta_source import PaneMaps
+
+__all__ = ["EvalGroup", "list_groups", "load_store_group", "window_steps_from_ms"]
+
+log = logging.getLogger(__name__)
+
+@dataclasses.dataclass
+class EvalGroup:
+    """One group ready for evaluation; frame arrays are (M, H, W) float32 in radiance units.
+
+    Attributes:
+        name: group name.
+        I: observations I(i) (radiance behind the polarizer).
+        phi_nominal: (M,) calibrated window-mean polarizer angles, radians.
+        phi_true: (M,) true window-mean angles, radians.
+        span_rad: polarizer rotation during one aggregation window.
+        T, R: GT layers at frame centres, or None.
+        maps: pane maps (R_perp, R_par, phi_perp) or None; theta map in ``theta``.
+        has_gt: (M,) bool, frames with ground truth.
+    """
+
+    name: str
+    I: np.ndarray
+    phi_nominal: np.ndarray
+    phi_true: np.ndarray
+    span_rad: float
+    T: np.ndarray | None
+    R: np.ndarray | None
+    maps: PaneMaps | None
+    theta: np.ndarray | None = None
+    has_gt: np.ndarray | None = None
+    gt_zeta: np.ndarray | None = None
+
+
+
+def window_steps_from_ms(dt_ms: float, rate_hz: float) -> int:
+    """Aggregation window in steps: the odd integer nearest to dt * rate (ties round up).
+
+    Eq. (3) windows are centred on a step, so their length is odd: 0.65 ms at
+    20 kHz -> 13, 0.30 ms -> 7 (6 rounded up to odd), 1.10 ms -> 23.
+    """
+    x = round(dt_ms * 1e-3 * rate_hz, 9)
+    lo = int(np.floor((x - 1) / 2)) * 2 + 1
+    lo = max(lo, 1)
+    hi = lo + 2
+    return lo if abs(x - lo) < abs(hi - x) else hi
+
+
+def _is_group(p: Path) -> bool:
+    return (p / "spikes.h5").is_file()
+
+
+def list_groups(dataset: str | os.PathLike, split: str = "test") -> list[tuple[str, Path]]:
+    """(name, group directory) of every group of ``split`` in a dataset (layout in the module docstring)."""
+    root = Path(dataset)
+    if not root.exists():
+        raise DataFormatError(f"dataset {root} does not exist; give a dataset directory, a group directory, or 'synthetic'")
+    if _is_group(root):
+        return [(root.name, root)]
+    meta = root / "dataset.json"
+    if meta.is_file():
+        data = json.loads(meta.read_text())
+        out: list[tuple[str, Path]] = []
+        if "groups" in data:
+            for g in data["groups"]:
+                if isinstance(g, dict) and g.get("split", split) == split:
+                    p = root / g["path"]
+                    out.append((str(g.get("name", p.name)), p))
+        elif "splits" in data or split in data:
+            for rel in (data.get("splits", data).get(split) or []):
+                rel = rel["path"] if isinstance(rel, dict) else rel
+                out.append((Path(rel).name, root / rel))
+        else:
+            raise DataFormatError(f"{meta}: expected a 'groups' list or a 'splits' table; found keys {sorted(data)}")
+        if not out:
+            raise DataFormatError(f"{meta} lists no groups in split {split!r}; choose another --split")
+        return out
+    groups = sorted(p for p in root.iterdir() if p.is_dir() and _is_group(p))
+    if not groups:
+        raise DataFormatError(f"{root} has no dataset.json and no group directories (GROUP/spikes.h5); build or simulate a dataset first")
+    log.warning("%s has no dataset.json: using all %d groups regardless of split", root, len(groups))
+    return [(p.name, p) for p in groups]
+
+
+def load_store_group(
+    path: str | os.PathLike,
+    window_steps: int = 13,
+    stride_deg: float = 31.5,
+    n_obs: int = 7,
+    max_frames: int = 0,
+    name: str | None = None,
+) -> EvalGroup:
+    """Aggregate a stored spike group into Eq. (3) frames in radiance units, with its GT.
+
+    Args:
+        path: group directory (``spikes.h5`` inside).
+        window_steps: aggregation window in steps (odd).
+        stride_deg: polarizer rotation between output frames.
+        n_obs: observations per output, only to validate the configuration.
+        max_frames: keep only the first ``max_frames`` frames (0 = all).
+        name: display name (default: the directory name).
+
+    Returns:
+        :class:`EvalGroup`.  I = spikes per step / exposure; GT frames exist where a
+        frame centre coincides with a stored output step (the group's own cadence).
+    """
+    from spike_sim.aggregate import AggregateConfig, frame_centres
+    from spike_sim.store import open_group
+
+    cfg = AggregateConfig(window_steps=window_steps, stride_deg=stride_deg, n_obs=n_obs)
+    with open_group(path) as g:
+        sim = g.json_attr("config_json") or {}
+        pol = g.json_attr("polarizer_json") or {}
+        exposure = float(sim.get("exposure", 1.0))
+        pol_rate = float(pol.get("rate_hz", 30.0))
+        phi_nom = g.phi_nominal_rad
+        phi_tr = g.phi_true_rad
+        c, phi_i = frame_centres(phi_nom, cfg)
+        if max_frames:
+            c, phi_i = c[:max_frames], phi_i[:max_frames]
+        if c.size == 0:
+            raise DataFormatError(f"{path}: the stream ({g.n_steps} steps) holds no complete {window_steps}-step window")
+        h = cfg.half
+        csum = np.concatenate([[0.0], np.cumsum(phi_tr)])
+        phi_t = (csum[c + h + 1] - csum[c - h]) / window_steps
+        I = np.zeros((c.size, g.height, g.width), np.float32)
+        for m, cc in enumerate(c):
+            I[m] = g.read(cc - h, cc + h + 1).sum(0, dtype=np.int32) / np.float32(window_steps * exposure)  # Eq. (3)
+        has = np.zeros(c.size, bool)
+        T = R = Z = None
+        if g.has("output/step_index") and g.has("gt/T"):
+            idx = {int(s): j for j, s in enumerate(g.array("output/step_index"))}
+            T = np.zeros_like(I)
+            R = np.zeros_like(I)
+            for m, cc in enumerate(c):
+                j = idx.get(int(cc))
+                if j is not None:
+                    has[m] = True
+                    T[m] = g.gt_frame("T", j)
+                    if g.has("gt/R"):
+                        R[m] = g.gt_frame("R", j)
+            if not has.any():
+                log.warning("%s: no frame centre matches a stored GT output step; choose the group's own stride/window", path)
+        mp = g.maps()
+        maps = None
+        if {"R_perp", "R_par", "phi_perp"} <= set(mp):
+            maps = PaneMaps(R_perp=mp["R_perp"], R_par=mp["R_par"], phi_perp=mp["phi_perp"])
+        span = 2 * np.pi * pol_rate * window_steps / g.rate_hz
+        return EvalGroup(
+            name=name or Path(path).name,
+            I=I,
+            phi_nominal=phi_i,
+            phi_true=phi_t,
+            span_rad=float(span),
+            T=T,
+            R=R,
+            maps=maps,
+            theta=mp.get("theta"),
+            has_gt=has,
+        )

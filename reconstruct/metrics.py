@@ -1,0 +1,60 @@
+"""Image quality metrics for layer reconstructions (library implementations).
+
+PSNR and SSIM come from :mod:`skimage.metrics` on (H, W) float64 images with
+``data_range = 1`` (radiance 1.0 = brightest layer value).  Estimates are
+clipped to [0, data_range] before scoring (a reconstruction outside the
+displayable range is scored as it would be shown).  LPIPS needs pretrained
+backbone weights that cannot be downloaded here; its column reports
+:data:`LPIPS_NA` unless a local implementation and weights are importable.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from polspike.errors import ShapeError
+
+__all__ = ["psnr", "ssim", "lpips_status", "LPIPS_NA", "score"]
+
+LPIPS_NA = "n/a (no local weights)"
+
+
+def _prep(est, gt, data_range: float) -> tuple[np.ndarray, np.ndarray]:
+    e = np.asarray(est, dtype=np.float64)
+    g = np.asarray(gt, dtype=np.float64)
+    if e.shape != g.shape or e.ndim != 2:
+        raise ShapeError(f"metrics need two (H, W) images of one shape; got {e.shape} and {g.shape}", actual_shape=e.shape, expected_shape=g.shape)
+    return np.clip(e, 0.0, data_range), g
+
+
+def psnr(est, gt, data_range: float = 1.0) -> float:
+    """Peak signal-to-noise ratio in dB (skimage.metrics.peak_signal_noise_ratio); inf-safe (capped at 100 dB)."""
+    from skimage.metrics import peak_signal_noise_ratio
+
+    e, g = _prep(est, gt, data_range)
+    if np.array_equal(e, g):
+        return 100.0
+    return float(min(100.0, peak_signal_noise_ratio(g, e, data_range=data_range)))
+
+
+def ssim(est, gt, data_range: float = 1.0) -> float:
+    """Structural similarity (skimage.metrics.structural_similarity, default 7x7 window)."""
+    from skimage.metrics import structural_similarity
+
+    e, g = _prep(est, gt, data_range)
+    win = min(7, min(g.shape) - (1 - min(g.shape) % 2))
+    return float(structural_similarity(g, e, data_range=data_range, win_size=max(win, 3)))
+
+
+def lpips_status() -> str:
+    """Why LPIPS is or is not reported (no network access: weights must be local)."""
+    try:
+        import lpips  # noqa: F401
+    except ImportError:
+        return LPIPS_NA
+    return LPIPS_NA  # the package downloads backbone weights on first use; none are cached here
+
+
+def score(est, gt, data_range: float = 1.0) -> dict[str, float]:
+    """{"psnr": dB, "ssim": [-1, 1]} of one (H, W) estimate against its ground truth."""
+    return {"psnr": psnr(est, gt, data_range), "ssim": ssim(est, gt, data_range)}
