@@ -164,7 +164,8 @@ def _kernel(basis, coef, stepkey, pkey, dark, theta, V, invq, sth, sres, leak, o
         th = theta[p0:p1].copy()
         dk = dark[p0:p1].copy()
         pk = pkey[p0:p1].copy()
-        bits = np.zeros(BS, np.uint32)
+        bits = np.zeros(BS, np.uint8)
+        b64 = bits.view(np.uint64)
         ob = p0 // 8
         nbytes = (n + 7) // 8
         for s in range(NS):
@@ -194,12 +195,11 @@ def _kernel(basis, coef, stepkey, pkey, dark, theta, V, invq, sth, sres, leak, o
                 t = th[i]
                 f = np.float32(vi + sth * z2 >= t)
                 v[i] = vi - f * (t - sres * z3)
-                bits[i] = np.uint32(f)
+                bits[i] = np.uint8(f)
+            # pack 8 one-byte flags (little endian) into one LSB-first byte: the
+            # multiplier moves flag i (bit 8 i) to bit 56 + i without carries
             for k in range(nbytes):
-                byte = np.uint32(0)
-                for q in range(8):
-                    byte |= bits[8 * k + q] << np.uint32(q)
-                out[s, ob + k] = np.uint8(byte)
+                out[s, ob + k] = np.uint8((b64[k] * np.uint64(0x0102040810204080)) >> np.uint64(56))
         V[p0:p1] = v
 
 

@@ -115,3 +115,10 @@ def test_static_scene_single_keyframe(small_cfg):
     src = keyframes_from_arrays([0.0], st, polarizer=PolarizerConfig())
     s = _collect(src, small_cfg, 1, 1000, duration=0.05)
     assert np.unpackbits(s).mean() == pytest.approx(0.25, rel=0.1)  # unpolarized 0.5 -> 0.25 behind the polarizer
+
+
+def test_much_noisier_than_real_cameras_warns(keyframes, small_cfg):
+    from polspike.errors import PolspikeWarning
+
+    with pytest.warns(PolspikeWarning, match="ISI CV"):
+        simulate(keyframes, 0.001, 0, dataclasses.replace(small_cfg, photons_per_threshold=20.0), out=None)
