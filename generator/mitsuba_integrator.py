@@ -173,75 +173,73 @@ def _trace_chunk(mi, dr, scene, sensor, start, stop, W, H, K, n_pane, up, absorp
         s_dir = np.cross(d0, n_pane)
         phi_geo_xy[0, start:stop] = np.einsum("ij,ij->i", s_dir, x_ref)
         phi_geo_xy[1, start:stop] = np.einsum("ij,ij->i", s_dir, y_ref)
-        # branch state: lane id, origin, direction, Mueller product, inside-glass flag
-        lane = idx - start
-        o = _np(ray.o).T
-        d = d0
-        M = np.broadcast_to(np.eye(4), (len(lane), 4, 4)).copy()
-        inside = np.zeros(len(lane), dtype=bool)
-        primary = np.zeros(len(lane), dtype=bool)
-        p_prev = o.copy()
-        acc_r = np.zeros((len(lane), 4))
-        acc_t = np.zeros((len(lane), 4))
-        acc_r1 = np.zeros((len(lane), 4))  # first-surface reflection only (thick-slab primary image)
-        def ray_of(o, d):
-            return mi.Ray3f(mi.Point3f(*[mi.Float(o[:, k].astype(np.float32)) for k in range(3)]), mi.Vector3f(*[mi.Float(d[:, k].astype(np.float32)) for k in range(3)]))
-
+        # branch state lives in Dr.Jit arrays (fused, multi-threaded kernels); lanes index this chunk
+        n_lanes = stop - start
+        nv = mi.Vector3f(*[float(x) for x in n_pane])
+        acc = {key: [dr.zeros(mi.Float, n_lanes) for _ in range(4)] for key in ("r", "t", "r1")}
+        sets = [{
+            "lane": dr.arange(mi.UInt32, n_lanes), "ray": mi.Ray3f(ray.o, ray.d), "M": mi.Spectrum(mi.Matrix4f(1.0)),
+            "inside": dr.full(mi.Bool, False, n_lanes), "primary": dr.full(mi.Bool, False, n_lanes),
+            "p_prev": mi.Point3f(ray.o), "ok": dr.full(mi.Bool, True, n_lanes),
+        }]
         for depth in range(max_depth + 1):
-            if len(lane) == 0:
+            new_sets = []
+            for st in sets:
+                si = scene.ray_intersect(st["ray"])
+                if depth == 0:
+                    hit0[start:stop] = np.asarray(si.is_valid(), dtype=bool).reshape(-1)
+                    cos_i[start:stop] = np.abs(_np(si.wi.z).reshape(-1))
+                valid = si.is_valid() & st["ok"]
+                # branches that leave: classify by direction relative to the pane normal
+                esc = ~si.is_valid() & st["ok"]
+                toward = dr.dot(st["ray"].d, nv) > 0
+                M = st["M"]
+                for c in range(4):
+                    val = M[c][0][0]
+                    dr.scatter_reduce(dr.ReduceOp.Add, acc["r"][c], val, st["lane"], esc & toward)
+                    dr.scatter_reduce(dr.ReduceOp.Add, acc["t"][c], val, st["lane"], esc & ~toward)
+                    if depth == 1:
+                        dr.scatter_reduce(dr.ReduceOp.Add, acc["r1"][c], val, st["lane"], esc & st["primary"])
+                dr.eval(acc)
+                if depth == max_depth:
+                    if dr.any(valid):
+                        log.debug("two-lobe tracer: branches cut at max_depth %d", max_depth)
+                    continue
+                idx = dr.compress(valid)
+                if dr.width(idx) == 0:
+                    continue
+                lane = dr.gather(mi.UInt32, st["lane"], idx)
+                r = dr.gather(mi.Ray3f, st["ray"], idx)
+                M = dr.gather(mi.Spectrum, M, idx)
+                inside = dr.gather(mi.Bool, st["inside"], idx)
+                p_prev = dr.gather(mi.Point3f, st["p_prev"], idx)
+                si = scene.ray_intersect(r)
+                # internal path length between the parallel faces: normal separation / |cos|.  Not si.t,
+                # nor |p - p_prev|: spawn_ray offsets origins along the normal by Mitsuba's ray
+                # epsilon (~0.18 mm at 1 m from the origin), which would shorten the path by ~3%.
+                if absorption_per_m > 0:
+                    seg = dr.abs(dr.dot(si.p - p_prev, nv)) / dr.maximum(dr.abs(dr.dot(r.d, nv)), 1e-12)
+                    M = M * dr.select(inside, dr.exp(-absorption_per_m * seg), 1.0)
+                for comp in (0, 1):
+                    ctx = mi.BSDFContext()
+                    ctx.component = comp
+                    bs, wt = si.bsdf().sample(ctx, si, 0.5, mi.Point2f(0.5, 0.5))
+                    Mk = M @ si.to_world_mueller(wt, -bs.wo, si.wi)
+                    w00 = Mk[0][0][0]
+                    kid = {
+                        "lane": lane, "ray": si.spawn_ray(si.to_world(bs.wo)), "M": Mk,
+                        "inside": inside ^ (comp == 1), "primary": dr.full(mi.Bool, comp == 0 and depth == 0, dr.width(lane)),
+                        "p_prev": mi.Point3f(si.p), "ok": dr.isfinite(w00) & (w00 > min_weight),
+                    }
+                    dr.eval(kid)
+                    new_sets.append(kid)
+            sets = new_sets
+            if not sets:
                 break
-            si = scene.ray_intersect(ray_of(o, d))
-            dr.eval(si.t, si.wi)
-            valid = np.asarray(si.is_valid(), dtype=bool).reshape(-1)
-            if depth == 0:
-                hit0[start:stop] = valid
-                cos_i[start:stop] = np.abs(_np(si.wi.z).reshape(-1))
-            # branches that leave: classify by direction relative to the pane normal
-            esc = ~valid
-            if esc.any():
-                col = M[esc, :, 0]
-                toward_cam = (d[esc] @ n_pane) > 0
-                _scatter_add(acc_r, lane[esc][toward_cam], col[toward_cam])
-                _scatter_add(acc_t, lane[esc][~toward_cam], col[~toward_cam])
-                if depth == 1:
-                    first = esc & primary
-                    _scatter_add(acc_r1, lane[first], M[first, :, 0])
-            if depth == max_depth or not valid.any():
-                if valid.any():
-                    log.debug("two-lobe tracer: %d branches cut at max_depth %d", int(valid.sum()), max_depth)
-                break
-            if esc.any():  # compact to the branches that hit glass, then re-intersect them
-                lane, o, d, M, inside, primary, p_prev = lane[valid], o[valid], d[valid], M[valid], inside[valid], primary[valid], p_prev[valid]
-                si = scene.ray_intersect(ray_of(o, d))
-            p_hit = _np(si.p).T
-            # internal path length between the parallel faces: normal separation / |cos|.  Not si.t,
-            # nor |p_hit - p_prev|: spawn_ray offsets origins along the normal by Mitsuba's ray
-            # epsilon (~0.18 mm at 1 m from the origin), which would shorten the path by ~3%.
-            seg = np.abs((p_hit - p_prev) @ n_pane) / np.maximum(np.abs(d @ n_pane), 1e-12)
-            atten = np.where(inside, np.exp(-absorption_per_m * seg), 1.0) if absorption_per_m > 0 else None
-            Ma = M * atten[:, None, None] if atten is not None else M
-            outs = []
-            for comp in (0, 1):
-                ctx = mi.BSDFContext()
-                ctx.component = comp
-                bs, wt = si.bsdf().sample(ctx, si, 0.5, mi.Point2f(0.5, 0.5))
-                outs.append((si.to_world_mueller(wt, -bs.wo, si.wi), si.spawn_ray(si.to_world(bs.wo))))
-            dr.eval(outs)
-            kids = []
-            for comp, (Mw_dr, nr) in enumerate(outs):
-                kid_M = Ma @ _mueller_np(Mw_dr)
-                ok = np.isfinite(kid_M).all(axis=(1, 2)) & (kid_M[:, 0, 0] > min_weight)
-                kids.append((ok, _np(nr.o).T, _np(nr.d).T, kid_M, inside ^ (comp == 1), np.full(len(ok), comp == 0 and depth == 0), p_hit))
-            lane = np.concatenate([lane[k[0]] for k in kids])
-            o = np.concatenate([k[1][k[0]] for k in kids])
-            d = np.concatenate([k[2][k[0]] for k in kids])
-            M = np.concatenate([k[3][k[0]] for k in kids])
-            inside = np.concatenate([k[4][k[0]] for k in kids])
-            primary = np.concatenate([k[5][k[0]] for k in kids])
-            p_prev = np.concatenate([k[6][k[0]] for k in kids])
-        s_r[:, start:stop] = (rot @ acc_r[:, :, None])[:, :, 0].T
-        s_t[:, start:stop] = (rot @ acc_t[:, :, None])[:, :, 0].T
-        s_r1[:, start:stop] = (rot @ acc_r1[:, :, None])[:, :, 0].T
+        acc_np = {k: np.stack([_np(a).reshape(-1) for a in v], axis=1) for k, v in acc.items()}  # (n, 4)
+        s_r[:, start:stop] = (rot @ acc_np["r"][:, :, None])[:, :, 0].T
+        s_t[:, start:stop] = (rot @ acc_np["t"][:, :, None])[:, :, 0].T
+        s_r1[:, start:stop] = (rot @ acc_np["r1"][:, :, None])[:, :, 0].T
 
 
 def _finish(s_r, s_t, s_r1, cos_i, hit0, phi_geo_xy, W, H, K, model, n) -> dict[str, np.ndarray]:
