@@ -38,7 +38,7 @@ from polspike.errors import ShapeError
 
 from reconstruct.solvers import SolverConfig, solve
 
-__all__ = ["NetConfig", "NetOutput", "AngleAttention", "ParameterBranch", "Refinement", "PolSpikeNet", "count_parameters", "init_weights"]
+__all__ = ["NetConfig", "NetOutput", "AngleAttention", "ParameterBranch", "Refinement", "PolSpikeNet", "count_parameters", "init_weights", "predict_parameters"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -296,3 +296,14 @@ def init_weights(model: nn.Module, generator: torch.Generator) -> nn.Module:
             model.param.par2.weight.mul_(0.1)
     return model
 
+
+
+@torch.no_grad()
+def predict_parameters(model: PolSpikeNet, I: torch.Tensor, phi: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Learned zeta_hat and reliability weights w, each (B, N, H, W), for the evaluation harness.
+
+    ``I`` (B, N, H, W) radiance units (already RIR-aligned by the caller), ``phi`` (B, N).
+    Use as the ``learned`` zeta source and as ``weights_fn`` of RWPS.
+    """
+    zeta, w, _ = model.param(I.to(next(model.parameters()).dtype), phi)
+    return zeta, w
