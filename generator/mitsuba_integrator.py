@@ -35,8 +35,11 @@ inverted here for ``R_perp, R_par, phi_perp`` and likewise ``T_perp, T_par``.
 ``1/n^2`` across it; :func:`pane_coefficients` undoes that scaling so that
 ``T = 1 - R`` (the convention of paper Eq. (1)), and says so.
 
-The Mueller bookkeeping is float64 NumPy; ray generation, intersection and the
-BSDF run in Mitsuba (a JIT variant: ``llvm_*`` or ``cuda_*`` ``mono_polarized``).
+Everything per branch runs in Mitsuba / Dr.Jit (a JIT variant: ``llvm_*`` or
+``cuda_*`` ``mono_polarized``; float32): ray generation, intersection, the BSDF,
+the Mueller products, compaction of live branches (``dr.compress`` /
+``dr.gather``) and the per-lane sums (``dr.scatter_reduce``).  The final frame
+rotation and per-pixel averages are float64 NumPy.
 """
 
 from __future__ import annotations
@@ -61,14 +64,6 @@ def _mueller_np(M) -> np.ndarray:
     """Dr.Jit Mueller matrix (Matrix4f or mono polarized Spectrum) -> (N, 4, 4) float64."""
     a = np.array(M, dtype=np.float64)
     return np.moveaxis(a.reshape(4, 4, -1), -1, 0)
-
-
-def _scatter_add(acc: np.ndarray, idx: np.ndarray, val: np.ndarray) -> None:
-    """acc[idx] += val with repeated indices summed (bincount per column; faster than np.add.at)."""
-    if len(idx) == 0:
-        return
-    for c in range(acc.shape[1]):
-        acc[:, c] += np.bincount(idx, weights=val[:, c], minlength=acc.shape[0])
 
 
 def stokes_to_coefficients(s: np.ndarray, phi_perp_rad: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -156,90 +151,89 @@ def pane_coefficients(
 
 def _trace_chunk(mi, dr, scene, sensor, start, stop, W, H, K, n_pane, up, absorption_per_m, max_depth, min_weight, s_r, s_t, s_r1, cos_i, hit0, phi_geo_xy) -> None:
     """Trace rays start..stop (lane = pixel-major, sub-pixel minor) into the accumulators."""
-    if True:
-        idx = np.arange(start, stop)
-        pix, sb = np.divmod(idx, K * K)
-        py, px = np.divmod(pix, W)
-        sy, sx = np.divmod(sb, K)
-        ux = (px + (sx + 0.5) / K) / W
-        uy = (py + (sy + 0.5) / K) / H
-        ray, _ = sensor.sample_ray(0.0, 0.5, mi.Point2f(mi.Float(ux.astype(np.float32)), mi.Float(uy.astype(np.float32))), mi.Point2f(0.5, 0.5))
-        d0 = _np(ray.d).T  # (M, 3)
-        # rotation from Mitsuba's implicit basis of -d to the stokes-integrator frame
-        rot = _mueller_np(mi.mueller.rotate_stokes_basis(-ray.d, mi.mueller.stokes_basis(-ray.d), dr.cross(ray.d, mi.Vector3f(*[float(x) for x in up]))))
-        x_ref = np.cross(d0, up)
-        x_ref /= np.linalg.norm(x_ref, axis=1, keepdims=True)
-        y_ref = np.cross(x_ref, d0)
-        s_dir = np.cross(d0, n_pane)
-        phi_geo_xy[0, start:stop] = np.einsum("ij,ij->i", s_dir, x_ref)
-        phi_geo_xy[1, start:stop] = np.einsum("ij,ij->i", s_dir, y_ref)
-        # branch state lives in Dr.Jit arrays (fused, multi-threaded kernels); lanes index this chunk
-        n_lanes = stop - start
-        nv = mi.Vector3f(*[float(x) for x in n_pane])
-        acc = {key: [dr.zeros(mi.Float, n_lanes) for _ in range(4)] for key in ("r", "t", "r1")}
-        sets = [{
-            "lane": dr.arange(mi.UInt32, n_lanes), "ray": mi.Ray3f(ray.o, ray.d), "M": mi.Spectrum(mi.Matrix4f(1.0)),
-            "inside": dr.full(mi.Bool, False, n_lanes), "primary": dr.full(mi.Bool, False, n_lanes),
-            "p_prev": mi.Point3f(ray.o), "ok": dr.full(mi.Bool, True, n_lanes),
-        }]
-        for depth in range(max_depth + 1):
-            new_sets = []
-            for st in sets:
-                si = scene.ray_intersect(st["ray"])
-                if depth == 0:
-                    hit0[start:stop] = np.asarray(si.is_valid(), dtype=bool).reshape(-1)
-                    cos_i[start:stop] = np.abs(_np(si.wi.z).reshape(-1))
-                valid = si.is_valid() & st["ok"]
-                # branches that leave: classify by direction relative to the pane normal
-                esc = ~si.is_valid() & st["ok"]
-                toward = dr.dot(st["ray"].d, nv) > 0
-                M = st["M"]
-                for c in range(4):
-                    val = M[c][0][0]
-                    dr.scatter_reduce(dr.ReduceOp.Add, acc["r"][c], val, st["lane"], esc & toward)
-                    dr.scatter_reduce(dr.ReduceOp.Add, acc["t"][c], val, st["lane"], esc & ~toward)
-                    if depth == 1:
-                        dr.scatter_reduce(dr.ReduceOp.Add, acc["r1"][c], val, st["lane"], esc & st["primary"])
-                dr.eval(acc)
-                if depth == max_depth:
-                    if dr.any(valid):
-                        log.debug("two-lobe tracer: branches cut at max_depth %d", max_depth)
-                    continue
-                idx = dr.compress(valid)
-                if dr.width(idx) == 0:
-                    continue
-                lane = dr.gather(mi.UInt32, st["lane"], idx)
-                r = dr.gather(mi.Ray3f, st["ray"], idx)
-                M = dr.gather(mi.Spectrum, M, idx)
-                inside = dr.gather(mi.Bool, st["inside"], idx)
-                p_prev = dr.gather(mi.Point3f, st["p_prev"], idx)
-                si = scene.ray_intersect(r)
-                # internal path length between the parallel faces: normal separation / |cos|.  Not si.t,
-                # nor |p - p_prev|: spawn_ray offsets origins along the normal by Mitsuba's ray
-                # epsilon (~0.18 mm at 1 m from the origin), which would shorten the path by ~3%.
-                if absorption_per_m > 0:
-                    seg = dr.abs(dr.dot(si.p - p_prev, nv)) / dr.maximum(dr.abs(dr.dot(r.d, nv)), 1e-12)
-                    M = M * dr.select(inside, dr.exp(-absorption_per_m * seg), 1.0)
-                for comp in (0, 1):
-                    ctx = mi.BSDFContext()
-                    ctx.component = comp
-                    bs, wt = si.bsdf().sample(ctx, si, 0.5, mi.Point2f(0.5, 0.5))
-                    Mk = M @ si.to_world_mueller(wt, -bs.wo, si.wi)
-                    w00 = Mk[0][0][0]
-                    kid = {
-                        "lane": lane, "ray": si.spawn_ray(si.to_world(bs.wo)), "M": Mk,
-                        "inside": inside ^ (comp == 1), "primary": dr.full(mi.Bool, comp == 0 and depth == 0, dr.width(lane)),
-                        "p_prev": mi.Point3f(si.p), "ok": dr.isfinite(w00) & (w00 > min_weight),
-                    }
-                    dr.eval(kid)
-                    new_sets.append(kid)
-            sets = new_sets
-            if not sets:
-                break
-        acc_np = {k: np.stack([_np(a).reshape(-1) for a in v], axis=1) for k, v in acc.items()}  # (n, 4)
-        s_r[:, start:stop] = (rot @ acc_np["r"][:, :, None])[:, :, 0].T
-        s_t[:, start:stop] = (rot @ acc_np["t"][:, :, None])[:, :, 0].T
-        s_r1[:, start:stop] = (rot @ acc_np["r1"][:, :, None])[:, :, 0].T
+    idx = np.arange(start, stop)
+    pix, sb = np.divmod(idx, K * K)
+    py, px = np.divmod(pix, W)
+    sy, sx = np.divmod(sb, K)
+    ux = (px + (sx + 0.5) / K) / W
+    uy = (py + (sy + 0.5) / K) / H
+    ray, _ = sensor.sample_ray(0.0, 0.5, mi.Point2f(mi.Float(ux.astype(np.float32)), mi.Float(uy.astype(np.float32))), mi.Point2f(0.5, 0.5))
+    d0 = _np(ray.d).T  # (M, 3)
+    # rotation from Mitsuba's implicit basis of -d to the stokes-integrator frame
+    rot = _mueller_np(mi.mueller.rotate_stokes_basis(-ray.d, mi.mueller.stokes_basis(-ray.d), dr.cross(ray.d, mi.Vector3f(*[float(x) for x in up]))))
+    x_ref = np.cross(d0, up)
+    x_ref /= np.linalg.norm(x_ref, axis=1, keepdims=True)
+    y_ref = np.cross(x_ref, d0)
+    s_dir = np.cross(d0, n_pane)
+    phi_geo_xy[0, start:stop] = np.einsum("ij,ij->i", s_dir, x_ref)
+    phi_geo_xy[1, start:stop] = np.einsum("ij,ij->i", s_dir, y_ref)
+    # branch state lives in Dr.Jit arrays (fused, multi-threaded kernels); lanes index this chunk
+    n_lanes = stop - start
+    nv = mi.Vector3f(*[float(x) for x in n_pane])
+    acc = {key: [dr.zeros(mi.Float, n_lanes) for _ in range(4)] for key in ("r", "t", "r1")}
+    sets = [{
+        "lane": dr.arange(mi.UInt32, n_lanes), "ray": mi.Ray3f(ray.o, ray.d), "M": mi.Spectrum(mi.Matrix4f(1.0)),
+        "inside": dr.full(mi.Bool, False, n_lanes), "primary": dr.full(mi.Bool, False, n_lanes),
+        "p_prev": mi.Point3f(ray.o), "ok": dr.full(mi.Bool, True, n_lanes),
+    }]
+    for depth in range(max_depth + 1):
+        new_sets = []
+        for st in sets:
+            si = scene.ray_intersect(st["ray"])
+            if depth == 0:
+                hit0[start:stop] = np.asarray(si.is_valid(), dtype=bool).reshape(-1)
+                cos_i[start:stop] = np.abs(_np(si.wi.z).reshape(-1))
+            valid = si.is_valid() & st["ok"]
+            # branches that leave: classify by direction relative to the pane normal
+            esc = ~si.is_valid() & st["ok"]
+            toward = dr.dot(st["ray"].d, nv) > 0
+            M = st["M"]
+            for c in range(4):
+                val = M[c][0][0]
+                dr.scatter_reduce(dr.ReduceOp.Add, acc["r"][c], val, st["lane"], esc & toward)
+                dr.scatter_reduce(dr.ReduceOp.Add, acc["t"][c], val, st["lane"], esc & ~toward)
+                if depth == 1:
+                    dr.scatter_reduce(dr.ReduceOp.Add, acc["r1"][c], val, st["lane"], esc & st["primary"])
+            dr.eval(acc)
+            if depth == max_depth:
+                if dr.any(valid):
+                    log.debug("two-lobe tracer: branches cut at max_depth %d", max_depth)
+                continue
+            idx = dr.compress(valid)
+            if dr.width(idx) == 0:
+                continue
+            lane = dr.gather(mi.UInt32, st["lane"], idx)
+            r = dr.gather(mi.Ray3f, st["ray"], idx)
+            M = dr.gather(mi.Spectrum, M, idx)
+            inside = dr.gather(mi.Bool, st["inside"], idx)
+            p_prev = dr.gather(mi.Point3f, st["p_prev"], idx)
+            si = scene.ray_intersect(r)
+            # internal path length between the parallel faces: normal separation / |cos|.  Not si.t,
+            # nor |p - p_prev|: spawn_ray offsets origins along the normal by Mitsuba's ray
+            # epsilon (~0.18 mm at 1 m from the origin), which would shorten the path by ~3%.
+            if absorption_per_m > 0:
+                seg = dr.abs(dr.dot(si.p - p_prev, nv)) / dr.maximum(dr.abs(dr.dot(r.d, nv)), 1e-12)
+                M = M * dr.select(inside, dr.exp(-absorption_per_m * seg), 1.0)
+            for comp in (0, 1):
+                ctx = mi.BSDFContext()
+                ctx.component = comp
+                bs, wt = si.bsdf().sample(ctx, si, 0.5, mi.Point2f(0.5, 0.5))
+                Mk = M @ si.to_world_mueller(wt, -bs.wo, si.wi)
+                w00 = Mk[0][0][0]
+                kid = {
+                    "lane": lane, "ray": si.spawn_ray(si.to_world(bs.wo)), "M": Mk,
+                    "inside": inside ^ (comp == 1), "primary": dr.full(mi.Bool, comp == 0 and depth == 0, dr.width(lane)),
+                    "p_prev": mi.Point3f(si.p), "ok": dr.isfinite(w00) & (w00 > min_weight),
+                }
+                dr.eval(kid)
+                new_sets.append(kid)
+        sets = new_sets
+        if not sets:
+            break
+    acc_np = {k: np.stack([_np(a).reshape(-1) for a in v], axis=1) for k, v in acc.items()}  # (n, 4)
+    s_r[:, start:stop] = (rot @ acc_np["r"][:, :, None])[:, :, 0].T
+    s_t[:, start:stop] = (rot @ acc_np["t"][:, :, None])[:, :, 0].T
+    s_r1[:, start:stop] = (rot @ acc_np["r1"][:, :, None])[:, :, 0].T
 
 
 def _finish(s_r, s_t, s_r1, cos_i, hit0, phi_geo_xy, W, H, K, model, n) -> dict[str, np.ndarray]:

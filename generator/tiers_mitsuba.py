@@ -230,7 +230,7 @@ def render_stokes_image(mi, scene_dict: dict, spp: int, seed: int) -> np.ndarray
     """
     sc = mi.load_dict(scene_dict)
     img = np.array(mi.render(sc, seed=int(seed), spp=int(spp)), dtype=np.float64)
-    names = sc.sensors()[0].film().bitmap().struct_() if False else None  # noqa: F841  (layout is fixed: Y, S0.RGB, S1.RGB, S2.RGB, S3.RGB)
+    # film channels (fixed layout of the stokes integrator): Y, S0.RGB, S1.RGB, S2.RGB, S3.RGB
     lum = np.array([0.2126, 0.7152, 0.0722])
     s = np.stack([img[..., 1 + 3 * i : 4 + 3 * i] @ lum for i in range(3)])
     return np.nan_to_num(s, nan=0.0, posinf=0.0, neginf=0.0)
