@@ -142,7 +142,7 @@ def noise_scalars(cfg: SpikeSimConfig) -> tuple[float, float, float, float]:
     return invq, sth, sres, leak
 
 
-@nb.njit(parallel=True, fastmath=False, error_model="numpy", cache=True)
+@nb.njit(parallel=True, nogil=True, fastmath=False, error_model="numpy", cache=True)
 def _kernel(basis, coef, stepkey, pkey, dark, theta, V, invq, sth, sres, leak, out):  # pragma: no cover - jitted
     P = basis.shape[1]
     NS = coef.shape[0]
