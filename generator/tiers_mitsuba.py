@@ -271,6 +271,21 @@ def _texture(content, t_s: float) -> np.ndarray:
     return np.asarray(content.sample(t_s, XX, YY), dtype=np.float64)
 
 
+def _layer_coverage_warnings(scene, tc, rc) -> list[str]:
+    """Pixels whose T or R ray leaves its finite layer plane (black in the full tier; the analytic
+    ground truth mirrors the texture there) or whose R point lies behind the pane."""
+    from generator.analytic import analytic_maps
+
+    m = analytic_maps(scene)
+    out = []
+    for name, (X, Y), content in (("T", m.t_xy, tc), ("R", m.r_xy, rc)):
+        half = 0.5 * content.extent
+        outside = (np.abs(X) > half) | (np.abs(Y) > half) | ~np.isfinite(X) | ~np.isfinite(Y)
+        if outside.any():
+            out.append(f"{name} layer plane does not cover {100 * outside.mean():.2f}% of the view; raise layers.{'transmission' if name == 'T' else 'reflection'}.margin")
+    return out
+
+
 class FullRenderer:
     """Tier ``full``: path-traced Stokes per keyframe, interpolated in between.
 
@@ -325,6 +340,11 @@ class FullRenderer:
             "max_depth": MAX_DEPTH_FULL,
             "backend": self.be.to_dict(),
         }
+        warn = _layer_coverage_warnings(scene, self.tc, self.rc)
+        if warn:
+            info["modelled"]["warnings"] = warn
+            for w in warn:
+                log.warning("full tier: %s", w)
         if "subpixel_rays" in prev_modelled:  # maps.exr of this render came from the two-lobe tracer
             info["modelled"]["maps_exr"] = prev_modelled
         self.info = info

@@ -129,3 +129,17 @@ def test_full_tier_keyframes_static_once_and_interpolation():
     # deterministic for a given seed
     again = tm.FullRenderer(moving, _opts(spp=4, fps=100.0, keyframe_hz=25.0), {}).stokes(0.04)
     assert np.array_equal(again, k1)
+
+
+def test_full_tier_warns_when_a_layer_plane_does_not_cover_the_view():
+    """A T plane without margin behind a thick slab: the displaced rays leave it -> warning in render.json."""
+    require_mitsuba()
+    from generator import tiers_mitsuba as tm
+    from generator.scene import scene_from_dict
+    from polspike.config import to_dict
+
+    d = to_dict(small_scene("brewster", width=16, height=10, thickness_mm=400.0))
+    d["layers"]["transmission"]["margin"] = 0.0
+    info: dict = {}
+    tm.FullRenderer(scene_from_dict(d), _opts(spp=1), info)
+    assert any("T layer plane does not cover" in w for w in info["modelled"]["warnings"])
