@@ -40,7 +40,7 @@ from reconstruct.rir import RirConfig, estimate_shifts, warp
 from reconstruct.solvers import SOLVERS, SolverConfig, solve
 from reconstruct.zeta_source import ZETA_SOURCES, PaneMaps, zeta_from_maps, zeta_learned
 
-__all__ = ["EvalConfig", "EvalReport", "BASELINES", "group_zeta", "evaluate_groups", "write_report", "parse_methods"]
+__all__ = ["EvalConfig", "EvalReport", "BASELINES", "group_zeta", "evaluate_groups", "write_report", "parse_methods", "load_groups", "window_sweep", "markdown_table", "sweep_markdown"]
 
 log = logging.getLogger(__name__)
 
@@ -291,3 +291,61 @@ def write_report(report: EvalReport, out_dir: str | Path) -> dict[str, Path]:
         plt.close(fig)
         paths["figure"] = out / "figure.png"
     return paths
+
+
+def load_groups(dataset: str, split: str, cfg: EvalConfig, synthetic=None, progress: Callable[[int, int], None] | None = None) -> list[EvalGroup]:
+    """Evaluation groups of ``dataset``: a dataset directory / group directory, or ``synthetic``.
+
+    ``synthetic`` (optionally ``synthetic:SEED``) builds the closed-form set of
+    :mod:`reconstruct.synthetic` in-process (``synthetic`` is its config, window
+    and stride are taken from cfg).
+    """
+    from reconstruct.groups import list_groups, load_store_group, window_steps_from_ms
+
+    if dataset.startswith("synthetic"):
+        from reconstruct.synthetic import SyntheticConfig, make_group
+
+        sc = synthetic or SyntheticConfig()
+        seed = int(dataset.split(":", 1)[1]) if ":" in dataset else sc.seed
+        sc = dataclasses.replace(sc, seed=seed, window_steps=window_steps_from_ms(cfg.dt_ms, sc.rate_hz), stride_deg=cfg.stride_deg)
+        out = []
+        for g in range(sc.n_groups):
+            out.append(make_group(sc, g))
+            if progress:
+                progress(g + 1, sc.n_groups)
+        return out
+    listed = list_groups(dataset, split)
+    out = []
+    for j, (name, path) in enumerate(listed):
+        from spike_sim.store import open_group
+
+        with open_group(path) as g:
+            rate = g.rate_hz
+        frames = cfg.max_frames + 2 * (cfg.n_obs // 2) if cfg.max_frames else 0
+        out.append(load_store_group(path, window_steps_from_ms(cfg.dt_ms, rate), cfg.stride_deg, cfg.n_obs, frames, name))
+        if progress:
+            progress(j + 1, len(listed))
+    return out
+
+
+def window_sweep(groups: list[EvalGroup] | None, dataset: str, split: str, cfg: EvalConfig, n_values=(5, 7, 9), dt_values=(0.30, 0.65, 1.10), synthetic=None, solver_cfg: SolverConfig = SolverConfig(), rir_cfg: RirConfig = RirConfig()) -> list[dict]:
+    """Supp. Table 1 analysis: PSNR / SSIM of T for every (N, dt) pair, solvers of cfg.methods.
+
+    Groups are re-aggregated for each dt (the window changes the frames).
+    """
+    rows = []
+    for dt in dt_values:
+        c_dt = dataclasses.replace(cfg, dt_ms=float(dt), figure_frames=0)
+        gs = load_groups(dataset, split, dataclasses.replace(c_dt, n_obs=max(n_values)), synthetic)
+        for n in n_values:
+            rep = evaluate_groups(gs, dataclasses.replace(c_dt, n_obs=int(n)), solver_cfg, rir_cfg)
+            for r in rep.rows:
+                if r["group"] == "overall":
+                    rows.append({"n_obs": int(n), "dt_ms": float(dt), **{k: r[k] for k in ("method", "n_frames", "psnr_T", "ssim_T", "psnr_R", "ssim_R")}})
+    return rows
+
+
+def sweep_markdown(rows: list[dict]) -> str:
+    """Markdown table of :func:`window_sweep` rows."""
+    head = "| N | dt (ms) | method | frames | PSNR T (dB) | SSIM T |\n|---:|---:|---|---:|---:|---:|\n"
+    return head + "\n".join(f"| {r['n_obs']} | {r['dt_ms']:.2f} | {r['method']} | {r['n_frames']} | {_fmt(r['psnr_T'], 2)} | {_fmt(r['ssim_T'])} |" for r in rows) + "\n"

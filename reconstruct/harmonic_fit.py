@@ -61,24 +61,48 @@ def harmonic_fit(
     """
     if I.dim() < 3:
         raise ShapeError(f"I must be (..., N, H, W); got shape {tuple(I.shape)}", actual_shape=tuple(I.shape), expected_shape="(..., N, H, W)")
+    if ridge is None:
+        ridge = 1e-10 if I.dtype == torch.float64 else 1e-5
+    tiny = torch.finfo(I.dtype).tiny ** 0.25  # its cube (the 3x3 determinant) stays a normal number
+    if weights is None and phi.dim() == I.dim() - 2:
+        # angles shared by all pixels: one 3x3 system per window, applied to every pixel
+        ph = phi.to(I.dtype)
+        B = torch.stack([torch.ones_like(ph), torch.cos(2.0 * ph), torch.sin(2.0 * ph)], -1)  # (..., N, 3)
+        G = B.transpose(-1, -2) @ B
+        tr = G.diagonal(dim1=-2, dim2=-1).sum(-1)[..., None, None]
+        G = G + (ridge * tr + tiny) * torch.eye(3, dtype=I.dtype, device=I.device)
+        P = torch.linalg.solve(G, B.transpose(-1, -2))  # (..., 3, N) pseudo-inverse rows
+        coef = torch.einsum("...jn,...nhw->...jhw", P, I)  # supp. Eq. (1), least squares
+        return coef[..., 0, :, :], coef[..., 1, :, :], coef[..., 2, :, :]
     ph = _angles_like(phi.to(I.dtype), I)
     c = torch.cos(2.0 * ph)
     s = torch.sin(2.0 * ph)
-    one = torch.ones_like(c)
     w = torch.ones_like(I) if weights is None else torch.broadcast_to(weights.to(I.dtype), I.shape)
-    basis = [one, c, s]
-    shape = torch.broadcast_shapes(I.shape, c.shape)
-    # Normal matrix G_ij = sum_k w b_i b_j, right side h_i = sum_k w b_i I   (supp. Eq. (1), weighted LS)
-    G = torch.stack([torch.stack([(w * bi * bj).expand(shape).sum(-3) for bj in basis], -1) for bi in basis], -2)
-    h = torch.stack([(w * bi * I).expand(shape).sum(-3) for bi in basis], -1)
-    tr = G.diagonal(dim1=-2, dim2=-1).sum(-1, keepdim=True)[..., None]
-    eye = torch.eye(3, dtype=I.dtype, device=I.device)
-    tiny = torch.finfo(I.dtype).tiny ** 0.5
-    if ridge is None:
-        ridge = 1e-10 if I.dtype == torch.float64 else 1e-5
-    G = G + (ridge * tr + tiny) * eye
-    coef = torch.linalg.solve(G, h[..., None])[..., 0]
-    return coef[..., 0], coef[..., 1], coef[..., 2]
+    wc, ws = w * c, w * s
+    # weighted normal equations, supp. Eq. (1): G = sum_k w b b^T, h = sum_k w b I, b = [1, cos 2phi, sin 2phi]
+    g00 = w.expand_as(I).sum(-3) if w.shape != I.shape else w.sum(-3)
+    g01 = wc.expand_as(I).sum(-3)
+    g02 = ws.expand_as(I).sum(-3)
+    g11 = (wc * c).expand_as(I).sum(-3)
+    g12 = (wc * s).expand_as(I).sum(-3)
+    g22 = (ws * s).expand_as(I).sum(-3)
+    h0 = (w * I).sum(-3)
+    h1 = (wc * I).sum(-3)
+    h2 = (ws * I).sum(-3)
+    d = ridge * (g00 + g11 + g22) + tiny
+    g00, g11, g22 = g00 + d, g11 + d, g22 + d
+    # symmetric 3x3 solve by cofactors (elementwise over pixels: no batched LAPACK call)
+    c00 = g11 * g22 - g12 * g12
+    c01 = g02 * g12 - g01 * g22
+    c02 = g01 * g12 - g02 * g11
+    c11 = g00 * g22 - g02 * g02
+    c12 = g01 * g02 - g00 * g12
+    c22 = g00 * g11 - g01 * g01
+    det = g00 * c00 + g01 * c01 + g02 * c02
+    a0 = (c00 * h0 + c01 * h1 + c02 * h2) / det
+    ac = (c01 * h0 + c11 * h1 + c12 * h2) / det
+    as_ = (c02 * h0 + c12 * h1 + c22 * h2) / det
+    return a0, ac, as_
 
 
 def harmonic_eval(a0: torch.Tensor, ac: torch.Tensor, as_: torch.Tensor, phi: torch.Tensor) -> torch.Tensor:

@@ -152,7 +152,7 @@ def solve_weighted_ridge(
     r_R = (w * zeta * b).sum(-3)
     r_T = (w * (1.0 - zeta) * b).sum(-3)
     tr = S_rr + S_tt
-    tiny = torch.finfo(zeta.dtype).tiny ** 0.5
+    tiny = torch.finfo(zeta.dtype).tiny ** 0.25  # its square (the 2x2 determinant) stays a normal number
     diag = lam * sw + _eps(zeta.dtype) * tr + tiny
     m11 = S_rr + diag
     m22 = S_tt + diag

@@ -1,0 +1,113 @@
+"""``polspike evaluate`` (physics solvers and baselines on a test split) and ``polspike bench reconstruct``."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import typer
+
+from polspike.cli import app_typer, bench_app
+
+
+@app_typer.command("evaluate")
+def evaluate_cmd(
+    dataset: str = typer.Argument(..., help="dataset directory (dataset.json + group stores), one group directory, or 'synthetic[:SEED]' (closed-form set made in-process)"),
+    split: str = typer.Option("test", "--split", help="split listed in dataset.json"),
+    method: str = typer.Option("ls,ridge,irls,rwps", "--method", help="comma-separated solvers: ls, ridge, irls, rwps"),
+    zeta: str = typer.Option("gt", "--zeta", help="zeta source: gt (group pane maps), physics (Fresnel from the calibrated pane), learned (issue 9)"),
+    out: Path = typer.Option(Path("out/evaluate"), "--out", help="output folder (results.csv/.md/.json, figure.png, config.json)"),
+    n_obs: int = typer.Option(7, "--n-obs", help="observations per output frame N = 2K + 1"),
+    dt_ms: float = typer.Option(0.65, "--dt-ms", help="aggregation window, milliseconds (odd number of steps)"),
+    stride_deg: float = typer.Option(31.5, "--stride-deg", help="polarizer rotation between output frames, degrees"),
+    rir: bool = typer.Option(True, "--rir/--no-rir", help="reflection-invariant registration of each window"),
+    max_frames: int = typer.Option(0, "--max-frames", help="at most this many output frames per group (0 = all)"),
+    pane_n: float = typer.Option(1.5, "--pane-n", help="physics zeta: calibrated refractive index"),
+    pane_model: str = typer.Option("single", "--pane-model", help="physics zeta: single, thin_slab or thick_slab"),
+    dtype: str = typer.Option("float32", "--dtype", help="solver dtype: float32 or float64"),
+    device: str = typer.Option("cpu", "--device", help="torch device for the solvers"),
+    sweep: bool = typer.Option(False, "--sweep", help="also run the window analysis (N in 5,7,9 x dt in 0.30,0.65,1.10 ms; supp. Table 1)"),
+    synthetic_groups: int = typer.Option(4, "--synthetic-groups", help="synthetic: number of groups"),
+    synthetic_frames: int = typer.Option(20, "--synthetic-frames", help="synthetic: frames per group"),
+    synthetic_noise: str = typer.Option("poisson", "--synthetic-noise", help="synthetic: poisson, integrate_fire or none"),
+    synthetic_size: str = typer.Option("200x125", "--synthetic-size", help="synthetic: WxH"),
+    quiet: bool = typer.Option(False, "--quiet", help="no progress bar"),
+) -> None:
+    """Score the physics solvers (and TFP / best-frame baselines) on every test group: PSNR/SSIM of T and R."""
+    from rich.console import Console
+
+    from polspike.config import from_dict
+    from polspike.errors import ConfigError
+    from polspike.progress import rich_progress
+    from reconstruct.evaluate import EvalConfig, evaluate_groups, load_groups, markdown_table, sweep_markdown, window_sweep, write_report
+    from reconstruct.synthetic import SyntheticConfig
+
+    cfg = from_dict(
+        EvalConfig,
+        {"n_obs": n_obs, "dt_ms": dt_ms, "stride_deg": stride_deg, "methods": method, "zeta": zeta, "rir": rir, "max_frames": max_frames, "pane_n": pane_n, "pane_model": pane_model, "dtype": dtype, "device": device},
+        where="command line",
+    )
+    try:
+        w, h = (int(x) for x in synthetic_size.lower().split("x"))
+    except ValueError:
+        raise ConfigError(f"--synthetic-size {synthetic_size!r} is not WxH; write e.g. 200x125") from None
+    syn = from_dict(SyntheticConfig, {"n_groups": synthetic_groups, "n_frames": synthetic_frames, "noise": synthetic_noise, "width": w, "height": h}, where="command line")
+    con = Console()
+    with rich_progress("load groups", enabled=not quiet) as cb:
+        groups = load_groups(dataset, split, cfg, syn, progress=cb)
+    with rich_progress("evaluate", enabled=not quiet) as cb:
+        report = evaluate_groups(groups, cfg, progress=cb)
+    paths = write_report(report, out)
+    con.print(markdown_table(report, overall_only=True))
+    if sweep:
+        from polspike.atomic import write_json, write_text
+
+        rows = window_sweep(None, dataset, split, cfg, synthetic=syn)
+        write_json(out / "window_sweep.json", rows)
+        write_text(out / "window_sweep.md", "# Window analysis (supp. Table 1)\n\n" + sweep_markdown(rows))
+        con.print(sweep_markdown(rows))
+    con.print(f"[green]wrote[/] {', '.join(str(p) for p in paths.values())}")
+
+
+@bench_app.command("reconstruct")
+def bench_reconstruct_cmd(
+    out: Path = typer.Option(Path("out/bench/reconstruct"), "--out", help="output folder for reconstruct.json and reconstruct.md"),
+    json_out: bool = typer.Option(False, "--json", help="print the JSON result"),
+    width: int = typer.Option(400, "--width"),
+    height: int = typer.Option(250, "--height"),
+    batch: int = typer.Option(8, "--batch", help="windows per solver call (solver-stage throughput)"),
+    repeats: int = typer.Option(3, "--repeats"),
+    threads: int = typer.Option(2, "--threads", help="torch CPU threads"),
+) -> None:
+    """Output frames/s of harmonic fit + RIR + RWPS, and of the solver stage alone, vs plain LS (CPU; CUDA if present)."""
+    import json
+
+    from rich.console import Console
+    from rich.table import Table
+
+    from polspike.atomic import write_json, write_text
+    from reconstruct.bench import bench_reconstruct
+
+    res = bench_reconstruct(width=width, height=height, batch=batch, repeats=repeats, threads=threads)
+    tab = Table(title=f"reconstruct at {width}x{height}, N = 7")
+    for c in ("device", "stage", "ms / frame", "frames / s"):
+        tab.add_column(c)
+    md = "| device | stage | ms / frame | frames / s |\n|---|---|---:|---:|\n"
+    for dev, stages in res["results"].items():
+        for st, v in stages.items():
+            if st == "ratios":
+                continue
+            tab.add_row(dev, st, f"{1e3 * v['s_per_frame']:.2f}", f"{v['fps']:.1f}")
+            md += f"| {dev} | {st} | {1e3 * v['s_per_frame']:.2f} | {v['fps']:.1f} |\n"
+        r = stages["ratios"]
+        md += f"\n{dev}: RWPS / LS time = {r['rwps_over_ls_time']:.2f}; pipeline / LS time = {r['pipeline_over_ls_time']:.1f}\n"
+    write_json(out / "reconstruct.json", res)
+    write_text(out / "reconstruct.md", md)
+    con = Console()
+    con.print(tab)
+    for dev, stages in res["results"].items():
+        r = stages["ratios"]
+        con.print(f"{dev}: RWPS / LS time {r['rwps_over_ls_time']:.2f}, pipeline / LS time {r['pipeline_over_ls_time']:.1f}")
+    for dev, why in res["skipped"].items():
+        con.print(f"{dev}: skipped ({why})")
+    if json_out:
+        print(json.dumps(res, indent=2))

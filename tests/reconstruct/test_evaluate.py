@@ -1,0 +1,112 @@
+"""Evaluation harness: synthetic closed-form groups, spike_sim group stores, dataset.json, reports."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from reconstruct.evaluate import EvalConfig, evaluate_groups, group_zeta, load_groups, markdown_table, write_report
+from reconstruct.groups import list_groups, load_store_group, window_steps_from_ms
+from reconstruct.synthetic import SyntheticConfig, make_group
+
+
+def _small(noise="none", n_frames=9):
+    return SyntheticConfig(width=48, height=32, n_groups=1, n_frames=n_frames, noise=noise, motion_px_per_frame=0.0)
+
+
+def test_noise_free_synthetic_is_solved_exactly_and_beats_baselines():
+    g = make_group(_small(), 0)
+    rep = evaluate_groups([g], EvalConfig(rir=False, methods="ls", dtype="float64", figure_frames=1))
+    ov = {r["method"]: r for r in rep.rows if r["group"] == "overall"}
+    assert ov["ls"]["psnr_T"] > 60.0 and ov["ls"]["psnr_R"] > 40.0  # exact model, gt zeta: LS inverts it
+    assert ov["ls"]["psnr_T"] > ov["tfp"]["psnr_T"] and ov["ls"]["psnr_T"] > ov["best_frame"]["psnr_T"]
+    assert ov["tfp"]["psnr_R"] is None and ov["ls"]["n_frames"] == 9 - 6
+    assert rep.figure["images"] and len(rep.figure["images"][0]) == len(rep.figure["columns"])
+
+
+def test_gt_zeta_matches_the_closed_form_generator():
+    g = make_group(_small(), 0)
+    z = group_zeta(g, EvalConfig())
+    assert np.allclose(z, g.gt_zeta, atol=1e-6)
+
+
+def test_physics_zeta_equals_gt_for_the_matching_pane():
+    g = make_group(_small(), 0)
+    zp = group_zeta(g, EvalConfig(zeta="physics", pane_n=1.5))
+    assert np.allclose(zp, g.gt_zeta, atol=1e-6)  # same index, same model, nominal = true angles here
+    zq = group_zeta(g, EvalConfig(zeta="physics", pane_n=1.7))
+    assert np.abs(zq - g.gt_zeta).max() > 1e-3
+
+
+def test_learned_zeta_is_a_clear_error():
+    from polspike.errors import PolspikeError
+
+    g = make_group(_small(), 0)
+    with pytest.raises(PolspikeError, match="issue 9"):
+        evaluate_groups([g], EvalConfig(zeta="learned"))
+
+
+def test_report_files(tmp_path):
+    g = make_group(_small("poisson"), 0)
+    rep = evaluate_groups([g], EvalConfig(rir=True, figure_frames=2))
+    paths = write_report(rep, tmp_path)
+    for k in ("csv", "md", "json", "config", "figure"):
+        assert paths[k].is_file()
+    text = (tmp_path / "results.csv").read_text()
+    assert "rwps" in text and "tfp" in text and "n/a (no local weights)" in text
+    assert "| overall | rwps |" in markdown_table(rep)
+    for r in rep.rows:
+        assert np.isfinite(r["psnr_T"])
+
+
+def test_window_steps_are_odd_and_nearest():
+    assert [window_steps_from_ms(x, 20000.0) for x in (0.30, 0.65, 1.10)] == [7, 13, 23]
+
+
+def _write_store(path, H=12, W=16, n_frames=12, exposure=0.5, seed=0):
+    """A tiny spike_sim group: deterministic integrate-and-fire spikes of the Eq. (1) mixture."""
+    from spike_sim.aggregate import AggregateConfig, frame_centres
+    from spike_sim.store import GroupWriter
+
+    rng = np.random.default_rng(seed)
+    rate, pol = 20000.0, 30.0
+    steps = int(n_frames * 31.5 / 360 / pol * rate) + 40
+    t = (np.arange(steps) + 0.5) / rate
+    phi = 2 * np.pi * pol * t + 0.3
+    Tl = rng.uniform(0.3, 1.0, (H, W))
+    Rl = rng.uniform(0.3, 1.0, (H, W))
+    Rp, Rs, pp = np.full((H, W), 0.02), np.full((H, W), 0.3), rng.uniform(0, np.pi, (H, W))
+    acc = rng.uniform(0, 1, (H, W))
+    w = GroupWriter(path, H, W, rate, steps, chunk_steps=64, compression="none", attrs={"seed": seed, "config_json": {"exposure": exposure}, "polarizer_json": {"rate_hz": pol}})
+    for n in range(steps):
+        z = Rs * np.cos(phi[n] - pp) ** 2 + Rp * np.sin(phi[n] - pp) ** 2  # paper Eq. (2)
+        acc += exposure * 0.5 * (z * Rl + (1 - z) * Tl)  # paper Eq. (1)
+        s = acc >= 1.0
+        acc -= s
+        w.write_spikes(np.packbits(s.ravel(), bitorder="little")[None])
+    c, phi_i = frame_centres(phi, AggregateConfig())
+    w.write_array("polarizer/phi_true_rad", phi)
+    w.write_array("polarizer/phi_nominal_rad", phi)
+    w.write_array("output/step_index", c)
+    w.write_array("gt/T", np.repeat(Tl[None], c.size, 0).astype(np.float32))
+    w.write_array("gt/R", np.repeat(Rl[None], c.size, 0).astype(np.float32))
+    for k, v in {"R_perp": Rs, "R_par": Rp, "phi_perp": pp, "theta": np.full((H, W), 1.0)}.items():
+        w.write_array(f"maps/{k}", v.astype(np.float32))
+    w.close()
+    return Tl, c.size
+
+
+def test_store_group_and_dataset_json(tmp_path):
+    Tl, M = _write_store(tmp_path / "groups" / "g0")
+    _write_store(tmp_path / "groups" / "g1", seed=1)
+    (tmp_path / "dataset.json").write_text(json.dumps({"groups": [{"name": "g0", "path": "groups/g0", "split": "test"}, {"name": "g1", "path": "groups/g1", "split": "train"}]}))
+    assert [n for n, _ in list_groups(tmp_path, "test")] == ["g0"]
+    g = load_store_group(tmp_path / "groups" / "g0")
+    assert g.I.shape[0] == M and g.has_gt.all()
+    assert abs(float(g.I.mean()) - 0.5 * float(Tl.mean())) < 0.1  # radiance units (spikes / step / exposure)
+    gs = load_groups(str(tmp_path), "test", EvalConfig())
+    rep = evaluate_groups(gs, EvalConfig(rir=False, methods="ls,ridge,rwps"))
+    ov = {r["method"]: r for r in rep.rows if r["group"] == "overall"}
+    assert ov["ridge"]["psnr_T"] > 18.0 and ov["ls"]["n_frames"] == M - 6
