@@ -43,16 +43,13 @@ def _timeit(fn, repeats: int, sync=lambda: None) -> float:
 
 
 def _window(N: int, H: int, W: int, seed: int = 0):
-    rng = np.random.default_rng(seed)
-    from scipy.ndimage import gaussian_filter
+    """One window of the closed-form synthetic set (pictures, pane maps, Poisson spike counts)."""
+    from reconstruct.evaluate import EvalConfig, group_zeta
+    from reconstruct.synthetic import SyntheticConfig, make_group
 
-    T = gaussian_filter(rng.uniform(0, 1, (H, W)), 2.0)
-    R = gaussian_filter(rng.uniform(0, 1, (H, W)), 4.0)
-    phi = np.deg2rad(31.5) * np.arange(N)
-    zeta = 0.05 + 0.1 * np.cos(phi[:, None, None] - 0.4) ** 2 * np.ones((1, H, W))
-    I = 0.5 * (zeta * R + (1 - zeta) * T)  # paper Eq. (1)
-    I = rng.poisson(I * 13) / 13.0
-    return torch.from_numpy(I).float(), torch.from_numpy(zeta).float(), torch.from_numpy(phi).float()
+    g = make_group(SyntheticConfig(width=W, height=H, n_frames=N, seed=seed), 0)
+    Z = group_zeta(g, EvalConfig())
+    return torch.from_numpy(g.I).float(), torch.from_numpy(Z).float(), torch.from_numpy(g.phi_nominal).float()
 
 
 def bench_reconstruct(width: int = 400, height: int = 250, n_obs: int = 7, batch: int = 8, repeats: int = 3, threads: int = 2, devices: tuple[str, ...] = ("cpu", "cuda")) -> dict:

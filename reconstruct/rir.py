@@ -9,7 +9,7 @@ frames therefore locks onto the flickering reflection.  RIR instead:
 3. estimates the translation of each frame to the centre frame by masked
    phase correlation (scikit-image's ``phase_cross_correlation`` with
    ``reference_mask``/``moving_mask``, Padfield 2010), which is whole-pixel
-   only, then refines it to sub-pixel precision by a masked Gauss-Newton
+   only (run on 2x2 block means for speed), then refines it to sub-pixel precision by a masked Gauss-Newton
    (Lucas-Kanade) fit of translation plus gain/offset on the same pixels;
 4. warps frames *and* the per-frame coefficient maps (zeta) with one
    differentiable bilinear warp (:func:`warp`, ``grid_sample``).
@@ -52,6 +52,8 @@ class RirConfig:
     refine_iters: int = opt(8, "Gauss-Newton sub-pixel refinement iterations (0 = whole-pixel only)", lo=0, hi=100)
     max_shift_px: float = opt(16.0, "shifts larger than this are treated as failed registrations and set to 0", lo=0.0, hi=1e4)
     erode_px: int = opt(4, "erosion of the mask for sub-pixel refinement, pixels", lo=0, hi=100)
+    coarse_factor: int = opt(2, "block size of the whole-pixel masked phase correlation (1 = full resolution)", lo=1, hi=16)
+    refine_points: int = opt(20000, "at most this many mask pixels in the sub-pixel refinement", lo=16, hi=10**8)
     overlap_ratio: float = opt(0.3, "minimum overlap for skimage's masked correlation", lo=0.0, hi=1.0)
 
 
@@ -120,6 +122,11 @@ def _smooth(img: np.ndarray, sigma: float) -> np.ndarray:
     return gaussian_filter(img, sigma)
 
 
+def _block_mean(img: np.ndarray, f: int) -> np.ndarray:
+    H, W = (img.shape[0] // f) * f, (img.shape[1] // f) * f
+    return img[:H, :W].reshape(H // f, f, W // f, f).mean(axis=(1, 3))
+
+
 def _erode(mask: np.ndarray, px: int) -> np.ndarray:
     if px <= 0:
         return mask
@@ -128,27 +135,45 @@ def _erode(mask: np.ndarray, px: int) -> np.ndarray:
     return binary_erosion(mask, iterations=px, border_value=0)
 
 
-def _refine(ref: torch.Tensor, mov: torch.Tensor, mask: torch.Tensor, s0: torch.Tensor, iters: int) -> torch.Tensor:
-    """Masked Gauss-Newton: min_{s, g, o} sum_mask (g warp(mov, s) + o - ref)^2, from s0. float64 (H, W)."""
+def _sample(img: torch.Tensor, yx: torch.Tensor) -> torch.Tensor:
+    """Bilinear samples of images (C, H, W) at pixel positions yx (P, 2) -> (C, P), border-replicated."""
+    H, W = img.shape[-2:]
+    gx = (2.0 * yx[:, 1] + 1.0) / W - 1.0
+    gy = (2.0 * yx[:, 0] + 1.0) / H - 1.0
+    grid = torch.stack([gx, gy], -1)[None, None]
+    return F.grid_sample(img[None], grid, mode="bilinear", padding_mode="border", align_corners=False)[0, :, 0]
+
+
+def _refine(ref: torch.Tensor, mov: torch.Tensor, mask: torch.Tensor, s0: torch.Tensor, iters: int, max_points: int = 20000) -> torch.Tensor:
+    """Masked Gauss-Newton on normalised intensities: min_s sum_mask (n(warp(mov, s)) - n(ref))^2, from s0.
+
+    Works on the mask's pixels only (at most ``max_points``, evenly strided):
+    the moving image and its gradients are sampled there with the same
+    bilinear interpolation as :func:`warp`.  float64 (H, W) inputs.
+    """
+    pts = mask.nonzero().to(ref.dtype)  # (P, 2) as (y, x)
+    if pts.shape[0] < 16:
+        return s0
+    if pts.shape[0] > max_points:
+        pts = pts[:: int(np.ceil(pts.shape[0] / max_points))]
+    r_ref = ref[pts[:, 0].long(), pts[:, 1].long()]
+    gy, gx = torch.gradient(mov)
+    stack = torch.stack([mov, gy, gx])
     s = s0.clone()
-    m = mask.to(ref.dtype)
-    nm = m.sum().clamp_min(1.0)
+    eye = torch.eye(2, dtype=ref.dtype)
+    r_ref = (r_ref - r_ref.mean()) / r_ref.std().clamp_min(1e-30)
     for _ in range(iters):
-        J = warp(mov[None], s[None])[0]
-        # photometric gain/offset by weighted LS on the mask
-        mj, mr = (m * J).sum() / nm, (m * ref).sum() / nm
-        vj = (m * (J - mj) ** 2).sum().clamp_min(1e-30)
-        g = (m * (J - mj) * (ref - mr)).sum() / vj
-        o = mr - g * mj
-        gy, gx = torch.gradient(J)
-        r = ref - (g * J + o)
-        # warp(mov, s + d) ~= J - grad J . d   =>   r ~= -g (gy dy + gx dx)
-        ay, ax = -g * gy, -g * gx
-        Hm = torch.stack([torch.stack([(m * ay * ay).sum(), (m * ay * ax).sum()]), torch.stack([(m * ax * ay).sum(), (m * ax * ax).sum()])])
-        rhs = torch.stack([(m * ay * r).sum(), (m * ax * r).sum()])
-        Hm = Hm + 1e-9 * Hm.diagonal().sum() * torch.eye(2, dtype=ref.dtype) + 1e-30 * torch.eye(2, dtype=ref.dtype)
-        d = torch.linalg.solve(Hm, rhs)
-        d = d.clamp(-1.0, 1.0)
+        J, Jy, Jx = _sample(stack, pts - s)  # warp(mov, s)(p) = mov(p - s) and its gradient there
+        # photometric normalisation on the mask (zero mean, unit variance): the polarizer changes
+        # each frame's gain a little; normalising (rather than fitting a gain) keeps the step well
+        # scaled when the frames are noisy
+        sd = J.std().clamp_min(1e-30)
+        r = r_ref - (J - J.mean()) / sd
+        # warp(mov, s + d) ~= J - grad J . d   =>   r ~= -(Jy dy + Jx dx) / sd
+        A = -torch.stack([Jy, Jx], -1) / sd  # (P, 2)
+        Hm = A.T @ A
+        Hm = Hm + (1e-9 * Hm.diagonal().sum() + 1e-30) * eye
+        d = torch.linalg.solve(Hm, A.T @ r).clamp(-0.5, 0.5)
         s = s + d
         if float(d.abs().max()) < 1e-4:
             break
@@ -181,6 +206,9 @@ def estimate_shifts(
     m_np = mask.detach().cpu().numpy().astype(bool)
     sm = [_smooth(f, config.smooth_sigma_px) for f in frames]
     ref_t = torch.from_numpy(sm[c])
+    if config.coarse_factor > 1:
+        co = [_block_mean(f, config.coarse_factor) for f in sm]
+        m_co = _block_mean(m_np.astype(np.float64), config.coarse_factor) > 0.99
     # the refinement samples neighbours (bilinear warp, finite-difference gradients, smoothing):
     # erode its mask so no excluded (reflection) pixel or image border leaks in
     m_t = torch.from_numpy(_erode(m_np, config.erode_px))
@@ -188,10 +216,14 @@ def estimate_shifts(
     for k in range(N):
         if k == c or not m_np.any():
             continue
-        shift = phase_cross_correlation(sm[c], sm[k], reference_mask=m_np, moving_mask=m_np, overlap_ratio=config.overlap_ratio)[0]
+        f = config.coarse_factor
+        if f > 1:  # whole-pixel search on a block-averaged copy; the refinement recovers full resolution
+            shift = f * phase_cross_correlation(co[c], co[k], reference_mask=m_co, moving_mask=m_co, overlap_ratio=config.overlap_ratio)[0]
+        else:
+            shift = phase_cross_correlation(sm[c], sm[k], reference_mask=m_np, moving_mask=m_np, overlap_ratio=config.overlap_ratio)[0]
         s0 = torch.as_tensor(np.asarray(shift, dtype=np.float64))
         if config.refine_iters > 0:
-            s0 = _refine(ref_t, torch.from_numpy(sm[k]), m_t, s0, config.refine_iters)
+            s0 = _refine(ref_t, torch.from_numpy(sm[k]), m_t, s0, config.refine_iters, config.refine_points)
         if not torch.isfinite(s0).all() or float(s0.abs().max()) > config.max_shift_px:
             log.debug("frame %d: registration failed (shift %s), using 0", k, s0.tolist())
             s0 = torch.zeros(2, dtype=torch.float64)
