@@ -279,6 +279,7 @@ def simulate(
             },
         )
     dat = DatWriter(dat_path) if dat_path is not None else None
+    gt = _GtStream(writer, src, centres, dt, aggregate, store_zeta) if writer is not None else None
     ok = False
     phi_true = np.zeros(n_steps)
     total_spikes = 0
@@ -296,6 +297,7 @@ def simulate(
             total_spikes += _popcount(o)
             if writer is not None:
                 writer.write_spikes(o)
+                gt.advance(n1, phi_true)
             if dat is not None:
                 dat.write_packed(o, cfg.height, cfg.width)
             if spikes_sink is not None:
@@ -312,7 +314,7 @@ def simulate(
             csum = np.concatenate([[0.0], np.cumsum(phi_true)])
             h = aggregate.half
             writer.write_array("output/phi_true_rad", (csum[centres + h + 1] - csum[centres - h]) / aggregate.window_steps)
-            _write_gt(writer, src, (centres + 0.5) * dt, (csum[centres + h + 1] - csum[centres - h]) / aggregate.window_steps, store_zeta)
+            gt.advance(n_steps, phi_true)
         ok = True
     finally:
         if dat is not None:
@@ -374,22 +376,36 @@ def _interp_layers(src: KeyframeSource, t: float) -> tuple[np.ndarray, np.ndarra
     return (1 - w) * T0 + w * T1, (1 - w) * R0 + w * R1
 
 
-def _write_gt(writer: GroupWriter, src: KeyframeSource, times: np.ndarray, phi_true_i: np.ndarray, store_zeta: bool) -> None:
-    M = times.size
-    maps = src.maps() if src.maps is not None else None
-    if maps:
-        for k, v in maps.items():
-            writer.write_array(f"maps/{k}", np.asarray(v, dtype=np.float32))
-    if src.layers is not None and M:
-        dT = writer.create_frames("gt/T", M, dtype="f2")
-        dR = writer.create_frames("gt/R", M, dtype="f2")
-        for m, t in enumerate(times):
-            T_, R_ = _interp_layers(src, float(t))
-            writer.write_frame(dT, m, T_)
-            writer.write_frame(dR, m, R_)
-    if store_zeta and maps and {"R_perp", "R_par", "phi_perp"} <= set(maps) and M:
-        from polspike.physics.zeta import zeta
+class _GtStream:
+    """Writes GT frames at output times while the stream advances (keyframes are then still cached)."""
 
-        dz = writer.create_frames("gt/zeta", M, dtype="f2")
-        for m in range(M):
-            writer.write_frame(dz, m, zeta(phi_true_i[m], maps["R_perp"], maps["R_par"], maps["phi_perp"]))  # Eq. (2)
+    def __init__(self, writer: GroupWriter, src: KeyframeSource, centres: np.ndarray, dt: float, aggregate: AggregateConfig, store_zeta: bool):
+        self.writer, self.src, self.c, self.dt, self.h, self.win = writer, src, centres, dt, aggregate.half, aggregate.window_steps
+        self.m = 0
+        M = centres.size
+        self.maps = src.maps() if src.maps is not None else None
+        if self.maps:
+            for k, v in self.maps.items():
+                writer.write_array(f"maps/{k}", np.asarray(v, dtype=np.float32))
+        self.dT = self.dR = self.dz = None
+        if src.layers is not None and M:
+            self.dT = writer.create_frames("gt/T", M, dtype="f2")
+            self.dR = writer.create_frames("gt/R", M, dtype="f2")
+        if store_zeta and self.maps and {"R_perp", "R_par", "phi_perp"} <= set(self.maps) and M:
+            self.dz = writer.create_frames("gt/zeta", M, dtype="f2")
+
+    def advance(self, n_done: int, phi_true: np.ndarray) -> None:
+        """Write every output frame whose window lies in the first ``n_done`` steps."""
+        while self.m < self.c.size and self.c[self.m] + self.h < n_done:
+            m, c = self.m, int(self.c[self.m])
+            if self.dT is not None:
+                T_, R_ = _interp_layers(self.src, (c + 0.5) * self.dt)
+                self.writer.write_frame(self.dT, m, T_)
+                self.writer.write_frame(self.dR, m, R_)
+            if self.dz is not None:
+                from polspike.physics.zeta import zeta
+
+                phi_i = float(np.mean(phi_true[c - self.h : c + self.h + 1]))
+                mp = self.maps
+                self.writer.write_frame(self.dz, m, zeta(phi_i, mp["R_perp"], mp["R_par"], mp["phi_perp"]))  # Eq. (2)
+            self.m += 1

@@ -14,7 +14,6 @@ from spike_sim.integrate_fire import (
     noise_scalars,
     packed_frame_bytes,
     run_numba,
-    run_numpy,
     simulate_constant,
     step_keys,
 )
