@@ -37,6 +37,8 @@ def _layout(path: Path, height: int, width: int) -> tuple[int, int]:
     if not path.is_file():
         raise DataFormatError(f"spike file not found: {path}")
     size = path.stat().st_size
+    if size == 0:
+        raise DataFormatError(f"{path} is empty: a .dat holds at least one {height}x{width} frame ({height * width // 8} bytes)")
     for w in (width, width + HEAD_COLUMNS):
         fb = height * w // 8
         if (height * w) % 8 == 0 and fb > 0 and size % fb == 0:
