@@ -104,6 +104,7 @@ def run_demo(out: Path, scene_name: str = "brewster", quick: bool = False) -> Pa
     sec.text(f"checkpoint {rec['checkpoint']}; {rec['frames']} output frame(s), centre crop {rec['crop']}x{rec['crop']} px, N = 7 observations.")
     sec.table(["estimate", "PSNR T (dB)", "SSIM T", "PSNR R (dB)", "SSIM R"], rec["rows"])
     sec.image(rec["figure"], "input, TFP baseline, physics-only RWPS, network output and ground truth")
+    sec.image(overview_figure(rd, out / "spikes", rec, figs / "overview.png"), "the pipeline on one crop, from layers to reconstruction")
     con.print(f"   T PSNR {rec['rows'][-1][1]:.2f} dB (TFP {rec['rows'][0][1]:.2f} dB)")
 
     sec = rep.section("timings", "Speed of each stage (this machine, this run)")
@@ -179,7 +180,42 @@ def reconstruct_and_score(group_dir: Path, figs: Path, n_frames: int, crop: int)
     ]
     fig = image_grid(panels, ncols=4, title=f"frame {i}: reconstruction vs ground truth (radiance)")
     png = save_figure(fig, figs / "reconstruction.png")
-    return {"rows": rows, "figure": png, "frames": len(idx), "crop": c, "checkpoint": DEFAULT_WEIGHTS.name}
+    return {"rows": rows, "figure": png, "frames": len(idx), "crop": c, "checkpoint": DEFAULT_WEIGHTS.name,
+            "arrays": {"I": I[b, K], "T_net": res["T"][b], "R_net": res["R"][b], "T_gt": g.T[i][sl], "R_gt": g.R[i][sl], "frame": i, "slice": sl}}
+
+
+def overview_figure(rd, group_dir: Path, rec: dict, png: Path) -> Path:
+    """One row from scene to result (the README's top picture): layers, zeta, mixed light, one 50 us spike
+    frame, an Eq. (3) observation, and the network's T and R beside ground truth, all on the demo's crop."""
+    import numpy as np
+
+    from polspike.physics.stokes import polarizer_intensity
+    from polspike.physics.zeta import zeta
+    from polspike.plotting import image_grid, save_figure
+    from spike_sim.store import open_group
+
+    a = rec["arrays"]
+    sl = a["slice"]
+    mp = rd.maps()
+    S = rd.stokes(0)
+    with open_group(group_dir) as g:
+        n = int(g.array("output/step_index")[a["frame"]])
+        spk = g.read(n, n + 1)[0][sl].astype(np.float32)
+    gray = {"cmap": "gray", "vmin": 0.0, "vmax": 1.0, "label": "radiance"}
+    phi_s = float(np.median(mp["phi_perp"][sl]))  # polarizer along the s-direction: the reflection at its strongest
+    deg = f"{np.degrees(phi_s) % 180:.0f} deg"
+    panels = [
+        ("1. ground-truth T (behind the pane)", a["T_gt"], gray),
+        ("2. ground-truth R (reflected)", a["R_gt"], gray),
+        (f"3. zeta at phi = {deg} (paper Eq. (2))", zeta(phi_s, mp["R_perp"], mp["R_par"], mp["phi_perp"])[sl], {"cmap": "magma", "label": "zeta"}),
+        (f"4. mixed light behind polarizer, phi = {deg}", polarizer_intensity(*S, phi_s)[sl], gray),
+        ("5. one 50 us spike frame", spk, {"cmap": "gray", "vmin": 0, "vmax": 1, "label": "spike"}),
+        ("6. Eq. (3) observation I(i)", a["I"], gray),
+        ("7. reconstructed T", a["T_net"], gray),
+        ("8. reconstructed R", a["R_net"], gray),
+    ]
+    fig = image_grid(panels, ncols=4, title="polspike: scene -> Fresnel mixing -> polarizer -> spikes -> reconstruction")
+    return save_figure(fig, png)
 
 
 @app_typer.command("demo")
