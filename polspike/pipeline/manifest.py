@@ -240,7 +240,7 @@ def _resolve_group(raw: dict, defaults: dict, base_dir: Path | None, where: str)
     base["render"] = {**base["render"], "duration_s": spec.duration_s, "seed": spec.seed, "fps": fps}
     try:
         scene = scene_from_dict(base, where=label)
-        check_scene_geometry(scene)
+        check_scene_geometry(_coarse(scene))
     except PolspikeError as exc:
         msg = str(exc)
         raise type(exc)(msg if msg.startswith(label) else f"{label}: {msg}") from None
@@ -261,6 +261,17 @@ def _resolve_group(raw: dict, defaults: dict, base_dir: Path | None, where: str)
     key = {"tier": spec.tier, "seed": spec.seed, "duration_s": spec.duration_s, "keyframe_fps": fps, "scene": scene_d, "spike_sim": sim_d}
     h = hashlib.sha256(_canon(key).encode()).hexdigest()
     return ResolvedGroup(spec.name, spec.split, spec.tier, spec.seed, spec.duration_s, float(fps), scene_d, sim_d, h)
+
+
+def _coarse(scene):
+    """The scene seen by a camera of at most 80 pixels across (same field of view): a fast
+    coverage / edge-on check at load time; the build checks again at full resolution."""
+    w, h = scene.camera.width, scene.camera.height
+    if w <= 80:
+        return scene
+    w2 = 80
+    h2 = max(2, int(round(h * w2 / w)))
+    return dataclasses.replace(scene, camera=dataclasses.replace(scene.camera, width=w2, height=h2))
 
 
 def parse_manifest(data: dict, where: str = "manifest", base_dir: Path | None = None, source_text: bytes | None = None) -> Manifest:

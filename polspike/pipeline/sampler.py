@@ -133,7 +133,9 @@ def _pane_need(scene_d: dict) -> tuple[float, float] | None:
     from generator.scene import check_scene_geometry, scene_from_dict
     from polspike.physics.geometry import incidence_geometry
 
-    sc = scene_from_dict(scene_d, where="sampled scene")
+    from polspike.pipeline.manifest import _coarse
+
+    sc = _coarse(scene_from_dict(scene_d, where="sampled scene"))
     try:
         check_scene_geometry(sc)
     except SceneError:

@@ -1,0 +1,182 @@
+"""Dataset builds: small.toml builds and verifies, local and Dask executors give the same content
+checksums, finished groups are skipped by checksum, a kill -9 mid-group resumes cleanly, a corrupted
+byte is named by verify (exit 2, one line) and repaired by the next build."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+import tomllib
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from polspike.errors import OutputError
+from polspike.pipeline.dataset import BuildCallbacks, build_dataset, content_sha256, verify_dataset, verify_group_files
+from polspike.pipeline.manifest import MANIFESTS_DIR, dump_manifest, load_manifest
+
+REPO = Path(__file__).resolve().parents[2]
+CLI = [sys.executable, "-c", "from polspike.cli import app; app()"]
+SMALL = MANIFESTS_DIR / "small.toml"
+
+
+def _contents(root: Path) -> dict[str, str]:
+    doc = json.loads((root / "dataset.json").read_text())
+    return {g["name"]: g["content_sha256"] for g in doc["groups"]}
+
+
+@pytest.fixture(scope="module")
+def built(tmp_path_factory) -> Path:
+    """small.toml built once, in this process (local executor, one worker)."""
+    out = tmp_path_factory.mktemp("ds") / "small"
+    events = []
+    r = build_dataset(SMALL, out, callbacks=BuildCallbacks(overall=lambda d, t: events.append((d, t))))
+    assert sorted(r["built"]) == sorted(g.name for g in load_manifest(SMALL).groups)
+    assert events[-1][0] == events[-1][1] > 0  # overall progress reaches the total
+    return out
+
+
+def test_small_builds_and_verifies(built):
+    doc = json.loads((built / "dataset.json").read_text())
+    assert doc["complete"] and doc["format"] == "polspike-dataset/1"
+    assert (built / "manifest.toml").read_bytes() == SMALL.read_bytes()
+    assert not (built / ".tmp").exists()
+    r = verify_dataset(built)
+    assert r == {"ok": True, "bad": {}, "problems": [], "n_groups": 3}
+    for g in doc["groups"]:
+        gd = built / g["path"]
+        assert sorted(p.name for p in gd.iterdir()) == ["checksums.json", "group.json", "group_spec.json", "spikes.h5"]
+        assert content_sha256(gd) == g["content_sha256"]
+
+
+def test_dataset_json_is_read_by_the_reconstructor(built):
+    from reconstruct.groups import list_groups, load_store_group
+
+    train = list_groups(built, "train")
+    test = list_groups(built, "test")
+    assert [n for n, _ in train] == ["train_brewster", "train_oblique"]
+    assert [n for n, _ in test] == ["test_near_normal"]
+    eg = load_store_group(test[0][1])
+    assert eg.I.shape[1:] == (40, 64) and eg.T is not None and eg.maps is not None
+    assert eg.has_gt.any()
+    assert np.isfinite(eg.I).all() and float(eg.I.mean()) > 0.0
+
+
+def test_dask_local_cluster_matches_local_checksums(built, tmp_path):
+    distributed = pytest.importorskip("distributed")
+    # processes=False: one in-process worker with 2 threads keeps the test fast (about 1 s to start);
+    # the task function is the same one a process-based cluster or a remote scheduler runs.
+    with distributed.LocalCluster(n_workers=1, threads_per_worker=2, processes=False, dashboard_address=None) as cluster, distributed.Client(cluster) as client:
+        r = build_dataset(SMALL, tmp_path / "dask", executor="dask", client=client, workers=2, poll_s=0.05)
+    assert len(r["built"]) == 3
+    assert _contents(tmp_path / "dask") == _contents(built)
+    assert verify_dataset(tmp_path / "dask")["ok"]
+
+
+def test_rebuild_skips_finished_groups_by_checksum(built, tmp_path):
+    out = tmp_path / "copy"
+    shutil.copytree(built, out)
+    ino = {p.name: (p / "spikes.h5").stat().st_ino for p in (out / "groups").iterdir()}
+    r = build_dataset(SMALL, out)
+    assert r["built"] == [] and len(r["skipped"]) == 3
+    assert {p.name: (p / "spikes.h5").stat().st_ino for p in (out / "groups").iterdir()} == ino
+    # a finished group whose settings changed is rebuilt, the others stay
+    data = tomllib.loads(SMALL.read_text())
+    data["groups"][1]["seed"] = 99
+    changed = tmp_path / "changed.toml"
+    changed.write_text(dump_manifest(data))  # scenes/... paths resolve from the repo root
+    r = build_dataset(changed, out)
+    assert r["built"] == ["train_oblique"]
+    assert _contents(out)["train_brewster"] == _contents(built)["train_brewster"]
+    assert _contents(out)["train_oblique"] != _contents(built)["train_oblique"]
+
+
+def test_corrupted_byte_is_named_by_verify_and_rebuilt(built, tmp_path):
+    out = tmp_path / "bad"
+    shutil.copytree(built, out)
+    h5 = out / "groups" / "train_oblique" / "spikes.h5"
+    raw = bytearray(h5.read_bytes())
+    raw[len(raw) // 2] ^= 0xFF
+    h5.write_bytes(bytes(raw))
+    r = verify_dataset(out)
+    assert not r["ok"] and list(r["bad"]) == ["train_oblique"]
+    assert any("sha256" in e for e in r["bad"]["train_oblique"])
+    cli = subprocess.run(CLI + ["dataset", "verify", str(out)], capture_output=True, text=True, cwd=REPO, timeout=300)
+    assert cli.returncode == 2
+    lines = [ln for ln in cli.stderr.strip().splitlines() if ln.strip()]
+    assert len(lines) == 1 and "train_oblique" in lines[0] and "train_brewster" not in lines[0], cli.stderr
+    ok = subprocess.run(CLI + ["dataset", "verify", str(built)], capture_output=True, text=True, cwd=REPO, timeout=300)
+    assert ok.returncode == 0 and "ok" in ok.stdout
+    r = build_dataset(SMALL, out)
+    assert r["built"] == ["train_oblique"] and len(r["skipped"]) == 2
+    assert _contents(out) == _contents(built)
+    assert verify_dataset(out)["ok"]
+
+
+def test_build_resumes_after_kill_9_mid_group(tmp_path):
+    data = tomllib.loads(SMALL.read_text())
+    data["defaults"]["duration_s"] = 0.4  # long enough to be killed inside the second group
+    man = tmp_path / "kill.toml"
+    man.write_text(dump_manifest(data))
+    out = tmp_path / "k"
+    names = [g["name"] for g in data["groups"]]
+    proc = subprocess.Popen(CLI + ["dataset", "build", str(man), "--out", str(out), "--quiet"], cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    deadline = time.monotonic() + 240
+    try:
+        while time.monotonic() < deadline:
+            if (out / "groups" / names[0]).exists() and any((out / ".tmp").glob(f"{names[1]}.*/.spikes.tmp-*")):
+                break
+            if proc.poll() is not None:
+                pytest.fail(f"build ended before the kill: {proc.stderr.read().decode()[-400:]}")
+            time.sleep(0.02)
+        else:
+            pytest.fail("the build never reached the second group")
+        os.kill(proc.pid, signal.SIGKILL)
+        proc.wait(timeout=30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    # nothing partial under a final name: every visible group verifies
+    visible = sorted(p.name for p in (out / "groups").iterdir())
+    assert names[0] in visible and names[2] not in visible
+    for n in visible:
+        assert verify_group_files(out / "groups" / n) == [], n
+    assert list((out / ".tmp").iterdir())  # the partial group is left in .tmp
+    ino = (out / "groups" / names[0] / "spikes.h5").stat().st_ino
+    doc = json.loads((out / "dataset.json").read_text())
+    assert not doc["complete"]
+    r = build_dataset(man, out)
+    assert names[0] in r["skipped"] and names[2] in r["built"]
+    assert (out / "groups" / names[0] / "spikes.h5").stat().st_ino == ino
+    assert verify_dataset(out)["ok"]
+    assert not (out / ".tmp").exists()
+
+
+def test_second_build_on_the_same_folder_is_refused(built, tmp_path):
+    import fcntl
+
+    out = tmp_path / "locked"
+    out.mkdir()
+    with open(out / ".lock", "a+") as fh:
+        fcntl.flock(fh.fileno(), fcntl.LOCK_EX)
+        with pytest.raises(OutputError, match="another build"):
+            build_dataset(SMALL, out)
+
+
+def test_bench_dataset_cli_json(tmp_path):
+    r = subprocess.run(
+        CLI + ["bench", "dataset", "--json", "--out", str(tmp_path), "--width", "32", "--height", "20", "--duration-s", "0.02"],
+        capture_output=True, text=True, cwd=REPO, timeout=300,
+    )
+    assert r.returncode == 0, r.stderr
+    res = json.loads(r.stdout)
+    assert res == json.loads((tmp_path / "bench_dataset.json").read_text())
+    (row,) = res["rows"]
+    assert row["tier"] == "analytic" and row["scaled"] is True
+    assert row["s_per_1s_group"] > 0 and row["bytes_per_1s_group"] > row["bytes_measured"] > 0 and row["peak_rss_mib"] > 50

@@ -1,0 +1,219 @@
+"""Dataset manifests: shipped manifests load, the split shares no layer content, the sampler is
+deterministic and stays in its documented ranges, bad manifests fail with one line."""
+
+from __future__ import annotations
+
+import math
+import subprocess
+import sys
+import tomllib
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from polspike.errors import ConfigError
+from polspike.pipeline.manifest import MANIFESTS_DIR, check_split, content_keys, load_manifest, parse_manifest
+from polspike.pipeline.sampler import CONTENT_POOLS, RANGES, sample_manifest, sample_manifest_text
+
+REPO = Path(__file__).resolve().parents[2]
+CLI = [sys.executable, "-c", "from polspike.cli import app; app()"]
+
+
+def _disjoint(m) -> None:
+    train = set().union(*(content_keys(g.scene) for g in m.groups if g.split == "train"))
+    test = set().union(*(content_keys(g.scene) for g in m.groups if g.split == "test"))
+    assert train and test
+    assert not (train & test), f"content shared between splits: {sorted(train & test)}"
+
+
+@pytest.fixture(scope="module")
+def paper():
+    return load_manifest(MANIFESTS_DIR / "paper.toml")
+
+
+def test_paper_manifest_is_the_papers_setting(paper):
+    assert len(paper.groups) == 50
+    assert sum(g.split == "train" for g in paper.groups) == 40
+    assert sum(g.split == "test" for g in paper.groups) == 10
+    for g in paper.groups:
+        assert g.duration_s == 1.0
+        assert (g.scene["camera"]["width"], g.scene["camera"]["height"]) == (400, 250)
+        assert g.spike_sim["rate_hz"] == 20000.0
+        assert g.scene["polarizer"]["rate_hz"] == 30.0
+        assert g.tier == "analytic"
+        for lay in g.scene["layers"].values():  # offline content with motion
+            assert lay["source"].split(":")[0] in ("skimage", "procedural")
+            mo = lay["motion"]
+            assert any(v != 0.0 for v in mo["translate_per_s"]) or mo["rotate_deg_per_s"] != 0.0 or mo["zoom_per_s"] != 0.0
+
+
+def test_paper_manifest_varies_incidence_planes_and_angles(paper):
+    panes = [g.scene["pane"] for g in paper.groups]
+    tilts = np.array([p["tilt_deg"] for p in panes])
+    axes = np.array([p["tilt_axis_deg"] for p in panes])
+    ns = np.array([p["n"] for p in panes])
+    assert tilts.max() - tilts.min() > 40.0  # incidence angles from near-normal to past Brewster
+    assert tilts.max() > 52.0 and tilts.min() < 10.0
+    assert axes.max() - axes.min() > 120.0  # planes of incidence in many image directions
+    assert ns.max() - ns.min() > 0.15
+    assert {p["model"] for p in panes} == {"single", "thin_slab", "thick_slab"}
+    looks = {tuple(g.scene["camera"]["look_at"]) for g in paper.groups}
+    assert len(looks) == 50  # camera pose differs per group
+    assert len({g.spec_sha256 for g in paper.groups}) == 50
+
+
+def test_paper_split_shares_no_layer_content(paper):
+    _disjoint(paper)
+
+
+def test_small_manifest_loads_and_split_is_disjoint():
+    m = load_manifest("small")
+    assert 3 <= len(m.groups) <= 4
+    assert {g.split for g in m.groups} == {"train", "test"}
+    for g in m.groups:
+        assert g.duration_s <= 0.05 and g.scene["camera"]["width"] * g.scene["camera"]["height"] <= 64 * 40
+    _disjoint(m)
+
+
+def test_sampler_is_deterministic_for_a_seed():
+    a = sample_manifest_text(6, 3, width=48, height=30)
+    b = sample_manifest_text(6, 3, width=48, height=30)
+    c = sample_manifest_text(6, 4, width=48, height=30)
+    assert a == b
+    assert a != c
+
+
+def test_sampler_respects_ranges_and_split():
+    n = 20
+    data = sample_manifest(n, 11, width=48, height=30, test_fraction=0.25)
+    m = parse_manifest(tomllib.loads(sample_manifest_text(n, 11, width=48, height=30, test_fraction=0.25)), where="sampled")
+    assert sum(g.split == "test" for g in m.groups) == 5
+    _disjoint(m)
+
+    def inside(key, v, tol=1e-3):
+        lo, hi = RANGES[key]
+        assert lo - tol <= v <= hi + tol, f"{key} = {v} outside [{lo}, {hi}]"
+
+    for g in data["groups"]:
+        cam, pane, lay, pol = g["camera"], g["pane"], g["layers"], g["polarizer"]
+        inside("fov_deg", cam["fov_deg"])
+        inside("roll_deg", cam["roll_deg"])
+        x, y, z = cam["look_at"]
+        inside("yaw_deg", math.degrees(math.atan2(x, -z)), tol=0.05)
+        inside("pitch_deg", math.degrees(math.asin(y)), tol=0.05)
+        inside("n", pane["n"])
+        inside("pane_distance_m", pane["distance_m"])
+        inside("tilt_deg", pane["tilt_deg"])
+        inside("tilt_axis_deg", pane["tilt_axis_deg"])
+        inside("thickness_mm", pane["thickness_mm"])
+        inside("t_distance_m", lay["transmission"]["distance_m"])
+        inside("r_distance_m", lay["reflection"]["distance_m"])
+        inside("t_brightness", lay["transmission"]["brightness"])
+        inside("r_brightness", lay["reflection"]["brightness"])
+        for L in lay.values():
+            for v in L["motion"]["translate_per_s"]:
+                inside("translate_per_s", v)
+            inside("rotate_deg_per_s", L["motion"]["rotate_deg_per_s"])
+            inside("zoom_per_s", L["motion"]["zoom_per_s"])
+            pool = CONTENT_POOLS[g["split"]]
+            if L["source"] == "procedural:noise":
+                assert pool["noise_seeds"][0] <= L["seed"] < pool["noise_seeds"][1]
+            else:
+                assert L["source"] in pool["images"]
+        inside("phase_deg", pol["phase_deg"])
+    for g in m.groups:  # resolved scenes keep every incidence angle below the rejection bound
+        from generator.scene import scene_from_dict
+        from polspike.physics.geometry import incidence_geometry
+
+        sc = scene_from_dict(g.scene)
+        th = incidence_geometry(sc.camera_model(), sc.pane_plane())["theta"]
+        assert float(np.degrees(th.max())) < 82.0
+
+
+def _one(**over):
+    g = {"name": "a", "split": "train", "duration_s": 0.01, "camera": {"width": 16, "height": 10}}
+    g.update(over)
+    return g
+
+
+def test_shared_content_between_splits_is_rejected():
+    lay = {"transmission": {"source": "skimage:camera"}, "reflection": {"source": "procedural:checker"}}
+    lay2 = {"transmission": {"source": "skimage:camera"}, "reflection": {"source": "procedural:rings"}}
+    data = {"name": "x", "groups": [_one(name="a", layers=lay), _one(name="b", split="test", layers=lay2)]}
+    with pytest.raises(ConfigError, match="skimage:camera"):
+        parse_manifest(data)
+    data["allow_shared_content"] = True
+    assert len(parse_manifest(data).groups) == 2
+    # seeded noise is distinct content per seed; cat is chelsea
+    n1 = {"transmission": {"source": "procedural:noise", "seed": 1}, "reflection": {"source": "skimage:cat"}}
+    n2 = {"transmission": {"source": "procedural:noise", "seed": 2}, "reflection": {"source": "skimage:chelsea"}}
+    with pytest.raises(ConfigError, match="chelsea"):
+        parse_manifest({"name": "x", "groups": [_one(name="a", layers=n1), _one(name="b", split="test", layers=n2)]})
+    m = parse_manifest({"name": "x", "allow_shared_content": True, "groups": [_one(name="a", layers=n1), _one(name="b", split="test", layers=n2)]})
+    with pytest.raises(ConfigError):
+        check_split(m.groups)
+
+
+@pytest.mark.parametrize(
+    "data, needle",
+    [
+        ({"name": "x", "groups": [_one(colour=1)]}, "unknown key colour"),
+        ({"name": "x", "groups": [_one(pane={"tilt_deg": 95.0})]}, "tilt_deg"),
+        ({"name": "x", "groups": [_one(pane={"refraction": 1.5})]}, "refraction"),
+        ({"name": "x", "groups": [_one(split="val")]}, "split"),
+        ({"name": "x", "groups": [_one(), _one()]}, "twice"),
+        ({"name": "x", "groups": [_one(name="../up")]}, "name"),
+        ({"name": "x", "groups": [_one(tier="fast")]}, "tier"),
+        ({"name": "x", "groups": [_one(spike_sim={"preset": "loud"})]}, "preset"),
+        ({"name": "x", "groups": [_one(spike_sim={"exposure": -1.0})]}, "exposure"),
+        ({"name": "x", "groups": [_one(scene="nowhere.toml")]}, "not found"),
+        ({"name": "x", "groups": []}, "no \\[\\[groups\\]\\]"),
+        ({"name": "x", "defaults": {"split": "train"}, "groups": [_one()]}, "defaults"),
+        ({"groups": [_one()]}, "name"),
+    ],
+)
+def test_bad_manifest_raises_config_error(data, needle):
+    with pytest.raises(ConfigError, match=needle):
+        parse_manifest(data, where="m.toml")
+
+
+def test_defaults_are_overlaid_by_groups():
+    data = {
+        "name": "x",
+        "defaults": {"duration_s": 0.02, "pane": {"n": 1.6, "tilt_deg": 30.0}, "spike_sim": {"preset": "ideal"}},
+        "groups": [_one(duration_s=0.03, pane={"tilt_deg": 10.0}), _one(name="b", split="test", layers={"transmission": {"source": "skimage:moon"}, "reflection": {"source": "skimage:page"}})],
+    }
+    m = parse_manifest(data)
+    a, b = m.groups
+    assert a.duration_s == 0.03 and b.duration_s == 0.01
+    assert a.scene["pane"]["n"] == 1.6 and a.scene["pane"]["tilt_deg"] == 10.0
+    assert b.scene["pane"]["tilt_deg"] == 30.0
+    assert a.spike_sim["shot_noise"] is False  # ideal preset
+    assert a.scene["render"]["duration_s"] == 0.03 and a.scene["name"] == "a"
+
+
+def test_cli_bad_manifest_exits_2_with_one_line(tmp_path):
+    bad = tmp_path / "bad.toml"
+    bad.write_text('name = "x"\n[[groups]]\nname = "a"\nsplit = "train"\nwobble = 3\n')
+    r = subprocess.run(CLI + ["dataset", "build", str(bad), "--out", str(tmp_path / "d"), "--quiet"], capture_output=True, text=True, cwd=REPO, timeout=300)
+    assert r.returncode == 2
+    lines = [ln for ln in r.stderr.strip().splitlines() if ln.strip()]
+    assert len(lines) == 1, r.stderr
+    assert "wobble" in lines[0] and "Traceback" not in r.stderr
+    assert not (tmp_path / "d" / "groups").exists()
+
+
+def test_cli_dataset_new_writes_a_loadable_manifest(tmp_path):
+    out = tmp_path / "m.toml"
+    r = subprocess.run(CLI + ["dataset", "new", "--groups", "4", "--seed", "5", "--width", "32", "--height", "20", "--duration-s", "0.01", "--out", str(out)], capture_output=True, text=True, cwd=REPO, timeout=300)
+    assert r.returncode == 0, r.stderr
+    m = load_manifest(out)
+    assert len(m.groups) == 4 and m.name == "m"
+    assert out.read_text() == sample_manifest_text(4, 5, name="m", width=32, height=20, duration_s=0.01)
+
+
+def test_paper_manifest_is_the_sampler_output():
+    """paper.toml is regenerable: its body is `polspike dataset new --groups 50 --seed 2025 --name paper`."""
+    text = (MANIFESTS_DIR / "paper.toml").read_text()
+    assert text.endswith(sample_manifest_text(50, 2025, name="paper"))
