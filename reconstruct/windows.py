@@ -269,20 +269,26 @@ class StoreWindows(torch.utils.data.Dataset):
         return gi, int(self.groups[gi].centres[j - self._offsets[gi]])
 
     # -- lazy per-process files -----------------------------------------------------------------
-    def _file(self, gi: int) -> h5py.File:
+    def _file(self, gi: int) -> dict[str, h5py.Dataset]:
+        """Open handles of group ``gi`` in this process: the spike and GT datasets.
+
+        The dataset objects are kept open: HDF5's chunk cache lives with an
+        open dataset, so reopening per item would inflate a chunk every time.
+        """
         if self._pid != os.getpid():  # new process (DataLoader worker): never reuse a parent's handles
             self._files = {}
             self._pid = os.getpid()
-        f = self._files.get(gi)
-        if f is None:
+        h = self._files.get(gi)
+        if h is None:
             f = h5py.File(self.groups[gi].h5, "r", rdcc_nbytes=int(self.cache_mb * 2**20), rdcc_nslots=10007)
-            self._files[gi] = f
-        return f
+            h = {"file": f, "spikes": f["spikes"], "T": f["gt/T"], "R": f["gt/R"]}
+            self._files[gi] = h
+        return h
 
     def close(self) -> None:
         """Close the open HDF5 handles of this process."""
-        for f in self._files.values():
-            f.close()
+        for h in self._files.values():
+            h["file"].close()
         self._files = {}
 
     def __getstate__(self):
@@ -297,7 +303,7 @@ class StoreWindows(torch.utils.data.Dataset):
             return (g.height - S) // 2, (g.width - S) // 2
         return int(rng.integers(0, g.height - S + 1)), int(rng.integers(0, g.width - S + 1))
 
-    def _read_windows(self, f: h5py.File, g: GroupIndex, ck: np.ndarray, y0: int, x0: int) -> np.ndarray:
+    def _read_windows(self, f: dict[str, h5py.Dataset], g: GroupIndex, ck: np.ndarray, y0: int, x0: int) -> np.ndarray:
         """Spike counts of each window [c_k - h, c_k + h] on the crop, (N, S, S) int32."""
         S, W, h = self.cfg.crop, g.width, g.window_steps // 2
         b0 = (y0 * W) // 8
@@ -311,15 +317,15 @@ class StoreWindows(torch.utils.data.Dataset):
             out[k] = bits.reshape(-1, S, W)[:, :, x0 : x0 + S].sum(0, dtype=np.int32)  # Eq. (3) numerator
         return out
 
-    def _gt(self, f: h5py.File, g: GroupIndex, c: int, sl) -> tuple[np.ndarray, np.ndarray]:
+    def _gt(self, f: dict[str, h5py.Dataset], g: GroupIndex, c: int, sl) -> tuple[np.ndarray, np.ndarray]:
         """GT T, R at step c: linear in time between the stored output frames (held at the ends)."""
         s = g.out_steps
         j = int(np.searchsorted(s, c, side="right") - 1)
         if j < 0 or (j == s.size - 1) or s[j] == c:
             j = min(max(j, 0), s.size - 1)
-            return tuple(f[f"gt/{n}"][j][sl].astype(np.float64) for n in ("T", "R"))
+            return tuple(f[n][j][sl].astype(np.float64) for n in ("T", "R"))
         w = (c - s[j]) / (s[j + 1] - s[j])
-        return tuple((1 - w) * f[f"gt/{n}"][j][sl].astype(np.float64) + w * f[f"gt/{n}"][j + 1][sl].astype(np.float64) for n in ("T", "R"))
+        return tuple((1 - w) * f[n][j][sl].astype(np.float64) + w * f[n][j + 1][sl].astype(np.float64) for n in ("T", "R"))
 
     def __getitem__(self, index: int) -> dict[str, torch.Tensor]:
         gi, c = self.locate(int(index))

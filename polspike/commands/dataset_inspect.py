@@ -19,6 +19,7 @@ def inspect_cmd(
     video: bool = typer.Option(False, "--video", help="also write video.mp4: measured mixed input | GT T | GT R at the output cadence"),
     video_frames: int = typer.Option(0, "--video-frames", help="at most this many video frames (0 = the whole group)"),
     pixels: int = typer.Option(6, "--pixels", help="pixels in the spike raster"),
+    dpi: int = typer.Option(110, "--dpi", help="figure resolution"),
     quiet: bool = typer.Option(False, "--quiet", help="no progress bar"),
 ) -> None:
     """Plot theta, phi_perp, R_perp/R_par, zeta, Stokes/DoP/AoLP, the layers, a spike raster and a window's observations."""
@@ -28,7 +29,7 @@ def inspect_cmd(
     from polspike.progress import rich_progress
 
     with rich_progress("video", enabled=video and not quiet) as cb:
-        s = inspect_group(dir, out, group=group, time_s=time, video=video, video_frames=video_frames, n_pixels=pixels, progress=cb)
+        s = inspect_group(dir, out, group=group, time_s=time, video=video, video_frames=video_frames, n_pixels=pixels, dpi=dpi, progress=cb)
     ch = s["checks"]
     c = Console()
     c.print(f"[green]wrote[/] {len(s['files'])} files to {out} for group {s['group']} at t = {s['time_s'] * 1e3:.2f} ms (frame {s['frame']}, phi = {s['phi_true_deg']:.1f} deg)")

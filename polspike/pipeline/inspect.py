@@ -111,6 +111,19 @@ def resolve_group(root: str | os.PathLike, group: str | None = None) -> tuple[st
     return name, path
 
 
+def _open_cached(group_dir):
+    """Open a group with a 64 MiB HDF5 chunk cache: consecutive Eq. (3) windows share inflated spike chunks."""
+    import h5py
+
+    from spike_sim.store import open_group
+
+    g = open_group(group_dir)
+    name = g.f.filename
+    g.f.close()
+    g.f = h5py.File(name, "r", rdcc_nbytes=64 << 20, rdcc_nslots=10007)
+    return g
+
+
 def _frame_for_time(g, time_s: float | None, K: int) -> int:
     times = g.array("output/times_s") if g.has("output/times_s") else (g.array("output/step_index") + 0.5) * g.dt_s
     M = times.size
@@ -146,10 +159,8 @@ def inspection_data(group_dir: str | os.PathLike, time_s: float | None = None, n
         (P, 2) (row, col), and scalars ``frame``, ``time_s``, ``phi_true``,
         ``phi_nominal``, ``centre_step``, ``window_steps``, ``exposure``.
     """
-    from spike_sim.store import open_group
-
     K = n_obs // 2
-    with open_group(group_dir) as g:
+    with _open_cached(group_dir) as g:
         mp = g.maps()
         missing = {"R_perp", "R_par", "phi_perp"} - set(mp)
         if missing:
@@ -231,7 +242,7 @@ def _deg(a):
     return np.degrees(a)
 
 
-def _figures(d: dict[str, Any], name: str, out: Path) -> list[Path]:
+def _figures(d: dict[str, Any], name: str, out: Path, dpi: int = 110) -> list[Path]:
     import matplotlib
 
     matplotlib.use("Agg", force=False)
@@ -254,7 +265,7 @@ def _figures(d: dict[str, Any], name: str, out: Path) -> list[Path]:
         ncols=3,
         title=f"Pane coefficient maps - {when}",
     )
-    files.append(save_figure(fig, out / "pane_maps.png"))
+    files.append(save_figure(fig, out / "pane_maps.png", dpi=dpi))
     s0max = float(np.nanmax(d["S"][0])) or 1.0
     lmax = float(np.nanmax(np.abs(d["S"][1:]))) or 1e-6
     fig = image_grid(
@@ -269,7 +280,7 @@ def _figures(d: dict[str, Any], name: str, out: Path) -> list[Path]:
         ncols=3,
         title=f"Stokes of the mixed light in front of the polarizer (T part + R part) - {when}",
     )
-    files.append(save_figure(fig, out / "stokes.png"))
+    files.append(save_figure(fig, out / "stokes.png", dpi=dpi))
     vmax = max(1e-6, float(max(d["T"].max(), d["R"].max())))
     mix = {"cmap": "gray", "vmin": 0, "vmax": max(1e-6, float(max(d["mixed_gt"].max(), d["mixed_I"].max()))), "label": _RAD}
     fig = image_grid(
@@ -282,8 +293,8 @@ def _figures(d: dict[str, Any], name: str, out: Path) -> list[Path]:
         ncols=2,
         title=f"Layers and mixed frame - {when}",
     )
-    files.append(save_figure(fig, out / "layers.png"))
-    files.append(_raster_figure(d, when, out / "raster.png", plt, save_figure))
+    files.append(save_figure(fig, out / "layers.png", dpi=dpi))
+    files.append(_raster_figure(d, when, out / "raster.png", plt, save_figure, dpi))
     obs = d["obs_I"]
     vm = max(1e-6, float(obs.max()))
     fig = image_grid(
@@ -291,11 +302,11 @@ def _figures(d: dict[str, Any], name: str, out: Path) -> list[Path]:
         ncols=min(4, len(obs)),
         title=f"The {len(obs)} observations of the window, paper Eq. (3) (nominal angles) - {when}",
     )
-    files.append(save_figure(fig, out / "window.png"))
+    files.append(save_figure(fig, out / "window.png", dpi=dpi))
     return files
 
 
-def _raster_figure(d, when, path, plt, save_figure) -> Path:
+def _raster_figure(d, when, path, plt, save_figure, dpi: int = 110) -> Path:
     t_ms = (d["raster_t_s"] - d["time_s"]) * 1e3
     r = d["raster"]
     fig, (a0, a1) = plt.subplots(2, 1, figsize=(9, 5.2), sharex=True, gridspec_kw={"height_ratios": [2, 1]})
@@ -320,16 +331,14 @@ def _raster_figure(d, when, path, plt, save_figure) -> Path:
     a1.set_ylim(0, 180)
     a1.legend(fontsize=7, loc="upper right")
     fig.tight_layout()
-    return save_figure(fig, path)
+    return save_figure(fig, path, dpi=dpi)
 
 
 def _write_video(group_dir: Path, path: Path, max_frames: int, progress: Callable[[int, int], None] | None) -> int:
     """MP4 at the output cadence: measured mixed input 2 I(i) | GT T | GT R (gain 1, clipped to [0, 1])."""
     import imageio.v2 as iio
 
-    from spike_sim.store import open_group
-
-    with open_group(group_dir) as g:
+    with _open_cached(group_dir) as g:
         steps = g.array("output/step_index")
         agg = g.json_attr("aggregate_json") or {}
         win = int(agg.get("window_steps", 13))
@@ -364,6 +373,7 @@ def inspect_group(
     video: bool = False,
     video_frames: int = 0,
     n_pixels: int = 6,
+    dpi: int = 110,
     progress: Callable[[int, int], None] | None = None,
 ) -> dict[str, Any]:
     """Write the inspection figures (and optionally the video) of one group at one time.
@@ -376,6 +386,7 @@ def inspect_group(
         video: also write ``video.mp4`` (mixed input | T | R at the output cadence).
         video_frames: at most this many video frames (0 = the whole group).
         n_pixels: pixels in the spike raster.
+        dpi: figure resolution.
         progress: optional (done, total) callback for the video.
 
     Returns:
@@ -384,10 +395,12 @@ def inspect_group(
     """
     if n_pixels < 1:
         raise ConfigError(f"n_pixels = {n_pixels} must be >= 1")
+    if not 20 <= dpi <= 600:
+        raise ConfigError(f"dpi = {dpi} must be in [20, 600]")
     name, gdir = resolve_group(root, group)
     out = ensure_dir(out_dir)
     d = inspection_data(gdir, time_s, n_pixels=n_pixels)
-    files = _figures(d, name, out)
+    files = _figures(d, name, out, dpi)
     with atomic_path(out / "inspect_data.npz", suffix=".npz") as tmp:
         with open(tmp, "wb") as fh:
             np.savez_compressed(fh, **{k: np.asarray(v) for k, v in d.items()})

@@ -49,7 +49,7 @@ def dataset(tmp_path_factory):
 
 
 def test_figures_and_data_are_consistent(dataset, tmp_path):
-    s = inspect_group(dataset, tmp_path / "o", group="b", time_s=0.02)
+    s = inspect_group(dataset, tmp_path / "o", group="b", time_s=0.02, dpi=60)
     out = tmp_path / "o"
     for f in (*FIGURES, "inspect_data.npz", "inspect.json"):
         assert (out / f).is_file() and (out / f).stat().st_size > 1000 or f == "inspect.json", f
@@ -80,7 +80,7 @@ def test_group_directory_and_errors(dataset, tmp_path):
         resolve_group(dataset, "nope")
     with pytest.raises(ConfigError, match="outside"):
         inspect_group(dataset, tmp_path / "o", time_s=5.0)
-    r = CliRunner().invoke(__import__("polspike.cli", fromlist=["get_app"]).get_app(), ["dataset", "inspect", str(dataset / "groups" / "a"), "--out", str(tmp_path / "v"), "--video", "--video-frames", "4", "--quiet"])
+    r = CliRunner().invoke(__import__("polspike.cli", fromlist=["get_app"]).get_app(), ["dataset", "inspect", str(dataset / "groups" / "a"), "--out", str(tmp_path / "v"), "--video", "--video-frames", "4", "--dpi", "50", "--quiet"])
     assert r.exit_code == 0, r.output
     assert (tmp_path / "v" / "video.mp4").stat().st_size > 0 and json.loads((tmp_path / "v" / "inspect.json").read_text())["video_frames"] == 4
     p = subprocess.run([str(Path(sys.executable).parent / "polspike"), "dataset", "inspect", str(dataset), "--group", "nope", "--out", str(tmp_path / "x")], capture_output=True, text=True, cwd=REPO, timeout=120)

@@ -123,7 +123,8 @@ def test_items_equal_the_on_the_fly_item_builder(group):
             m = int(np.searchsorted(out_steps, c, side="right") - 1)
             w = (c - out_steps[m]) / (out_steps[m + 1] - out_steps[m])
             gt = tuple((1 - w) * g.gt_frame(n, m)[sl] + w * g.gt_frame(n, m + 1)[sl] for n in ("T", "R"))
-            ref = onthefly.item_from_stream(spikes, c, g.phi_nominal_rad, g.phi_true_rad, gt, {k: v[sl] for k, v in maps.items()}, exposure, CFG)
+            obs = window_centres(g.phi_nominal_rad, c, CFG.n_obs, math.radians(CFG.stride_deg))
+            ref = onthefly.item_from_stream(spikes, obs, g.phi_nominal_rad, g.phi_true_rad, gt, {k: v[sl] for k, v in maps.items()}, exposure, CFG)
             assert set(item) == set(ref) == set(onthefly.ITEM_KEYS) == set(ITEM_KEYS)
             for k in ref:
                 assert item[k].shape == ref[k].shape and item[k].dtype == ref[k].dtype == torch.float32, k
