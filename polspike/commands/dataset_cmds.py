@@ -135,12 +135,12 @@ def bench_dataset(
         print(json.dumps(r, indent=2))
         return
     tab = Table(title=f"dataset build, {width}x{height}, {r['machine']['cpus']} CPUs (scaled to 1 s groups)")
-    for c in ("tier", "measured", "s per 1 s group", "MB per 1 s group", "peak RSS MiB"):
+    for c in ("tier", "measured", "s per 1 s group", "CPU s per 1 s group", "MB per 1 s group", "peak RSS MiB"):
         tab.add_column(c, justify="right")
     for row in r["rows"]:
         if "error" in row:
-            tab.add_row(row["tier"], "failed", row["error"][:60], "", "")
+            tab.add_row(row["tier"], "failed", row["error"][:60], "", "", "")
             continue
-        tab.add_row(row["tier"], f"{row['measured_s']:.1f} s / {row['measured_duration_s']:g} s", f"{row['s_per_1s_group']:.1f}", f"{row['bytes_per_1s_group'] / 1e6:.1f}", f"{row['peak_rss_mib']:.0f}")
+        tab.add_row(row["tier"], f"{row['measured_s']:.1f} s / {row['measured_duration_s']:g} s", f"{row['s_per_1s_group']:.1f}", f"{row['cpu_s_per_1s_group']:.1f}", f"{row['bytes_per_1s_group'] / 1e6:.1f}", f"{row['peak_rss_mib']:.0f}")
     Console().print(tab)
-    Console().print(f"wrote {out / 'bench_dataset.json'}")
+    Console().print(f"load average {r['machine']['load_avg_1min']:.1f} on {r['machine']['cpus']} CPUs; wrote {out / 'bench_dataset.json'}")

@@ -234,7 +234,7 @@ def verify_group_files(group_dir: str | os.PathLike, expected: dict | None = Non
 class _AnalyticSource:
     """Lazily computed analytic-tier keyframes (coefficient maps once; frames on demand, small cache)."""
 
-    def __init__(self, scene):
+    def __init__(self, scene, cache_frames: int = 8):
         from generator.analytic import analytic_maps
         from generator.layers import LayerContent
 
@@ -244,12 +244,13 @@ class _AnalyticSource:
         self.tc = LayerContent(scene.layers.transmission, hw)
         self.rc = LayerContent(scene.layers.reflection, hw)
         self.cache: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
+        self.cache_frames = max(4, int(cache_frames))
 
     def frame(self, i: int, t_s: float):
         from generator.analytic import frame_stokes, sample_layers
 
         if i not in self.cache:
-            if len(self.cache) >= 4:
+            if len(self.cache) >= self.cache_frames:
                 self.cache.pop(min(self.cache))
             L_T, L_R, L_G = sample_layers(self.maps, self.tc, self.rc, t_s)
             S = frame_stokes(self.maps, L_T, L_R, L_G).astype(np.float32)
@@ -257,8 +258,12 @@ class _AnalyticSource:
         return self.cache[i]
 
 
-def _keyframe_source(scene, tier: str, duration_s: float, fps: float, work: Path, progress: Callable[[str, int, int], None] | None):
-    """A :class:`spike_sim.simulate.KeyframeSource` for the group's tier, and render timings."""
+def _keyframe_source(scene, tier: str, duration_s: float, fps: float, work: Path, progress: Callable[[str, int, int], None] | None, chunk_s: float = 0.05):
+    """A :class:`spike_sim.simulate.KeyframeSource` for the group's tier, and render timings.
+
+    The analytic source caches the keyframes of about one simulation chunk (``chunk_s``
+    seconds) plus 4, so the GT writer, which trails the spikes by up to a chunk, finds them.
+    """
     from generator.render import RenderOptions, frame_times, render
     from generator.scene import scene_hash
     from spike_sim.simulate import KeyframeSource, keyframes_from_render
@@ -266,7 +271,7 @@ def _keyframe_source(scene, tier: str, duration_s: float, fps: float, work: Path
     opts = RenderOptions(tier=tier, fps=fps, duration_s=duration_s, seed=scene.render.seed)
     if tier == "analytic":
         times = frame_times(scene, opts)
-        a = _AnalyticSource(scene)
+        a = _AnalyticSource(scene, cache_frames=min(64, int(np.ceil(chunk_s * fps)) + 4))
         src = KeyframeSource(
             times_s=times,
             stokes=lambda i: a.frame(i, float(times[i]))[0],
@@ -323,6 +328,7 @@ def build_group(spec: dict, out_dir: str, chunk_steps: int = 1000, numba_threads
     from spike_sim.simulate import simulate
 
     t0 = time.perf_counter()
+    c0 = time.process_time()
     if numba_threads:
         import numba
 
@@ -339,8 +345,10 @@ def build_group(spec: dict, out_dir: str, chunk_steps: int = 1000, numba_threads
     timings: dict[str, float] = {}
     try:
         ts = time.perf_counter()
-        src, rt = _keyframe_source(scene, spec["tier"], float(spec["duration_s"]), float(spec["keyframe_fps"]), work, progress)
+        chunk_s = chunk_steps / float(sim.rate_hz)
+        src, rt = _keyframe_source(scene, spec["tier"], float(spec["duration_s"]), float(spec["keyframe_fps"]), work, progress, chunk_s)
         timings["setup_s"] = time.perf_counter() - ts
+        timings["setup_cpu_s"] = time.process_time() - c0
         timings.update({f"render_{k}": float(v) for k, v in rt.items() if isinstance(v, (int, float))})
         ts = time.perf_counter()
         summ = simulate(src, float(spec["duration_s"]), int(spec["seed"]), config=sim, out=work, chunk_steps=chunk_steps, progress=lambda d, t: progress("simulate", d, t))
@@ -362,8 +370,14 @@ def build_group(spec: dict, out_dir: str, chunk_steps: int = 1000, numba_threads
         try:
             os.rename(work, final)  # atomic publish: the group appears complete or not at all
         except OSError as exc:
+            same = False
             if final.exists() and not verify_group_files(final):
-                log.warning("group %s was published meanwhile by another builder; keeping that copy", name)
+                with contextlib.suppress(OSError, json.JSONDecodeError, KeyError):
+                    other = json.loads((final / CHECKSUMS_FILE).read_text())
+                    same = other["spec_sha256"] == spec["spec_sha256"]
+            if same:
+                log.warning("group %s was published meanwhile by another builder with the same settings; keeping that copy", name)
+                files, content = other["files"], other["content_sha256"]
                 shutil.rmtree(work, ignore_errors=True)
             else:
                 raise OutputError(f"cannot publish group {name} at {final}: {exc.strerror}; remove it and rebuild") from None
@@ -377,6 +391,7 @@ def build_group(spec: dict, out_dir: str, chunk_steps: int = 1000, numba_threads
     h = int(scene.camera.height)
     w = int(scene.camera.width)
     timings["total_s"] = time.perf_counter() - t0
+    timings["cpu_s"] = time.process_time() - c0  # all threads of this process
     return {
         "name": name,
         "path": f"groups/{name}",

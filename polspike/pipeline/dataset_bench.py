@@ -8,7 +8,9 @@ than 1 s may be measured (``duration_s``); its time is scaled to 1 s as::
 
     s_per_1s_group = setup_s + (total_s - setup_s) / duration_s
 
-where ``setup_s`` (coefficient maps, layer content, Mitsuba scene/maps render)
+(CPU seconds of all threads are scaled alike: ``cpu_s_per_1s_group``; on a
+busy machine the wall time is inflated by other processes, the CPU time much
+less), where ``setup_s`` (coefficient maps, layer content, Mitsuba scene/maps render)
 is paid once per group and everything else (keyframes, spikes, GT, compression,
 checksums) grows with the duration.  Bytes are scaled the same way (linear in
 duration).  The JSON says which numbers were measured and which scaled.
@@ -115,6 +117,8 @@ def run_dataset_bench(
                 t = rec["timings"]
                 setup = float(t.get("setup_s", 0.0))
                 per = setup + (t["total_s"] - setup) / d
+                cset = float(t.get("setup_cpu_s", 0.0))
+                per_cpu = cset + (t["cpu_s"] - cset) / d
                 rows.append(
                     {
                         "tier": tier,
@@ -128,6 +132,7 @@ def run_dataset_bench(
                         "kernel_s": t.get("kernel_s"),
                         "checksum_s": t.get("checksum_s"),
                         "s_per_1s_group": per,
+                        "cpu_s_per_1s_group": per_cpu,
                         "scaled": d != 1.0,
                         "bytes_measured": rec["bytes"],
                         "bytes_per_1s_group": int(rec["bytes"] / d),
