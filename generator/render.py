@@ -61,6 +61,28 @@ class RenderOptions:
     spectral: bool | None = None
     seed: int | None = None
     keyframe_hz: float | None = None
+    response: str = "cie_y"
+    """Sensor spectral response of spectral renders: ``cie_y``, ``flat`` or a CSV path (``wavelength_nm,response``)."""
+    n_bands: int = 8
+    """Wavelength bands of the spectral quadrature (400-700 nm)."""
+
+
+def _resume_key(scene: SceneConfig, opts: RenderOptions) -> dict:
+    """Resolved options that change the pixels of a frame: a resumed render must use the same ones."""
+    key: dict = {
+        "fps": float(opts.fps or scene.render.fps),
+        "seed": int(opts.seed if opts.seed is not None else scene.render.seed),
+    }
+    if opts.tier != "analytic":
+        key["spp"] = int(opts.spp or scene.render.spp)
+        spectral = bool(scene.render.spectral if opts.spectral is None else opts.spectral)
+        key["spectral"] = spectral
+        if spectral and scene.pane.glass is not None:
+            key["response"] = str(opts.response)
+            key["n_bands"] = int(opts.n_bands)
+    if opts.tier == "full":
+        key["keyframe_hz"] = float(opts.keyframe_hz or key["fps"])
+    return key
 
 
 def frame_times(scene: SceneConfig, opts: RenderOptions) -> np.ndarray:
@@ -79,6 +101,15 @@ def _tier_maps(scene: SceneConfig, opts: RenderOptions, info: dict) -> PaneMaps:
         return analytic_maps(scene)
     from generator import tiers_mitsuba  # lazy: imports Mitsuba
 
+    if opts.tier == "full":
+        from generator.mitsuba_backend import resolve_backend
+
+        be = resolve_backend(opts.variant or "auto", spectral=False)  # unknown / unavailable forced variant: error
+        if not be.vectorized:
+            # the full tier path-traces on any backend; only its maps.exr needs the JIT two-lobe tracer
+            log.warning("full tier on %s: maps.exr falls back to the analytic maps (the two-lobe tracer needs llvm or cuda)", be.variant)
+            info["modelled"] = dict(ANALYTIC_MODELLED, maps_exr_source=f"analytic: the two-lobe tracer needs a JIT variant, {be.variant} selected")
+            return analytic_maps(scene)
     return tiers_mitsuba.render_pane_maps(scene, opts, info)
 
 
@@ -90,6 +121,8 @@ def render(scene: SceneConfig, out_dir: str | os.PathLike, opts: RenderOptions =
     if opts.tier not in TIERS:
         raise ConfigError(f"unknown tier {opts.tier!r}; choose one of {list(TIERS)}")
     check_scene_geometry(scene)
+    if opts.response not in ("cie_y", "flat") and not Path(opts.response).is_file():
+        raise ConfigError(f"--response {opts.response!r} is neither cie_y, flat nor an existing CSV file (wavelength_nm,response)")
     out = ensure_dir(out_dir)
     ensure_dir(out / "frames")
     h = scene_hash(scene)
@@ -106,6 +139,15 @@ def render(scene: SceneConfig, out_dir: str | os.PathLike, opts: RenderOptions =
             prev = None
     if prev and (prev.get("scene_hash") != h or prev.get("tier") != opts.tier):
         raise OutputError(f"{out} holds a render of another scene or tier ({prev.get('tier')}, {prev.get('scene_hash')}); choose an empty --out")
+    rkey = _resume_key(scene, opts)
+    if prev and isinstance(prev.get("resume_key"), dict):
+        diff = sorted(k for k in set(rkey) | set(prev["resume_key"]) if rkey.get(k) != prev["resume_key"].get(k))
+        if diff:
+            k = diff[0]
+            raise OutputError(
+                f"{out} was rendered with {k} = {prev['resume_key'].get(k)!r}, this run has {k} = {rkey.get(k)!r}; "
+                "resume with the same options or choose an empty --out"
+            )
     timings: dict[str, float] = dict(prev.get("timings", {})) if prev else {}
     info: dict = {"modelled": dict(ANALYTIC_MODELLED), "tier": opts.tier}
     t0 = time.perf_counter()
@@ -127,6 +169,7 @@ def render(scene: SceneConfig, out_dir: str | os.PathLike, opts: RenderOptions =
         "spp": info.get("spp"),
         "variant": info.get("variant"),
         "seed": opts.seed if opts.seed is not None else scene.render.seed,
+        "resume_key": rkey,
         "conventions": CONVENTIONS,
         "complete": False,
         "timings": timings,
@@ -159,6 +202,7 @@ def render(scene: SceneConfig, out_dir: str | os.PathLike, opts: RenderOptions =
     if n_new:
         timings["per_frame_s"] = (time.perf_counter() - t1) / n_new
     meta["modelled"] = info["modelled"]
+    meta["variant"], meta["spp"] = info.get("variant"), info.get("spp")  # the full tier's path tracer, not its maps.exr
     meta["complete"] = all((out / nm).is_file() for nm in names)
     meta["timings"] = timings
     write_json(meta_path, meta)

@@ -138,7 +138,14 @@ def _resolve(opts, need_jit: bool):
 
 
 # --------------------------------------------------------------------------- maps tier
-def render_pane_maps(scene, opts, info: dict, *, response: str = DEFAULT_RESPONSE, n_bands: int = DEFAULT_BANDS, progress=None):
+def _spectral_opts(opts, response: str | None, n_bands: int | None) -> tuple[str, int]:
+    """Sensor response and band count: explicit arguments, else the render options, else the defaults."""
+    r = response or getattr(opts, "response", None) or DEFAULT_RESPONSE
+    b = int(n_bands or getattr(opts, "n_bands", None) or DEFAULT_BANDS)
+    return str(r), b
+
+
+def render_pane_maps(scene, opts, info: dict, *, response: str | None = None, n_bands: int | None = None, progress=None):
     """Tier ``maps``: rendered per-pixel pane coefficients as a :class:`generator.analytic.PaneMaps`.
 
     The coefficient maps (R_perp, R_par, T_perp, T_par, G_perp, G_par, theta,
@@ -151,7 +158,8 @@ def render_pane_maps(scene, opts, info: dict, *, response: str = DEFAULT_RESPONS
             grid ``round(sqrt(spp))``^2 capped at :data:`MAX_SUB`^2, or 2x2 when
             ``opts.tier == "full"`` (maps.exr only), ``variant``, ``spectral``).
         info: dict updated in place with ``modelled``, ``variant``, ``spp``.
-        response, n_bands: spectral quadrature (see :func:`spectral_bands`).
+        response, n_bands: spectral quadrature (see :func:`spectral_bands`); default
+            ``opts.response`` / ``opts.n_bands`` (CLI ``--response``), else CIE Y, 8 bands.
 
     Returns:
         PaneMaps with float64 (H, W) arrays.
@@ -160,6 +168,7 @@ def render_pane_maps(scene, opts, info: dict, *, response: str = DEFAULT_RESPONS
     from generator.mitsuba_integrator import pane_coefficients
     from generator.mitsuba_scene import build_scene_dict, specs_from_scene
 
+    response, n_bands = _spectral_opts(opts, response, n_bands)
     be, mi = _resolve(opts, need_jit=True)
     spp = int(opts.spp or scene.render.spp)
     sub = min(MAX_SUB, max(1, int(round(math.sqrt(spp)))))
@@ -274,7 +283,7 @@ def _texture(content, t_s: float) -> np.ndarray:
 def _layer_coverage_warnings(scene, tc, rc) -> list[str]:
     """Pixels whose T or R ray leaves its finite layer plane (black in the full tier; the analytic
     ground truth mirrors the texture there) or whose R point lies behind the pane."""
-    from generator.analytic import analytic_maps
+    from generator.analytic import analytic_maps, layer_planes
 
     m = analytic_maps(scene)
     out = []
@@ -283,6 +292,18 @@ def _layer_coverage_warnings(scene, tc, rc) -> list[str]:
         outside = (np.abs(X) > half) | (np.abs(Y) > half) | ~np.isfinite(X) | ~np.isfinite(Y)
         if outside.any():
             out.append(f"{name} layer plane does not cover {100 * outside.mean():.2f}% of the view; raise layers.{'transmission' if name == 'T' else 'reflection'}.margin")
+    # R points on the far side of the pane's front face: clipped (black) in the full tier
+    _, r_plane = layer_planes(scene)
+    X, Y = m.r_xy
+    P = r_plane.center + (2 * r_plane.view_half_w * X)[..., None] * r_plane.right - (2 * r_plane.view_half_h * Y)[..., None] * r_plane.up
+    pp = scene.pane_plane()
+    nrm = np.asarray(pp.normal, float) / np.linalg.norm(pp.normal)
+    behind = ((P - np.asarray(pp.point, float)) @ nrm) <= 0
+    if behind.any():
+        out.append(
+            f"R layer is not visible in {100 * behind.mean():.2f}% of the view (its plane lies beyond the pane there; "
+            "black in the full tier, mirrored texture in the analytic ground truth); raise layers.reflection.distance_m"
+        )
     return out
 
 
@@ -299,10 +320,11 @@ class FullRenderer:
     ``stokes(t_s, k)`` returns the (3, H, W) float64 Stokes image at time t.
     """
 
-    def __init__(self, scene, opts, info: dict, *, response: str = DEFAULT_RESPONSE, n_bands: int = DEFAULT_BANDS):
+    def __init__(self, scene, opts, info: dict, *, response: str | None = None, n_bands: int | None = None):
         from generator.analytic import layer_planes
         from generator.layers import LayerContent
 
+        response, n_bands = _spectral_opts(opts, response, n_bands)
         self.scene = scene
         self.be, self.mi = _resolve(opts, need_jit=False)
         self.spp = int(opts.spp or scene.render.spp)
@@ -345,7 +367,7 @@ class FullRenderer:
             info["modelled"]["warnings"] = warn
             for w in warn:
                 log.warning("full tier: %s", w)
-        if "subpixel_rays" in prev_modelled:  # maps.exr of this render came from the two-lobe tracer
+        if "subpixel_rays" in prev_modelled or "maps_exr_source" in prev_modelled:  # where maps.exr came from
             info["modelled"]["maps_exr"] = prev_modelled
         self.info = info
 

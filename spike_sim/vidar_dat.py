@@ -16,6 +16,7 @@ Streams in memory are (T, H, W) uint8 0/1, upright (row 0 at the top).
 
 from __future__ import annotations
 
+import logging
 import os
 from collections.abc import Iterator
 from pathlib import Path
@@ -27,31 +28,46 @@ from polspike.errors import DataFormatError, OutputError, ShapeError
 
 __all__ = ["read_dat", "iter_dat", "write_dat", "DatWriter", "dat_frame_count", "CAMERA_WIDTH", "HEAD_COLUMNS"]
 
+log = logging.getLogger(__name__)
+
 CAMERA_WIDTH = 416
 """Width of raw camera files that carry 16 header columns."""
 HEAD_COLUMNS = 16
 
 
-def _layout(path: Path, height: int, width: int) -> tuple[int, int]:
-    """(stored width, frame count) of a .dat file; DataFormatError when malformed."""
+def _layout(path: Path, height: int, width: int, head_columns: int | None = None) -> tuple[int, int]:
+    """(stored width, frame count) of a .dat file; DataFormatError when malformed.
+
+    ``head_columns``: None = auto (the plain width if the size fits it, else
+    ``width + 16`` camera frames), 0 = plain frames only, 16 = camera frames only.
+    A size that fits both (a camera file of 25 k frames of 416 columns is also 26 k
+    frames of 400) is read as plain frames with a logged warning: pass
+    ``head_columns=16`` for camera files.
+    """
     if not path.is_file():
         raise DataFormatError(f"spike file not found: {path}")
+    if head_columns not in (None, 0, HEAD_COLUMNS):
+        raise DataFormatError(f"head_columns must be None (auto), 0 or {HEAD_COLUMNS}, got {head_columns!r}")
     size = path.stat().st_size
     if size == 0:
         raise DataFormatError(f"{path} is empty: a .dat holds at least one {height}x{width} frame ({height * width // 8} bytes)")
-    for w in (width, width + HEAD_COLUMNS):
-        fb = height * w // 8
-        if (height * w) % 8 == 0 and fb > 0 and size % fb == 0:
-            return w, size // fb
+    cands = (width, width + HEAD_COLUMNS) if head_columns is None else (width + head_columns,)
+    fits = [w for w in cands if (height * w) % 8 == 0 and height * w // 8 > 0 and size % (height * w // 8) == 0]
+    if fits:
+        if len(fits) > 1:
+            log.warning("%s: %d bytes is a whole number of both %dx%d and %dx%d frames; reading %d columns (pass head_columns=%d for a camera file)",
+                        path, size, height, fits[0], height, fits[1], fits[0], HEAD_COLUMNS)
+        w = fits[0]
+        return w, size // (height * w // 8)
     raise DataFormatError(
         f"{path}: {size} bytes is not a whole number of {height}x{width} frames ({height * width // 8} bytes each)"
         f" nor of {height}x{width + HEAD_COLUMNS} camera frames; check --height/--width"
     )
 
 
-def dat_frame_count(path: str | os.PathLike, height: int = 250, width: int = 400) -> int:
-    """Number of frames in a .dat file."""
-    return _layout(Path(path), height, width)[1]
+def dat_frame_count(path: str | os.PathLike, height: int = 250, width: int = 400, head_columns: int | None = None) -> int:
+    """Number of frames in a .dat file (``head_columns`` as in :func:`read_dat`)."""
+    return _layout(Path(path), height, width, head_columns)[1]
 
 
 def _decode(raw: np.ndarray, n: int, height: int, stored_w: int, width: int, flip: bool) -> np.ndarray:
@@ -65,11 +81,11 @@ def _decode(raw: np.ndarray, n: int, height: int, stored_w: int, width: int, fli
 
 
 def iter_dat(
-    path: str | os.PathLike, height: int = 250, width: int = 400, chunk_frames: int = 1000, flip: bool = True
+    path: str | os.PathLike, height: int = 250, width: int = 400, chunk_frames: int = 1000, flip: bool = True, head_columns: int | None = None
 ) -> Iterator[np.ndarray]:
     """Yield (t, H, W) uint8 chunks of a .dat file, memory bounded by ``chunk_frames``."""
     p = Path(path)
-    stored_w, n = _layout(p, height, width)
+    stored_w, n = _layout(p, height, width, head_columns)
     fb = height * stored_w // 8
     with open(p, "rb") as fh:
         for start in range(0, n, chunk_frames):
@@ -84,6 +100,7 @@ def read_dat(
     width: int = 400,
     frames: slice | None = None,
     flip: bool = True,
+    head_columns: int | None = None,
 ) -> np.ndarray:
     """Read a raw Vidar .dat file.
 
@@ -94,6 +111,9 @@ def read_dat(
         frames: optional slice of frame indices (read lazily via memory map).
         flip: undo the upside-down storage (True = what SpikeCV / spikezoo do).
             ``flip=False`` exists to show what a reader that forgets it sees.
+        head_columns: None = auto-detect 16 camera header columns from the file
+            size (plain frames win when both fit, with a logged warning); 0 or 16
+            to say which (spikezoo's ``remove_head``).
 
     Returns:
         (T, H, W) uint8 spikes, upright when ``flip``.
@@ -102,13 +122,15 @@ def read_dat(
         DataFormatError: missing file or size not a whole number of frames.
     """
     p = Path(path)
-    stored_w, n = _layout(p, height, width)
+    stored_w, n = _layout(p, height, width, head_columns)
     fb = height * stored_w // 8
-    mm = np.memmap(p, dtype=np.uint8, mode="r", shape=(n, fb))
+    if frames is not None and not isinstance(frames, slice):
+        raise DataFormatError(f"frames must be a slice of frame indices, got {type(frames).__name__}")
     sel = range(n)[frames] if frames is not None else range(n)
     if len(sel) == 0:
         return np.zeros((0, height, width), np.uint8)
-    raw = np.asarray(mm[sel.start : sel.stop : sel.step]) if frames is not None else np.asarray(mm)
+    mm = np.memmap(p, dtype=np.uint8, mode="r", shape=(n, fb))
+    raw = np.asarray(mm[frames]) if frames is not None else np.asarray(mm)
     return _decode(raw, raw.shape[0], height, stored_w, width, flip)
 
 

@@ -37,6 +37,8 @@ def render_cmd(
     spectral: Optional[bool] = typer.Option(None, "--spectral/--mono", help="spectral integration with the sensor response, or mono [default: scene render.spectral]"),
     seed: Optional[int] = typer.Option(None, "--seed", help="render seed [default: scene render.seed]"),
     keyframe_hz: Optional[float] = typer.Option(None, "--keyframe-hz", help="full tier: path-traced keyframes per second (frames between are interpolated)"),
+    response: str = typer.Option("cie_y", "--response", help="spectral renders: sensor response cie_y | flat | PATH.csv (columns wavelength_nm,response)"),
+    bands: int = typer.Option(8, "--bands", help="spectral renders: wavelength bands over 400-700 nm", min=1, max=64),
     quiet: bool = typer.Option(False, "--quiet", help="no progress bar"),
 ) -> None:
     """Render a glass-pane scene to Stokes frames, layer ground truth and coefficient maps."""
@@ -47,7 +49,7 @@ def render_cmd(
     from polspike.progress import rich_progress
 
     sc = load_scene(scene)
-    opts = RenderOptions(tier=tier, fps=fps, duration_s=duration, frames=_parse_frames(frames), spp=spp, variant=variant, spectral=spectral, seed=seed, keyframe_hz=keyframe_hz)
+    opts = RenderOptions(tier=tier, fps=fps, duration_s=duration, frames=_parse_frames(frames), spp=spp, variant=variant, spectral=spectral, seed=seed, keyframe_hz=keyframe_hz, response=response, n_bands=bands)
     with rich_progress(f"render {sc.name} [{tier}]", enabled=not quiet) as cb:
         meta = render(sc, out, opts, progress=cb)
     t = meta["timings"]

@@ -68,8 +68,8 @@ def bench_spike_sim_cmd(
     json_out: bool = typer.Option(False, "--json", help="print the JSON result"),
     steps: int = typer.Option(4000, "--steps", help="steps per timed numba run"),
     numpy_steps: int = typer.Option(100, "--numpy-steps", help="steps of the numpy reference"),
-    width: int = typer.Option(400, "--width"),
-    height: int = typer.Option(250, "--height"),
+    width: int = typer.Option(400, "--width", help="sensor width in pixels"),
+    height: int = typer.Option(250, "--height", help="sensor height in pixels"),
     full_group: float = typer.Option(0.0, "--full-group", help="also simulate a group of this many seconds end to end"),
 ) -> None:
     """Pixel-steps/s of the numba simulator (full noise) vs the numpy reference, ratio and memory."""

@@ -59,3 +59,32 @@ def test_bench_json(tmp_path):
     res = json.loads((tmp_path / "spike_sim.json").read_text())
     assert res["ratio_numba_over_numpy"] > 1.0
     assert res["numba"]["pixel_steps_per_s"] > 0 and res["peak_rss_mb"] > 0
+
+
+def test_simulate_flags_preset_chunking_compression(tmp_path, keyframes):
+    """--preset sets the base config; --chunk-steps and --compression never change the bits; bad values exit 2."""
+    rd = _render_dir(tmp_path, keyframes)
+    app = get_app()
+
+    def run(name, *extra):
+        return CliRunner().invoke(app, ["simulate", str(rd), "--duration", "0.02", "--seed", "5", "--out", str(tmp_path / name), "--quiet", *extra])
+
+    assert run("a", "--preset", "ideal").exit_code == 0
+    assert run("b", "--preset", "ideal", "--chunk-steps", "37", "--compression", "none").exit_code == 0
+    ga, gb = open_group(tmp_path / "a"), open_group(tmp_path / "b")
+    assert ga.json_attr("config_json")["shot_noise"] is False
+    assert np.array_equal(ga.read(), gb.read()) and ga.read().shape == (400, 16, 24)
+    assert ga.f["spikes"].compression == "gzip" and gb.f["spikes"].compression is None
+    assert run("c").exit_code == 0  # default preset: a different (noisy) stream
+    assert not np.array_equal(open_group(tmp_path / "c").read(), ga.read())
+    ga.close()
+    gb.close()
+    from polspike.errors import ConfigError
+
+    r = run("d", "--preset", "bogus")  # PolspikeError -> exit 2 in polspike.cli.main
+    assert isinstance(r.exception, ConfigError) and "bogus" in str(r.exception)
+    assert run("a", "--preset", "ideal", "--overwrite", "--seed", "6").exit_code == 0
+    assert open_group(tmp_path / "a").seed == 6  # --overwrite replaced the group
+    r = run("e", "--chunk-steps", "0")
+    assert isinstance(r.exception, ConfigError) and "chunk_steps" in str(r.exception)
+    assert not (tmp_path / "e" / "group.json").exists()

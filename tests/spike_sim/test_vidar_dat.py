@@ -85,3 +85,43 @@ def test_failed_write_leaves_no_file(tmp_path):
             w.write(np.zeros((2, 8, 8), np.uint8))
             raise RuntimeError("boom")
     assert list(tmp_path.iterdir()) == []
+
+
+def test_frame_slices_negative_and_reversed(tmp_path, np_rng):
+    """frames= accepts any slice, like indexing the full stream (negative indices, steps, reversed)."""
+    s = (np_rng.random((9, 8, 16)) < 0.4).astype(np.uint8)
+    p = write_dat(tmp_path / "s.dat", s)
+    for sl in (slice(None, None, -1), slice(-3, None), slice(7, 1, -2), slice(1, 8, 3), slice(5, 5), slice(-100, 100)):
+        assert np.array_equal(read_dat(p, 8, 16, frames=sl), s[sl]), sl
+    with pytest.raises(DataFormatError, match="slice"):
+        read_dat(p, 8, 16, frames=[1, 2])
+
+
+def test_camera_file_whose_size_also_fits_plain_frames(tmp_path, np_rng, caplog):
+    """25 camera frames of 416 columns = 26 plain frames of 400 (325000 bytes): auto reads plain frames and
+    warns; head_columns=16 reads the camera file; head_columns=0 refuses a size that fits only camera frames."""
+    s = (np_rng.random((25, 250, 416)) < 0.3).astype(np.uint8)
+    p = write_dat(tmp_path / "cam.dat", s)
+    with caplog.at_level("WARNING"):
+        assert read_dat(p).shape == (26, 250, 400)
+    assert any("head_columns=16" in r.getMessage() for r in caplog.records)
+    assert dat_frame_count(p, head_columns=16) == 25
+    assert np.array_equal(read_dat(p, head_columns=16), s[:, :, :400])
+    assert np.array_equal(np.concatenate(list(iter_dat(p, head_columns=16, chunk_frames=7))), s[:, :, :400])
+    q = write_dat(tmp_path / "cam3.dat", s[:3])
+    with pytest.raises(DataFormatError, match="not a whole number"):
+        read_dat(q, head_columns=0)
+    with pytest.raises(DataFormatError, match="head_columns"):
+        read_dat(q, head_columns=8)
+
+
+def test_odd_geometry_and_single_frame(tmp_path):
+    """One frame is a valid file; H*W not divisible by 8 cannot be written (.dat frames are whole bytes)."""
+    from polspike.errors import ShapeError
+
+    one = np.zeros((1, 250, 400), np.uint8)
+    one[0, 10, 20] = 1
+    assert np.array_equal(read_dat(write_dat(tmp_path / "one.dat", one)), one)
+    with pytest.raises(ShapeError, match="divisible by 8"):
+        write_dat(tmp_path / "odd.dat", np.zeros((2, 3, 3), np.uint8))
+    assert not (tmp_path / "odd.dat").exists()
