@@ -23,7 +23,10 @@ What is computed (all in :func:`inspection_data`, saved to ``inspect_data.npz``)
 
   so that ``1/2 (S0 + S1 cos 2phi + S2 sin 2phi)`` is paper Eq. (1)
   ``L_M = 1/2 (zeta L_R + (1 - zeta) L_T)`` for a lossless pane; ``dop`` =
-  sqrt(S1^2 + S2^2)/S0 in [0, 1] and ``aolp`` = 1/2 atan2(S2, S1) in [0, pi);
+  sqrt(S1^2 + S2^2)/S0 in [0, 1] and ``aolp`` = 1/2 atan2(S2, S1) in [0, pi).
+  This is the mixing model on the stored GT (stores keep layers and maps, not
+  the rendered Stokes): a thick slab's displaced ghost appears only in the
+  measured frame;
 * ``mixed_gt``: the light behind the polarizer at phi from those Stokes;
   ``mixed_I``: the measured Eq. (3) frame (spikes per step / exposure);
 * ``obs_I`` (N, H, W), ``obs_phi`` (N,): the observations I(i+k) of output
