@@ -13,6 +13,21 @@ Baselines, in the same table:
   by PSNR against the GT (an oracle pick: an upper bound for any rule that
   selects one frame).
 
+The learned reconstructor (issue 9) from a checkpoint (:func:`load_network`):
+
+* method ``full``: the whole network (its own RIR, parameter branch, RWPS,
+  refinement) on the unaligned window; two rows, ``full`` (final T, R) and
+  ``full:solver`` (the RWPS output on the learned zeta and w, before refinement,
+  supp. Table 3 "solver-only").  Ablations (paper Table 1) are checkpoints
+  trained with a switch off: ``no_attention`` / ``no_conf`` / ``rir = False``
+  check the checkpoint's recorded configuration and name the rows
+  ``full-noatt``, ``full-noconf``, ``full-norir``.  RIR and Conf carry no
+  weights, so a checkpoint trained with them can also be evaluated without
+  them (a test-time ablation, logged as a warning); attention cannot.
+* zeta source ``learned``: zeta_hat and w of the parameter branch
+  (:func:`reconstruct.zeta_source.zeta_learned`) on the RIR-aligned window,
+  fed to the physics solvers (w to rwps only).
+
 Scores: PSNR / SSIM (:mod:`reconstruct.metrics`) of T and R per frame,
 averaged per group and over all frames (``overall``).  Outputs (see
 :func:`write_report`): ``results.csv``, ``results.md``, ``results.json``,
@@ -40,7 +55,7 @@ from reconstruct.rir import RirConfig, estimate_shifts, warp
 from reconstruct.solvers import SOLVERS, SolverConfig, solve
 from reconstruct.zeta_source import ZETA_SOURCES, PaneMaps, zeta_from_maps, zeta_learned
 
-__all__ = ["EvalConfig", "EvalReport", "BASELINES", "group_zeta", "evaluate_groups", "write_report", "parse_methods", "load_groups", "window_sweep", "markdown_table", "sweep_markdown"]
+__all__ = ["EvalConfig", "EvalReport", "BASELINES", "NET_METHOD", "load_network", "group_zeta", "evaluate_groups", "write_report", "parse_methods", "load_groups", "window_sweep", "markdown_table", "sweep_markdown"]
 
 log = logging.getLogger(__name__)
 
@@ -55,7 +70,7 @@ class EvalConfig:
     n_obs: int = opt(7, "observations per output frame N = 2K + 1 (odd)", lo=1, hi=101)
     dt_ms: float = opt(0.65, "aggregation window dt, milliseconds (rounded to an odd number of steps)", lo=0.01, hi=1000.0)
     stride_deg: float = opt(31.5, "polarizer rotation between output frames, degrees", lo=0.01, hi=360.0)
-    methods: str = opt("ls,ridge,irls,rwps", "comma-separated solvers from ls, ridge, irls, rwps")
+    methods: str = opt("ls,ridge,irls,rwps", "comma-separated methods from ls, ridge, irls, rwps, full (the network)")
     zeta: str = opt("gt", "where zeta comes from", choices=ZETA_SOURCES)
     rir: bool = opt(True, "align each window with reflection-invariant registration")
     max_frames: int = opt(0, "evaluate at most this many output frames per group (0 = all)", lo=0, hi=10**9)
@@ -64,16 +79,79 @@ class EvalConfig:
     pane_n: float = opt(1.5, "physics zeta: calibrated refractive index of the pane", lo=1.0, hi=4.0)
     pane_model: str = opt("single", "physics zeta: pane model", choices=("single", "thin_slab", "thick_slab"))
     dtype: str = opt("float32", "solver dtype", choices=("float32", "float64"))
-    device: str = opt("cpu", "torch device for the solvers (cpu, cuda)")
+    device: str = opt("cpu", "torch device for the solvers and the network (cpu, cuda, auto)")
+    checkpoint: str = opt("", "network checkpoint for method full / zeta learned (empty: the shipped reconstruct/weights default)")
+    no_attention: bool = opt(False, "method full: the checkpoint must be trained without angle attention (paper Table 1 ablation)")
+    no_conf: bool = opt(False, "method full: evaluate without Conf (checkpoint trained without it, else a test-time ablation)")
+    net_tile: int = opt(256, "method full: network tile size in pixels (bounded memory; 0 = whole frame)", lo=0, hi=100000)
+
+
+NET_METHOD = "full"
+"""Method name of the learned reconstructor in ``--method``."""
 
 
 def parse_methods(methods: str) -> list[str]:
-    """Split and validate a comma-separated solver list."""
-    out = [m.strip().lower() for m in methods.split(",") if m.strip()]
-    bad = [m for m in out if m not in SOLVERS]
+    """Split and validate a comma-separated method list (solvers of :data:`SOLVERS` and ``full``)."""
+    out = list(dict.fromkeys(m.strip().lower() for m in methods.split(",") if m.strip()))
+    ok = (*SOLVERS, NET_METHOD)
+    bad = [m for m in out if m not in ok]
     if bad or not out:
-        raise ConfigError(f"unknown solver(s) {bad or methods!r}; choose from {list(SOLVERS)}, comma-separated")
+        raise ConfigError(f"unknown method(s) {bad or methods!r}; choose from {list(ok)}, comma-separated")
     return out
+
+
+def _device(name: str) -> torch.device:
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    if name.startswith("cuda") and not torch.cuda.is_available():
+        from polspike.errors import BackendUnavailableError
+
+        raise BackendUnavailableError(f"device {name!r} requested but torch sees no CUDA device; use --device cpu or auto")
+    return torch.device(name)
+
+
+def load_network(cfg: EvalConfig) -> tuple[torch.nn.Module, dict]:
+    """Load the network of ``cfg.checkpoint`` (or the shipped default) for method full / zeta learned.
+
+    Checks the ablation switches against the configuration recorded in the
+    checkpoint (module docstring).  Returns (model in eval mode, info) with
+    info = {"path", "label", "trained": {use_rir, use_attention, use_conf}, "overrides", "step"}.
+
+    Raises:
+        CheckpointError: unreadable checkpoint, or one that does not fit the switches.
+        ConfigError: the window length differs from the network's.
+    """
+    from polspike.errors import CheckpointError
+    from reconstruct.checkpoint import DEFAULT_WEIGHTS, load_model, read_checkpoint
+
+    path = Path(cfg.checkpoint) if cfg.checkpoint else DEFAULT_WEIGHTS
+    net = read_checkpoint(path)["net"]
+    trained = {k: bool(net.get(k, True)) for k in ("use_rir", "use_attention", "use_conf")}
+    if cfg.no_attention and trained["use_attention"]:
+        raise CheckpointError(
+            f"--no-attention: {path} was trained with angle attention; pass --checkpoint of a model trained with [net] use_attention = false"
+        )
+    if not cfg.no_attention and not trained["use_attention"]:
+        raise CheckpointError(f"{path} was trained without angle attention; add --no-attention to evaluate it as that ablation")
+    overrides = {}
+    if not cfg.rir and trained["use_rir"]:
+        overrides["use_rir"] = False
+        log.warning("%s was trained with RIR; evaluating it without RIR (test-time ablation: RIR has no weights)", path)
+    if cfg.rir and not trained["use_rir"]:
+        log.warning("%s was trained without RIR; evaluating it without RIR as trained (add --no-rir to say so)", path)
+        overrides["use_rir"] = False
+    if cfg.no_conf and trained["use_conf"]:
+        overrides["use_conf"] = False
+        log.warning("%s was trained with Conf; evaluating it without Conf (test-time ablation; the paper retrains)", path)
+    if not cfg.no_conf and not trained["use_conf"]:
+        raise CheckpointError(f"{path} was trained without Conf; add --no-conf to evaluate it as that ablation")
+    model, data = load_model(path, _device(cfg.device), **overrides)
+    if model.cfg.n_obs != cfg.n_obs:
+        raise ConfigError(f"the network in {path} takes N = {model.cfg.n_obs} observations; set --n-obs {model.cfg.n_obs} (got {cfg.n_obs})")
+    used = {"use_rir": model.cfg.use_rir, "use_attention": model.cfg.use_attention, "use_conf": model.cfg.use_conf}
+    label = NET_METHOD + "".join(f"-no{n}" for n, k in (("rir", "use_rir"), ("att", "use_attention"), ("conf", "use_conf")) if not used[k])
+    info = {"path": str(path), "label": label, "trained": trained, "overrides": overrides, "step": data.get("step")}
+    return model, info
 
 
 @dataclasses.dataclass
@@ -95,16 +173,17 @@ class EvalReport:
     config: dict
 
 
-def group_zeta(group: EvalGroup, cfg: EvalConfig) -> np.ndarray:
+def group_zeta(group: EvalGroup, cfg: EvalConfig) -> np.ndarray | None:
     """zeta (M, H, W) for every frame of a group from the configured source.
 
     ``gt``: the group's pane maps at the true window-mean angles (paper Eq. (2),
     window-averaged); ``physics``: Fresnel reflectances of the calibrated pane
     (``pane_n``, ``pane_model``) at the group's incidence-angle map, with the
-    nominal (calibrated) angles; ``learned``: issue 9.
+    nominal (calibrated) angles; ``learned``: per window from the network
+    (:func:`reconstruct.zeta_source.zeta_learned`), so this returns None.
     """
     if cfg.zeta == "learned":
-        zeta_learned()
+        return None
     if cfg.zeta == "gt":
         if group.maps is not None:
             return zeta_from_maps(group.maps, group.phi_true, group.span_rad, dtype=torch.float64).numpy()
@@ -155,10 +234,17 @@ def evaluate_groups(
         raise ConfigError(f"n_obs = {cfg.n_obs} must be odd (N = 2K + 1); use {cfg.n_obs + 1}")
     K = cfg.n_obs // 2
     dtype = torch.float64 if cfg.dtype == "float64" else torch.float32
-    dev = torch.device(cfg.device)
+    dev = _device(cfg.device)
+    solvers = [m for m in methods if m in SOLVERS]
+    model = net_info = None
+    if NET_METHOD in methods or cfg.zeta == "learned":
+        from reconstruct.video import run_model_on_windows
+
+        model, net_info = load_network(cfg)
+    net_rows = [net_info["label"], net_info["label"] + ":solver"] if NET_METHOD in methods else []
     groups = list(groups)
     frames: list[dict] = []
-    fig = {"frames": [], "columns": ["input 2I", "tfp", *methods, "GT T"], "images": []}
+    fig = {"frames": [], "columns": ["input 2I", "tfp", *solvers, *net_rows[:1], "GT T"], "images": []}
     t = defaultdict(float)
     for gi, g in enumerate(groups):
         t0 = time.perf_counter()
@@ -174,21 +260,35 @@ def evaluate_groups(
         for b0 in range(0, len(centres), cfg.batch):
             cb = centres[b0 : b0 + cfg.batch]
             Iw = torch.stack([torch.from_numpy(np.ascontiguousarray(g.I[i - K : i + K + 1])) for i in cb]).to(dev, dtype)
-            Zw = torch.stack([torch.from_numpy(np.ascontiguousarray(Z[i - K : i + K + 1])) for i in cb]).to(dev, dtype)
             Pw = torch.stack([torch.from_numpy(np.asarray(g.phi_nominal[i - K : i + K + 1], np.float64)) for i in cb]).to(dev, dtype)
+            Zw = None if Z is None else torch.stack([torch.from_numpy(np.ascontiguousarray(Z[i - K : i + K + 1])) for i in cb]).to(dev, dtype)
             raw = Iw
-            if cfg.rir and cfg.n_obs > 1:
+            if cfg.rir and cfg.n_obs > 1 and solvers:
                 t0 = time.perf_counter()
                 sh = torch.stack([estimate_shifts(Iw[j], Pw[j], config=rir_cfg) for j in range(len(cb))]).to(dtype)
-                Iw, Zw = warp(Iw, sh), warp(Zw, sh)
+                Iw = warp(Iw, sh)
+                Zw = None if Zw is None else warp(Zw, sh)
                 t["rir"] += time.perf_counter() - t0
+            W_learned = None
+            if cfg.zeta == "learned" and solvers:
+                t0 = time.perf_counter()
+                Zw, W_learned = zeta_learned(model, Iw, Pw)
+                t["learned_zeta"] += time.perf_counter() - t0
             t0 = time.perf_counter()
             est = {}
-            for m in methods:
-                w = weights_fn(Iw, Pw) if (m == "rwps" and weights_fn is not None) else None
+            for m in solvers:
+                w = None
+                if m == "rwps":
+                    w = W_learned if W_learned is not None else (weights_fn(Iw, Pw) if weights_fn is not None else None)
                 r = solve(m, Zw, Iw, weights=w, config=solver_cfg)
                 est[m] = (r.T.cpu().numpy(), r.R.cpu().numpy())
             t["solve"] += time.perf_counter() - t0
+            if net_rows:
+                t0 = time.perf_counter()
+                o = run_model_on_windows(model, raw.float().cpu().numpy(), Pw.float().cpu().numpy(), device=next(model.parameters()).device, tile=cfg.net_tile)
+                est[net_rows[0]] = (o["T"], o["R"])
+                est[net_rows[1]] = (o["T_base"], o["R_base"])
+                t["network"] += time.perf_counter() - t0
             t0 = time.perf_counter()
             tfp = (2.0 * raw.mean(1)).cpu().numpy()
             raw_np = (2.0 * raw).cpu().numpy()
@@ -198,19 +298,19 @@ def evaluate_groups(
                 rows = {"tfp": (tfp[j], None)}
                 best = max(range(cfg.n_obs), key=lambda k: psnr(raw_np[j, k], gtT))
                 rows["best_frame"] = (raw_np[j, best], None)
-                rows.update(est_j := {m: (est[m][0][j], est[m][1][j]) for m in methods})
+                rows.update(est_j := {m: (v[0][j], v[1][j]) for m, v in est.items()})
                 for name, (Th, Rh) in rows.items():
                     sT = score(Th, gtT)
                     sR = score(Rh, gtR) if (Rh is not None and gtR is not None) else {"psnr": None, "ssim": None}
                     frames.append({"group": g.name, "frame": int(i), "method": name, "psnr_T": sT["psnr"], "ssim_T": sT["ssim"], "psnr_R": sR["psnr"], "ssim_R": sR["ssim"]})
                 if gi == 0 and len(fig["frames"]) < cfg.figure_frames:
                     fig["frames"].append(f"{g.name} #{i}")
-                    fig["images"].append([raw_np[j, K], tfp[j], *[est_j[m][0] for m in methods], gtT])
+                    fig["images"].append([raw_np[j, K], tfp[j], *[est_j[m][0] for m in solvers], *[est_j[m][0] for m in net_rows[:1]], gtT])
             t["metrics"] += time.perf_counter() - t0
         if progress is not None:
             progress(gi + 1, len(groups))
     keys = ("psnr_T", "ssim_T", "psnr_R", "ssim_R")
-    order = [*BASELINES, *methods]
+    order = [*BASELINES, *solvers, *net_rows]
     rows = []
     by = defaultdict(list)
     for f in frames:
@@ -225,6 +325,8 @@ def evaluate_groups(
         if items:
             rows.append({"group": "overall", "method": m, "n_frames": len(items), **_means(items, keys), "lpips_T": lpips_status()})
     conf = {"eval": to_dict(cfg), "solver": to_dict(solver_cfg), "rir": to_dict(rir_cfg), "groups": [g.name for g in groups]}
+    if net_info is not None:
+        conf["network"] = net_info
     return EvalReport(frames=frames, rows=rows, figure=fig, timings=dict(t), config=conf)
 
 

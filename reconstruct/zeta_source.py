@@ -5,7 +5,7 @@
 * ``physics``: a calibrated pane geometry (camera, pane plane, index, pane
   model) -> theta(p), phi_perp(p) by :mod:`polspike.physics.geometry`, Fresnel
   reflectances by :mod:`polspike.physics.fresnel`, then paper Eq. (2).
-* ``learned``: the estimator of issue 9 (not implemented yet).
+* ``learned``: the parameter branch of the network of issue 9 (:func:`zeta_learned`).
 
 A spike frame integrates over an aggregation window during which the polarizer
 turns by ``span`` radians (0.65 ms at 30 rev/s = 7 deg).  The frame's zeta is the
@@ -21,7 +21,7 @@ import math
 import numpy as np
 import torch
 
-from polspike.errors import ConfigError, ShapeError
+from polspike.errors import ShapeError
 
 __all__ = ["ZETA_SOURCES", "zeta_eq2", "PaneMaps", "zeta_from_maps", "pane_maps_from_geometry", "zeta_learned"]
 
@@ -102,6 +102,31 @@ def pane_maps_from_geometry(camera, plane, n: float, model: str = "single", thic
     return PaneMaps(R_perp=co["R_perp"], R_par=co["R_par"], phi_perp=geo["phi_perp"])
 
 
-def zeta_learned(*_args, **_kwargs) -> torch.Tensor:
-    """Placeholder for the learned zeta estimator (issue 9)."""
-    raise ConfigError("zeta source 'learned' is not available yet (issue 9: learned estimator); use --zeta gt or --zeta physics")
+def _pad4(x: torch.Tensor) -> torch.Tensor:
+    H, W = x.shape[-2:]
+    ph, pw = (-H) % 4, (-W) % 4
+    return torch.nn.functional.pad(x, (0, pw, 0, ph), mode="replicate") if (ph or pw) else x
+
+
+@torch.no_grad()
+def zeta_learned(model, I: torch.Tensor, phi: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The ``learned`` source: zeta_hat and reliability weights w of the network's parameter branch.
+
+    zeta_k = sigmoid(a0 + ac cos 2phi_k + as sin 2phi_k) (supp. Eq. (19)), w = softmax over the window.
+
+    Args:
+        model: :class:`reconstruct.network.PolSpikeNet` (e.g. from :func:`reconstruct.checkpoint.load_model`).
+        I: (B, N, H, W) windows, already RIR-aligned, radiance units; any H, W (padded to multiples of 4 here).
+        phi: (B, N) polarizer angles (window centres), radians.
+
+    Returns:
+        (zeta, w), each (B, N, H, W) on I's device and dtype.
+    """
+    from reconstruct.network import predict_parameters
+
+    if I.dim() != 4 or phi.shape != I.shape[:2]:
+        raise ShapeError(f"zeta_learned needs I (B, N, H, W) and phi (B, N); got {tuple(I.shape)} and {tuple(phi.shape)}", actual_shape=tuple(I.shape), expected_shape="(B, N, H, W)")
+    H, W = I.shape[-2:]
+    dev = next(model.parameters()).device
+    z, w = predict_parameters(model, _pad4(I.to(dev, torch.float32)), phi.to(dev, torch.float32))
+    return z[..., :H, :W].to(I.device, I.dtype), w[..., :H, :W].to(I.device, I.dtype)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Optional
 
 import typer
 
@@ -13,18 +14,22 @@ from polspike.cli import app_typer, bench_app
 def evaluate_cmd(
     dataset: str = typer.Argument(..., help="dataset directory (dataset.json + group stores), one group directory, or 'synthetic[:SEED]' (closed-form set made in-process)"),
     split: str = typer.Option("test", "--split", help="split listed in dataset.json"),
-    method: str = typer.Option("ls,ridge,irls,rwps", "--method", help="comma-separated solvers: ls, ridge, irls, rwps"),
-    zeta: str = typer.Option("gt", "--zeta", help="zeta source: gt (group pane maps), physics (Fresnel from the calibrated pane), learned (issue 9)"),
+    method: str = typer.Option("ls,ridge,irls,rwps", "--method", help="comma-separated methods: ls, ridge, irls, rwps (physics solvers), full (the network of --checkpoint)"),
+    zeta: str = typer.Option("gt", "--zeta", help="zeta source of the solvers: gt (group pane maps), physics (Fresnel from the calibrated pane), learned (network parameter branch)"),
     out: Path = typer.Option(Path("out/evaluate"), "--out", help="output folder (results.csv/.md/.json, figure.png, config.json)"),
     n_obs: int = typer.Option(7, "--n-obs", help="observations per output frame N = 2K + 1"),
     dt_ms: float = typer.Option(0.65, "--dt-ms", help="aggregation window, milliseconds (odd number of steps)"),
     stride_deg: float = typer.Option(31.5, "--stride-deg", help="polarizer rotation between output frames, degrees"),
-    rir: bool = typer.Option(True, "--rir/--no-rir", help="reflection-invariant registration of each window"),
+    rir: bool = typer.Option(True, "--rir/--no-rir", help="reflection-invariant registration of each window (full: the without-RIR ablation)"),
+    checkpoint: Optional[Path] = typer.Option(None, "--checkpoint", help="network checkpoint for --method full / --zeta learned [default: reconstruct/weights/polspike_v0.pt]"),
+    no_attention: bool = typer.Option(False, "--no-attention", help="full: the checkpoint is the without-angle-attention ablation (trained so)"),
+    no_conf: bool = typer.Option(False, "--no-conf", help="full: the without-Conf ablation (trained so, else a test-time ablation)"),
+    net_tile: int = typer.Option(256, "--net-tile", help="full: network tile size in pixels (0 = whole frame)"),
     max_frames: int = typer.Option(0, "--max-frames", help="at most this many output frames per group (0 = all)"),
     pane_n: float = typer.Option(1.5, "--pane-n", help="physics zeta: calibrated refractive index"),
     pane_model: str = typer.Option("single", "--pane-model", help="physics zeta: single, thin_slab or thick_slab"),
     dtype: str = typer.Option("float32", "--dtype", help="solver dtype: float32 or float64"),
-    device: str = typer.Option("cpu", "--device", help="torch device for the solvers"),
+    device: str = typer.Option("cpu", "--device", help="torch device for the solvers and the network: cpu, cuda or auto"),
     sweep: bool = typer.Option(False, "--sweep", help="also run the window analysis (N in 5,7,9 x dt in 0.30,0.65,1.10 ms; supp. Table 1)"),
     synthetic_groups: int = typer.Option(4, "--synthetic-groups", help="synthetic: number of groups"),
     synthetic_frames: int = typer.Option(20, "--synthetic-frames", help="synthetic: frames per group"),
@@ -32,7 +37,7 @@ def evaluate_cmd(
     synthetic_size: str = typer.Option("200x125", "--synthetic-size", help="synthetic: WxH"),
     quiet: bool = typer.Option(False, "--quiet", help="no progress bar"),
 ) -> None:
-    """Score the physics solvers (and TFP / best-frame baselines) on every test group: PSNR/SSIM of T and R."""
+    """Score the physics solvers and/or the network (with TFP / best-frame baselines) on every test group: PSNR/SSIM of T and R."""
     from rich.console import Console
 
     from polspike.config import from_dict
@@ -43,7 +48,8 @@ def evaluate_cmd(
 
     cfg = from_dict(
         EvalConfig,
-        {"n_obs": n_obs, "dt_ms": dt_ms, "stride_deg": stride_deg, "methods": method, "zeta": zeta, "rir": rir, "max_frames": max_frames, "pane_n": pane_n, "pane_model": pane_model, "dtype": dtype, "device": device},
+        {"n_obs": n_obs, "dt_ms": dt_ms, "stride_deg": stride_deg, "methods": method, "zeta": zeta, "rir": rir, "max_frames": max_frames, "pane_n": pane_n, "pane_model": pane_model, "dtype": dtype, "device": device,
+         "checkpoint": str(checkpoint or ""), "no_attention": no_attention, "no_conf": no_conf, "net_tile": net_tile},
         where="command line",
     )
     try:

@@ -40,12 +40,12 @@ def test_physics_zeta_equals_gt_for_the_matching_pane():
     assert np.abs(zq - g.gt_zeta).max() > 1e-3
 
 
-def test_learned_zeta_is_a_clear_error():
-    from polspike.errors import PolspikeError
+def test_missing_checkpoint_is_a_clear_error(tmp_path):
+    from polspike.errors import CheckpointError
 
     g = make_group(_small(), 0)
-    with pytest.raises(PolspikeError, match="issue 9"):
-        evaluate_groups([g], EvalConfig(zeta="learned"))
+    with pytest.raises(CheckpointError, match="not found"):
+        evaluate_groups([g], EvalConfig(zeta="learned", checkpoint=str(tmp_path / "none.pt")))
 
 
 def test_report_files(tmp_path):

@@ -44,6 +44,17 @@ def test_physics_maps_from_geometry_normal_incidence():
     assert np.allclose(m.R_perp, 0.04, atol=1e-4) and np.allclose(m.R_par, 0.04, atol=1e-4)  # ((n-1)/(n+1))^2
 
 
-def test_learned_source_not_available():
-    with pytest.raises(PolspikeError, match="issue 9"):
-        zeta_learned()
+def test_learned_source_shapes_and_softmax_weights():
+    import torch
+
+    from reconstruct.network import NetConfig, PolSpikeNet, init_weights
+
+    m = init_weights(PolSpikeNet(NetConfig(feat_ch=8, ref_ch=(8, 8, 8), dec_ch=(8, 8, 8), use_rir=False)), torch.Generator().manual_seed(0)).eval()
+    I = 0.1 + 0.3 * torch.rand(2, 7, 10, 13, dtype=torch.float64, generator=torch.Generator().manual_seed(1))  # H, W not multiples of 4
+    phi = torch.deg2rad(31.5 * torch.arange(7, dtype=torch.float64)).expand(2, 7)
+    z, w = zeta_learned(m, I, phi)
+    assert z.shape == I.shape and w.shape == I.shape and z.dtype == torch.float64
+    assert bool(((z > 0) & (z < 1)).all())  # supp. Eq. (19): a sigmoid
+    assert torch.allclose(w.sum(1), torch.ones(2, 10, 13, dtype=torch.float64), atol=1e-5)  # softmax over the window
+    with pytest.raises(PolspikeError):
+        zeta_learned(m, I[0], phi)
