@@ -202,7 +202,7 @@ def test_split_filtering_loader_workers_and_training(tmp_path):
     from reconstruct.data import open_window_datasets as owd
 
     assert owd is open_window_datasets
-    cfg = dataclasses.replace(TINY, epochs=1, val_items=2, train_items=8)
+    cfg = dataclasses.replace(TINY, epochs=1, steps_per_epoch=1, val_items=2, train_items=8)
     tr2, va2 = open_window_datasets(root, cfg)
     assert len(tr2) == 8 and len(va2) == 2 and [g.name for g in va2.groups] == ["b"]
     res = train(cfg, tr2, va2, tmp_path / "run")
