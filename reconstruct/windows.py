@@ -140,7 +140,9 @@ class GroupIndex:
         if centres == "output":
             # observation k of output frame i is the stored output frame i + k (the evaluation cadence)
             M = self.out_steps.size
-            self.centres = self.out_steps[K : max(K, M - K)]
+            i = np.arange(K, max(K, M - K))
+            fits = (self.out_steps[i - K] - h >= 0) & (self.out_steps[np.minimum(i + K, M - 1)] + h <= self.n_steps - 1)
+            self.centres = self.out_steps[i[fits]]
             return
         else:
             cand = np.arange(0, self.n_steps, int(centre_every), dtype=np.int64)

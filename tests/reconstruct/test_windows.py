@@ -207,3 +207,22 @@ def test_split_filtering_loader_workers_and_training(tmp_path):
     assert len(tr2) == 8 and len(va2) == 2 and [g.name for g in va2.groups] == ["b"]
     res = train(cfg, tr2, va2, tmp_path / "run")
     assert res["step"] == res["total_steps"] and math.isfinite(res["metrics"]["psnr_T"])
+
+
+def test_output_mode_uses_the_stored_cadence(group):
+    """centres="output": observation k of frame i is stored output frame i + k, as spike_sim.aggregate reads it."""
+    from spike_sim.aggregate import aggregate_group
+
+    path, _ = group
+    ds = StoreWindows(path, CFG, split=None, centres="output", crop="centre")
+    S = CFG.crop
+    y0, x0 = (H - S) // 2, (W - S) // 2
+    with open_group(path) as g:
+        agg = aggregate_group(g)
+        exposure = g.json_attr("config_json")["exposure"]
+        np.testing.assert_array_equal(agg["centre_step"], g.array("output/step_index"))
+    assert len(ds) == agg["centre_step"].size - 6
+    for j in (0, len(ds) - 1):
+        i = int(np.searchsorted(agg["centre_step"], ds.locate(j)[1]))
+        ref = agg["I"][i - 3 : i + 4, y0 : y0 + S, x0 : x0 + S] / exposure
+        np.testing.assert_allclose(ds[j]["I"].numpy(), ref, atol=1e-6)
