@@ -52,7 +52,7 @@ def _window(N: int, H: int, W: int, seed: int = 0):
     return torch.from_numpy(g.I).float(), torch.from_numpy(Z).float(), torch.from_numpy(g.phi_nominal).float()
 
 
-def bench_reconstruct(width: int = 400, height: int = 250, n_obs: int = 7, batch: int = 8, repeats: int = 3, threads: int = 2, devices: tuple[str, ...] = ("cpu", "cuda")) -> dict:
+def bench_reconstruct(width: int = 400, height: int = 250, n_obs: int = 7, batch: int = 8, repeats: int = 3, threads: int = 2, devices: tuple[str, ...] = ("cpu", "cuda"), require: bool = False) -> dict:
     """Time the reconstruction stages; returns a plain dict (JSON-ready).
 
     Args:
@@ -62,6 +62,7 @@ def bench_reconstruct(width: int = 400, height: int = 250, n_obs: int = 7, batch
         repeats: timing repeats (best is kept).
         threads: torch CPU threads (the CPU target is 2 cores).
         devices: devices to try; missing ones are reported as skipped.
+        require: raise :class:`~polspike.errors.BackendUnavailableError` instead of skipping a missing device.
 
     Returns:
         {"config": ..., "results": {device: {stage: {"s_per_frame", "fps"}}}, "ratios": ...}
@@ -75,6 +76,10 @@ def bench_reconstruct(width: int = 400, height: int = 250, n_obs: int = 7, batch
     }
     for dev in devices:
         if dev == "cuda" and not torch.cuda.is_available():
+            if require:
+                from polspike.errors import BackendUnavailableError
+
+                raise BackendUnavailableError("bench on cuda requested but torch sees no CUDA device; use --device cpu or auto")
             out["skipped"]["cuda"] = "no CUDA device"
             continue
         sync = torch.cuda.synchronize if dev == "cuda" else (lambda: None)

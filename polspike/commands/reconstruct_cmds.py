@@ -83,6 +83,7 @@ def bench_reconstruct_cmd(
     batch: int = typer.Option(8, "--batch", help="windows per solver call (solver-stage throughput)"),
     repeats: int = typer.Option(3, "--repeats"),
     threads: int = typer.Option(2, "--threads", help="torch CPU threads"),
+    device: str = typer.Option("auto", "--device", help="auto (CPU, plus CUDA when present), cpu, or cuda"),
 ) -> None:
     """Output frames/s of harmonic fit + RIR + RWPS, and of the solver stage alone, vs plain LS (CPU; CUDA if present)."""
     import json
@@ -93,7 +94,12 @@ def bench_reconstruct_cmd(
     from polspike.atomic import write_json, write_text
     from reconstruct.bench import bench_reconstruct
 
-    res = bench_reconstruct(width=width, height=height, batch=batch, repeats=repeats, threads=threads)
+    from polspike.errors import ConfigError
+
+    devices = {"auto": ("cpu", "cuda"), "cpu": ("cpu",), "cuda": ("cuda",)}.get(device)
+    if devices is None:
+        raise ConfigError(f"--device {device!r}: choose auto, cpu or cuda")
+    res = bench_reconstruct(width=width, height=height, batch=batch, repeats=repeats, threads=threads, devices=devices, require=device == "cuda")
     tab = Table(title=f"reconstruct at {width}x{height}, N = 7")
     for c in ("device", "stage", "ms / frame", "frames / s"):
         tab.add_column(c)

@@ -26,3 +26,16 @@ def test_bench_reconstruct_small(tmp_path):
     assert r.exit_code == 0, r.output
     res = json.loads((tmp_path / "reconstruct.json").read_text())
     assert res["results"]["cpu"]["rwps"]["fps"] > 0 and "rwps_over_ls_time" in res["results"]["cpu"]["ratios"]
+
+
+def test_bench_reconstruct_device_selection(tmp_path):
+    import torch
+
+    args = ["bench", "reconstruct", "--out", str(tmp_path), "--width", "24", "--height", "16", "--repeats", "1", "--batch", "1"]
+    r = CliRunner().invoke(get_app(), [*args, "--device", "cpu"])
+    assert r.exit_code == 0, r.output
+    res = json.loads((tmp_path / "reconstruct.json").read_text())
+    assert list(res["results"]) == ["cpu"] and res["skipped"] == {}
+    if not torch.cuda.is_available():
+        bad = CliRunner().invoke(get_app(), [*args, "--device", "cuda"])
+        assert bad.exit_code != 0 and "CUDA" in str(bad.exception)

@@ -121,3 +121,31 @@ def test_unknown_method_lists_choices():
     with pytest.raises(ConfigError, match="rwps"):
         solve("svd", torch.zeros(3, 1, 1), torch.zeros(3, 1, 1))
     _ = SolverConfig()
+
+
+def test_gradcheck_rwps_default_reliability_and_conf_lambda(np_rng):
+    # the whole RWPS chain: Poisson reliability -> Conf (supp. Eq. (12)-(15)) -> lambda (supp. Eq. (8)) -> 2x2 solve (supp. Eq. (9)) -> IRLS
+    zeta, I, _, _ = _window(np_rng, B=1, N=7, H=2, W=3, noise=0.01)
+    zeta.requires_grad_(True)
+    I.requires_grad_(True)
+
+    def f(z, i):
+        out = solve("rwps", z, i)
+        return out.R, out.T, out.conf, out.lam
+
+    assert torch.autograd.gradcheck(f, (zeta, I), atol=1e-6, rtol=1e-4)
+
+
+@pytest.mark.parametrize("method", SOLVERS)
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_singular_systems_have_finite_gradients(method, dtype):
+    """Backward through rank-1 (all zeta equal) and all-zero-weight systems gives no NaN / inf."""
+    g = torch.Generator().manual_seed(3)
+    for z0, w0 in ((torch.full((7, 2, 2), 0.1), torch.ones(7, 2, 2)), (torch.full((7, 2, 2), 0.1), torch.zeros(7, 2, 2)), (torch.zeros(7, 2, 2), torch.ones(7, 2, 2))):
+        z = z0.to(dtype).requires_grad_(True)
+        w = w0.to(dtype).requires_grad_(True)
+        I = torch.rand(7, 2, 2, dtype=dtype, generator=g).requires_grad_(True)
+        out = solve(method, z, I, weights=w)
+        (out.R.sum() + out.T.sum() + out.conf.sum()).backward()
+        for t in (z.grad, I.grad, w.grad if method == "rwps" else torch.zeros(1)):
+            assert t is not None and torch.isfinite(t).all(), f"{method} {dtype}: non-finite gradient"
