@@ -92,6 +92,7 @@ def dataset_build(
 def dataset_verify(
     out: Path = typer.Argument(..., help="dataset folder"),
     fast: bool = typer.Option(False, "--fast", help="file sha256s and metadata only (skip the content checksums)"),
+    partial: bool = typer.Option(False, "--partial", help="accept a build of only some groups (built with --group)"),
 ) -> None:
     """Re-check every checksum and metadata field; exit 2 naming the bad groups."""
     from rich.console import Console
@@ -99,7 +100,7 @@ def dataset_verify(
     from polspike.errors import DataFormatError
     from polspike.pipeline.dataset import verify_dataset
 
-    r = verify_dataset(out, content=not fast)
+    r = verify_dataset(out, content=not fast, partial=partial)
     if not r["ok"]:
         parts = [f"{n} ({'; '.join(e)})" for n, e in r["bad"].items()]
         msg = f"{out}: {len(r['bad'])} bad group(s): {', '.join(parts)}" if parts else f"{out}:"

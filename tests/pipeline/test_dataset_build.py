@@ -180,3 +180,15 @@ def test_bench_dataset_cli_json(tmp_path):
     (row,) = res["rows"]
     assert row["tier"] == "analytic" and row["scaled"] is True
     assert row["s_per_1s_group"] > 0 and row["bytes_per_1s_group"] > row["bytes_measured"] > 0 and row["peak_rss_mib"] > 50
+
+
+@pytest.mark.slow
+def test_process_pool_and_process_cluster_match(built, tmp_path):
+    """The spawn process pool and a process-based Dask LocalCluster (slow to start) give the same content."""
+    r = build_dataset(SMALL, tmp_path / "pool", workers=2, poll_s=0.1)
+    assert len(r["built"]) == 3
+    assert _contents(tmp_path / "pool") == _contents(built)
+    pytest.importorskip("distributed")
+    r = build_dataset(SMALL, tmp_path / "cluster", workers=2, executor="dask", poll_s=0.1)
+    assert len(r["built"]) == 3
+    assert _contents(tmp_path / "cluster") == _contents(built)
