@@ -51,10 +51,15 @@ def _bars(enabled: bool):
     tasks: dict[str, int] = {}
 
     def group(name: str, stage: str, done: int, total: int) -> None:
+        if stage == "skipped":  # verified and kept: counted in the overall bar only
+            return
         if name not in tasks:
             tasks[name] = prog.add_task(f"{name}", total=total)
-        label = f"{name} [{stage}]" if stage not in ("done", "skipped") else f"{name} ({stage})"
-        prog.update(tasks[name], completed=done, total=total, description=label[:28])
+        if stage == "done":  # running groups only; the overall bar keeps the count
+            prog.remove_task(tasks.pop(name))
+            prog.console.print(f"[green]built[/] {name}", highlight=False)
+            return
+        prog.update(tasks[name], completed=done, total=total, description=f"{name} [{stage}]"[:28])
 
     def overall_cb(done: int, total: int) -> None:
         prog.update(overall, completed=done, total=total)
