@@ -233,3 +233,19 @@ def test_r_layer_beyond_the_pane_is_a_render_json_warning():
     info = {}
     tm.FullRenderer(_scene(), _opts("full", spp=1), info)
     assert "warnings" not in info["modelled"]
+
+
+def test_forcing_cuda_without_a_gpu_is_one_line_error():
+    """--variant cuda on a machine without CUDA: BackendUnavailableError naming the variant (exit 2), no crash."""
+    require_mitsuba()
+    from generator.mitsuba_backend import resolve_backend
+    from polspike.errors import BackendUnavailableError
+
+    try:
+        resolve_backend("cuda")
+    except BackendUnavailableError as exc:
+        assert "cuda_ad_mono_polarized" in str(exc) and "\n" not in str(exc) and "--variant auto" in str(exc)
+    else:
+        pytest.skip("a CUDA device is present")
+    finally:
+        resolve_backend("auto")
