@@ -71,9 +71,10 @@ def test_dataset_json_is_read_by_the_reconstructor(built):
 def test_dask_local_cluster_matches_local_checksums(built, tmp_path):
     distributed = pytest.importorskip("distributed")
     # processes=False: one in-process worker with 2 threads keeps the test fast (about 1 s to start);
-    # the task function is the same one a process-based cluster or a remote scheduler runs.
-    with distributed.LocalCluster(n_workers=1, threads_per_worker=2, processes=False, dashboard_address=None) as cluster, distributed.Client(cluster) as client:
-        r = build_dataset(SMALL, tmp_path / "dask", executor="dask", client=client, workers=2, poll_s=0.05)
+    # the build connects to it by its scheduler address, as `--scheduler ADDR` does to a real cluster,
+    # and runs the same task function a process-based cluster runs.
+    with distributed.LocalCluster(n_workers=1, threads_per_worker=2, processes=False, dashboard_address=None) as cluster:
+        r = build_dataset(SMALL, tmp_path / "dask", executor="dask", scheduler=cluster.scheduler_address, workers=2, poll_s=0.05)
     assert len(r["built"]) == 3
     assert _contents(tmp_path / "dask") == _contents(built)
     assert verify_dataset(tmp_path / "dask")["ok"]
@@ -192,3 +193,25 @@ def test_process_pool_and_process_cluster_match(built, tmp_path):
     r = build_dataset(SMALL, tmp_path / "cluster", workers=2, executor="dask", poll_s=0.1)
     assert len(r["built"]) == 3
     assert _contents(tmp_path / "cluster") == _contents(built)
+
+
+@pytest.mark.slow
+@pytest.mark.mitsuba
+def test_maps_tier_group_builds_and_verifies(tmp_path):
+    """A tiny maps-tier group: Mitsuba renders the pane maps into DIR/.tmp, which is removed after."""
+    pytest.importorskip("mitsuba")
+    data = {
+        "name": "maps",
+        "defaults": {"duration_s": 0.01, "camera": {"width": 24, "height": 16}, "render": {"spp": 1}},
+        "groups": [
+            {"name": "m0", "split": "train", "scene": "brewster", "tier": "maps"},
+            {"name": "a0", "split": "test", "scene": "brewster", "tier": "analytic",
+             "layers": {"transmission": {"source": "skimage:rocket"}, "reflection": {"source": "procedural:rings", "sprites": []}}},
+        ],
+    }
+    man = tmp_path / "maps.toml"
+    man.write_text(dump_manifest(data))
+    r = build_dataset(man, tmp_path / "d")
+    assert sorted(r["built"]) == ["a0", "m0"]
+    assert verify_dataset(tmp_path / "d")["ok"]
+    assert not (tmp_path / "d" / ".tmp").exists()
