@@ -148,6 +148,17 @@ def render(scene: SceneConfig, out_dir: str | os.PathLike, opts: RenderOptions =
                 f"{out} was rendered with {k} = {prev['resume_key'].get(k)!r}, this run has {k} = {rkey.get(k)!r}; "
                 "resume with the same options or choose an empty --out"
             )
+        names_prev = prev.get("frames") or []
+        if (
+            prev.get("complete")
+            and len(names_prev) == len(times)
+            and (out / "maps.exr").is_file()
+            and all((out / nm).is_file() for nm in names_prev)
+        ):
+            log.info("%s: render already complete (same scene, tier and options); nothing to do", out)
+            if progress:
+                progress(b - a, b - a)
+            return prev
     timings: dict[str, float] = dict(prev.get("timings", {})) if prev else {}
     info: dict = {"modelled": dict(ANALYTIC_MODELLED), "tier": opts.tier}
     t0 = time.perf_counter()

@@ -216,6 +216,14 @@ def test_maps_are_evaluated_once_per_scene_not_per_frame(tmp_path, monkeypatch):
     monkeypatch.setattr(tm, "render_pane_maps", lambda *a, **k: calls.append(1) or orig(*a, **k))
     meta = render(_scene(duration_s=0.05), tmp_path / "r", _opts("maps"))
     assert len(meta["frames"]) == 6 and len(calls) == 1
+    # re-running a complete render with the same options does nothing (no second evaluation)
+    again = render(_scene(duration_s=0.05), tmp_path / "r", _opts("maps"))
+    assert again == json.loads((tmp_path / "r" / "render.json").read_text()) and len(calls) == 1
+    # a longer clip resumes: maps evaluated again (once), only the new frames rendered
+    t0 = (tmp_path / "r" / "frames" / "000000.exr").stat().st_mtime_ns
+    meta = render(_scene(duration_s=0.05), tmp_path / "r", _opts("maps", duration_s=0.08))  # --duration
+    assert meta["complete"] and len(meta["frames"]) == 9 and len(calls) == 2
+    assert (tmp_path / "r" / "frames" / "000000.exr").stat().st_mtime_ns == t0
 
 
 def test_r_layer_beyond_the_pane_is_a_render_json_warning():
