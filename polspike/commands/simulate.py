@@ -45,6 +45,7 @@ def simulate_cmd(
     chunk_steps: int = typer.Option(1000, "--chunk-steps", help="steps per chunk (memory ~ chunk * H W / 8 bytes)"),
     overwrite: bool = typer.Option(False, "--overwrite", help="replace an existing group"),
     compression: str = typer.Option("gzip", "--compression", help="spike dataset compression: gzip (deflate 1, ~30 % smaller) or none (fastest)"),
+    store_zeta: bool = typer.Option(False, "--store-zeta", help="also store paper Eq. (2) zeta at each output time (float16, gt/zeta; needs maps.exr)"),
     quiet: bool = typer.Option(False, "--quiet", help="no progress bar"),
 ) -> None:
     """Simulate the spike camera behind the rotating polarizer for a rendered scene."""
@@ -55,7 +56,7 @@ def simulate_cmd(
 
     cfg, agg = load_sim_config(config, preset)
     with rich_progress("simulate", enabled=not quiet) as cb:
-        s = simulate(render_dir, duration, seed, cfg, out=out, progress=cb, chunk_steps=chunk_steps, dat_path=dat, aggregate=agg, overwrite=overwrite, compression=compression)
+        s = simulate(render_dir, duration, seed, cfg, out=out, progress=cb, chunk_steps=chunk_steps, dat_path=dat, aggregate=agg, overwrite=overwrite, compression=compression, store_zeta=store_zeta)
     Console().print(
         f"[green]wrote[/] {out}: {s.n_steps} steps, {s.n_output_frames} Eq. (3) output frames, mean rate {s.mean_rate:.4f} spikes/step,"
         f" {s.seconds:.1f} s ({s.pixel_steps_per_s:.3g} pixel-steps/s in the kernel)" + (f"; .dat {dat}" if dat else "")

@@ -88,3 +88,20 @@ def test_simulate_flags_preset_chunking_compression(tmp_path, keyframes):
     r = run("e", "--chunk-steps", "0")
     assert isinstance(r.exception, ConfigError) and "chunk_steps" in str(r.exception)
     assert not (tmp_path / "e" / "group.json").exists()
+
+
+def test_store_zeta_flag_writes_eq2_at_output_times(tmp_path, keyframes):
+    """--store-zeta: gt/zeta (M, H, W) = paper Eq. (2) at each output frame's mean true angle (float16)."""
+    from polspike.physics.zeta import zeta
+
+    rd = _render_dir(tmp_path, keyframes)
+    r = CliRunner().invoke(get_app(), ["simulate", str(rd), "--duration", "0.03", "--out", str(tmp_path / "g"), "--store-zeta", "--quiet"])
+    assert r.exit_code == 0, r.output
+    with open_group(tmp_path / "g") as g:
+        z = g.f["gt/zeta"]
+        M = g.array("output/step_index").size
+        assert z.shape == (M, 16, 24) and M > 0
+        m = g.maps()
+        phi = g.array("output/phi_true_rad")
+        for i in (0, M - 1):
+            np.testing.assert_allclose(z[i], zeta(phi[i], m["R_perp"], m["R_par"], m["phi_perp"]), atol=2e-3)
