@@ -369,6 +369,7 @@ def build_group(spec: dict, out_dir: str, chunk_steps: int = 1000, numba_threads
         timings["checksum_s"] = time.perf_counter() - ts
         cs = {"format": "polspike-group-checksums/1", "name": name, "spec_sha256": spec["spec_sha256"], "content_sha256": content, "files": files, "definition": CHECKSUM_DEFINITION}
         write_json(work / CHECKSUMS_FILE, cs)
+        _fsync_tree(work)  # data on disk before the name appears (a crash then leaves no torn group)
         ensure_dir(final.parent)
         try:
             os.rename(work, final)  # atomic publish: the group appears complete or not at all
@@ -411,6 +412,16 @@ def build_group(spec: dict, out_dir: str, chunk_steps: int = 1000, numba_threads
         "bytes": int(sum(f["bytes"] for f in files.values())),
         "timings": timings,
     }
+
+
+def _fsync_tree(d: Path) -> None:
+    for p in [*d.iterdir(), d]:
+        with contextlib.suppress(OSError):
+            fd = os.open(p, os.O_RDONLY)
+            try:
+                os.fsync(fd)
+            finally:
+                os.close(fd)
 
 
 def _record_from_group(final: Path, g: ResolvedGroup) -> dict:
