@@ -88,6 +88,7 @@ __all__ = [
     "verify_group_files",
     "content_sha256",
     "file_sha256",
+    "estimate_group_bytes",
 ]
 
 log = logging.getLogger(__name__)
@@ -424,6 +425,17 @@ def _fsync_tree(d: Path) -> None:
                 os.close(fd)
 
 
+def estimate_group_bytes(g: ResolvedGroup) -> int:
+    """Upper bound of a group's disk use while it builds (raw spike bits, float16 GT, maps; render dir for maps/full)."""
+    h, w = int(g.scene["camera"]["height"]), int(g.scene["camera"]["width"])
+    steps = int(round(g.duration_s * float(g.spike_sim["rate_hz"])))
+    frames = int(g.duration_s * 2 * 360.0 * float(g.scene["polarizer"]["rate_hz"]) / 31.5) + 2  # Eq. (3) outputs, generous
+    n = steps * ((h * w + 7) // 8) + frames * h * w * 2 * 2 + 6 * h * w * 4 + (1 << 20)
+    if g.tier != "analytic":
+        n += (int(np.ceil(g.duration_s * g.keyframe_fps)) + 1) * h * w * 5 * 4
+    return int(n)
+
+
 def _record_from_group(final: Path, g: ResolvedGroup) -> dict:
     cs = json.loads((final / CHECKSUMS_FILE).read_text())
     spec = json.loads((final / SPEC_FILE).read_text())
@@ -600,6 +612,10 @@ def build_dataset(
             log.info("group %s built in %.1f s", g.name, rec.get("timings", {}).get("total_s", float("nan")))
 
         if todo:
+            need = max(estimate_group_bytes(g) for g in todo) * min(workers, len(todo))
+            free = shutil.disk_usage(root).free
+            if free < need:
+                raise OutputError(f"{root}: {free / 1e9:.2f} GB free, but building {min(workers, len(todo))} group(s) at once needs up to {need / 1e9:.2f} GB; free space, lower --workers or choose another --out")
             n_thr = max(1, (os.cpu_count() or 1) // workers) if workers > 1 else 0
             if executor == "local" and workers == 1 and client is None:
                 for g in todo:

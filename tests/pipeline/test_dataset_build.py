@@ -215,3 +215,15 @@ def test_maps_tier_group_builds_and_verifies(tmp_path):
     assert sorted(r["built"]) == ["a0", "m0"]
     assert verify_dataset(tmp_path / "d")["ok"]
     assert not (tmp_path / "d" / ".tmp").exists()
+
+
+def test_too_little_disk_space_is_refused_before_building(tmp_path, monkeypatch):
+    import collections
+
+    import polspike.pipeline.dataset as ds
+
+    usage = collections.namedtuple("usage", "total used free")
+    monkeypatch.setattr(ds.shutil, "disk_usage", lambda p: usage(10**9, 10**9 - 1000, 1000))
+    with pytest.raises(OutputError, match="GB free"):
+        build_dataset(SMALL, tmp_path / "full")
+    assert not any((tmp_path / "full" / "groups").iterdir())
