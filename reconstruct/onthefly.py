@@ -1,213 +1,149 @@
-"""Training windows generated on the fly from closed-form physics (no stored dataset).
+"""Training windows generated on the fly: the item format and the map-style dataset.
 
-An item is one window of N = 2K+1 spike frames (paper Eq. (3)) with its
-centre-frame ground truth, made from
+An **item** is one window of N = 2K+1 spike frames around an output frame,
+with its centre-frame ground truth.  Stored windows (``reconstruct.windows``)
+and on-the-fly windows share this format, built by :func:`item_from_stream`
+from a spike stream exactly as :func:`reconstruct.groups.load_store_group`
+reads a stored group:
 
-* a **scene sample** (:class:`SceneSample`): layer radiances T, R per
-  observation, the pane coefficient maps (R_perp, R_par, phi_perp) and the
-  window's polarizer angles.  It comes from a :data:`SceneProvider` callable,
-  so ``reconstruct`` never imports ``generator``: the CLI wires generator
-  content in (``polspike train --on-the-fly``); :class:`ImageLayerProvider`
-  builds samples from any list of grey images with random pane geometry from
-  :mod:`polspike.physics.fresnel` (shared physics);
-* a **spike model** (:data:`SpikeModel` callable) turning the mean photocurrent
-  of each aggregation window into spike counts.  The default,
-  :func:`window_count_model`, is the closed form of a noise-free
-  integrate-and-fire pixel over ``n_steps`` steps with a uniformly random
-  residue at the window start plus a Gaussian term for shot / thermal noise:
-  ``count = clip(floor(u + n g + sigma eps), 0, n)``, g = exposure L_M
-  thresholds per step.  The full simulator (spike_sim) can be passed instead.
+``I``         (N, H, W) float32  paper Eq. (3) frames / exposure (radiance units, I = 1/2 mix of paper Eq. (1))
+``phi``       (N,)      float32  window-mean *nominal* (calibrated) polarizer angle, rad
+``T``, ``R``  (H, W)    float32  centre-frame GT layers (float16-rounded, as a group store keeps them)
+``zeta``      (N, H, W) float32  paper Eq. (2) at the window-mean *true* angle, averaged over
+                                 the polarizer sweep of one window (sinc factor, :func:`reconstruct.zeta_source.zeta_eq2`)
+``R_perp``, ``R_par``, ``phi_perp`` (H, W) float32  pane maps
+``exposure``  ()        float32  thresholds per step per unit radiance of the stream
 
-Mixed light per observation (paper Eq. (1)-(2)), averaged over the polarizer
-sweep of one window (sinc factor, exact for constant rotation):
-``L_M,k = 1/2 (zeta_k R_k + (1 - zeta_k) T_k)``; the frame in radiance units
-is ``I_k = count_k / (n_steps exposure)``.
-
-Every item is a pure function of (seed, index): ``np.random.default_rng([seed, index])``.
+On-the-fly items come from a :data:`WindowSource` callable ``(seed, index) ->
+item``.  ``reconstruct`` never imports ``generator``: the CLI
+(its pipeline module ``train_windows``) wires in a source that renders the
+crop with the generator's analytic tier and simulates only the window's steps
+with :func:`spike_sim.simulate` (integrate-and-fire, seeded per item), i.e. the
+same code that builds stores, and then calls :func:`item_from_stream`.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 
 import numpy as np
 import torch
-from scipy import ndimage
 
 from polspike.config import opt
 from polspike.errors import ConfigError, ShapeError
-from polspike.physics.fresnel import pane_coefficients
 
-__all__ = ["WindowConfig", "SceneSample", "SceneProvider", "SpikeModel", "window_count_model", "ImageLayerProvider", "make_item", "OnTheFlyWindows"]
+__all__ = ["WindowConfig", "ITEM_KEYS", "WindowSource", "window_centres", "item_from_stream", "OnTheFlyWindows"]
+
+ITEM_KEYS = ("I", "phi", "T", "R", "zeta", "R_perp", "R_par", "phi_perp", "T_perp", "T_par", "exposure")
+"""Keys of a window item (module docstring)."""
 
 
 @dataclasses.dataclass(frozen=True)
 class WindowConfig:
-    """Window geometry and the closed-form spike model."""
+    """Window geometry (paper Sec. 3.5) and the per-item simulation knobs of on-the-fly windows."""
 
-    n_obs: int = opt(7, "observations per window N = 2K+1", lo=3, hi=31)
-    crop: int = opt(16, "square crop side, pixels (multiple of 4)", lo=4, hi=4096)
-    dt_s: float = opt(0.65e-3, "aggregation window, s (paper: 0.65 ms)", lo=1e-5, hi=0.1)
-    step_s: float = opt(50e-6, "spike camera step, s (20 kHz)", lo=1e-7, hi=1e-2)
-    rate_hz: float = opt(30.0, "polarizer rotation rate, rev/s", lo=0.1, hi=1000.0)
-    stride_deg: float = opt(31.5, "polarizer angle between consecutive observations, degrees", lo=0.1, hi=180.0)
-    exposure_range: tuple[float, float] = opt((0.6, 1.4), "photocurrent per unit radiance behind the polarizer, thresholds per step, drawn per item", lo=1e-3, hi=100.0)
-    noise_std: float = opt(0.15, "Gaussian count noise per window (shot + thermal), spikes, times sqrt(n_steps g)", lo=0.0, hi=10.0)
+    n_obs: int = opt(7, "observations per window N = 2K+1 (odd)", lo=3, hi=31)
+    crop: int = opt(32, "square crop side, pixels (multiple of 4)", lo=4, hi=4096)
+    window_steps: int = opt(13, "paper Eq. (3) window in simulator steps (13 = 0.65 ms at 20 kHz; odd)", lo=1, hi=10001)
+    stride_deg: float = opt(31.5, "polarizer rotation between consecutive observations, degrees", lo=0.1, hi=180.0)
+    keyframe_hz: float = opt(2000.0, "on-the-fly: Stokes keyframes per second rendered inside the window (linear in between)", lo=1.0, hi=20000.0)
+    exposure_range: tuple[float, float] = opt((0.8, 1.8), "on-the-fly: spike_sim exposure (thresholds per step per unit radiance), drawn per item", lo=1e-3, hi=100.0)
+    sim_preset: str = opt("default", "on-the-fly: spike_sim noise preset (ideal | default | noisy)", choices=("ideal", "default", "noisy"))
 
-    @property
-    def n_steps(self) -> int:
-        """Steps per aggregation window (0.65 ms / 50 us = 13)."""
-        return max(1, int(round(self.dt_s / self.step_s)))
-
-    @property
-    def span_rad(self) -> float:
-        """Polarizer rotation during one aggregation window, rad."""
-        return 2 * math.pi * self.rate_hz * self.n_steps * self.step_s
+    def __post_init__(self) -> None:
+        if self.n_obs % 2 == 0:
+            raise ConfigError(f"window.n_obs = {self.n_obs} must be odd (N = 2K + 1); use {self.n_obs + 1}")
+        if self.window_steps % 2 == 0:
+            raise ConfigError(f"window.window_steps = {self.window_steps} must be odd (centred windows); use {self.window_steps + 1}")
+        if self.crop % 4:
+            raise ConfigError(f"window.crop = {self.crop} must be a multiple of 4 (the refinement downsamples twice)")
 
 
-@dataclasses.dataclass
-class SceneSample:
-    """One window's physics; maps (H, W) float, per-observation layers (N, H, W) or (H, W).
-
-    Attributes:
-        T, R: layer radiances (linear, 1.0 = brightest); (N, H, W) when the
-            scene moves inside the window, else (H, W).  The centre index is the GT.
-        R_perp, R_par: pane reflectances (totals), phi_perp: s-direction (rad).
-        phi: (N,) polarizer angle at each window centre, rad.
-    """
-
-    T: np.ndarray
-    R: np.ndarray
-    R_perp: np.ndarray
-    R_par: np.ndarray
-    phi_perp: np.ndarray
-    phi: np.ndarray
+WindowSource = Callable[[int, int], dict[str, torch.Tensor]]
+"""(seed, index) -> item dict (keys :data:`ITEM_KEYS`); a pure function of its arguments."""
 
 
-SceneProvider = Callable[[np.random.Generator, WindowConfig], SceneSample]
-"""(rng, window config) -> :class:`SceneSample` for a crop x crop window."""
-
-SpikeModel = Callable[[np.ndarray, int, np.random.Generator], np.ndarray]
-"""(g (N, H, W) thresholds per step, n_steps, rng) -> spike counts (N, H, W)."""
+def _t(a) -> torch.Tensor:
+    return torch.as_tensor(np.ascontiguousarray(a), dtype=torch.float32)
 
 
-def window_count_model(noise_std: float = 0.15) -> SpikeModel:
-    """Closed-form integrate-and-fire count over a window (module docstring)."""
-
-    def model(g: np.ndarray, n_steps: int, rng: np.random.Generator) -> np.ndarray:
-        x = n_steps * np.clip(g, 0.0, 1.0)
-        u = rng.random(g.shape)  # residue at the window start, U[0, 1) of a threshold
-        noise = noise_std * np.sqrt(np.maximum(x, 0.0)) * rng.standard_normal(g.shape) if noise_std > 0 else 0.0
-        return np.clip(np.floor(u + x + noise), 0, n_steps)
-
-    return model
+def window_centres(phi_nominal_rad: np.ndarray, centre_step: int, n_obs: int, stride_rad: float) -> np.ndarray:
+    """Centre steps c_k (N,) of the observations around ``centre_step``: where the nominal angle has
+    turned by k * stride (k = -K..K) from its value at ``centre_step``, rounded to a step (c_0 = c)."""
+    K = n_obs // 2
+    phi = np.asarray(phi_nominal_rad, dtype=np.float64)
+    c = np.rint(np.interp(phi[int(centre_step)] + stride_rad * np.arange(-K, K + 1), phi, np.arange(phi.size, dtype=np.float64))).astype(np.int64)
+    c[K] = int(centre_step)
+    return c
 
 
-def make_item(sample: SceneSample, cfg: WindowConfig, rng: np.random.Generator, spike_model: SpikeModel | None = None) -> dict[str, torch.Tensor]:
-    """Turn a scene sample into a training item (float32 tensors).
+def item_from_stream(
+    spikes: np.ndarray,
+    obs_steps: np.ndarray,
+    phi_nominal_step: np.ndarray,
+    phi_true_step: np.ndarray,
+    gt: tuple[np.ndarray, np.ndarray],
+    maps: dict[str, np.ndarray],
+    exposure: float,
+    cfg: WindowConfig,
+) -> dict[str, torch.Tensor]:
+    """Build a window item from a spike stream, the way a stored group is read.
+
+    Args:
+        spikes: (T, H, W) 0/1 stream (step 0 = stream start).
+        obs_steps: (N,) centre steps c_k of the observations k = -K..K: the stream's
+            output frames (:func:`spike_sim.aggregate.frame_centres`) around the centre one,
+            or :func:`window_centres` for a window centred on any step.
+        phi_nominal_step: (T,) nominal mid-step polarizer angle, rad (observation placement and ``phi``).
+        phi_true_step: (T,) true mid-step angle, rad (GT zeta).
+        gt: (T, R) ground-truth layers (H, W) at the centre step c_0 (as stored: float16-rounded).
+        maps: ``R_perp``, ``R_par``, ``phi_perp`` and optionally ``T_perp``, ``T_par`` (H, W).
+        exposure: stream exposure (I = counts / (window_steps exposure)).
+        cfg: window geometry.
 
     Returns:
-        dict with ``I`` (N, H, W) radiance units, ``phi`` (N,), ``T``, ``R`` (H, W)
-        centre-frame GT, ``zeta`` (N, H, W) window-averaged paper Eq. (2),
-        ``R_perp``, ``R_par``, ``phi_perp`` (H, W), ``exposure`` ().
+        item dict (module docstring); ``phi`` is shifted by a multiple of pi so that the
+        centre angle lies in [0, pi) (every quantity has period pi in phi).
     """
-    N = cfg.n_obs
-    phi = np.asarray(sample.phi, dtype=np.float64)
-    if phi.shape != (N,):
-        raise ShapeError(f"scene sample phi must be ({N},); got {phi.shape}", actual_shape=phi.shape, expected_shape=(N,))
-    T = np.broadcast_to(sample.T, (N,) + np.shape(sample.R_perp)).astype(np.float64)
-    R = np.broadcast_to(sample.R, (N,) + np.shape(sample.R_perp)).astype(np.float64)
-    sinc = math.sin(cfg.span_rad) / cfg.span_rad if cfg.span_rad > 0 else 1.0
-    mean = 0.5 * (sample.R_perp + sample.R_par)
-    amp = 0.5 * (sample.R_perp - sample.R_par)
-    zeta = mean[None] + amp[None] * sinc * np.cos(2 * (phi[:, None, None] - sample.phi_perp[None]))  # paper Eq. (2), window average
-    L_M = 0.5 * (zeta * R + (1 - zeta) * T)  # paper Eq. (1)
-    lo, hi = cfg.exposure_range
-    exposure = float(rng.uniform(lo, hi))
-    model = spike_model or window_count_model(cfg.noise_std)
-    counts = model(exposure * L_M, cfg.n_steps, rng)  # paper Eq. (3): count over dt
-    I = counts / (cfg.n_steps * exposure)
-    c = N // 2
-    f = lambda a: torch.as_tensor(np.ascontiguousarray(a), dtype=torch.float32)  # noqa: E731
-    return {"I": f(I), "phi": f(phi), "T": f(T[c]), "R": f(R[c]), "zeta": f(zeta), "R_perp": f(sample.R_perp), "R_par": f(sample.R_par), "phi_perp": f(sample.phi_perp), "exposure": torch.tensor(exposure, dtype=torch.float32)}
-
-
-class ImageLayerProvider:
-    """Scene samples from a list of grey images with random pane geometry and motion.
-
-    Per item: two different images (T and R layers), random crops, flips and
-    scales, brightness in ``t_gain`` / ``r_gain``, an optional defocus blur of
-    the R layer; the pane is a linear field of incidence angle theta (deg range
-    ``theta_deg``) and s-direction phi_perp across the crop, index n in
-    ``n_range``, model single or thin_slab (Fresnel from :mod:`polspike.physics.fresnel`);
-    the layers drift by up to ``drift_px`` pixels per observation.
-    """
-
-    def __init__(
-        self,
-        images: Sequence[np.ndarray],
-        *,
-        t_gain: tuple[float, float] = (0.4, 1.0),
-        r_gain: tuple[float, float] = (0.3, 1.0),
-        theta_deg: tuple[float, float] = (15.0, 80.0),
-        n_range: tuple[float, float] = (1.45, 1.65),
-        blur_px: tuple[float, float] = (0.0, 2.0),
-        drift_px: float = 0.3,
-        zoom: tuple[float, float] = (0.5, 1.5),
-    ):
-        imgs = [np.asarray(im, dtype=np.float64) for im in images]
-        if len(imgs) < 2 or any(im.ndim != 2 for im in imgs):
-            raise ConfigError(f"ImageLayerProvider needs at least two (H, W) grey images; got {len(imgs)}")
-        self.images = imgs
-        self.t_gain, self.r_gain, self.theta_deg, self.n_range = t_gain, r_gain, theta_deg, n_range
-        self.blur_px, self.drift_px, self.zoom = blur_px, drift_px, zoom
-
-    def _layer(self, img: np.ndarray, rng: np.random.Generator, S: int, N: int, gain: float, blur: float) -> np.ndarray:
-        z = rng.uniform(*self.zoom)
-        span = S * z
-        H, W = img.shape
-        y0 = rng.uniform(0, max(H - span - 2, 0))
-        x0 = rng.uniform(0, max(W - span - 2, 0))
-        v = rng.normal(0, self.drift_px, 2)
-        yy, xx = np.mgrid[0:S, 0:S].astype(np.float64) * z
-        if rng.random() < 0.5:
-            xx = xx[:, ::-1]
-        out = np.empty((N, S, S))
-        for k in range(N):
-            d = (k - N // 2) * v
-            out[k] = ndimage.map_coordinates(img, [yy + y0 + d[0], xx + x0 + d[1]], order=1, mode="reflect")
-        if blur > 0:
-            out = ndimage.gaussian_filter(out, sigma=(0, blur, blur))
-        return np.clip(out, 0.0, None) * gain
-
-    def __call__(self, rng: np.random.Generator, cfg: WindowConfig) -> SceneSample:
-        S, N = cfg.crop, cfg.n_obs
-        i, j = rng.choice(len(self.images), size=2, replace=False)
-        T = self._layer(self.images[i], rng, S, N, rng.uniform(*self.t_gain), 0.0)
-        R = self._layer(self.images[j], rng, S, N, rng.uniform(*self.r_gain), rng.uniform(*self.blur_px))
-        yy, xx = (np.mgrid[0:S, 0:S] - (S - 1) / 2.0) / S
-        th0 = rng.uniform(*self.theta_deg)
-        gth = rng.normal(0, 8.0, 2)
-        theta = np.radians(np.clip(th0 + gth[0] * yy + gth[1] * xx, 1.0, 88.0))
-        pp0 = rng.uniform(0, math.pi)
-        gpp = rng.normal(0, 0.3, 2)
-        phi_perp = pp0 + gpp[0] * yy + gpp[1] * xx
-        model = "single" if rng.random() < 0.5 else "thin_slab"
-        co = pane_coefficients(theta, rng.uniform(*self.n_range), model)
-        phi_c = rng.uniform(0, 2 * math.pi)
-        phi = phi_c + math.radians(cfg.stride_deg) * (np.arange(N) - N // 2)
-        return SceneSample(T=T, R=R, R_perp=np.asarray(co["R_perp"]), R_par=np.asarray(co["R_par"]), phi_perp=phi_perp, phi=phi)
+    h = cfg.window_steps // 2
+    ck = np.asarray(obs_steps, dtype=np.int64)
+    if ck.shape != (cfg.n_obs,):
+        raise ShapeError(f"obs_steps must be ({cfg.n_obs},); got {ck.shape}", ck.shape, (cfg.n_obs,))
+    if ck.min() - h < 0 or ck.max() + h > spikes.shape[0] - 1:
+        raise ShapeError(f"windows {ck.min() - h}..{ck.max() + h} leave the stream of {spikes.shape[0]} steps", spikes.shape, "a longer stream")
+    idx = ck[:, None] + np.arange(-h, h + 1)[None]
+    counts = spikes[idx.ravel()].reshape(idx.shape + spikes.shape[1:]).sum(1, dtype=np.int32)
+    I = counts / (cfg.window_steps * exposure)  # paper Eq. (3), radiance units
+    phi_nom = np.asarray(phi_nominal_step, np.float64)
+    phi_tr = np.asarray(phi_true_step, np.float64)
+    phi = phi_nom[idx].mean(1)
+    phi = phi - math.floor(phi[len(phi) // 2] / math.pi) * math.pi  # period pi: centre angle in [0, pi)
+    a = float(np.mean(np.diff(phi_tr))) if phi_tr.size > 1 else 0.0
+    sinc = math.sin(a) / a if a > 0 else 1.0  # rotation inside one step
+    pt = phi_tr[idx]
+    C = sinc * np.cos(2 * pt).mean(1)
+    Sn = sinc * np.sin(2 * pt).mean(1)
+    Rp, Rs, pp = (np.asarray(maps[k], np.float32).astype(np.float64) for k in ("R_perp", "R_par", "phi_perp"))
+    # paper Eq. (2) averaged over each window at the true per-step angles: mean + amp <cos 2(phi - phi_perp)>
+    zeta = 0.5 * (Rp + Rs)[None] + 0.5 * (Rp - Rs)[None] * (C[:, None, None] * np.cos(2 * pp)[None] + Sn[:, None, None] * np.sin(2 * pp)[None])
+    Tp = np.asarray(maps["T_perp"], np.float32) if "T_perp" in maps else (1.0 - Rp).astype(np.float32)
+    Ts = np.asarray(maps["T_par"], np.float32) if "T_par" in maps else (1.0 - Rs).astype(np.float32)
+    T_, R_ = (np.asarray(x, np.float16).astype(np.float64) for x in gt)
+    return {
+        "I": _t(I), "phi": _t(phi), "T": _t(T_), "R": _t(R_), "zeta": _t(zeta), "R_perp": _t(Rp), "R_par": _t(Rs), "phi_perp": _t(pp),
+        "T_perp": _t(Tp), "T_par": _t(Ts), "exposure": torch.tensor(float(exposure), dtype=torch.float32),
+    }
 
 
 class OnTheFlyWindows(torch.utils.data.Dataset):
-    """Map-style dataset of ``length`` windows, item i a pure function of (seed, i)."""
+    """Map-style dataset of ``length`` windows; item i = ``source(seed, i)``, a pure function of (seed, i)."""
 
-    def __init__(self, provider: SceneProvider, cfg: WindowConfig = WindowConfig(), *, length: int = 100000, seed: int = 0, spike_model: SpikeModel | None = None):
-        if cfg.crop % 4:
-            raise ConfigError(f"crop = {cfg.crop} must be a multiple of 4 (the refinement downsamples twice)")
-        self.provider, self.cfg, self.length, self.seed, self.spike_model = provider, cfg, int(length), int(seed), spike_model
+    def __init__(self, source: WindowSource, *, length: int = 100000, seed: int = 0):
+        if length < 1:
+            raise ConfigError(f"length = {length} must be >= 1")
+        self.source, self.length, self.seed = source, int(length), int(seed)
 
     def __len__(self) -> int:
         return self.length
@@ -215,5 +151,4 @@ class OnTheFlyWindows(torch.utils.data.Dataset):
     def __getitem__(self, index: int) -> dict[str, torch.Tensor]:
         if not 0 <= index < self.length:
             raise IndexError(index)
-        rng = np.random.default_rng([self.seed, int(index)])
-        return make_item(self.provider(rng, self.cfg), self.cfg, rng, self.spike_model)
+        return self.source(self.seed, int(index))

@@ -68,15 +68,18 @@ class TrainConfig:
     net: NetConfig = opt(factory=NetConfig, doc="network architecture and ablation switches")
     solver: SolverConfig = opt(factory=SolverConfig, doc="physics solver parameters")
     loss: LossConfig = opt(factory=LossConfig, doc="loss weights, paper Eq. (8)-(12)")
-    window: WindowConfig = opt(factory=WindowConfig, doc="window geometry and on-the-fly spike model")
+    window: WindowConfig = opt(factory=WindowConfig, doc="window geometry and on-the-fly simulation knobs")
     train_items: int = opt(200000, "on-the-fly training items (index space)", lo=1, hi=10**12)
     val_items: int = opt(64, "on-the-fly validation items", lo=1, hi=10**7)
+    train_scenes: int = opt(40, "on-the-fly: training scenes drawn from the documented ranges (paper: 40 train groups)", lo=1, hi=100000)
+    test_scenes: int = opt(10, "on-the-fly: validation / test scenes, disjoint layer content (paper: 10 test groups)", lo=1, hi=100000)
+    scene_seed: int = opt(0, "on-the-fly: seed of the scene pools", lo=0, hi=2**31 - 1)
 
 
 TINY = TrainConfig(
     epochs=4, steps_per_epoch=2, batch_size=2, ckpt_every=2, log_every=1, val_items=4, train_items=64,
     net=NetConfig(feat_ch=8, ref_ch=(8, 8, 8), dec_ch=(8, 8, 8), use_rir=False),
-    window=WindowConfig(crop=16),
+    window=WindowConfig(crop=16), train_scenes=2, test_scenes=1,
 )
 """Shrunken preset for tests: a few steps on 16x16 crops in seconds."""
 

@@ -15,32 +15,11 @@ import typer
 from polspike.cli import app_typer
 from polspike.errors import ConfigError
 
-HELDOUT_IMAGES = ("chelsea", "coins", "grass", "text")
-"""Bundled images kept out of on-the-fly training (validation / test content)."""
+def on_the_fly_sets(cfg):
+    """(train set, validation set) of on-the-fly windows: generator analytic tier + spike_sim, disjoint scenes and content."""
+    from polspike.pipeline.train_windows import window_sets
 
-
-def generator_images(names: tuple[str, ...] | None = None, heldout: bool = False, size: int = 320):
-    """Linear grey layer images from the generator's bundled offline content.
-
-    Args:
-        names: skimage names (default: all bundled names minus / only :data:`HELDOUT_IMAGES`).
-        heldout: with ``names`` None, return the held-out set instead of the training set.
-        size: images are fitted to size x size pixels.
-    """
-    from generator.layers import SKIMAGE_NAMES, load_source
-
-    if names is None:
-        names = tuple(n for n in SKIMAGE_NAMES if (n in HELDOUT_IMAGES) == heldout)
-    return [load_source(f"skimage:{n}", (size, size))[0] for n in names]
-
-
-def on_the_fly_sets(cfg, seed_val: int = 10_000):
-    """(train set, validation set) of on-the-fly windows on disjoint image content."""
-    from reconstruct.onthefly import ImageLayerProvider, OnTheFlyWindows
-
-    train_set = OnTheFlyWindows(ImageLayerProvider(generator_images()), cfg.window, length=cfg.train_items, seed=cfg.seed)
-    val_set = OnTheFlyWindows(ImageLayerProvider(generator_images(heldout=True)), cfg.window, length=cfg.val_items, seed=cfg.seed + seed_val)
-    return train_set, val_set
+    return window_sets(cfg.window, cfg.train_items, cfg.val_items, cfg.seed, cfg.train_scenes, cfg.test_scenes, cfg.scene_seed)
 
 
 @app_typer.command("train")
@@ -66,7 +45,7 @@ def train_cmd(
         cfg = dataclasses.replace(cfg, device=device)
     if data is None:
         train_set, val_set = on_the_fly_sets(cfg)
-        src = "on-the-fly windows (generator content, closed-form spike model)"
+        src = f"on-the-fly windows ({cfg.train_scenes} train / {cfg.test_scenes} validation scenes, generator analytic tier + spike_sim)"
     else:
         try:
             from reconstruct.data import open_window_datasets  # dataset issue's stored-window loader
@@ -98,7 +77,7 @@ def reconstruct_cmd(
     window_steps: int = typer.Option(13, "--window-steps", help="Eq. (3) window in steps (13 = 0.65 ms)"),
     stride_deg: float = typer.Option(31.5, "--stride-deg", help="polarizer rotation between output frames (31.5 deg -> 342.9 FPS at 30 rev/s)"),
     frames: str = typer.Option("none", "--frames", help="also write frames: none | png | exr"),
-    weights: Optional[Path] = typer.Option(None, "--weights", help="checkpoint [default: the shipped reconstruct/weights/polspike_v0.pt]"),
+    weights: Optional[Path] = typer.Option(None, "--weights", help="checkpoint [default: the shipped reconstruct/weights/polspike_v1.pt]"),
     rir: Optional[bool] = typer.Option(None, "--rir/--no-rir", help="RIR alignment [default: as trained]"),
     max_frames: int = typer.Option(0, "--max-frames", help="stop after this many output frames (0 = all)"),
     device: str = typer.Option("auto", "--device", help="auto | cpu | cuda"),
@@ -135,16 +114,17 @@ def reconstruct_cmd(
     c.print(f"wrote {', '.join(s['outputs']) or 'no video'} to {out} ({s['seconds']:.1f} s)")
 
 
-def heldout_test_set(crop: int = 64, items: int = 96, seed: int = 20_000):
-    """The model card's synthetic test set: on-the-fly windows on held-out images (:data:`HELDOUT_IMAGES`)."""
-    from reconstruct.onthefly import ImageLayerProvider, OnTheFlyWindows, WindowConfig
+def heldout_test_set(crop: int = 64, items: int = 96, seed: int = 20_000, scenes: int = 10, scene_seed: int = 0):
+    """The model card's test set: on-the-fly windows of the ``scenes`` test scenes (content never used in training)."""
+    from polspike.pipeline.train_windows import GeneratorWindows, scene_pool
+    from reconstruct.onthefly import OnTheFlyWindows, WindowConfig
 
-    return OnTheFlyWindows(ImageLayerProvider(generator_images(heldout=True)), WindowConfig(crop=crop), length=items, seed=seed)
+    return OnTheFlyWindows(GeneratorWindows(scene_pool(scenes, scene_seed, "test"), WindowConfig(crop=crop)), length=items, seed=seed)
 
 
 @app_typer.command("evaluate-checkpoint")
 def evaluate_checkpoint_cmd(
-    weights: Optional[Path] = typer.Argument(None, help="checkpoint [default: the shipped reconstruct/weights/polspike_v0.pt]"),
+    weights: Optional[Path] = typer.Argument(None, help="checkpoint [default: the shipped reconstruct/weights/polspike_v1.pt]"),
     out: Optional[Path] = typer.Option(None, "--out", help="write scores.json and scores.md here"),
     items: int = typer.Option(96, "--items", help="test windows"),
     crop: int = typer.Option(64, "--crop", help="test crop side (multiple of 4)"),
