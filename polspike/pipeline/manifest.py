@@ -34,6 +34,7 @@ Layout (format ``polspike-manifest/1``)::
     [groups.polarizer]               # overlays PolarizerConfig (rate_hz, phase_deg, extinction_ratio, ...)
     [groups.render]                  # overlays RenderSettings (spp, spectral: maps/full tiers)
     [groups.spike_sim]               # preset = "default" | "ideal" | "noisy", plus any SpikeSimConfig field
+                                     # (or spike_sim = "ideal": a bare preset name)
 
 Resolution order for a group's scene: SceneConfig defaults < base scene file <
 ``[defaults]`` tables < the group's own tables; the scene's ``name`` becomes the
@@ -244,9 +245,12 @@ def _resolve_group(raw: dict, defaults: dict, base_dir: Path | None, where: str)
     except PolspikeError as exc:
         msg = str(exc)
         raise type(exc)(msg if msg.startswith(label) else f"{label}: {msg}") from None
-    ss = dict(spec.spike_sim or {})
-    if not isinstance(spec.spike_sim or {}, dict):
-        raise ConfigError(f"{label}: [spike_sim] must be a table")
+    ss = spec.spike_sim if spec.spike_sim is not None else {}
+    if isinstance(ss, str):  # spike_sim = "ideal": a bare preset name
+        ss = {"preset": ss}
+    if not isinstance(ss, dict):
+        raise ConfigError(f"{label}: spike_sim = {ss!r} must be a preset name or a table (preset = ..., plus SpikeSimConfig keys)")
+    ss = dict(ss)
     pname = ss.pop("preset", "default")
     if not isinstance(pname, str):
         raise ConfigError(f"{label}: spike_sim.preset = {pname!r} must be a preset name")

@@ -167,6 +167,8 @@ def test_shared_content_between_splits_is_rejected():
         ({"name": "x", "groups": [_one(tier="fast")]}, "tier"),
         ({"name": "x", "groups": [_one(spike_sim={"preset": "loud"})]}, "preset"),
         ({"name": "x", "groups": [_one(spike_sim={"exposure": -1.0})]}, "exposure"),
+        ({"name": "x", "groups": [_one(spike_sim=3)]}, "spike_sim"),
+        ({"name": "x", "groups": [_one(spike_sim="loud")]}, "preset"),
         ({"name": "x", "groups": [_one(scene="nowhere.toml")]}, "not found"),
         ({"name": "x", "groups": []}, "no \\[\\[groups\\]\\]"),
         ({"name": "x", "defaults": {"split": "train"}, "groups": [_one()]}, "defaults"),
@@ -190,6 +192,8 @@ def test_defaults_are_overlaid_by_groups():
     assert a.scene["pane"]["n"] == 1.6 and a.scene["pane"]["tilt_deg"] == 10.0
     assert b.scene["pane"]["tilt_deg"] == 30.0
     assert a.spike_sim["shot_noise"] is False  # ideal preset
+    data["groups"][0]["spike_sim"] = "noisy"
+    assert parse_manifest(data).groups[0].spike_sim["photons_per_threshold"] == 100.0
     assert a.scene["render"]["duration_s"] == 0.03 and a.scene["name"] == "a"
 
 
