@@ -10,7 +10,7 @@ OUT ?= out/demo
 export DRJIT_LIBLLVM_PATH ?= /usr/lib/x86_64-linux-gnu/libLLVM.so.19.1
 export MPLBACKEND := Agg
 
-.PHONY: install demo test bench clean system-deps
+.PHONY: install demo test test-all bench clean system-deps
 
 install: $(STAMP)
 
@@ -34,8 +34,13 @@ test: install
 test-all: install
 	$(BIN)/python -m pytest -q $(PYTEST_ARGS)
 
-bench: install
-	$(BIN)/polspike bench all --out out/bench
+bench: install  # every benchmark, JSON + table each under out/bench/ (tens of minutes on 2 cores)
+	$(BIN)/polspike bench spike-sim --out out/bench/spike_sim
+	$(BIN)/polspike bench render --out out/bench/render
+	$(BIN)/polspike bench reconstruct --out out/bench/reconstruct
+	$(BIN)/polspike bench reconstruct-net --out out/bench/reconstruct_net
+	$(BIN)/polspike bench dataset --out out/bench/dataset
+	$(BIN)/polspike bench tradeoff --out out/bench/tradeoff
 
 clean:
 	rm -rf out build *.egg-info
