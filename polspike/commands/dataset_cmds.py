@@ -119,8 +119,8 @@ def dataset_verify(
 def bench_dataset(
     out: Path = typer.Option(Path("out/bench"), "--out", help="folder for bench_dataset.json"),
     tiers: str = typer.Option("analytic", "--tiers", help="comma-separated tiers: analytic,maps,full"),
-    width: int = typer.Option(400, "--width"),
-    height: int = typer.Option(250, "--height"),
+    width: int = typer.Option(400, "--width", help="image width in pixels"),
+    height: int = typer.Option(250, "--height", help="image height in pixels"),
     duration_s: float = typer.Option(0.25, "--duration-s", help="measured stream length (s); times are scaled to a 1 s group"),
     full_duration_s: float = typer.Option(0.02, "--full-duration-s", help="measured length for the full tier (path tracing per keyframe)"),
     spp: int = typer.Option(4, "--spp", help="samples per pixel of the maps/full tiers"),
