@@ -30,8 +30,8 @@ from reconstruct.solvers import SolverConfig
 __all__ = ["CKPT_FORMAT", "DEFAULT_WEIGHTS", "save_checkpoint", "read_checkpoint", "load_model", "export_weights"]
 
 CKPT_FORMAT = "polspike-ckpt/1"
-DEFAULT_WEIGHTS = Path(__file__).resolve().parent / "weights" / "polspike_v0.pt"
-"""The shipped checkpoint (see ``reconstruct/weights/MODEL_CARD.md``)."""
+DEFAULT_WEIGHTS = Path(__file__).resolve().parent / "weights" / "polspike_v1.pt"
+"""The shipped checkpoint (see ``docs/MODEL_CARD.md``)."""
 
 
 def save_checkpoint(path: str | os.PathLike, model: PolSpikeNet, *, extra: dict[str, Any] | None = None) -> Path:

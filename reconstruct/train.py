@@ -126,21 +126,35 @@ def evaluate_model(model: PolSpikeNet, dataset, batch_size: int = 8, device: tor
     Returns:
         dict with ``psnr_T`` (final), ``psnr_T_base`` (RWPS with learned zeta and w,
         before refinement), ``psnr_T_oracle`` (RWPS with GT zeta and Poisson weights),
-        ``psnr_T_tfp`` (2 x window mean of I, the plain TFP image), ``psnr_R``, and ``ssim_*`` counterparts when requested.
+        ``psnr_T_tfp`` (2 x window mean of I, the plain TFP image), ``psnr_R``, ``psnr_R_base``,
+        ``psnr_R_oracle``, and ``ssim_*`` counterparts when requested.  PSNR / SSIM use data
+        range 1 after clipping the estimate to [0, 1].  ``psnrrefl_T*``: PSNR of T pooled over the
+        reflection-affected pixels only, where the reflected share of the mixed light
+        zeta R / (zeta R + (1 - zeta) T) at the centre frame is >= ``REFL_SHARE`` (``refl_fraction``:
+        their share of all pixels).
     """
     from reconstruct.solvers import solve
 
     was = model.training
     model.eval()
     acc: dict[str, list[float]] = {}
+    sq: dict[str, list[float]] = {}
+    n_refl = n_all = 0
     for s in range(0, len(dataset), batch_size):
         b = collate([dataset[i] for i in range(s, min(len(dataset), s + batch_size))])
         I, phi, T, R, z = (b[k].to(device) for k in ("I", "phi", "T", "R", "zeta"))
         out = model(I, phi)
         orc = solve("rwps", z, I, None, model.solver_cfg_in)
-        ests = {"T": out.T, "T_base": out.T_base, "T_oracle": orc.T, "T_tfp": 2.0 * I.mean(1), "R": out.R}
+        ests = {"T": out.T, "T_base": out.T_base, "T_oracle": orc.T, "T_tfp": 2.0 * I.mean(1), "R": out.R, "R_base": out.R_base, "R_oracle": orc.R}
+        zc = z[:, z.shape[1] // 2]
+        share = zc * R / (zc * R + (1 - zc) * T + 1e-6)
+        refl = share >= REFL_SHARE
+        n_refl += int(refl.sum())
+        n_all += refl.numel()
+        for name in ("T", "T_base", "T_oracle", "T_tfp"):
+            sq.setdefault(name, []).append(float(((ests[name].clamp(0, 1) - T) ** 2)[refl].sum()))
         for name, est in ests.items():
-            ref = R if name == "R" else T
+            ref = R if name.startswith("R") else T
             acc.setdefault(f"psnr_{name}", []).extend(_psnr(est, ref).cpu().tolist())
             if ssim:
                 from skimage.metrics import structural_similarity
@@ -148,8 +162,16 @@ def evaluate_model(model: PolSpikeNet, dataset, batch_size: int = 8, device: tor
                 for e, r in zip(est.clamp(0, 1).cpu().numpy(), ref.cpu().numpy()):
                     acc.setdefault(f"ssim_{name}", []).append(float(structural_similarity(r, e, data_range=1.0)))
     model.train(was)
-    return {k: float(np.mean(v)) for k, v in acc.items()}
+    res = {k: float(np.mean(v)) for k, v in acc.items()}
+    res["refl_fraction"] = n_refl / max(n_all, 1)
+    if n_refl:
+        for name, v in sq.items():
+            res[f"psnrrefl_{name}"] = float(-10 * np.log10(max(sum(v) / n_refl, 1e-10)))
+    return res
 
+
+REFL_SHARE = 0.2
+"""Reflected share of the mixed light above which a pixel counts as reflection-affected (evaluation)."""
 
 _LOG_FIELDS = ["step", "epoch", "alpha", "loss", "l_rec", "l_grad", "l_phys", "l_excl", "l_base", "val_psnr_T", "val_psnr_T_base", "val_psnr_T_oracle", "seconds"]
 

@@ -30,9 +30,15 @@ def train_cmd(
     minutes: Optional[float] = typer.Option(None, "--minutes", help="stop after this many minutes (checkpointed; rerun to continue)"),
     device: Optional[str] = typer.Option(None, "--device", help="auto | cpu | cuda [default: config device]"),
     quiet: bool = typer.Option(False, "--quiet", help="no progress bar"),
+    threads: int = typer.Option(0, "--threads", help="torch CPU threads (0 = torch default); use 1 on a shared machine: oversubscribed threads run ~20x slower"),
 ) -> None:
     """Train the reconstructor (paper Sec. 3.4 curriculum); resumable, deterministic for a seed on CPU."""
     import dataclasses
+
+    import torch
+
+    if threads > 0:
+        torch.set_num_threads(threads)
 
     from rich.console import Console
 
@@ -131,6 +137,7 @@ def evaluate_checkpoint_cmd(
     seed: int = typer.Option(20_000, "--seed", help="test-set seed (training used seed 0 on other images)"),
     rir: Optional[bool] = typer.Option(None, "--rir/--no-rir", help="RIR alignment [default: as trained]"),
     device: str = typer.Option("auto", "--device", help="auto | cpu | cuda"),
+    threads: int = typer.Option(0, "--threads", help="torch CPU threads (0 = torch default)"),
 ) -> None:
     """PSNR / SSIM of T on the held-out synthetic test set: full network, RWPS-only (learned zeta, w), RWPS with GT zeta, TFP."""
     import torch
@@ -141,11 +148,16 @@ def evaluate_checkpoint_cmd(
     from reconstruct.checkpoint import DEFAULT_WEIGHTS, load_model
     from reconstruct.train import evaluate_model
 
+    if threads > 0:
+        torch.set_num_threads(threads)
     dev = "cuda" if device == "auto" and torch.cuda.is_available() else ("cpu" if device == "auto" else device)
     model, data = load_model(weights or DEFAULT_WEIGHTS, dev, **({} if rir is None else {"use_rir": rir}))
     ds = heldout_test_set(crop, items, seed)
     m = evaluate_model(model, ds, batch_size=8, device=dev, ssim=True)
-    rows = [("full network (T)", "T"), ("RWPS-only, learned zeta and w (T^)", "T_base"), ("RWPS, ground-truth zeta (oracle)", "T_oracle"), ("TFP: 2 x window mean", "T_tfp"), ("full network (R)", "R")]
+    rows = [
+        ("T: full network", "T"), ("T: RWPS-only, learned zeta and w (T^)", "T_base"), ("T: RWPS, ground-truth zeta (oracle)", "T_oracle"), ("T: TFP, 2 x window mean", "T_tfp"),
+        ("R: full network", "R"), ("R: RWPS-only, learned zeta and w (R^)", "R_base"), ("R: RWPS, ground-truth zeta (oracle)", "R_oracle"),
+    ]
     tab = Table(title=f"held-out synthetic test set: {items} windows of {crop}x{crop}, seed {seed}")
     tab.add_column("method")
     tab.add_column("PSNR (dB)", justify="right")
@@ -154,10 +166,19 @@ def evaluate_checkpoint_cmd(
     for name, k in rows:
         tab.add_row(name, f"{m[f'psnr_{k}']:.2f}", f"{m[f'ssim_{k}']:.3f}")
         md.append(f"| {name} | {m[f'psnr_{k}']:.2f} | {m[f'ssim_{k}']:.3f} |")
+    if "psnrrefl_T" in m:
+        md.append("")
+        md.append(f"Reflection-affected pixels only (reflected share >= 0.2: {100 * m['refl_fraction']:.1f} % of the pixels), PSNR of T (dB):")
+        md.append("")
+        md.append("| full network | RWPS-only | RWPS, GT zeta | TFP |")
+        md.append("|---:|---:|---:|---:|")
+        md.append(f"| {m['psnrrefl_T']:.2f} | {m['psnrrefl_T_base']:.2f} | {m['psnrrefl_T_oracle']:.2f} | {m['psnrrefl_T_tfp']:.2f} |")
+        tab.add_row(f"T on reflection-affected pixels ({100 * m['refl_fraction']:.1f} %): full / RWPS-only / oracle / TFP",
+                    f"{m['psnrrefl_T']:.2f} / {m['psnrrefl_T_base']:.2f} / {m['psnrrefl_T_oracle']:.2f} / {m['psnrrefl_T_tfp']:.2f}", "")
     Console().print(tab)
     if out:
         ensure_dir(out)
-        write_json(out / "scores.json", {"weights": str(weights or DEFAULT_WEIGHTS), "items": items, "crop": crop, "seed": seed, "step": data.get("step"), "metrics": m})
+        write_json(out / "scores.json", {"weights": str(weights or DEFAULT_WEIGHTS), "items": items, "crop": crop, "seed": seed, "step": data.get("step"), "rir": bool(model.cfg.use_rir), "metrics": m})
         write_text(out / "scores.md", "\n".join(md) + "\n")
 
 
