@@ -23,6 +23,23 @@ Paper Sec. 3.2-3.3 and supp. Sec. 10 ("Network architecture"):
 Units: I in radiance units of paper Eq. (1) (I = 1/2 (zeta R + (1 - zeta) T),
 1.0 = brightest layer value); T, R in the same units.  Ablation switches
 (paper Table 1): ``use_rir``, ``use_attention``, ``use_conf``.
+
+Running a trained checkpoint (stable API for evaluation harnesses)::
+
+    from reconstruct.checkpoint import DEFAULT_WEIGHTS, load_model
+    model, meta = load_model(DEFAULT_WEIGHTS, "cpu")            # eval mode; meta["step"], meta["net"], ...
+    model, _ = load_model(path, "cpu", use_rir=True)            # NetConfig overrides at load time
+    out = model(I, phi)   # I (B, N, H, W) float32 radiance units, phi (B, N) rad; H, W multiples of 4
+    out.T, out.R                  # final layers (B, H, W)                 -> "final" / method full
+    out.T_base, out.R_base        # RWPS with the learned zeta and w       -> "RWPS-only" / solver-only
+    out.zeta_hat, out.weights     # (B, N, H, W); out.conf (B, H, W)
+
+For any H, W (padding, tiling with overlap) use
+:func:`reconstruct.video.run_model_on_windows`.  Ablations: ``use_rir`` has no
+weights and may be toggled at load; ``use_attention`` and ``use_conf`` need
+checkpoints trained with them (``reconstruct/configs/ablation_*.toml``);
+``solver_method`` ("ls", "ridge", "irls", "rwps") may be overridden at load
+to run another solver before the same refinement (supp. Table 3).
 """
 
 from __future__ import annotations

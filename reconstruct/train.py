@@ -74,6 +74,7 @@ class TrainConfig:
     train_scenes: int = opt(40, "on-the-fly: training scenes drawn from the documented ranges (paper: 40 train groups)", lo=1, hi=100000)
     test_scenes: int = opt(10, "on-the-fly: validation / test scenes, disjoint layer content (paper: 10 test groups)", lo=1, hi=100000)
     scene_seed: int = opt(0, "on-the-fly: seed of the scene pools", lo=0, hi=2**31 - 1)
+    manifest: str = opt("", "on-the-fly: take the scenes of this dataset manifest's train / test groups (e.g. datasets/manifests/paper.toml); empty = sample train_scenes / test_scenes")
 
 
 TINY = TrainConfig(

@@ -19,7 +19,7 @@ def on_the_fly_sets(cfg):
     """(train set, validation set) of on-the-fly windows: generator analytic tier + spike_sim, disjoint scenes and content."""
     from polspike.pipeline.train_windows import window_sets
 
-    return window_sets(cfg.window, cfg.train_items, cfg.val_items, cfg.seed, cfg.train_scenes, cfg.test_scenes, cfg.scene_seed)
+    return window_sets(cfg.window, cfg.train_items, cfg.val_items, cfg.seed, cfg.train_scenes, cfg.test_scenes, cfg.scene_seed, cfg.manifest)
 
 
 @app_typer.command("train")
@@ -51,7 +51,7 @@ def train_cmd(
         cfg = dataclasses.replace(cfg, device=device)
     if data is None:
         train_set, val_set = on_the_fly_sets(cfg)
-        src = f"on-the-fly windows ({cfg.train_scenes} train / {cfg.test_scenes} validation scenes, generator analytic tier + spike_sim)"
+        src = f"on-the-fly windows ({('scenes of ' + cfg.manifest) if cfg.manifest else f'{cfg.train_scenes} train / {cfg.test_scenes} validation sampled scenes'}, generator analytic tier + spike_sim)"
     else:
         try:
             from reconstruct.data import open_window_datasets  # dataset issue's stored-window loader
@@ -120,12 +120,13 @@ def reconstruct_cmd(
     c.print(f"wrote {', '.join(s['outputs']) or 'no video'} to {out} ({s['seconds']:.1f} s)")
 
 
-def heldout_test_set(crop: int = 64, items: int = 96, seed: int = 20_000, scenes: int = 10, scene_seed: int = 0):
-    """The model card's test set: on-the-fly windows of the ``scenes`` test scenes (content never used in training)."""
-    from polspike.pipeline.train_windows import GeneratorWindows, scene_pool
+def heldout_test_set(crop: int = 64, items: int = 96, seed: int = 20_000, manifest: str = "", scenes: int = 10, scene_seed: int = 0):
+    """The model card's test set: on-the-fly windows of the test groups of ``manifest`` (else of ``scenes`` sampled test scenes)."""
+    from polspike.pipeline.train_windows import GeneratorWindows, manifest_scenes, scene_pool
     from reconstruct.onthefly import OnTheFlyWindows, WindowConfig
 
-    return OnTheFlyWindows(GeneratorWindows(scene_pool(scenes, scene_seed, "test"), WindowConfig(crop=crop)), length=items, seed=seed)
+    sc = manifest_scenes(manifest, "test") if manifest else scene_pool(scenes, scene_seed, "test")
+    return OnTheFlyWindows(GeneratorWindows(sc, WindowConfig(crop=crop)), length=items, seed=seed)
 
 
 @app_typer.command("evaluate-checkpoint")
@@ -134,7 +135,8 @@ def evaluate_checkpoint_cmd(
     out: Optional[Path] = typer.Option(None, "--out", help="write scores.json and scores.md here"),
     items: int = typer.Option(96, "--items", help="test windows"),
     crop: int = typer.Option(64, "--crop", help="test crop side (multiple of 4)"),
-    seed: int = typer.Option(20_000, "--seed", help="test-set seed (training used seed 0 on other images)"),
+    seed: int = typer.Option(20_000, "--seed", help="test-set seed (window positions, crops, sensor noise)"),
+    manifest: str = typer.Option("datasets/manifests/paper.toml", "--manifest", help="windows of this manifest's test groups ('' = sampled test scenes)"),
     rir: Optional[bool] = typer.Option(None, "--rir/--no-rir", help="RIR alignment [default: as trained]"),
     device: str = typer.Option("auto", "--device", help="auto | cpu | cuda"),
     threads: int = typer.Option(0, "--threads", help="torch CPU threads (0 = torch default)"),
@@ -152,13 +154,13 @@ def evaluate_checkpoint_cmd(
         torch.set_num_threads(threads)
     dev = "cuda" if device == "auto" and torch.cuda.is_available() else ("cpu" if device == "auto" else device)
     model, data = load_model(weights or DEFAULT_WEIGHTS, dev, **({} if rir is None else {"use_rir": rir}))
-    ds = heldout_test_set(crop, items, seed)
+    ds = heldout_test_set(crop, items, seed, manifest)
     m = evaluate_model(model, ds, batch_size=8, device=dev, ssim=True)
     rows = [
         ("T: full network", "T"), ("T: RWPS-only, learned zeta and w (T^)", "T_base"), ("T: RWPS, ground-truth zeta (oracle)", "T_oracle"), ("T: TFP, 2 x window mean", "T_tfp"),
         ("R: full network", "R"), ("R: RWPS-only, learned zeta and w (R^)", "R_base"), ("R: RWPS, ground-truth zeta (oracle)", "R_oracle"),
     ]
-    tab = Table(title=f"held-out synthetic test set: {items} windows of {crop}x{crop}, seed {seed}")
+    tab = Table(title=f"test split ({manifest or 'sampled test scenes'}): {items} windows of {crop}x{crop}, seed {seed}")
     tab.add_column("method")
     tab.add_column("PSNR (dB)", justify="right")
     tab.add_column("SSIM", justify="right")
@@ -178,7 +180,7 @@ def evaluate_checkpoint_cmd(
     Console().print(tab)
     if out:
         ensure_dir(out)
-        write_json(out / "scores.json", {"weights": str(weights or DEFAULT_WEIGHTS), "items": items, "crop": crop, "seed": seed, "step": data.get("step"), "rir": bool(model.cfg.use_rir), "metrics": m})
+        write_json(out / "scores.json", {"weights": str(weights or DEFAULT_WEIGHTS), "manifest": manifest, "items": items, "crop": crop, "seed": seed, "step": data.get("step"), "rir": bool(model.cfg.use_rir), "metrics": m})
         write_text(out / "scores.md", "\n".join(md) + "\n")
 
 

@@ -46,7 +46,7 @@ from polspike.errors import SceneError
 
 log = logging.getLogger(__name__)
 
-__all__ = ["SceneRanges", "TEST_CONTENT", "train_content", "sample_scene", "scene_pool", "GeneratorWindows", "window_sets"]
+__all__ = ["SceneRanges", "TEST_CONTENT", "train_content", "sample_scene", "scene_pool", "manifest_scenes", "GeneratorWindows", "window_sets"]
 
 TEST_CONTENT = ("skimage:chelsea", "skimage:coins", "skimage:grass", "skimage:text", "skimage:rocket", "procedural:rings")
 """Layer content used only by test scenes (never by training scenes)."""
@@ -265,14 +265,37 @@ class GeneratorWindows:
         return item_from_stream(spikes, ck, phi_nom, 0.5 * (pa + pb), _interp_layers(src, (c + 0.5) * dt), src.maps(), cfg.exposure, w)
 
 
-def window_sets(window, train_items: int, val_items: int, seed: int, n_train_scenes: int = 40, n_test_scenes: int = 10, scene_seed: int = 0):
+def manifest_scenes(path: str, split: str) -> list:
+    """Scenes of the ``split`` groups of a dataset manifest (``datasets/manifests/*.toml``), clip length = group duration."""
+    from generator.scene import scene_from_dict
+    from polspike.errors import ConfigError
+
+    from polspike.pipeline.manifest import load_manifest
+
+    m = load_manifest(path)
+    out = []
+    for g in m.groups:
+        if g.split == split:
+            sc = scene_from_dict(g.scene, where=f"{path} [{g.name}]")
+            out.append(dataclasses.replace(sc, render=dataclasses.replace(sc.render, duration_s=g.duration_s)))
+    if not out:
+        raise ConfigError(f"manifest {path} has no {split!r} groups; splits: {sorted({g.split for g in m.groups})}")
+    return out
+
+
+def window_sets(window, train_items: int, val_items: int, seed: int, n_train_scenes: int = 40, n_test_scenes: int = 10, scene_seed: int = 0, manifest: str = ""):
     """(train, validation) :class:`reconstruct.onthefly.OnTheFlyWindows` on disjoint scenes and content.
 
-    Training windows come from ``n_train_scenes`` scenes drawn with seed ``scene_seed``
-    (the paper's 40 training groups); validation windows from ``n_test_scenes`` test scenes.
+    With ``manifest``: the scenes of its "train" and "test" groups (e.g. ``paper.toml``: 40 / 10).
+    Else training windows come from ``n_train_scenes`` scenes drawn with seed ``scene_seed``
+    (the paper's 40 training groups) and validation windows from ``n_test_scenes`` test scenes.
     """
     from reconstruct.onthefly import OnTheFlyWindows
 
-    tr = GeneratorWindows(scene_pool(n_train_scenes, scene_seed, "train"), window)
-    te = GeneratorWindows(scene_pool(n_test_scenes, scene_seed, "test"), window)
+    if manifest:
+        tr = GeneratorWindows(manifest_scenes(manifest, "train"), window)
+        te = GeneratorWindows(manifest_scenes(manifest, "test"), window)
+    else:
+        tr = GeneratorWindows(scene_pool(n_train_scenes, scene_seed, "train"), window)
+        te = GeneratorWindows(scene_pool(n_test_scenes, scene_seed, "test"), window)
     return OnTheFlyWindows(tr, length=train_items, seed=seed), OnTheFlyWindows(te, length=val_items, seed=seed + 10_000)
