@@ -38,6 +38,7 @@ __all__ = [
     "calibrate_from_modulation",
     "darkest_phase",
     "phase_error",
+    "calibrate_group",
 ]
 
 
@@ -229,3 +230,47 @@ def phase_error(cal: PolarizerCalibration, t_s, phi_true_rad) -> dict[str, float
     """
     e = _wrap_pi(cal.phi(t_s) - np.asarray(phi_true_rad))
     return {"phi0_err_deg": float(np.rad2deg(e[0])), "rms_deg": float(np.rad2deg(np.sqrt(np.mean(e**2)))), "max_abs_deg": float(np.rad2deg(np.max(np.abs(e))))}
+
+
+def calibrate_group(group, target_aolp_rad: float | None = None, rate_hz: float | None = None, bin_px: int = 10) -> dict:
+    """Calibrate the polarizer of a stored spike group and report the error against its true phi(t).
+
+    Args:
+        group: a :class:`spike_sim.store.SpikeGroup` (or its folder).
+        target_aolp_rad: AoLP of a flat polarized target filmed in the group
+            (:func:`calibrate_flat_target`); None = a glass scene, using the
+            group's ``phi_perp`` map as the polarization axis
+            (:func:`calibrate_from_modulation`, nominal phase as the prior).
+        rate_hz: known rotation rate, or None to estimate it (search around the
+            group's nominal rate).
+
+    Returns:
+        dict with the estimate (``phi0_deg`` mod 180, ``rate_hz``, ``method``,
+        ``modulation``), the nominal polarizer (``nominal_phase_deg``,
+        ``nominal_rate_hz``) and the errors of the calibrated phi(t) against the
+        stored true angle per step (``phi0_err_deg``, ``rms_deg``, ``max_abs_deg``).
+    """
+    from spike_sim.store import SpikeGroup, open_group
+
+    g = group if isinstance(group, SpikeGroup) else open_group(group)
+    pol = g.json_attr("polarizer_json") or {}
+    nom_rate = float(pol.get("rate_hz", 30.0))
+    nom_phase = float(np.deg2rad(pol.get("phase_deg", 0.0)))
+    if target_aolp_rad is not None:
+        cal = calibrate_flat_target(g, g.dt_s, float(target_aolp_rad), rate_hz=rate_hz, rate_guess_hz=nom_rate, bin_px=bin_px)
+    else:
+        maps = g.maps()
+        if "phi_perp" not in maps:
+            raise ConfigError(f"{g.path} has no phi_perp map (render without maps.exr?); give the flat target's AoLP (--target-aolp-deg)")
+        cal = calibrate_from_modulation(g, g.dt_s, maps["phi_perp"], prior_phi0_rad=nom_phase, rate_hz=rate_hz, rate_guess_hz=nom_rate, bin_px=bin_px)
+    t = (np.arange(g.n_steps) + 0.5) * g.dt_s
+    err = phase_error(cal, t, g.phi_true_rad)
+    return {
+        "phi0_deg": float(np.rad2deg(cal.phi0_rad) % 180.0),
+        "rate_hz": cal.rate_hz,
+        "method": cal.method,
+        "modulation": cal.modulation,
+        "nominal_phase_deg": float(pol.get("phase_deg", 0.0)),
+        "nominal_rate_hz": nom_rate,
+        **err,
+    }
