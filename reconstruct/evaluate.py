@@ -31,7 +31,8 @@ The learned reconstructor (issue 9) from a checkpoint (:func:`load_network`):
 Scores: PSNR / SSIM (:mod:`reconstruct.metrics`) of T and R per frame,
 averaged per group and over all frames (``overall``).  Outputs (see
 :func:`write_report`): ``results.csv``, ``results.md``, ``results.json``,
-``figure.png`` (input / TFP / solver T / GT for a few frames), ``config.json``.
+``figure.png`` (input / TFP / solver T / GT, the first frame of the first
+``figure_frames`` groups), ``config.json``.
 """
 
 from __future__ import annotations
@@ -303,7 +304,7 @@ def evaluate_groups(
                     sT = score(Th, gtT)
                     sR = score(Rh, gtR) if (Rh is not None and gtR is not None) else {"psnr": None, "ssim": None}
                     frames.append({"group": g.name, "frame": int(i), "method": name, "psnr_T": sT["psnr"], "ssim_T": sT["ssim"], "psnr_R": sR["psnr"], "ssim_R": sR["ssim"]})
-                if gi == 0 and len(fig["frames"]) < cfg.figure_frames:
+                if j == 0 and b0 == 0 and len(fig["frames"]) < cfg.figure_frames:  # first frame of each group
                     fig["frames"].append(f"{g.name} #{i}")
                     fig["images"].append([raw_np[j, K], tfp[j], *[est_j[m][0] for m in solvers], *[est_j[m][0] for m in net_rows[:1]], gtT])
             t["metrics"] += time.perf_counter() - t0
@@ -378,15 +379,16 @@ def write_report(report: EvalReport, out_dir: str | Path) -> dict[str, Path]:
         cols_ = report.figure["columns"]
         fig, axes = plt.subplots(len(imgs), len(cols_), figsize=(2.2 * len(cols_), 1.6 * len(imgs) + 0.4), squeeze=False)
         for r, row in enumerate(imgs):
+            gain = 1.0 / max(float(np.percentile(row[-1], 99.5)), 1e-6)  # per-row display gain: GT T's 99.5th percentile -> white
             for c, im in enumerate(row):
                 ax = axes[r, c]
-                ax.imshow(np.clip(im, 0, 1), cmap="gray", vmin=0, vmax=1)
+                ax.imshow(np.clip(im * gain, 0, 1), cmap="gray", vmin=0, vmax=1)
                 ax.set_xticks([])
                 ax.set_yticks([])
                 if r == 0:
                     ax.set_title(cols_[c], fontsize=8)
                 if c == 0:
-                    ax.set_ylabel(report.figure["frames"][r], fontsize=7)
+                    ax.set_ylabel(f"{report.figure['frames'][r]}\n(gain {gain:.1f})", fontsize=7)
         fig.tight_layout()
         with atomic_path(out / "figure.png") as tmp:
             fig.savefig(tmp, dpi=110)
