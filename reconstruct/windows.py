@@ -23,10 +23,10 @@ item ``j`` is
 * centre-frame ground truth ``T``, ``R``: the stored GT frames exist at the
   output cadence only (``/output/step_index``); at any other step they are
   **interpolated linearly in time** between the two stored frames around it
-  (held at the ends), then rounded to float16 like the stored frames.  The stored frames are themselves linear between the
-  source's keyframes, so this is exact whenever keyframes are no denser than
-  the output cadence (343 FPS), and otherwise a linear approximation over at
-  most 2.9 ms;
+  (held at the ends), then rounded to float16 like the stored frames.  The
+  stored frames are themselves linear between the source's keyframes, so
+  this is exact whenever keyframes are no denser than the output cadence
+  (343 FPS), and otherwise a linear approximation over at most 2.9 ms;
 * ``zeta`` (N, H, W): paper Eq. (2) averaged over each observation's window
   at the *true* per-step angles (``/polarizer/phi_true_rad``), including the
   polarizer's rotation inside each step (sinc factor), i.e. the zeta that the
@@ -34,10 +34,12 @@ item ``j`` is
   ``phi_perp``, ``T_perp``, ``T_par`` (H, W), from which zeta follows at any
   phi.  Groups without T maps get the lossless ``T = 1 - R``.
 
-Items have exactly the keys, shapes and dtypes of
-:func:`reconstruct.onthefly.make_item` (``I``, ``phi``, ``T``, ``R``,
-``zeta``, ``R_perp``, ``R_par``, ``phi_perp``, ``T_perp``, ``T_par``,
-``exposure``), so :func:`reconstruct.train.train` consumes either.
+Items are built by :func:`reconstruct.onthefly.item_from_stream`, the code
+that builds on-the-fly items, from the crop of the windows read here: the same
+keys (``I``, ``phi``, ``T``, ``R``, ``zeta``, ``R_perp``, ``R_par``,
+``phi_perp``, ``T_perp``, ``T_par``, ``exposure``), shapes and float32 dtypes,
+so :func:`reconstruct.train.train` consumes either.  This module owns the
+I/O: indexing, dense centres, crops, order, GT interpolation, lazy files.
 
 Random crops (``cfg.crop`` square) and the order are seeded: item ``j`` is a
 pure function of (seed, j) through ``np.random.default_rng([seed, j])``, and
@@ -68,37 +70,13 @@ import torch
 
 from polspike.errors import ConfigError, DataFormatError
 
-from reconstruct.groups import list_groups, window_steps_from_ms
-from reconstruct.onthefly import WindowConfig
+from reconstruct.groups import list_groups
+from reconstruct.onthefly import ITEM_KEYS, WindowConfig, item_from_stream, window_centres  # noqa: F401  (re-exported)
 
 __all__ = ["StoreWindows", "GroupIndex", "window_centres", "open_window_datasets", "ITEM_KEYS"]
 
 log = logging.getLogger(__name__)
 
-ITEM_KEYS = ("I", "phi", "T", "R", "zeta", "R_perp", "R_par", "phi_perp", "T_perp", "T_par", "exposure")
-"""Keys of an item (the same as :func:`reconstruct.onthefly.make_item`)."""
-
-
-def window_centres(phi_nominal_rad: np.ndarray, centre_step: int, n_obs: int, stride_rad: float) -> np.ndarray:
-    """Centre steps c_k of the 2K + 1 observations around ``centre_step``.
-
-    Args:
-        phi_nominal_rad: (T,) unwrapped, increasing mid-step nominal angles.
-        centre_step: the centre step c (observation k = 0).
-        n_obs: N = 2K + 1.
-        stride_rad: polarizer rotation between observations.
-
-    Returns:
-        (N,) int64: the steps where the nominal angle has turned by k * stride from
-        its value at ``centre_step``, rounded to the nearest step (``c_0 = c``).
-    """
-    K = n_obs // 2
-    phi = np.asarray(phi_nominal_rad, dtype=np.float64)
-    targets = phi[int(centre_step)] + stride_rad * np.arange(-K, K + 1)
-    pos = np.interp(targets, phi, np.arange(phi.size, dtype=np.float64))
-    c = np.rint(pos).astype(np.int64)
-    c[K] = int(centre_step)
-    return c
 
 
 class GroupIndex:
@@ -132,7 +110,7 @@ class GroupIndex:
         self.maps.setdefault("T_par", 1.0 - self.maps["R_par"])
         if cfg.crop > min(self.height, self.width):
             raise ConfigError(f"crop = {cfg.crop} exceeds the {self.width}x{self.height} frames of group {name}; choose window.crop <= {min(self.height, self.width)}")
-        self.window_steps = _window_steps(cfg, self.rate_hz)
+        self.window_steps = int(cfg.window_steps)
         h = self.window_steps // 2
         K = cfg.n_obs // 2
         stride = math.radians(cfg.stride_deg)
@@ -156,18 +134,6 @@ class GroupIndex:
             ok &= (c_k - h >= 0) & (c_k + h <= self.n_steps - 1)
         cand = cand[ok & (cand - h >= 0) & (cand + h <= self.n_steps - 1)]
         self.centres = cand
-
-    def step_sinc(self) -> float:
-        """sin(a)/a with a the mean polarizer rotation per step (per-step average of cos 2phi)."""
-        a = float(np.mean(np.diff(self.phi_true))) if self.phi_true.size > 1 else 0.0
-        return math.sin(a) / a if a > 0 else 1.0
-
-
-def _window_steps(cfg, rate_hz: float) -> int:
-    """Eq. (3) window in steps: ``cfg.window_steps``, or the odd count nearest to ``cfg.dt_s`` x rate."""
-    if getattr(cfg, "window_steps", None):
-        return int(cfg.window_steps)
-    return window_steps_from_ms(float(cfg.dt_s) * 1e3, rate_hz)
 
 
 def _resolve_groups(source, split: str | None) -> list[tuple[str, Path]]:
@@ -196,9 +162,8 @@ class StoreWindows(torch.utils.data.Dataset):
             sequence of group directories.
         cfg: window geometry (:class:`reconstruct.onthefly.WindowConfig`):
             ``n_obs`` (N = 2K + 1), ``crop`` (square side), ``window_steps``
-            (Eq. (3) window dt in steps; a config with ``dt_s`` instead gets
-            the odd step count nearest to dt_s x rate), ``stride_deg`` (angle
-            between observations).  The on-the-fly simulation fields are not
+            (Eq. (3) window dt in steps, odd), ``stride_deg`` (angle between
+            observations).  The on-the-fly simulation fields are not
             used: stored spikes carry their own noise.
         split: split of a dataset directory ("train", "test", ...); None for a
             group directory or a list of groups.
@@ -305,19 +270,25 @@ class StoreWindows(torch.utils.data.Dataset):
             return (g.height - S) // 2, (g.width - S) // 2
         return int(rng.integers(0, g.height - S + 1)), int(rng.integers(0, g.width - S + 1))
 
-    def _read_windows(self, f: dict[str, h5py.Dataset], g: GroupIndex, ck: np.ndarray, y0: int, x0: int) -> np.ndarray:
-        """Spike counts of each window [c_k - h, c_k + h] on the crop, (N, S, S) int32."""
+    def _read_windows(self, f: dict[str, h5py.Dataset], g: GroupIndex, ck: np.ndarray, y0: int, x0: int) -> tuple[np.ndarray, int]:
+        """The crop of the stream over the windows' span, (n, S, S) uint8, and its first step.
+
+        Only the rows of the N windows [c_k - h, c_k + h] are read (and of each
+        row only the bytes of the crop's image rows); the steps between windows
+        stay zero (:func:`reconstruct.onthefly.item_from_stream` never reads them).
+        """
         S, W, h = self.cfg.crop, g.width, g.window_steps // 2
         b0 = (y0 * W) // 8
         b1 = ((y0 + S) * W + 7) // 8
         off = y0 * W - 8 * b0
         ds = f["spikes"]
-        out = np.empty((ck.size, S, S), np.int32)
-        for k, c in enumerate(ck):
+        r0, r1 = int(ck.min()) - h, int(ck.max()) + h + 1
+        out = np.zeros((r1 - r0, S, S), np.uint8)
+        for c in ck:
             raw = ds[c - h : c + h + 1, b0:b1]
             bits = np.unpackbits(raw, axis=1, bitorder="little")[:, off : off + S * W]
-            out[k] = bits.reshape(-1, S, W)[:, :, x0 : x0 + S].sum(0, dtype=np.int32)  # Eq. (3) numerator
-        return out
+            out[c - h - r0 : c + h + 1 - r0] = bits.reshape(-1, S, W)[:, :, x0 : x0 + S]
+        return out, r0
 
     def _gt(self, f: dict[str, h5py.Dataset], g: GroupIndex, c: int, sl) -> tuple[np.ndarray, np.ndarray]:
         """GT T, R at step c: linear in time between the stored output frames (held at the ends)."""
@@ -337,41 +308,18 @@ class StoreWindows(torch.utils.data.Dataset):
         S = self.cfg.crop
         sl = (slice(y0, y0 + S), slice(x0, x0 + S))
         f = self._file(gi)
-        n_steps = g.window_steps
-        h = n_steps // 2
         if g.mode == "output":
             i = int(np.searchsorted(g.out_steps, c))
             K = self.cfg.n_obs // 2
             ck = g.out_steps[i - K : i + K + 1]
         else:
             ck = window_centres(g.phi_nom, c, self.cfg.n_obs, math.radians(self.cfg.stride_deg))
-        counts = self._read_windows(f, g, ck, y0, x0)
-        I = counts / (n_steps * g.exposure)  # paper Eq. (3), radiance units
-        idx = ck[:, None] + np.arange(-h, h + 1)[None]
-        phi = g.phi_nom[idx].mean(1)
-        phi = phi - math.floor(phi[len(phi) // 2] / math.pi) * math.pi  # period pi: centre angle in [0, pi)
-        pt = g.phi_true[idx]  # (N, n_steps) true mid-step angles
-        sinc = g.step_sinc()
-        C = sinc * np.cos(2 * pt).mean(1)
-        Sn = sinc * np.sin(2 * pt).mean(1)
-        Rp, Rs, pp = (g.maps[k][sl].astype(np.float64) for k in ("R_perp", "R_par", "phi_perp"))
-        # paper Eq. (2) averaged over the window: mean + amp <cos 2(phi - phi_perp)>
-        zeta = 0.5 * (Rp + Rs)[None] + 0.5 * (Rp - Rs)[None] * (C[:, None, None] * np.cos(2 * pp)[None] + Sn[:, None, None] * np.sin(2 * pp)[None])
-        T, R = (a.astype(np.float16) for a in self._gt(f, g, c, sl))  # float16-rounded, as stored GT frames (and on-the-fly items)
-        t = lambda a: torch.as_tensor(np.ascontiguousarray(a), dtype=torch.float32)  # noqa: E731
-        return {
-            "I": t(I),
-            "phi": t(phi),
-            "T": t(T),
-            "R": t(R),
-            "zeta": t(zeta),
-            "R_perp": t(Rp),
-            "R_par": t(Rs),
-            "phi_perp": t(pp),
-            "T_perp": t(g.maps["T_perp"][sl]),
-            "T_par": t(g.maps["T_par"][sl]),
-            "exposure": torch.tensor(g.exposure, dtype=torch.float32),
-        }
+        sub, r0 = self._read_windows(f, g, ck, y0, x0)
+        r1 = r0 + sub.shape[0]
+        maps = {k: g.maps[k][sl] for k in ("R_perp", "R_par", "phi_perp", "T_perp", "T_par")}
+        # the item itself (Eq. (3) frames, angles, window-averaged Eq. (2) zeta, float16 GT) is built by the
+        # code that builds on-the-fly items, so stored and on-the-fly items agree by construction
+        return item_from_stream(sub, ck - r0, g.phi_nom[r0:r1], g.phi_true[r0:r1], self._gt(f, g, c, sl), maps, g.exposure, self.cfg)
 
     def describe(self) -> dict:
         """Plain-data summary (groups, windows per group, window steps)."""
