@@ -227,3 +227,19 @@ def test_too_little_disk_space_is_refused_before_building(tmp_path, monkeypatch)
     with pytest.raises(OutputError, match="GB free"):
         build_dataset(SMALL, tmp_path / "full")
     assert not any((tmp_path / "full" / "groups").iterdir())
+
+
+def test_cli_build_with_progress_bars_and_verify_partial(built, tmp_path):
+    from typer.testing import CliRunner
+
+    from polspike.cli import get_app
+
+    runner = CliRunner()
+    out = tmp_path / "one"
+    r = runner.invoke(get_app(), ["dataset", "build", str(SMALL), "--out", str(out), "--group", "test_near_normal"])
+    assert r.exit_code == 0, r.output
+    text = " ".join(r.output.split())  # rich wraps long lines
+    assert "built test_near_normal" in text and "built 1, skipped 0" in text
+    assert _contents(out) == {"test_near_normal": _contents(built)["test_near_normal"]}
+    r = runner.invoke(get_app(), ["dataset", "verify", str(out), "--partial"])
+    assert r.exit_code == 0 and "ok: 1 groups" in " ".join(r.output.split())
