@@ -140,6 +140,7 @@ def evaluate_checkpoint_cmd(
     rir: Optional[bool] = typer.Option(None, "--rir/--no-rir", help="RIR alignment [default: as trained]"),
     device: str = typer.Option("auto", "--device", help="auto | cpu | cuda"),
     threads: int = typer.Option(0, "--threads", help="torch CPU threads (0 = torch default)"),
+    solver: Optional[str] = typer.Option(None, "--solver", help="ls | ridge | irls | rwps: physics solver before the same refinement (supp. Table 3) [default: as trained]"),
 ) -> None:
     """PSNR / SSIM of T on the held-out synthetic test set: full network, RWPS-only (learned zeta, w), RWPS with GT zeta, TFP."""
     import torch
@@ -153,7 +154,8 @@ def evaluate_checkpoint_cmd(
     if threads > 0:
         torch.set_num_threads(threads)
     dev = "cuda" if device == "auto" and torch.cuda.is_available() else ("cpu" if device == "auto" else device)
-    model, data = load_model(weights or DEFAULT_WEIGHTS, dev, **({} if rir is None else {"use_rir": rir}))
+    over = ({} if rir is None else {"use_rir": rir}) | ({} if solver is None else {"solver_method": solver})
+    model, data = load_model(weights or DEFAULT_WEIGHTS, dev, **over)
     ds = heldout_test_set(crop, items, seed, manifest)
     m = evaluate_model(model, ds, batch_size=8, device=dev, ssim=True)
     rows = [
@@ -180,7 +182,7 @@ def evaluate_checkpoint_cmd(
     Console().print(tab)
     if out:
         ensure_dir(out)
-        write_json(out / "scores.json", {"weights": str(weights or DEFAULT_WEIGHTS), "manifest": manifest, "items": items, "crop": crop, "seed": seed, "step": data.get("step"), "rir": bool(model.cfg.use_rir), "metrics": m})
+        write_json(out / "scores.json", {"weights": str(weights or DEFAULT_WEIGHTS), "manifest": manifest, "items": items, "crop": crop, "seed": seed, "step": data.get("step"), "rir": bool(model.cfg.use_rir), "solver": model.cfg.solver_method, "metrics": m})
         write_text(out / "scores.md", "\n".join(md) + "\n")
 
 
@@ -194,9 +196,13 @@ def bench_reconstruct_net_cmd(
     width: int = typer.Option(400, "--width"),
     frames: int = typer.Option(2, "--frames", help="timed output frames per device"),
     json_out: Optional[Path] = typer.Option(None, "--json", help="write the results here as JSON"),
+    threads: int = typer.Option(0, "--threads", help="torch CPU threads (0 = torch default)"),
 ) -> None:
     """Output frames per second of the full network (parameter branch, RWPS, refinement) on CPU and on CUDA when present."""
     import torch
+
+    if threads > 0:
+        torch.set_num_threads(threads)
     from rich.console import Console
 
     from polspike.atomic import write_json
