@@ -95,8 +95,8 @@ def frame_times(scene: SceneConfig, opts: RenderOptions) -> np.ndarray:
     return np.arange(n) / fps
 
 
-def _tier_maps(scene: SceneConfig, opts: RenderOptions, info: dict) -> PaneMaps:
-    """Coefficient maps for the analytic or maps tier."""
+def _tier_maps(scene: SceneConfig, opts: RenderOptions, info: dict, progress: Callable[[int, int], None] | None = None) -> PaneMaps:
+    """Coefficient maps for the analytic or maps tier (``progress``: ray chunks of the Mitsuba tracer)."""
     if opts.tier == "analytic":
         return analytic_maps(scene)
     from generator import tiers_mitsuba  # lazy: imports Mitsuba
@@ -110,7 +110,7 @@ def _tier_maps(scene: SceneConfig, opts: RenderOptions, info: dict) -> PaneMaps:
             log.warning("full tier on %s: maps.exr falls back to the analytic maps (the two-lobe tracer needs llvm or cuda)", be.variant)
             info["modelled"] = dict(ANALYTIC_MODELLED, maps_exr_source=f"analytic: the two-lobe tracer needs a JIT variant, {be.variant} selected")
             return analytic_maps(scene)
-    return tiers_mitsuba.render_pane_maps(scene, opts, info)
+    return tiers_mitsuba.render_pane_maps(scene, opts, info, progress=progress)
 
 
 def render(scene: SceneConfig, out_dir: str | os.PathLike, opts: RenderOptions = RenderOptions(), progress: Callable[[int, int], None] | None = None) -> dict:
@@ -162,7 +162,7 @@ def render(scene: SceneConfig, out_dir: str | os.PathLike, opts: RenderOptions =
     timings: dict[str, float] = dict(prev.get("timings", {})) if prev else {}
     info: dict = {"modelled": dict(ANALYTIC_MODELLED), "tier": opts.tier}
     t0 = time.perf_counter()
-    maps = _tier_maps(scene, opts, info)
+    maps = _tier_maps(scene, opts, info, progress)  # the bar first counts the maps' ray chunks, then frames
     timings["maps_s"] = time.perf_counter() - t0
     write_exr(out / "maps.exr", {k: v.astype(np.float32) for k, v in maps.channels().items()}, attrs={"scene_hash": h, "tier": opts.tier})
     names = [f"frames/{k:06d}.exr" for k in range(len(times))]

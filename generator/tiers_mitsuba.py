@@ -181,11 +181,11 @@ def render_pane_maps(scene, opts, info: dict, *, response: str | None = None, n_
     for b, (n_b, w_b) in enumerate(zip(idx, wts)):
         cam, pane = specs_from_scene(scene, n=n_b)
         msc = mi.load_dict(build_scene_dict(mi, cam, pane, []))
-        m = pane_coefficients(mi, msc, pane.axes()[2], cam.up, cam.width, cam.height, model=pane.model, n=n_b, sub=sub, absorption_per_m=pane.absorption_per_m)
+        # progress in ray chunks over all bands (the tracer reports chunks of one band)
+        sub_prog = None if progress is None else (lambda d, t, b=b: progress(b * t + d, len(idx) * t))
+        m = pane_coefficients(mi, msc, pane.axes()[2], cam.up, cam.width, cam.height, model=pane.model, n=n_b, sub=sub, absorption_per_m=pane.absorption_per_m, progress=sub_prog)
         for k in ("S_R", "S_R1", "S_T", "theta", "coverage", "phi_perp_geometric"):
             acc[k] = acc.get(k, 0.0) + w_b * m[k]
-        if progress:
-            progress(b + 1, len(idx))
     out = _coefficients_from_stokes(acc)
     base = analytic_maps(scene)
     base.theta, base.phi_perp = out["theta"], out["phi_perp"]
