@@ -101,14 +101,22 @@ def _tier_maps(scene: SceneConfig, opts: RenderOptions, info: dict, progress: Ca
         return analytic_maps(scene)
     from generator import tiers_mitsuba  # lazy: imports Mitsuba
 
-    if opts.tier == "full":
-        from generator.mitsuba_backend import resolve_backend
+    from generator.mitsuba_backend import resolve_backend
 
-        be = resolve_backend(opts.variant or "auto", spectral=False)  # unknown / unavailable forced variant: error
-        if not be.vectorized:
+    be = resolve_backend(opts.variant or "auto", spectral=False)  # unknown / unavailable forced variant: error
+    if not be.vectorized:
+        if opts.tier == "full":
             # the full tier path-traces on any backend; only its maps.exr needs the JIT two-lobe tracer
             log.warning("full tier on %s: maps.exr falls back to the analytic maps (the two-lobe tracer needs llvm or cuda)", be.variant)
             info["modelled"] = dict(ANALYTIC_MODELLED, maps_exr_source=f"analytic: the two-lobe tracer needs a JIT variant, {be.variant} selected")
+            return analytic_maps(scene)
+        if (opts.variant or "auto") == "auto":
+            # no JIT backend works here: never crash, fall back to the analytic maps (same Fresnel model; agrees
+            # with the two-lobe maps to 1e-4 except dispersion) and say so loudly
+            why = "; ".join(be.fallbacks) or be.variant
+            log.warning("maps tier: no JIT Mitsuba variant works (%s); falling back to the ANALYTIC coefficient maps", why)
+            info["modelled"] = dict(ANALYTIC_MODELLED, maps_source=f"analytic fallback: the two-lobe tracer needs llvm or cuda ({why})", backend=be.to_dict())
+            info["variant"] = be.variant
             return analytic_maps(scene)
     return tiers_mitsuba.render_pane_maps(scene, opts, info, progress=progress)
 

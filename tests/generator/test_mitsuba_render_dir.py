@@ -99,7 +99,8 @@ def test_resume_with_different_pixel_options_is_refused(tmp_path):
 
 def test_forced_variant_is_used_and_auto_fallback_is_logged_and_recorded(tmp_path, monkeypatch, caplog):
     """--variant scalar really runs scalar; auto with broken CUDA/LLVM JITs falls back to scalar with a
-    logged warning and the reasons in render.json; the maps tier then fails with a one-line error."""
+    logged warning and the reasons in render.json; the maps tier then falls back to analytic maps (logged,
+    recorded), and forcing scalar for it is a one-line error."""
     require_mitsuba()
     import generator.mitsuba_backend as mb
     from generator.render import render
@@ -126,8 +127,15 @@ def test_forced_variant_is_used_and_auto_fallback_is_logged_and_recorded(tmp_pat
     from polspike.renderdir import open_render
 
     assert np.all(np.isfinite(open_render(tmp_path / "a").stokes(0)))
+    # maps tier with auto and no JIT backend: logged fallback to the analytic maps, recorded; never a crash
+    caplog.clear()
+    with caplog.at_level("WARNING"):
+        meta = render(sc, tmp_path / "m", _opts("maps"))
+    assert meta["complete"] and "analytic fallback" in meta["modelled"]["maps_source"]
+    assert any("ANALYTIC coefficient maps" in r.getMessage() for r in caplog.records)
+    # ...but forcing scalar for the maps tier is a one-line error
     with pytest.raises(BackendUnavailableError, match="JIT") as ei:
-        render(sc, tmp_path / "m", _opts("maps"))
+        render(sc, tmp_path / "m2", _opts("maps", variant="scalar"))
     assert "\n" not in str(ei.value)
 
 
