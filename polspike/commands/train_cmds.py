@@ -192,8 +192,8 @@ from polspike.cli import bench_app  # noqa: E402
 @bench_app.command("reconstruct-net")
 def bench_reconstruct_net_cmd(
     weights: Optional[Path] = typer.Option(None, "--weights", help="checkpoint [default: shipped]"),
-    height: int = typer.Option(250, "--height"),
-    width: int = typer.Option(400, "--width"),
+    height: int = typer.Option(250, "--height", help="frame height H, pixels"),
+    width: int = typer.Option(400, "--width", help="frame width W, pixels"),
     frames: int = typer.Option(2, "--frames", help="timed output frames per device"),
     json_out: Optional[Path] = typer.Option(None, "--json", help="write the results here as JSON"),
     threads: int = typer.Option(0, "--threads", help="torch CPU threads (0 = torch default)"),
