@@ -169,7 +169,7 @@ def reconstruct_and_score(group_dir: Path, figs: Path, n_frames: int, crop: int)
     for name, (T, R) in est.items():
         sT = [score(T[b], g.T[i][sl]) for b, i in enumerate(idx)]
         sR = [score(R[b], g.R[i][sl]) for b, i in enumerate(idx)] if R is not None else None
-        mean = lambda ss, k: float(np.mean([s[k] for s in ss])) if ss else float("nan")  # noqa: E731
+        mean = lambda ss, k: float(np.mean([s[k] for s in ss])) if ss else "n/a (TFP does not separate R)"  # noqa: E731
         rows.append([name, mean(sT, "psnr"), mean(sT, "ssim"), mean(sR, "psnr"), mean(sR, "ssim")])
     b, i = 0, int(idx[0])
     gray = {"cmap": "gray", "vmin": 0.0, "vmax": 1.0}
