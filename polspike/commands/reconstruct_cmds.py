@@ -21,7 +21,7 @@ def evaluate_cmd(
     dt_ms: float = typer.Option(0.65, "--dt-ms", help="aggregation window, milliseconds (odd number of steps)"),
     stride_deg: float = typer.Option(31.5, "--stride-deg", help="polarizer rotation between output frames, degrees"),
     rir: bool = typer.Option(True, "--rir/--no-rir", help="reflection-invariant registration of each window (full: the without-RIR ablation)"),
-    checkpoint: Optional[Path] = typer.Option(None, "--checkpoint", help="network checkpoint for --method full / --zeta learned [default: reconstruct/weights/polspike_v0.pt]"),
+    checkpoint: Optional[Path] = typer.Option(None, "--checkpoint", help="network checkpoint for --method full / --zeta learned [default: the shipped reconstruct/weights/polspike_v1.pt]"),
     no_attention: bool = typer.Option(False, "--no-attention", help="full: the checkpoint is the without-angle-attention ablation (trained so)"),
     no_conf: bool = typer.Option(False, "--no-conf", help="full: the without-Conf ablation (trained so, else a test-time ablation)"),
     net_tile: int = typer.Option(256, "--net-tile", help="full: network tile size in pixels (0 = whole frame)"),
@@ -78,10 +78,10 @@ def evaluate_cmd(
 def bench_reconstruct_cmd(
     out: Path = typer.Option(Path("out/bench/reconstruct"), "--out", help="output folder for reconstruct.json and reconstruct.md"),
     json_out: bool = typer.Option(False, "--json", help="print the JSON result"),
-    width: int = typer.Option(400, "--width"),
-    height: int = typer.Option(250, "--height"),
+    width: int = typer.Option(400, "--width", help="frame width in pixels"),
+    height: int = typer.Option(250, "--height", help="frame height in pixels"),
     batch: int = typer.Option(8, "--batch", help="windows per solver call (solver-stage throughput)"),
-    repeats: int = typer.Option(3, "--repeats"),
+    repeats: int = typer.Option(3, "--repeats", help="timed repetitions per device (the best is reported)"),
     threads: int = typer.Option(2, "--threads", help="torch CPU threads"),
     device: str = typer.Option("auto", "--device", help="auto (CPU, plus CUDA when present), cpu, or cuda"),
 ) -> None:
