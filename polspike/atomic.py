@@ -68,6 +68,19 @@ def atomic_path(final: str | os.PathLike, suffix: str | None = None) -> Iterator
         raise
 
 
+def finish_atomic(ctx: contextlib.AbstractContextManager, ok: bool) -> None:
+    """Leave an :func:`atomic_path` context entered by hand (a writer object that spans calls):
+    publish the file when ``ok``, otherwise delete the temporary file and publish nothing."""
+    if ok:
+        ctx.__exit__(None, None, None)
+        return
+    err = RuntimeError("aborted")
+    try:
+        ctx.__exit__(RuntimeError, err, None)
+    except RuntimeError:
+        pass
+
+
 def write_bytes(final: str | os.PathLike, data: bytes) -> Path:
     """Atomically write ``data`` to ``final`` (fsync before rename)."""
     with atomic_path(final) as tmp:

@@ -39,7 +39,29 @@ __all__ = [
     "darkest_phase",
     "phase_error",
     "calibrate_group",
+    "isi_cv",
 ]
+
+
+def isi_cv(spikes: np.ndarray, min_spikes: int = 4) -> np.ndarray:
+    """Per-pixel coefficient of variation of the inter-spike intervals (std / mean).
+
+    Args:
+        spikes: (T, P) 0/1 array, time first.
+        min_spikes: pixels with fewer spikes get NaN.
+
+    Returns:
+        (P,) CV; 0 for a perfectly regular pixel (the noise-free integrate-and-fire
+        at constant light), ~1/sqrt(Q) with Q photoelectrons per threshold under shot noise.
+    """
+    x = np.asarray(spikes)
+    out = np.full(x.shape[1], np.nan)
+    for j in range(x.shape[1]):
+        t = np.flatnonzero(x[:, j])
+        if t.size >= min_spikes:
+            d = np.diff(t)
+            out[j] = d.std() / d.mean()
+    return out
 
 
 @dataclasses.dataclass(frozen=True)

@@ -47,7 +47,7 @@ from typing import Any
 import h5py
 import numpy as np
 
-from polspike.atomic import atomic_path, ensure_dir, write_json
+from polspike.atomic import atomic_path, ensure_dir, finish_atomic, write_json
 from polspike.errors import DataFormatError, OutputError, ShapeError
 
 __all__ = ["GroupWriter", "SpikeGroup", "open_group", "FORMAT", "SPIKES_FILE", "SUMMARY_FILE"]
@@ -196,14 +196,7 @@ class GroupWriter:
             if self._pool is not None:
                 self._pool.shutdown(wait=True, cancel_futures=not ok)
             self.f.close()
-            if ok:
-                self._ctx.__exit__(None, None, None)
-            else:
-                err = RuntimeError("aborted")
-                try:
-                    self._ctx.__exit__(RuntimeError, err, None)
-                except RuntimeError:
-                    pass
+            finish_atomic(self._ctx, ok)
         write_json(self.dir / SUMMARY_FILE, {"format": FORMAT, "complete": True, **(summary or {})})
         return self.dir
 

@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from polspike.atomic import atomic_path
+from polspike.atomic import atomic_path, finish_atomic
 from polspike.errors import DataFormatError, OutputError, ShapeError
 
 __all__ = ["read_dat", "iter_dat", "write_dat", "DatWriter", "dat_frame_count", "CAMERA_WIDTH", "HEAD_COLUMNS"]
@@ -195,17 +195,10 @@ class DatWriter:
         self._fh.flush()
         os.fsync(self._fh.fileno())
         self._fh.close()
-        if ok:
-            try:
-                self._ctx.__exit__(None, None, None)
-            except OSError as exc:  # pragma: no cover - disk errors
-                raise OutputError(f"cannot write {self.path}: {exc}") from None
-        else:
-            err = RuntimeError("aborted")
-            try:
-                self._ctx.__exit__(RuntimeError, err, None)
-            except RuntimeError:
-                pass
+        try:
+            finish_atomic(self._ctx, ok)
+        except OSError as exc:  # pragma: no cover - disk errors
+            raise OutputError(f"cannot write {self.path}: {exc}") from None
 
     def __enter__(self) -> DatWriter:
         return self

@@ -6,6 +6,8 @@ import dataclasses
 
 import numba
 import numpy as np
+
+from spike_sim.calibrate import isi_cv
 import pytest
 
 from spike_sim.config import DEFAULT, IDEAL
@@ -19,15 +21,6 @@ from spike_sim.integrate_fire import (
 )
 
 
-def _isi_cv(x):
-    """Per-pixel ISI CV of a (T, N) 0/1 array (NaN for < 4 spikes)."""
-    out = np.full(x.shape[1], np.nan)
-    for j in range(x.shape[1]):
-        t = np.flatnonzero(x[:, j])
-        if t.size >= 4:
-            d = np.diff(t)
-            out[j] = d.std() / d.mean()
-    return out
 
 
 @pytest.mark.parametrize("engine", ["numba", "numpy"])
@@ -106,7 +99,7 @@ def test_numba_kernel_is_statistically_equivalent_to_numpy_reference():
         ra, rb = a[:, m].mean(0), b[:, m].mean(0)
         assert ra.mean() == pytest.approx(rb.mean(), rel=0.02), level  # rate
         assert ra.std() == pytest.approx(rb.std(), rel=0.25, abs=2e-4), level  # per-pixel spread (fixed pattern + noise)
-        ca, cb = np.nanmedian(_isi_cv(a[:, m])), np.nanmedian(_isi_cv(b[:, m]))
+        ca, cb = np.nanmedian(isi_cv(a[:, m])), np.nanmedian(isi_cv(b[:, m]))
         assert ca == pytest.approx(cb, rel=0.12), level  # ISI CV
     # ISI distribution shape at one level: two-sample KS statistic small
     from scipy.stats import ks_2samp

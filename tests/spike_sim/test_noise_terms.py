@@ -6,6 +6,8 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
+
+from spike_sim.calibrate import isi_cv
 import pytest
 
 from polspike.physics.polarizer import PolarizerConfig
@@ -23,12 +25,7 @@ def _run(engine, **flags):
 
 
 def _isi_cv(x):
-    cv = []
-    for j in range(x.shape[1]):
-        d = np.diff(np.flatnonzero(x[:, j]))
-        if d.size >= 3:
-            cv.append(d.std() / d.mean())
-    return float(np.median(cv))
+    return float(np.nanmedian(isi_cv(x)))
 
 
 @pytest.mark.parametrize("engine", ["numba", "numpy"])

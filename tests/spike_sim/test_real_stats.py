@@ -14,6 +14,8 @@ import dataclasses
 from pathlib import Path
 
 import numpy as np
+
+from spike_sim.calibrate import isi_cv
 import pytest
 
 from spike_sim.config import DEFAULT, IDEAL
@@ -23,14 +25,6 @@ REAL = Path(__file__).resolve().parents[2] / ".." / "shared" / "data" / "real_sp
 BAND = (0.6, 1.6)  # simulated / real median ISI CV
 
 
-def _isi_cv(x):
-    out = np.full(x.shape[1], np.nan)
-    for j in range(x.shape[1]):
-        t = np.flatnonzero(x[:, j])
-        if t.size >= 4:
-            d = np.diff(t)
-            out[j] = d.std() / d.mean()
-    return out
 
 
 def _load(name, key, order):
@@ -49,7 +43,7 @@ def _ratio(real, cfg, n_pix=4000, seed=0):
     rates = xr.mean(0).astype(np.float32)
     cfg = dataclasses.replace(cfg, width=100, height=n_pix // 100)
     sim = simulate_constant(rates.reshape(cfg.height, cfg.width), T, cfg, seed=1).reshape(T, -1)
-    return np.nanmedian(_isi_cv(sim)) / np.nanmedian(_isi_cv(xr)), np.nanmedian(_isi_cv(xr)), rates
+    return np.nanmedian(isi_cv(sim)) / np.nanmedian(isi_cv(xr)), np.nanmedian(isi_cv(xr)), rates
 
 
 @pytest.mark.parametrize(
