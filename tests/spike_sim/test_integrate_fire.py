@@ -6,10 +6,9 @@ import dataclasses
 
 import numba
 import numpy as np
-
-from spike_sim.calibrate import isi_cv
 import pytest
 
+from spike_sim.calibrate import isi_cv
 from spike_sim.config import DEFAULT, IDEAL
 from spike_sim.integrate_fire import (
     make_pixel_params,

@@ -6,11 +6,10 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
-
-from spike_sim.calibrate import isi_cv
 import pytest
 
 from polspike.physics.polarizer import PolarizerConfig
+from spike_sim.calibrate import isi_cv
 from spike_sim.config import IDEAL
 from spike_sim.integrate_fire import simulate_constant
 from spike_sim.simulate import keyframes_from_arrays, simulate

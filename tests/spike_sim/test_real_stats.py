@@ -14,10 +14,9 @@ import dataclasses
 from pathlib import Path
 
 import numpy as np
-
-from spike_sim.calibrate import isi_cv
 import pytest
 
+from spike_sim.calibrate import isi_cv
 from spike_sim.config import DEFAULT, IDEAL
 from spike_sim.integrate_fire import simulate_constant
 
