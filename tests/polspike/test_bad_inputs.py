@@ -127,3 +127,41 @@ def test_fuzz_dat_reader(tmp_path_factory, size, h, w, seed):
         return
     assert x.dtype == np.uint8 and x.shape[1:] == (h, w) and set(np.unique(x)) <= {0, 1}
     assert x.shape[0] * h * w <= size * 8
+
+
+_mkeys = st.sampled_from(["name", "groups", "defaults", "split", "tier", "seed", "duration_s", "scene", "pane", "camera",
+                          "layers", "spike_sim", "preset", "n", "tilt_deg", "width", "source", "format", "x"])
+_mvals = st.recursive(
+    st.one_of(st.none(), st.booleans(), st.integers(-10**6, 10**6), st.floats(allow_nan=True, allow_infinity=True),
+              st.text(max_size=10), st.sampled_from(["train", "test", "analytic", "brewster", "ideal", "skimage:moon"])),
+    lambda ch: st.one_of(st.lists(ch, max_size=3), st.dictionaries(_mkeys, ch, max_size=4)),
+    max_leaves=14,
+)
+
+
+@settings(max_examples=200, deadline=None)
+@given(data=st.dictionaries(_mkeys, _mvals, max_size=5))
+def test_fuzz_manifest_loader(data):
+    """Random manifest tables: a Manifest or a one-line ConfigError/PolspikeError, never another exception."""
+    from polspike.errors import PolspikeError
+    from polspike.pipeline.manifest import parse_manifest
+
+    try:
+        parse_manifest(data, where="fuzz.toml")
+    except PolspikeError as exc:
+        assert "\n" not in str(exc)
+
+
+@settings(max_examples=100, deadline=None)
+@given(text=st.text(max_size=300))
+def test_fuzz_manifest_text(tmp_path_factory, text):
+    """Random (often malformed or truncated) TOML text through the file loader."""
+    from polspike.errors import PolspikeError
+    from polspike.pipeline.manifest import load_manifest
+
+    p = tmp_path_factory.mktemp("mf") / "m.toml"
+    p.write_text(text, encoding="utf-8")
+    try:
+        load_manifest(p)
+    except PolspikeError as exc:
+        assert "\n" not in str(exc)
