@@ -132,12 +132,14 @@ def simulate_group(render_dir: Path, group_dir: Path, duration_s: float):
 
 
 def spike_figures(group_dir: Path, figs: Path) -> list[tuple[Path, str]]:
-    """Spike raster with phi(t), and the seven I(i) frames of the middle window."""
-    from polspike.pipeline.spikefigs import plot_spike_raster, plot_window_frames
+    """Spike raster with phi(t), and the seven I(i) frames of the middle window (the
+    ``polspike dataset inspect`` figures of the group, written to ``figs/inspect``)."""
+    from polspike.pipeline.inspect import inspect_group
 
+    ins = inspect_group(group_dir, figs / "inspect")
     return [
-        (plot_spike_raster(group_dir, figs / "spike_raster.png"), "spike raster of a few pixels with the polarizer angle phi(t)"),
-        (plot_window_frames(group_dir, figs / "window_frames.png"), "the seven Eq. (3) observations I(i+k) of one window and their angles"),
+        (figs / "inspect" / "raster.png", "spike raster of a few pixels with the Eq. (3) windows and the polarizer angle phi(t)"),
+        (figs / "inspect" / "window.png", f"the seven Eq. (3) observations I(i+k) of the window at t = {ins['time_s'] * 1e3:.1f} ms and their angles"),
     ]
 
 
