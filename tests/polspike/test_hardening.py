@@ -84,23 +84,54 @@ def test_full_disk_leaves_no_partial_file(tmp_path):
         read_exr(fr)
 
 
-_keys = st.sampled_from(["camera", "pane", "layers", "polarizer", "render", "name", "width", "n", "tilt_deg", "model", "source", "x"])
-_vals = st.recursive(
-    st.one_of(st.none(), st.booleans(), st.integers(-10**6, 10**6), st.floats(allow_nan=True, allow_infinity=True), st.text(max_size=12)),
-    lambda ch: st.one_of(st.lists(ch, max_size=4), st.dictionaries(_keys, ch, max_size=4)),
-    max_leaves=12,
-)
+def _tables(keys: list[str], extra_leaves: tuple[str, ...] = ()):
+    """Nested TOML-like tables over ``keys`` with hostile leaves (NaN, inf, wrong types) and a few plausible strings."""
+    leaves = [st.none(), st.booleans(), st.integers(-10**6, 10**6), st.floats(allow_nan=True, allow_infinity=True), st.text(max_size=12)]
+    if extra_leaves:
+        leaves.append(st.sampled_from(extra_leaves))
+    kst = st.sampled_from(keys)
+    vals = st.recursive(st.one_of(*leaves), lambda ch: st.one_of(st.lists(ch, max_size=4), st.dictionaries(kst, ch, max_size=4)), max_leaves=12)
+    return st.dictionaries(kst, vals, max_size=5)
+
+
+def _ok_or_one_line_project_error(fn, *args) -> None:
+    try:
+        fn(*args)
+    except PolspikeError as exc:
+        assert "\n" not in str(exc)
+
+
+_SCENE_KEYS = ["camera", "pane", "layers", "polarizer", "render", "name", "width", "n", "tilt_deg", "model", "source", "x"]
+_MANIFEST_KEYS = ["name", "groups", "defaults", "split", "tier", "seed", "duration_s", "scene", "pane", "camera",
+                  "layers", "spike_sim", "preset", "n", "tilt_deg", "width", "source", "format", "x"]
 
 
 @settings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.too_slow])
-@given(data=st.dictionaries(_keys, _vals, max_size=5))
+@given(data=_tables(_SCENE_KEYS))
 def test_fuzz_scene_loader_raises_only_project_errors(data):
     from generator.scene import scene_from_dict
 
-    try:
-        scene_from_dict(data, where="fuzz")
-    except PolspikeError as exc:
-        assert "\n" not in str(exc)
+    _ok_or_one_line_project_error(scene_from_dict, data, "fuzz")
+
+
+@settings(max_examples=200, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(data=_tables(_MANIFEST_KEYS, ("train", "test", "analytic", "brewster", "ideal", "skimage:moon")))
+def test_fuzz_manifest_loader(data):
+    """Random manifest tables: a Manifest or a one-line project error, never another exception."""
+    from polspike.pipeline.manifest import parse_manifest
+
+    _ok_or_one_line_project_error(parse_manifest, data, "fuzz.toml")
+
+
+@settings(max_examples=100, deadline=None)
+@given(text=st.text(max_size=300))
+def test_fuzz_manifest_text(tmp_path_factory, text):
+    """Random (often malformed or truncated) TOML text through the manifest file loader."""
+    from polspike.pipeline.manifest import load_manifest
+
+    p = tmp_path_factory.mktemp("mf") / "m.toml"
+    p.write_text(text, encoding="utf-8")
+    _ok_or_one_line_project_error(load_manifest, p)
 
 
 @settings(max_examples=150, deadline=None)
