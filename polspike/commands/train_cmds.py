@@ -53,10 +53,8 @@ def train_cmd(
         train_set, val_set = on_the_fly_sets(cfg)
         src = f"on-the-fly windows ({('scenes of ' + cfg.manifest) if cfg.manifest else f'{cfg.train_scenes} train / {cfg.test_scenes} validation sampled scenes'}, generator analytic tier + spike_sim)"
     else:
-        try:
-            from reconstruct.data import open_window_datasets  # dataset issue's stored-window loader
-        except ImportError:
-            raise ConfigError("stored-dataset training needs reconstruct.data (not available in this checkout); omit --data to train on the fly") from None
+        from reconstruct.windows import open_window_datasets
+
         train_set, val_set = open_window_datasets(data, cfg)
         src = f"stored windows in {data}"
     with rich_progress("train", enabled=not quiet) as cb:

@@ -198,10 +198,7 @@ def test_split_filtering_loader_workers_and_training(tmp_path):
     first = next(iter(dl))
     ref = collate([tr[i] for i in range(4)])
     assert all(torch.equal(first[k], ref[k]) for k in ref)
-    # the trainer consumes stored windows (reconstruct.data is what `polspike train --data` imports)
-    from reconstruct.data import open_window_datasets as owd
-
-    assert owd is open_window_datasets
+    # the trainer consumes stored windows (what `polspike train --data` builds)
     cfg = dataclasses.replace(TINY, epochs=1, steps_per_epoch=1, val_items=2, train_items=8)
     tr2, va2 = open_window_datasets(root, cfg)
     assert len(tr2) == 8 and len(va2) == 2 and [g.name for g in va2.groups] == ["b"]
