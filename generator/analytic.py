@@ -1,10 +1,10 @@
 """Analytic tier: per-pixel pane coefficients from geometry and Fresnel, layers mixed by paper Eq. (1)-(2).
 
 This is the paper's own pipeline made geometric: theta(p) and phi_perp(p) come
-from the camera and pane (:mod:`polspike.physics.geometry`), the coefficients
-from the pane model the scene names (:func:`polspike.physics.fresnel.pane_coefficients`),
+from the camera and pane (:mod:`polphysics.geometry`), the coefficients
+from the pane model the scene names (:func:`polphysics.fresnel.pane_coefficients`),
 and each frame's Stokes vector from the layer images
-(:func:`polspike.physics.zeta.stokes_from_layers`).
+(:func:`polphysics.zeta.stokes_from_layers`).
 
 What it models, and what it leaves out (stated in ``render.json``):
 - reflection: the R layer seen by the mirrored camera through the pane point of
@@ -13,7 +13,7 @@ What it models, and what it leaves out (stated in ``render.json``):
 - transmission: the T layer along the camera ray; slabs displace the ray
   laterally by their thickness (the exit point), the direction is unchanged;
 - the radiance compression 1/n^2 of a ``single`` interface is NOT applied
-  (paper Eq. (1) omits it; :func:`polspike.physics.fresnel.radiance_scale`);
+  (paper Eq. (1) omits it; :func:`polphysics.fresnel.radiance_scale`);
 - the pane is treated as infinite (coverage is checked separately); layer
   occlusion and multiple reflections between layers are ignored.
 """
@@ -24,9 +24,9 @@ import dataclasses
 
 import numpy as np
 
-from polspike.physics.fresnel import pane_coefficients
-from polspike.physics.geometry import incidence_geometry, normalize, reflect_dir, refract_dir
-from polspike.physics.zeta import stokes_from_layers
+from polphysics.fresnel import pane_coefficients
+from polphysics.geometry import incidence_geometry, normalize, reflect_dir, refract_dir
+from polphysics.zeta import stokes_from_layers
 
 from generator.layers import LayerContent, LayerPlane
 from generator.scene import SceneConfig

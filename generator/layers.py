@@ -27,8 +27,8 @@ from pathlib import Path
 import numpy as np
 from scipy import ndimage
 
-from polspike.errors import ConfigError, DataFormatError
-from polspike.physics.geometry import PinholeCamera, intersect_plane, Plane
+from polinfra.errors import ConfigError, DataFormatError
+from polphysics.geometry import PinholeCamera, intersect_plane, Plane
 
 from generator.scene import LayerConfig
 

@@ -19,7 +19,7 @@ scene, which gives the same numbers as mono.
 ``auto`` tries cuda, then llvm, then scalar.  A backend that imports but fails
 its first JIT kernel (e.g. LLVM 15's "Cannot select fminimum") is skipped with
 a logged warning.  A *forced* backend that is unavailable raises
-:class:`~polspike.errors.BackendUnavailableError` with a one-line message.
+:class:`~polinfra.errors.BackendUnavailableError` with a one-line message.
 
 The LLVM backend needs ``libLLVM`` 19: if ``DRJIT_LIBLLVM_PATH`` is unset and
 :data:`DEFAULT_LIBLLVM` exists, it is set before Dr.Jit is imported.
@@ -33,7 +33,7 @@ import os
 from pathlib import Path
 from typing import Any
 
-from polspike.errors import BackendUnavailableError
+from polinfra.errors import BackendUnavailableError
 
 __all__ = [
     "BACKENDS",

@@ -49,7 +49,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from polspike.errors import BackendUnavailableError, SceneError
+from polinfra.errors import BackendUnavailableError, SceneError
 
 __all__ = ["pane_coefficients", "stokes_to_coefficients"]
 

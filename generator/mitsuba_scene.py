@@ -10,7 +10,7 @@ Geometry (world frame, metres):
 * Camera: Mitsuba ``perspective`` sensor, ``fov_axis = "x"``, ``to_world =
   look_at(position, look_at, up)``.  Its pixel (x, y) ray is
   ``f + ((x+.5)/W*2-1) tan(fovx/2) r - ((y+.5)/H*2-1) tan(fovx/2) (H/W) u``,
-  the pinhole camera of :mod:`polspike.physics.geometry` (pinned by a test).
+  the pinhole camera of :mod:`polphysics.geometry` (pinned by a test).
   Mitsuba's ``stokes`` integrator expresses Stokes vectors per ray with the
   reference axis ``x_ref = normalize(cross(d, up))`` (image right) and S2 > 0
   toward ``cross(x_ref, d)`` (image up): the project convention.
@@ -32,7 +32,7 @@ from typing import Any
 
 import numpy as np
 
-from polspike.errors import SceneError
+from polinfra.errors import SceneError
 
 __all__ = [
     "CameraSpec",

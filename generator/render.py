@@ -26,10 +26,10 @@ from pathlib import Path
 
 import numpy as np
 
-from polspike.atomic import ensure_dir, write_json
-from polspike.config import to_dict
-from polspike.errors import ConfigError, OutputError
-from polspike.exr import read_exr, write_exr
+from polinfra.atomic import ensure_dir, write_json
+from polinfra.config import to_dict
+from polinfra.errors import ConfigError, OutputError
+from polinfra.exr import read_exr, write_exr
 
 from generator.analytic import ANALYTIC_MODELLED, MAP_CHANNELS, PaneMaps, analytic_maps, frame_stokes, sample_layers
 from generator.layers import LayerContent

@@ -23,7 +23,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from polspike.errors import PolspikeError
+from polinfra.errors import PolspikeError
 
 __all__ = ["run_render_bench"]
 

@@ -10,8 +10,8 @@ beyond the pane along the reflected optical axis.  Each plane is sized to fill
 its camera's view with a margin, so the layer texture maps onto the image.
 
 Every field documents its unit and range; unknown keys and out-of-range values
-raise :class:`~polspike.errors.ConfigError` naming the key (see
-:mod:`polspike.config`).  Degrees appear only here (``*_deg``).
+raise :class:`~polinfra.errors.ConfigError` naming the key (see
+:mod:`polinfra.config`).  Degrees appear only here (``*_deg``).
 """
 
 from __future__ import annotations
@@ -24,11 +24,11 @@ from pathlib import Path
 
 import numpy as np
 
-from polspike.config import from_dict, load_toml, opt, to_dict
-from polspike.errors import ConfigError, SceneError
-from polspike.physics.fresnel import GLASSES, PANE_MODELS, glass_index
-from polspike.physics.geometry import PinholeCamera, Plane, normalize
-from polspike.physics.polarizer import PolarizerConfig
+from polinfra.config import from_dict, load_toml, opt, to_dict
+from polinfra.errors import ConfigError, SceneError
+from polphysics.fresnel import GLASSES, PANE_MODELS, glass_index
+from polphysics.geometry import PinholeCamera, Plane, normalize
+from polphysics.polarizer import PolarizerConfig
 
 __all__ = [
     "CameraConfig",
@@ -206,7 +206,7 @@ class SceneConfig:
 
 
 def scene_from_dict(data: dict, where: str = "scene") -> SceneConfig:
-    """Validate plain data into a SceneConfig (strict; see :mod:`polspike.config`)."""
+    """Validate plain data into a SceneConfig (strict; see :mod:`polinfra.config`)."""
     return from_dict(SceneConfig, data, where=where)
 
 
@@ -233,7 +233,7 @@ def default_scenes() -> list[str]:
 
 def check_scene_geometry(scene: SceneConfig) -> None:
     """Raise SceneError when the pane does not cover the view or faces away."""
-    from polspike.physics.geometry import incidence_geometry
+    from polphysics.geometry import incidence_geometry
 
     cam = scene.camera_model()
     plane = scene.pane_plane()

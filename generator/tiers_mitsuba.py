@@ -36,7 +36,7 @@ from pathlib import Path
 
 import numpy as np
 
-from polspike.errors import BackendUnavailableError, ConfigError
+from polinfra.errors import BackendUnavailableError, ConfigError
 
 __all__ = [
     "render_pane_maps",
@@ -295,7 +295,7 @@ def single_interface_t_scale(scene, t_plane, indices, content_extent: float) -> 
     (their rays exit parallel, displaced by less than the margin)."""
     if scene.pane.model != "single":
         return 1.0
-    from polspike.physics.geometry import incidence_geometry, normalize, refract_dir
+    from polphysics.geometry import incidence_geometry, normalize, refract_dir
 
     cam = scene.camera_model()
     plane = scene.pane_plane()

@@ -29,13 +29,13 @@ from pathlib import Path
 
 import numpy as np
 
-from polspike.atomic import ensure_dir, write_json
-from polspike.errors import ConfigError
-from polspike.physics.fresnel import PANE_MODELS, radiance_scale
-from polspike.physics.stokes import polarizer_intensity
-from polspike.physics.zeta import mix_eq1, zeta
-from polspike.plotting import image_grid, save_figure
-from polspike.exr import read_exr
+from polinfra.atomic import ensure_dir, write_json
+from polinfra.errors import ConfigError
+from polphysics.fresnel import PANE_MODELS, radiance_scale
+from polphysics.stokes import polarizer_intensity
+from polphysics.zeta import mix_eq1, zeta
+from polinfra.plotting import image_grid, save_figure
+from polinfra.exr import read_exr
 
 from generator.analytic import analytic_maps
 from generator.render import RenderOptions, render

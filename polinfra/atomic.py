@@ -15,7 +15,7 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
-from polspike.errors import OutputError
+from polinfra.errors import OutputError
 
 __all__ = ["atomic_path", "write_bytes", "write_json", "write_text", "ensure_dir"]
 

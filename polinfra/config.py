@@ -3,7 +3,7 @@
 Every config section is a frozen dataclass whose fields are declared with
 :func:`opt`, which carries the field's documentation, unit and allowed range.
 :func:`from_dict` builds an instance and rejects unknown keys, wrong types and
-out-of-range values with a one-line :class:`~polspike.errors.ConfigError` that
+out-of-range values with a one-line :class:`~polinfra.errors.ConfigError` that
 names the file, the key, the value seen and what is allowed.
 
 Example:
@@ -25,7 +25,7 @@ import typing
 from pathlib import Path
 from typing import Any, Literal, TypeVar, get_args, get_origin
 
-from polspike.errors import ConfigError
+from polinfra.errors import ConfigError
 
 __all__ = ["opt", "from_dict", "to_dict", "load_toml", "describe"]
 

@@ -12,8 +12,8 @@ from pathlib import Path
 
 import numpy as np
 
-from polspike.atomic import atomic_path
-from polspike.errors import DataFormatError, ShapeError
+from polinfra.atomic import atomic_path
+from polinfra.errors import DataFormatError, ShapeError
 
 __all__ = ["write_exr", "read_exr"]
 

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from polspike.atomic import atomic_path
+from polinfra.atomic import atomic_path
 
 __all__ = ["save_figure", "image_grid"]
 

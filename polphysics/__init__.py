@@ -1,4 +1,6 @@
-"""Polarization physics shared by every stage (pure numpy, no Mitsuba).
+"""polphysics: the polarization physics of a glass pane and a rotating polarizer (pure numpy, no Mitsuba).
+
+Bottom floor beside :mod:`polinfra` (the only project package it imports).
 
 Modules: :mod:`.fresnel` (interface and pane coefficients), :mod:`.geometry`
 (pinhole camera, pane plane, per-pixel theta and phi_perp), :mod:`.zeta`

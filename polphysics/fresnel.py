@@ -54,7 +54,7 @@ def glass_index(name: str, wavelength_nm: float | np.ndarray = 550.0) -> np.ndar
     Returns:
         n(lambda), same shape as ``wavelength_nm``.
     """
-    from polspike.errors import ConfigError
+    from polinfra.errors import ConfigError
 
     key = name.upper()
     if key not in GLASSES:
@@ -182,7 +182,7 @@ def pane_coefficients(theta_rad, n, model: str = "single", thickness_m: float = 
         dict with float64 arrays ``R_perp, R_par, T_perp, T_par, G_perp, G_par``
         (G = 0 for ``single``).
     """
-    from polspike.errors import ConfigError
+    from polinfra.errors import ConfigError
 
     if model not in PANE_MODELS:
         raise ConfigError(f"unknown pane model {model!r}; choose one of {list(PANE_MODELS)}")

@@ -21,7 +21,7 @@ import dataclasses
 
 import numpy as np
 
-from polspike.errors import SceneError
+from polinfra.errors import SceneError
 
 __all__ = [
     "PinholeCamera",

@@ -1,6 +1,6 @@
 """The rotating linear polarizer in front of the spike camera.
 
-Angle model (radians, image-plane convention of :mod:`polspike.physics.stokes`)::
+Angle model (radians, image-plane convention of :mod:`polphysics.stokes`)::
 
     phi(t) = phi0 + 2 pi f [t + a (1 - cos(2 pi f_w t)) / (2 pi f_w)] + j_n
 
@@ -45,7 +45,7 @@ import dataclasses
 
 import numpy as np
 
-from polspike.config import opt
+from polinfra.config import opt
 
 __all__ = [
     "PolarizerConfig",
@@ -207,7 +207,7 @@ def step_mean_intensity(s0, s1, s2, phi_a, phi_b, extinction_ratio: float | None
 
     ``<I> = 1/2 ((1+k) S0 + (1-k) (S1 <cos 2phi> + S2 <sin 2phi>))``, phi linear
     from ``phi_a`` to ``phi_b`` over the step, k = 1/ER (0 ideal).  Equals
-    :func:`polspike.physics.stokes.polarizer_intensity` when phi_a == phi_b.
+    :func:`polphysics.stokes.polarizer_intensity` when phi_a == phi_b.
     """
     mo = step_moments(phi_a, phi_b)
     k = 0.0 if extinction_ratio is None else 1.0 / float(extinction_ratio)
@@ -262,7 +262,7 @@ def step_keyframe_weights(
     ja = np.clip(ja, -1, K - 1)
     jb = np.clip(jb, ja, K - 1)
     if np.any(jb - ja > 1):
-        from polspike.errors import ConfigError
+        from polinfra.errors import ConfigError
 
         raise ConfigError(f"keyframes closer than one simulator step ({dt_s * 1e6:.1f} us) are not supported; min spacing seen {np.min(np.diff(kt)) * 1e6:.3f} us")
     k_lo = np.clip(ja, 0, max(K - 3, 0)).astype(np.int64)

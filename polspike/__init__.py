@@ -1,9 +1,12 @@
-"""polspike: shared foundation (errors, config loading, polarization physics, I/O).
+"""polspike: the application on the top floor: the CLI, its commands, the dataset pipeline, benches, the demo.
 
-The CLI lives in :mod:`polspike.cli`; it is the only module that imports every stage.
+Layers, bottom to top (pinned by tests/test_import_graph.py):
+:mod:`polinfra` and :mod:`polphysics` (foundation) -> :mod:`generator`, :mod:`spike_sim`
+-> :mod:`reconstruct` -> :mod:`polspike` (may import every stage). The errors are
+re-exported here for users of the application.
 """
 
-from polspike.errors import (
+from polinfra.errors import (
     BackendUnavailableError,
     CheckpointError,
     ConfigError,

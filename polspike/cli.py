@@ -3,7 +3,7 @@
 Each subcommand parses its options, loads the config, calls one library
 function and prints a summary.  Commands live in :mod:`polspike.commands`
 (one small module per pipeline stage) and register themselves on :data:`app`.
-:class:`~polspike.errors.PolspikeError` is caught once, here, and printed as
+:class:`~polinfra.errors.PolspikeError` is caught once, here, and printed as
 one line with exit code 2; any other exception keeps its traceback.
 """
 
@@ -14,7 +14,7 @@ import sys
 
 import typer
 
-from polspike.errors import PolspikeError
+from polinfra.errors import PolspikeError
 
 app_typer = typer.Typer(
     name="polspike",

@@ -7,7 +7,7 @@ import html
 import os
 from pathlib import Path
 
-from polspike.atomic import write_text
+from polinfra.atomic import write_text
 
 __all__ = ["Report"]
 

@@ -62,7 +62,7 @@ def bench_reconstruct(width: int = 400, height: int = 250, n_obs: int = 7, batch
         repeats: timing repeats (best is kept).
         threads: torch CPU threads (the CPU target is 2 cores).
         devices: devices to try; missing ones are reported as skipped.
-        require: raise :class:`~polspike.errors.BackendUnavailableError` instead of skipping a missing device.
+        require: raise :class:`~polinfra.errors.BackendUnavailableError` instead of skipping a missing device.
 
     Returns:
         {"config": ..., "results": {device: {stage: {"s_per_frame", "fps"}}}, "ratios": ...}
@@ -77,7 +77,7 @@ def bench_reconstruct(width: int = 400, height: int = 250, n_obs: int = 7, batch
     for dev in devices:
         if dev == "cuda" and not torch.cuda.is_available():
             if require:
-                from polspike.errors import BackendUnavailableError
+                from polinfra.errors import BackendUnavailableError
 
                 raise BackendUnavailableError("bench on cuda requested but torch sees no CUDA device; use --device cpu or auto")
             out["skipped"]["cuda"] = "no CUDA device"

@@ -8,7 +8,7 @@ data only, no pickled code) with keys
 (config dict), ``optimizer``, ``step``, ``metrics``.
 
 Any problem (missing file, not a checkpoint, wrong format, config or tensors
-that do not fit the network) raises :class:`polspike.errors.CheckpointError`
+that do not fit the network) raises :class:`polinfra.errors.CheckpointError`
 with one line saying what and what to do.
 """
 
@@ -20,9 +20,9 @@ from typing import Any
 
 import torch
 
-from polspike.atomic import atomic_path
-from polspike.config import from_dict, to_dict
-from polspike.errors import CheckpointError, ConfigError
+from polinfra.atomic import atomic_path
+from polinfra.config import from_dict, to_dict
+from polinfra.errors import CheckpointError, ConfigError
 
 from reconstruct.network import NetConfig, PolSpikeNet, count_parameters
 from reconstruct.solvers import SolverConfig

@@ -47,8 +47,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from polspike.config import opt, to_dict
-from polspike.errors import ConfigError, DataFormatError
+from polinfra.config import opt, to_dict
+from polinfra.errors import ConfigError, DataFormatError
 
 from reconstruct.groups import EvalGroup
 from reconstruct.metrics import LPIPS_NA, lpips_status, psnr, score
@@ -105,7 +105,7 @@ def _device(name: str) -> torch.device:
     if name == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
     if name.startswith("cuda") and not torch.cuda.is_available():
-        from polspike.errors import BackendUnavailableError
+        from polinfra.errors import BackendUnavailableError
 
         raise BackendUnavailableError(f"device {name!r} requested but torch sees no CUDA device; use --device cpu or auto")
     return torch.device(name)
@@ -122,7 +122,7 @@ def load_network(cfg: EvalConfig) -> tuple[torch.nn.Module, dict]:
         CheckpointError: unreadable checkpoint, or one that does not fit the switches.
         ConfigError: the window length differs from the network's.
     """
-    from polspike.errors import CheckpointError
+    from polinfra.errors import CheckpointError
     from reconstruct.checkpoint import DEFAULT_WEIGHTS, load_model, read_checkpoint
 
     path = Path(cfg.checkpoint) if cfg.checkpoint else DEFAULT_WEIGHTS
@@ -191,7 +191,7 @@ def group_zeta(group: EvalGroup, cfg: EvalConfig) -> np.ndarray | None:
         if group.gt_zeta is not None:
             return np.asarray(group.gt_zeta, np.float64)
         raise DataFormatError(f"group {group.name}: no pane maps or GT zeta; use --zeta physics with a calibrated pane")
-    from polspike.physics.fresnel import pane_coefficients
+    from polphysics.fresnel import pane_coefficients
 
     if group.theta is None or group.maps is None:
         raise DataFormatError(f"group {group.name}: no incidence-angle / phi_perp maps for --zeta physics")
@@ -353,7 +353,7 @@ def write_report(report: EvalReport, out_dir: str | Path) -> dict[str, Path]:
     import csv
     import io
 
-    from polspike.atomic import atomic_path, ensure_dir, write_json, write_text
+    from polinfra.atomic import atomic_path, ensure_dir, write_json, write_text
 
     out = ensure_dir(out_dir)
     paths = {}

@@ -28,7 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
-from polspike.errors import DataFormatError
+from polinfra.errors import DataFormatError
 
 from reconstruct.zeta_source import PaneMaps
 

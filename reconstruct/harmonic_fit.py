@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import torch
 
-from polspike.errors import ShapeError
+from polinfra.errors import ShapeError
 
 __all__ = ["harmonic_fit", "harmonic_eval", "dop", "aolp"]
 

@@ -21,7 +21,7 @@ import dataclasses
 
 import torch
 
-from polspike.config import opt
+from polinfra.config import opt
 
 __all__ = ["LossConfig", "reflection_mask", "image_grad", "loss_rec", "loss_grad", "loss_phys", "loss_excl", "total_loss"]
 

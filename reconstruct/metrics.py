@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from polspike.errors import ShapeError
+from polinfra.errors import ShapeError
 
 __all__ = ["psnr", "ssim", "lpips_status", "LPIPS_NA", "score"]
 

@@ -50,8 +50,8 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from polspike.config import opt
-from polspike.errors import ShapeError
+from polinfra.config import opt
+from polinfra.errors import ShapeError
 
 from reconstruct.solvers import SolverConfig, solve
 

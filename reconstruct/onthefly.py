@@ -31,8 +31,8 @@ from collections.abc import Callable
 import numpy as np
 import torch
 
-from polspike.config import opt
-from polspike.errors import ConfigError, ShapeError
+from polinfra.config import opt
+from polinfra.errors import ConfigError, ShapeError
 
 __all__ = ["WindowConfig", "ITEM_KEYS", "WindowSource", "window_centres", "item_from_stream", "OnTheFlyWindows"]
 

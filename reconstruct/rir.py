@@ -29,8 +29,8 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from polspike.config import opt
-from polspike.errors import ShapeError
+from polinfra.config import opt
+from polinfra.errors import ShapeError
 
 from reconstruct.harmonic_fit import dop, harmonic_fit
 

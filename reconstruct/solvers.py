@@ -51,8 +51,8 @@ import dataclasses
 
 import torch
 
-from polspike.config import opt
-from polspike.errors import ConfigError, ShapeError
+from polinfra.config import opt
+from polinfra.errors import ConfigError, ShapeError
 
 __all__ = [
     "SOLVERS",

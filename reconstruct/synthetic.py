@@ -7,8 +7,8 @@ study.  Per group:
   R), radiance in [0.03, 1], each translating slowly (sub-pixel per frame, so
   RIR has work to do);
 * pane: a pinhole camera looking through a tilted plane; per-pixel incidence
-  theta(p) and s-direction phi_perp(p) from :mod:`polspike.physics.geometry`,
-  Fresnel R_perp, R_par of a single interface (:mod:`polspike.physics.fresnel`);
+  theta(p) and s-direction phi_perp(p) from :mod:`polphysics.geometry`,
+  Fresnel R_perp, R_par of a single interface (:mod:`polphysics.fresnel`);
 * polarizer: 30 rev/s; output frame i is centred where it has turned by
   i * stride; zeta(i) is paper Eq. (2) averaged over the aggregation window;
 * observation: I(i) = 1/2 (zeta R + (1 - zeta) T) (paper Eq. (1)), then spike
@@ -26,7 +26,7 @@ import dataclasses
 
 import numpy as np
 
-from polspike.config import opt
+from polinfra.config import opt
 
 from reconstruct.groups import EvalGroup
 from reconstruct.zeta_source import PaneMaps
@@ -88,8 +88,8 @@ def _shifted(img: np.ndarray, dy: float, dx: float) -> np.ndarray:
 
 def make_group(cfg: SyntheticConfig, index: int) -> EvalGroup:
     """Group ``index`` of the synthetic set (deterministic in cfg.seed and index)."""
-    from polspike.physics.fresnel import pane_coefficients
-    from polspike.physics.geometry import PinholeCamera, Plane, incidence_geometry
+    from polphysics.fresnel import pane_coefficients
+    from polphysics.geometry import PinholeCamera, Plane, incidence_geometry
 
     rng = np.random.default_rng([cfg.seed, index])
     H, W = cfg.height, cfg.width

@@ -32,9 +32,9 @@ from typing import Any
 import numpy as np
 import torch
 
-from polspike.atomic import ensure_dir, write_json, write_text
-from polspike.config import from_dict, opt, to_dict
-from polspike.errors import CheckpointError, ConfigError
+from polinfra.atomic import ensure_dir, write_json, write_text
+from polinfra.config import from_dict, opt, to_dict
+from polinfra.errors import CheckpointError, ConfigError
 
 from reconstruct.checkpoint import read_checkpoint, save_checkpoint
 from reconstruct.losses import LossConfig, total_loss
@@ -193,7 +193,7 @@ def _plot(run: Path, rows: list[dict[str, Any]]) -> None:
         matplotlib.use("Agg")
         import matplotlib.pyplot as plt
 
-        from polspike.plotting import save_figure
+        from polinfra.plotting import save_figure
     except Exception:  # pragma: no cover - plotting is optional
         return
     tr = [r for r in rows if r.get("loss") not in (None, "")]

@@ -37,9 +37,9 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from polspike.atomic import atomic_path, ensure_dir, write_json
-from polspike.config import opt
-from polspike.errors import ConfigError, DataFormatError
+from polinfra.atomic import atomic_path, ensure_dir, write_json
+from polinfra.config import opt
+from polinfra.errors import ConfigError, DataFormatError
 
 __all__ = ["ReconstructConfig", "SpikeSource", "dat_source", "group_source", "reconstruct_stream", "run_model_on_windows"]
 
@@ -205,7 +205,7 @@ class _Writers:
                     with atomic_path(d / f"{name}_{self.n:06d}.png") as tmp:
                         iio3.imwrite(tmp, _to8(img, g), extension=".png")
             else:
-                from polspike.exr import write_exr
+                from polinfra.exr import write_exr
 
                 write_exr(d / f"{self.n:06d}.exr", {"T": T.astype(np.float32), "R": R.astype(np.float32)}, {"units": "linear radiance, 1.0 = brightest layer"})
         self.n += 1

@@ -68,7 +68,7 @@ import h5py
 import numpy as np
 import torch
 
-from polspike.errors import ConfigError, DataFormatError
+from polinfra.errors import ConfigError, DataFormatError
 
 from reconstruct.groups import list_groups
 from reconstruct.onthefly import ITEM_KEYS, WindowConfig, item_from_stream, window_centres  # noqa: F401  (re-exported)

@@ -3,8 +3,8 @@
 * ``gt``: per-pixel pane maps R_perp, R_par, phi_perp shipped with a dataset
   group (the oracle, for evaluation), turned into zeta by paper Eq. (2).
 * ``physics``: a calibrated pane geometry (camera, pane plane, index, pane
-  model) -> theta(p), phi_perp(p) by :mod:`polspike.physics.geometry`, Fresnel
-  reflectances by :mod:`polspike.physics.fresnel`, then paper Eq. (2).
+  model) -> theta(p), phi_perp(p) by :mod:`polphysics.geometry`, Fresnel
+  reflectances by :mod:`polphysics.fresnel`, then paper Eq. (2).
 * ``learned``: the parameter branch of the network of issue 9 (:func:`zeta_learned`).
 
 A spike frame integrates over an aggregation window during which the polarizer
@@ -21,7 +21,7 @@ import math
 import numpy as np
 import torch
 
-from polspike.errors import ShapeError
+from polinfra.errors import ShapeError
 
 __all__ = ["ZETA_SOURCES", "zeta_eq2", "PaneMaps", "zeta_from_maps", "pane_maps_from_geometry", "zeta_learned"]
 
@@ -74,7 +74,7 @@ def zeta_from_maps(
 ) -> torch.Tensor:
     """zeta (..., N, H, W) for polarizer angles phi (..., N) from pane maps, paper Eq. (2).
 
-    Agrees with :func:`polspike.physics.zeta.zeta` at span_rad = 0 (tested).
+    Agrees with :func:`polphysics.zeta.zeta` at span_rad = 0 (tested).
     """
     t = lambda a: torch.as_tensor(np.asarray(a), dtype=dtype, device=device)  # noqa: E731
     phi_t = torch.as_tensor(phi, dtype=dtype, device=device)
@@ -85,17 +85,17 @@ def pane_maps_from_geometry(camera, plane, n: float, model: str = "single", thic
     """Calibrated pane geometry -> per-pixel R_perp, R_par, phi_perp (the ``physics`` source).
 
     Args:
-        camera: :class:`polspike.physics.geometry.PinholeCamera` (calibrated intrinsics/pose).
-        plane: :class:`polspike.physics.geometry.Plane` of the pane's front surface.
+        camera: :class:`polphysics.geometry.PinholeCamera` (calibrated intrinsics/pose).
+        plane: :class:`polphysics.geometry.Plane` of the pane's front surface.
         n: relative refractive index of the glass.
-        model: pane model, one of :data:`polspike.physics.fresnel.PANE_MODELS`.
+        model: pane model, one of :data:`polphysics.fresnel.PANE_MODELS`.
         thickness_m, absorption_per_m: slab parameters.
 
     Returns:
         :class:`PaneMaps` with (H, W) float64 maps.
     """
-    from polspike.physics.fresnel import pane_coefficients
-    from polspike.physics.geometry import incidence_geometry
+    from polphysics.fresnel import pane_coefficients
+    from polphysics.geometry import incidence_geometry
 
     geo = incidence_geometry(camera, plane)
     co = pane_coefficients(geo["theta"], n, model=model, thickness_m=thickness_m, absorption_per_m=absorption_per_m)

@@ -1,5 +1,7 @@
 """spike_sim: a 20 kHz integrate-and-fire spike camera behind a rotating polarizer.
 
+Second floor: imports :mod:`polinfra` and :mod:`polphysics` only.
+
 Input: Stokes keyframes (S0, S1, S2) over time (a render directory or arrays).
 Output: bit-packed spike streams in a chunked HDF5 group (:mod:`.store`) and/or
 raw Vidar ``.dat`` files (:mod:`.vidar_dat`), with phi(t), timestamps and

@@ -22,8 +22,8 @@ import dataclasses
 
 import numpy as np
 
-from polspike.config import opt
-from polspike.errors import ConfigError, ShapeError
+from polinfra.config import opt
+from polinfra.errors import ConfigError, ShapeError
 
 __all__ = ["AggregateConfig", "frame_centres", "aggregate_stream", "aggregate_group", "observation_stack", "output_fps"]
 

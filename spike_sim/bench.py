@@ -2,7 +2,7 @@
 
 Both engines simulate the FULL noise model (:data:`spike_sim.config.DEFAULT`) on
 the same sensor (same fixed pattern) looking at a modulated random scene, with
-the polarizer weights of :mod:`polspike.physics.polarizer`.  Speed is reported
+the polarizer weights of :mod:`polphysics.polarizer`.  Speed is reported
 in pixel-steps per second and as a ratio (machine-independent), memory as the
 tracemalloc peak of Python/numpy allocations and the process peak RSS.
 CPU seconds (``time.process_time``, all threads) are reported beside wall

@@ -28,7 +28,7 @@ import dataclasses
 
 import numpy as np
 
-from polspike.errors import ConfigError, ShapeError
+from polinfra.errors import ConfigError, ShapeError
 
 __all__ = [
     "PolarizerCalibration",

@@ -36,7 +36,7 @@ from __future__ import annotations
 
 import dataclasses
 
-from polspike.config import opt
+from polinfra.config import opt
 
 __all__ = ["SpikeSimConfig", "IDEAL", "DEFAULT", "NOISY", "PRESETS", "preset"]
 
@@ -102,7 +102,7 @@ PRESETS: dict[str, SpikeSimConfig] = {"ideal": IDEAL, "default": DEFAULT, "noisy
 
 def preset(name: str) -> SpikeSimConfig:
     """Named preset; ConfigError listing the names when unknown."""
-    from polspike.errors import ConfigError
+    from polinfra.errors import ConfigError
 
     if name not in PRESETS:
         raise ConfigError(f"unknown spike_sim preset {name!r}; choose one of {sorted(PRESETS)}")

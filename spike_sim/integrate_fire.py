@@ -38,7 +38,7 @@ import numba as nb
 import numpy as np
 from numba import prange
 
-from polspike.errors import ShapeError
+from polinfra.errors import ShapeError
 from spike_sim.config import SpikeSimConfig
 
 __all__ = [
@@ -350,7 +350,7 @@ def simulate_constant(
     elif engine == "numpy":
         run_numpy(basis, coef, params, V, scal, out, np.random.default_rng([seed, 0xB0B]))
     else:
-        from polspike.errors import ConfigError
+        from polinfra.errors import ConfigError
 
         raise ConfigError(f"unknown engine {engine!r}; choose 'numba' or 'numpy'")
     if packed:

@@ -14,10 +14,10 @@ from pathlib import Path
 
 import numpy as np
 
-from polspike.config import from_dict
-from polspike.errors import DataFormatError
-from polspike.exr import read_exr
-from polspike.physics.polarizer import PolarizerConfig
+from polinfra.config import from_dict
+from polinfra.errors import DataFormatError
+from polinfra.exr import read_exr
+from polphysics.polarizer import PolarizerConfig
 
 __all__ = ["RenderDir", "open_render"]
 

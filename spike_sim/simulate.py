@@ -2,7 +2,7 @@
 
 Pipeline per chunk of steps [n0, n1) (memory bounded by the chunk, not the duration):
 
-1. :func:`polspike.physics.polarizer.step_keyframe_weights` gives, per step,
+1. :func:`polphysics.polarizer.step_keyframe_weights` gives, per step,
    closed-form weights on the keyframes' (S0, S1, S2) (polarizer integrated over
    the step, Stokes linear in time between keyframes).
 2. Steps whose weights touch two keyframes (k, k+1) run through the numba kernel
@@ -28,9 +28,9 @@ from typing import Any
 import numba as nb
 import numpy as np
 
-from polspike.config import to_dict
-from polspike.errors import ConfigError, PolspikeWarning, ShapeError
-from polspike.physics.polarizer import PolarizerConfig, phi_nominal, step_keyframe_weights, step_phi_edges
+from polinfra.config import to_dict
+from polinfra.errors import ConfigError, PolspikeWarning, ShapeError
+from polphysics.polarizer import PolarizerConfig, phi_nominal, step_keyframe_weights, step_phi_edges
 from spike_sim.aggregate import AggregateConfig, frame_centres
 from spike_sim.config import DEFAULT, SpikeSimConfig
 from spike_sim.integrate_fire import make_pixel_params, noise_scalars, packed_frame_bytes, run_numba, step_keys
@@ -99,7 +99,7 @@ def keyframes_from_arrays(
 
 def keyframes_from_render(render_dir: str | os.PathLike) -> KeyframeSource:
     """Keyframes of a render directory (``polspike render`` output), read lazily."""
-    from polspike.renderdir import open_render
+    from spike_sim.renderdir import open_render
 
     rd = open_render(render_dir)
     has_maps = (Path(rd.path) / "maps.exr").is_file()
@@ -403,7 +403,7 @@ class _GtStream:
                 self.writer.write_frame(self.dT, m, T_)
                 self.writer.write_frame(self.dR, m, R_)
             if self.dz is not None:
-                from polspike.physics.zeta import zeta
+                from polphysics.zeta import zeta
 
                 phi_i = float(np.mean(phi_true[c - self.h : c + self.h + 1]))
                 mp = self.maps

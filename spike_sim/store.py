@@ -47,8 +47,8 @@ from typing import Any
 import h5py
 import numpy as np
 
-from polspike.atomic import atomic_path, ensure_dir, finish_atomic, write_json
-from polspike.errors import DataFormatError, OutputError, ShapeError
+from polinfra.atomic import atomic_path, ensure_dir, finish_atomic, write_json
+from polinfra.errors import DataFormatError, OutputError, ShapeError
 
 __all__ = ["GroupWriter", "SpikeGroup", "open_group", "FORMAT", "SPIKES_FILE", "SUMMARY_FILE"]
 

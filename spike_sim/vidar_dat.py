@@ -23,8 +23,8 @@ from pathlib import Path
 
 import numpy as np
 
-from polspike.atomic import atomic_path, finish_atomic
-from polspike.errors import DataFormatError, OutputError, ShapeError
+from polinfra.atomic import atomic_path, finish_atomic
+from polinfra.errors import DataFormatError, OutputError, ShapeError
 
 __all__ = ["read_dat", "iter_dat", "write_dat", "DatWriter", "dat_frame_count", "CAMERA_WIDTH", "HEAD_COLUMNS"]
 

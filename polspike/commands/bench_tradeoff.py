@@ -28,7 +28,7 @@ def tradeoff_cmd(
 
     from generator.scene import default_scenes, load_scene
     from polspike.pipeline.tradeoff import Candidate, default_candidates, run_tradeoff
-    from polspike.progress import rich_progress
+    from polinfra.progress import rich_progress
 
     names = scenes or default_scenes()
     scs = []

@@ -25,8 +25,8 @@ def dataset_new(
     """Write a manifest whose scene parameters are drawn from the documented ranges (docs/datasets.md)."""
     from rich.console import Console
 
-    from polspike.atomic import write_text
-    from polspike.errors import ConfigError
+    from polinfra.atomic import write_text
+    from polinfra.errors import ConfigError
     from polspike.pipeline.sampler import sample_manifest_text
 
     if tier not in ("analytic", "maps", "full"):
@@ -102,7 +102,7 @@ def dataset_verify(
     """Re-check every checksum and metadata field; exit 2 naming the bad groups."""
     from rich.console import Console
 
-    from polspike.errors import DataFormatError
+    from polinfra.errors import DataFormatError
     from polspike.pipeline.dataset import verify_dataset
 
     r = verify_dataset(out, content=not fast, partial=partial)

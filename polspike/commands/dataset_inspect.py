@@ -26,7 +26,7 @@ def inspect_cmd(
     from rich.console import Console
 
     from polspike.pipeline.inspect import inspect_group
-    from polspike.progress import rich_progress
+    from polinfra.progress import rich_progress
 
     with rich_progress("video", enabled=video and not quiet) as cb:
         s = inspect_group(dir, out, group=group, time_s=time, video=video, video_frames=video_frames, n_pixels=pixels, dpi=dpi, progress=cb)

@@ -27,9 +27,9 @@ def run_demo(out: Path, scene_name: str = "brewster", quick: bool = False) -> Pa
     from generator.figures import plot_maps, plot_mixed_frames
     from generator.render import RenderOptions, render
     from generator.scene import load_scene
-    from polspike.atomic import ensure_dir
+    from polinfra.atomic import ensure_dir
     from polspike.report import Report
-    from polspike.renderdir import open_render
+    from spike_sim.renderdir import open_render
 
     con = Console()
     out = ensure_dir(out)
@@ -55,7 +55,7 @@ def run_demo(out: Path, scene_name: str = "brewster", quick: bool = False) -> Pa
 
     # 2. maps tier through Mitsuba at low spp, cross-validated against the analytic zeta
     from generator.validate import validate_zeta
-    from polspike.errors import BackendUnavailableError
+    from polinfra.errors import BackendUnavailableError
 
     con.print("[bold]2. validate-zeta[/] maps tier (Mitsuba, deterministic two-lobe pane evaluation) vs analytic Eq. (2)")
     sec = rep.section("validation", "Cross-validation: rendered Stokes vs analytic zeta (paper Eq. (2))")
@@ -148,7 +148,7 @@ def reconstruct_and_score(group_dir: Path, figs: Path, n_frames: int, crop: int)
     import numpy as np
     import torch
 
-    from polspike.plotting import image_grid, save_figure
+    from polinfra.plotting import image_grid, save_figure
     from reconstruct.checkpoint import DEFAULT_WEIGHTS, load_model
     from reconstruct.groups import load_store_group
     from reconstruct.metrics import score
@@ -191,9 +191,9 @@ def overview_figure(rd, group_dir: Path, rec: dict, png: Path) -> Path:
     frame, an Eq. (3) observation, and the network's T and R beside ground truth, all on the demo's crop."""
     import numpy as np
 
-    from polspike.physics.stokes import polarizer_intensity
-    from polspike.physics.zeta import zeta
-    from polspike.plotting import image_grid, save_figure
+    from polphysics.stokes import polarizer_intensity
+    from polphysics.zeta import zeta
+    from polinfra.plotting import image_grid, save_figure
     from spike_sim.store import open_group
 
     a = rec["arrays"]

@@ -40,9 +40,9 @@ def evaluate_cmd(
     """Score the physics solvers and/or the network (with TFP / best-frame baselines) on every test group: PSNR/SSIM of T and R."""
     from rich.console import Console
 
-    from polspike.config import from_dict
-    from polspike.errors import ConfigError
-    from polspike.progress import rich_progress
+    from polinfra.config import from_dict
+    from polinfra.errors import ConfigError
+    from polinfra.progress import rich_progress
     from reconstruct.evaluate import EvalConfig, evaluate_groups, load_groups, markdown_table, sweep_markdown, window_sweep, write_report
     from reconstruct.synthetic import SyntheticConfig
 
@@ -65,7 +65,7 @@ def evaluate_cmd(
     paths = write_report(report, out)
     con.print(markdown_table(report, overall_only=True))
     if sweep:
-        from polspike.atomic import write_json, write_text
+        from polinfra.atomic import write_json, write_text
 
         rows = window_sweep(None, dataset, split, cfg, synthetic=syn)
         write_json(out / "window_sweep.json", rows)
@@ -91,10 +91,10 @@ def bench_reconstruct_cmd(
     from rich.console import Console
     from rich.table import Table
 
-    from polspike.atomic import write_json, write_text
+    from polinfra.atomic import write_json, write_text
     from reconstruct.bench import bench_reconstruct
 
-    from polspike.errors import ConfigError
+    from polinfra.errors import ConfigError
 
     devices = {"auto": ("cpu", "cuda"), "cpu": ("cpu",), "cuda": ("cuda",)}.get(device)
     if devices is None:

@@ -9,7 +9,7 @@ from typing import Optional
 import typer
 
 from polspike.cli import app_typer
-from polspike.errors import ConfigError
+from polinfra.errors import ConfigError
 
 
 def _parse_frames(frames: str | None) -> tuple[int, int] | None:
@@ -46,7 +46,7 @@ def render_cmd(
 
     from generator.render import RenderOptions, render
     from generator.scene import load_scene
-    from polspike.progress import rich_progress
+    from polinfra.progress import rich_progress
 
     sc = load_scene(scene)
     opts = RenderOptions(tier=tier, fps=fps, duration_s=duration, frames=_parse_frames(frames), spp=spp, variant=variant, spectral=spectral, seed=seed, keyframe_hz=keyframe_hz, response=response, n_bands=bands)
@@ -68,8 +68,8 @@ def zeta_cmd(
     """Print R_perp, R_par, T_perp, T_par and zeta (paper Eq. (2)) for one configuration."""
     import numpy as np
 
-    from polspike.physics.fresnel import PANE_MODELS, pane_coefficients
-    from polspike.physics.zeta import zeta
+    from polphysics.fresnel import PANE_MODELS, pane_coefficients
+    from polphysics.zeta import zeta
 
     if not n > 0:
         raise ConfigError(f"--n {n} must be > 0 (a refractive index)")

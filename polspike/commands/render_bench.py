@@ -29,8 +29,8 @@ def bench_render_cmd(
     from rich.table import Table
 
     from generator.render_bench import run_render_bench
-    from polspike.atomic import write_json
-    from polspike.progress import rich_progress
+    from polinfra.atomic import write_json
+    from polinfra.progress import rich_progress
 
     with rich_progress("bench render", enabled=not json_out) as cb:
         res = run_render_bench(width, height, tuple(spp or (4, 16, 64)), tuple(backend or ("cuda", "llvm", "scalar")), scene, repeats, not no_maps, progress=cb)

@@ -12,7 +12,7 @@ from polspike.cli import app_typer, bench_app
 
 def load_sim_config(path: Optional[Path], preset_name: str):
     """Preset, overridden by a TOML file's ``[spike_sim]`` table (or top-level keys); plus ``[aggregate]``."""
-    from polspike.config import from_dict, load_toml, to_dict
+    from polinfra.config import from_dict, load_toml, to_dict
     from spike_sim.aggregate import AggregateConfig
     from spike_sim.config import SpikeSimConfig, preset
 
@@ -26,7 +26,7 @@ def load_sim_config(path: Optional[Path], preset_name: str):
     if sim is None:
         sim, prefix = data, ""
     elif data:
-        from polspike.errors import ConfigError
+        from polinfra.errors import ConfigError
 
         raise ConfigError(f"{path}: unknown key {sorted(data)[0]}; accepted tables: spike_sim, aggregate")
     merged = {**to_dict(base), **sim}
@@ -51,7 +51,7 @@ def simulate_cmd(
     """Simulate the spike camera behind the rotating polarizer for a rendered scene."""
     from rich.console import Console
 
-    from polspike.progress import rich_progress
+    from polinfra.progress import rich_progress
     from spike_sim.simulate import simulate
 
     cfg, agg = load_sim_config(config, preset)
@@ -79,7 +79,7 @@ def bench_spike_sim_cmd(
     from rich.console import Console
     from rich.table import Table
 
-    from polspike.atomic import write_json
+    from polinfra.atomic import write_json
     from spike_sim.bench import run_benchmark
 
     res = run_benchmark(width, height, steps, numpy_steps, full_group_s=full_group)

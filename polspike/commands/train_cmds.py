@@ -13,7 +13,7 @@ from typing import Optional
 import typer
 
 from polspike.cli import app_typer
-from polspike.errors import ConfigError
+from polinfra.errors import ConfigError
 
 def on_the_fly_sets(cfg):
     """(train set, validation set) of on-the-fly windows: generator analytic tier + spike_sim, disjoint scenes and content."""
@@ -42,8 +42,8 @@ def train_cmd(
 
     from rich.console import Console
 
-    from polspike.config import from_dict, load_toml
-    from polspike.progress import rich_progress
+    from polinfra.config import from_dict, load_toml
+    from polinfra.progress import rich_progress
     from reconstruct.train import TrainConfig, train
 
     cfg = from_dict(TrainConfig, load_toml(config), where=str(config)) if config else TrainConfig()
@@ -93,7 +93,7 @@ def reconstruct_cmd(
     import torch
     from rich.console import Console
 
-    from polspike.progress import rich_progress
+    from polinfra.progress import rich_progress
     from reconstruct.checkpoint import DEFAULT_WEIGHTS, load_model
     from reconstruct.video import ReconstructConfig, dat_source, group_source, reconstruct_stream
 
@@ -145,7 +145,7 @@ def evaluate_checkpoint_cmd(
     from rich.console import Console
     from rich.table import Table
 
-    from polspike.atomic import ensure_dir, write_json, write_text
+    from polinfra.atomic import ensure_dir, write_json, write_text
     from reconstruct.checkpoint import DEFAULT_WEIGHTS, load_model
     from reconstruct.train import evaluate_model
 
@@ -203,7 +203,7 @@ def bench_reconstruct_net_cmd(
         torch.set_num_threads(threads)
     from rich.console import Console
 
-    from polspike.atomic import write_json
+    from polinfra.atomic import write_json
     from reconstruct.checkpoint import DEFAULT_WEIGHTS, load_model
     from reconstruct.video import bench_full_network
 

@@ -28,7 +28,7 @@ def validate_zeta_cmd(
     from generator.render import RenderOptions
     from generator.scene import load_scene
     from generator.validate import validate_zeta
-    from polspike.progress import rich_progress
+    from polinfra.progress import rich_progress
 
     sc = load_scene(scene)
     opts = RenderOptions(tier=tier, spp=spp, variant=variant, spectral=spectral, seed=seed)

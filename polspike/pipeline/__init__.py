@@ -1,6 +1,5 @@
-"""Orchestration layer: jobs that chain stages (dataset builds, the demo's steps).
+"""polspike.pipeline: jobs that chain stages: manifests, sampler, dataset build/verify/inspect, trade-off bench, training windows.
 
-Unlike the rest of :mod:`polspike`, modules here may import every stage
-(generator, spike_sim, reconstruct), like the CLI; library stages never import
-this package.
+Part of the application floor: may import every stage (generator, spike_sim,
+reconstruct), like the CLI; no stage imports this package.
 """

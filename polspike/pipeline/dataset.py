@@ -73,8 +73,8 @@ from typing import Any
 
 import numpy as np
 
-from polspike.atomic import ensure_dir, write_bytes, write_json
-from polspike.errors import ConfigError, DataFormatError, OutputError, PolspikeError
+from polinfra.atomic import ensure_dir, write_bytes, write_json
+from polinfra.errors import ConfigError, DataFormatError, OutputError, PolspikeError
 
 from polspike.pipeline.manifest import Manifest, ResolvedGroup, load_manifest
 
@@ -324,7 +324,7 @@ def build_group(spec: dict, out_dir: str, chunk_steps: int = 1000, numba_threads
         the group's record for dataset.json (checksums included) plus ``timings``.
     """
     from generator.scene import scene_from_dict, scene_hash
-    from polspike.config import from_dict
+    from polinfra.config import from_dict
     from spike_sim.config import SpikeSimConfig
     from spike_sim.simulate import simulate
 
@@ -746,7 +746,7 @@ def verify_dataset(out_dir: str | os.PathLike, content: bool = True, progress: C
     spec_by_name: dict[str, dict] = {}
     if man.is_file():
         try:
-            from polspike.config import load_toml
+            from polinfra.config import load_toml
             from polspike.pipeline.manifest import parse_manifest
 
             mm = parse_manifest(load_toml(man), where=str(man), base_dir=man.parent)

@@ -29,8 +29,8 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
-from polspike.atomic import ensure_dir, write_json
-from polspike.errors import ConfigError
+from polinfra.atomic import ensure_dir, write_json
+from polinfra.errors import ConfigError
 
 __all__ = ["run_dataset_bench", "BENCH_TIERS"]
 

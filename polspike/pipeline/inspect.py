@@ -16,7 +16,7 @@ What is computed (all in :func:`inspection_data`, saved to ``inspect_data.npz``)
 * ``zeta`` at the frame's true window-mean polarizer angle phi (paper Eq. (2),
   point value, like the optional stored ``gt/zeta``);
 * Stokes of the mixed light in front of the polarizer, the T part plus the R
-  part (:func:`polspike.physics.zeta.stokes_from_layers`)::
+  part (:func:`polphysics.zeta.stokes_from_layers`)::
 
       S0 = L_R (R_perp + R_par)/2 + L_T (T_perp + T_par)/2
       (S1, S2) = [L_R (R_perp - R_par)/2 + L_T (T_perp - T_par)/2] (cos 2 phi_perp, sin 2 phi_perp)
@@ -52,10 +52,10 @@ from typing import Any
 
 import numpy as np
 
-from polspike.atomic import atomic_path, ensure_dir, write_json
-from polspike.errors import ConfigError, DataFormatError
-from polspike.physics.stokes import aolp, dop, polarizer_intensity
-from polspike.physics.zeta import stokes_from_layers, zeta
+from polinfra.atomic import atomic_path, ensure_dir, write_json
+from polinfra.errors import ConfigError, DataFormatError
+from polphysics.stokes import aolp, dop, polarizer_intensity
+from polphysics.zeta import stokes_from_layers, zeta
 
 __all__ = ["group_names", "resolve_group", "inspection_data", "inspect_group", "FIGURES"]
 
@@ -251,7 +251,7 @@ def _figures(d: dict[str, Any], name: str, out: Path, dpi: int = 110) -> list[Pa
     matplotlib.use("Agg", force=False)
     import matplotlib.pyplot as plt
 
-    from polspike.plotting import image_grid, save_figure
+    from polinfra.plotting import image_grid, save_figure
 
     when = f"group {name}, t = {d['time_s'] * 1e3:.2f} ms (output frame {d['frame']}), phi = {_deg(d['phi_true']) % 180:.1f} deg"
     files = []

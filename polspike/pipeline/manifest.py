@@ -41,7 +41,7 @@ Resolution order for a group's scene: SceneConfig defaults < base scene file <
 group name and ``render.duration_s/seed/fps`` follow the group.  Everything is
 validated strictly when the manifest is loaded (unknown keys, out-of-range
 values and a pane that does not cover the view raise a one-line
-:class:`~polspike.errors.ConfigError` / :class:`~polspike.errors.SceneError`
+:class:`~polinfra.errors.ConfigError` / :class:`~polinfra.errors.SceneError`
 naming the file and the group).
 
 Split: the split is per group, and by default no *layer content* may appear in
@@ -60,8 +60,8 @@ import re
 from pathlib import Path
 from typing import Any
 
-from polspike.config import from_dict, load_toml, opt, to_dict
-from polspike.errors import ConfigError, PolspikeError
+from polinfra.config import from_dict, load_toml, opt, to_dict
+from polinfra.errors import ConfigError, PolspikeError
 
 __all__ = [
     "MANIFEST_FORMAT",
@@ -112,7 +112,7 @@ class ResolvedGroup:
 
     Attributes:
         name, split, tier, seed, duration_s, keyframe_fps: as in the manifest.
-        scene: resolved SceneConfig as a plain dict (:func:`polspike.config.to_dict`).
+        scene: resolved SceneConfig as a plain dict (:func:`polinfra.config.to_dict`).
         spike_sim: resolved SpikeSimConfig as a plain dict.
         spec_sha256: hash of everything that determines the group's content
             (not the split or description).

@@ -48,7 +48,7 @@ import math
 
 import numpy as np
 
-from polspike.errors import ConfigError, SceneError
+from polinfra.errors import ConfigError, SceneError
 
 from polspike.pipeline.manifest import MANIFEST_FORMAT, dump_manifest, parse_manifest
 
@@ -131,7 +131,7 @@ def _motion(rng: np.random.Generator) -> dict:
 def _pane_need(scene_d: dict) -> tuple[float, float] | None:
     """Pane size (m) that just covers the view, or None when the geometry is rejected."""
     from generator.scene import check_scene_geometry, scene_from_dict
-    from polspike.physics.geometry import incidence_geometry
+    from polphysics.geometry import incidence_geometry
 
     from polspike.pipeline.manifest import _coarse
 

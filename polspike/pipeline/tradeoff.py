@@ -32,8 +32,8 @@ from pathlib import Path
 
 import numpy as np
 
-from polspike.atomic import ensure_dir, write_json, write_text
-from polspike.physics.stokes import polarizer_intensity
+from polinfra.atomic import ensure_dir, write_json, write_text
+from polphysics.stokes import polarizer_intensity
 
 log = logging.getLogger(__name__)
 
@@ -125,7 +125,7 @@ def _spike_frames(S: np.ndarray, seed: int, steps: int, polarizer, sim_config=No
     simulate(src, dur, seed, cfg, out=None, spikes_sink=lambda n0, packed: chunks.__setitem__(n0, packed.copy()))
     packed = np.concatenate([chunks[k] for k in sorted(chunks)])
     spikes = np.unpackbits(packed, axis=1, bitorder="little", count=H * W).reshape(-1, H, W)
-    from polspike.physics.polarizer import phi_nominal
+    from polphysics.polarizer import phi_nominal
 
     t_mid = (np.arange(spikes.shape[0]) + 0.5) / cfg.rate_hz
     centres, _ = frame_centres(np.asarray(phi_nominal(t_mid, polarizer), np.float64))
@@ -231,8 +231,8 @@ def _sim_step_rows(scene, S: np.ndarray, spike_noise: float, n_steps: int = 520,
     point samples (1 = mid-step, 4 = four sub-steps) vs the closed-form step integral
     the simulator uses.  Error measured on noise-free Eq. (3) frames I(i), in the
     same units as the spike noise, and cost per 1 s of stream (20 000 steps)."""
-    from polspike.physics.polarizer import step_mean_intensity, step_phi_edges
-    from polspike.physics.stokes import polarizer_intensity
+    from polphysics.polarizer import step_mean_intensity, step_phi_edges
+    from polphysics.stokes import polarizer_intensity
     from spike_sim.aggregate import AggregateConfig
 
     pol = scene.polarizer
@@ -279,7 +279,7 @@ def _markdown(rows: list[dict]) -> str:
 def _pareto_plot(rows: list[dict], path: Path) -> None:
     import matplotlib.pyplot as plt
 
-    from polspike.plotting import save_figure
+    from polinfra.plotting import save_figure
 
     fig, ax = plt.subplots(figsize=(8, 5))
     scenes = sorted({r["scene"] for r in rows})

@@ -41,8 +41,8 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from polspike.config import opt
-from polspike.errors import SceneError
+from polinfra.config import opt
+from polinfra.errors import SceneError
 
 log = logging.getLogger(__name__)
 
@@ -238,7 +238,7 @@ class GeneratorWindows:
         from spike_sim.aggregate import AggregateConfig, frame_centres
         from spike_sim.simulate import _interp_layers, simulate
 
-        from polspike.physics.polarizer import phi_nominal, step_phi_edges
+        from polphysics.polarizer import phi_nominal, step_phi_edges
         from reconstruct.onthefly import item_from_stream
 
         g = self.window_group(seed, index)
@@ -268,7 +268,7 @@ class GeneratorWindows:
 def manifest_scenes(path: str, split: str) -> list:
     """Scenes of the ``split`` groups of a dataset manifest (``datasets/manifests/*.toml``), clip length = group duration."""
     from generator.scene import scene_from_dict
-    from polspike.errors import ConfigError
+    from polinfra.errors import ConfigError
 
     from polspike.pipeline.manifest import load_manifest
 

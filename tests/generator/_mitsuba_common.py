@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from polspike.config import to_dict
+from polinfra.config import to_dict
 
 
 def require_mitsuba(backend: str = "llvm"):

@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 
 from generator.render import RenderOptions, render
-from polspike.exr import read_exr
-from polspike.physics.stokes import polarizer_intensity
-from polspike.physics.zeta import mix_eq1, zeta
-from polspike.renderdir import open_render
+from polinfra.exr import read_exr
+from polphysics.stokes import polarizer_intensity
+from polphysics.zeta import mix_eq1, zeta
+from spike_sim.renderdir import open_render
 
 
 def test_render_writes_format_and_eq1_holds(tiny_scene, tmp_path):

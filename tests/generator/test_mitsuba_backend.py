@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from polspike.errors import BackendUnavailableError
+from polinfra.errors import BackendUnavailableError
 
 pytestmark = pytest.mark.mitsuba
 

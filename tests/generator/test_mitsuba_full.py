@@ -53,7 +53,7 @@ def test_stokes_convention_known_polarized_cases():
     (S1 > 0 and S2 > 0 in the project convention).  R layer only, T layer black."""
     require_mitsuba()
     from generator import tiers_mitsuba as tm
-    from polspike.physics.stokes import aolp
+    from polphysics.stokes import aolp
 
     for name, axis_deg in (("brewster", 90.0), ("oblique_diagonal", 35.0)):
         sc = uniform_layers(small_scene(name, width=40, height=25, model="thin_slab"), 0.0, 1.0)
@@ -136,7 +136,7 @@ def test_full_tier_warns_when_a_layer_plane_does_not_cover_the_view():
     require_mitsuba()
     from generator import tiers_mitsuba as tm
     from generator.scene import scene_from_dict
-    from polspike.config import to_dict
+    from polinfra.config import to_dict
 
     d = to_dict(small_scene("brewster", width=16, height=10, thickness_mm=400.0))
     d["layers"]["transmission"]["margin"] = 0.0

@@ -13,7 +13,7 @@ pytestmark = pytest.mark.mitsuba
 def _ghost_scene(thickness_mm=40.0, width=80, height=50):
     """oblique_diagonal (thick slab, 50 deg) with a 40 mm slab, a black T layer and a linear checker R layer."""
     from generator.scene import scene_from_dict
-    from polspike.config import to_dict
+    from polinfra.config import to_dict
 
     d = to_dict(small_scene("oblique_diagonal", width=width, height=height, thickness_mm=thickness_mm))
     d["layers"]["transmission"] = {"source": "procedural:gradient", "brightness": 0.0, "offset": 0.0, "distance_m": 4.0}

@@ -70,8 +70,8 @@ def test_maps_spectral_is_band_weighted_sum():
 
     from generator import tiers_mitsuba as tm
     from generator.analytic import analytic_maps
-    from polspike.physics.fresnel import pane_coefficients
-    from polspike.physics.geometry import incidence_geometry
+    from polphysics.fresnel import pane_coefficients
+    from polphysics.geometry import incidence_geometry
 
     sc = small_scene("bk7_single", width=40, height=25)
     info: dict = {}
@@ -89,9 +89,9 @@ def test_maps_spectral_is_band_weighted_sum():
 
 
 def test_mitsuba_fresnel_matches_polspike_fresnel():
-    """mi.fresnel_polarized vs polspike.physics.fresnel over a grid of angles and indices (incl. TIR, n < 1)."""
+    """mi.fresnel_polarized vs polphysics.fresnel over a grid of angles and indices (incl. TIR, n < 1)."""
     mi = require_mitsuba()
-    from polspike.physics.fresnel import fresnel_power
+    from polphysics.fresnel import fresnel_power
 
     th = np.linspace(0.0, np.pi / 2 - 1e-3, 181)
     for n in (1.33, 1.5, 1.9, 1 / 1.5):
@@ -114,7 +114,7 @@ def test_maps_scalar_backend_is_clear_error():
     """The maps tracer needs a JIT variant: forcing scalar is a one-line BackendUnavailableError."""
     require_mitsuba()
     from generator import tiers_mitsuba as tm
-    from polspike.errors import BackendUnavailableError
+    from polinfra.errors import BackendUnavailableError
 
     with pytest.raises(BackendUnavailableError, match="JIT"):
         tm.render_pane_maps(small_scene(width=8, height=5), _opts(variant="scalar"), {})

@@ -16,7 +16,7 @@ BLACK = {"source": "procedural:gradient", "brightness": 0.0, "offset": 0.0, "spr
 def _one_layer_scene(name, lit, width=40, height=25):
     """Only layer ``lit`` lit, with a linear gradient turned by 30 deg (varies along x and y)."""
     from generator.scene import scene_from_dict
-    from polspike.config import to_dict
+    from polinfra.config import to_dict
 
     d = to_dict(small_scene(name, width=width, height=height))
     other = "reflection" if lit == "transmission" else "transmission"

@@ -53,7 +53,7 @@ def test_render_cli_mitsuba_tiers(tmp_path, tier, model):
     require_mitsuba()
     from generator.analytic import analytic_maps
     from generator.scene import load_scene
-    from polspike.renderdir import open_render
+    from spike_sim.renderdir import open_render
 
     scene = tmp_path / "tiny.toml"
     scene.write_text(TINY.format(model=model))

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from polspike.errors import OutputError
+from polinfra.errors import OutputError
 
 from _mitsuba_common import require_mitsuba, small_scene
 
@@ -104,7 +104,7 @@ def test_forced_variant_is_used_and_auto_fallback_is_logged_and_recorded(tmp_pat
     require_mitsuba()
     import generator.mitsuba_backend as mb
     from generator.render import render
-    from polspike.errors import BackendUnavailableError
+    from polinfra.errors import BackendUnavailableError
 
     sc = _scene(duration_s=0.01)
     with caplog.at_level("WARNING"):
@@ -124,7 +124,7 @@ def test_forced_variant_is_used_and_auto_fallback_is_logged_and_recorded(tmp_pat
     fb = meta["modelled"]["backend"]["fallbacks"]
     assert any("fminimum" in line for line in fb) and any("CUDA" in line for line in fb)
     assert any("falling back" in r.getMessage() for r in caplog.records)
-    from polspike.renderdir import open_render
+    from spike_sim.renderdir import open_render
 
     assert np.all(np.isfinite(open_render(tmp_path / "a").stokes(0)))
     # maps tier with auto and no JIT backend: logged fallback to the analytic maps, recorded; never a crash
@@ -143,7 +143,7 @@ def test_ground_truth_layers_are_the_analytic_tiers(tmp_path):
     """T and R ground truth are sampled exactly as in the analytic tier, whatever tier made the Stokes."""
     require_mitsuba()
     from generator.render import render
-    from polspike.renderdir import open_render
+    from spike_sim.renderdir import open_render
 
     sc = _scene("oblique_diagonal", duration_s=0.01)
     for tier in ("analytic", "maps", "full"):
@@ -166,7 +166,7 @@ def test_every_default_scene_renders_in_both_mitsuba_tiers(tmp_path, name, tier)
     require_mitsuba()
     from generator.analytic import analytic_maps
     from generator.render import render
-    from polspike.renderdir import open_render
+    from spike_sim.renderdir import open_render
 
     sc = _scene(name, duration_s=0.01)
     meta = render(sc, tmp_path / "r", _opts(tier, spp=1, spectral=None, n_bands=3))
@@ -188,7 +188,7 @@ def test_user_csv_sensor_response_reaches_the_render(tmp_path):
     render.json names the CSV; a missing CSV is a one-line error, exit 2."""
     require_mitsuba()
     from polspike.cli import get_app
-    from polspike.renderdir import open_render
+    from spike_sim.renderdir import open_render
 
     blue, red = tmp_path / "blue.csv", tmp_path / "red.csv"
     blue.write_text("wavelength_nm,response\n400,1\n450,1\n460,0\n700,0\n")
@@ -208,7 +208,7 @@ def test_user_csv_sensor_response_reaches_the_render(tmp_path):
         R[name] = open_render(tmp_path / name).maps()["R_perp"]
     assert np.all(R["blue"] > R["red"] + 1e-4)
     res = CliRunner().invoke(get_app(), ["render", str(toml), "--tier", "maps", "--spectral", "--response", str(tmp_path / "nope.csv"), "--out", str(tmp_path / "x"), "--quiet"])
-    from polspike.errors import ConfigError
+    from polinfra.errors import ConfigError
 
     assert isinstance(res.exception, ConfigError) and "nope.csv" in str(res.exception)  # exit 2 via polspike.cli.main
 
@@ -239,7 +239,7 @@ def test_r_layer_beyond_the_pane_is_a_render_json_warning():
     require_mitsuba()
     from generator import tiers_mitsuba as tm
     from generator.scene import scene_from_dict
-    from polspike.config import to_dict
+    from polinfra.config import to_dict
 
     d = to_dict(_scene())
     d["layers"]["reflection"]["distance_m"] = 0.2
@@ -255,7 +255,7 @@ def test_forcing_cuda_without_a_gpu_is_one_line_error():
     """--variant cuda on a machine without CUDA: BackendUnavailableError naming the variant (exit 2), no crash."""
     require_mitsuba()
     from generator.mitsuba_backend import resolve_backend
-    from polspike.errors import BackendUnavailableError
+    from polinfra.errors import BackendUnavailableError
 
     try:
         resolve_backend("cuda")

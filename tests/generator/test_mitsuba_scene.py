@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from polspike.errors import SceneError
+from polinfra.errors import SceneError
 
 from _mitsuba_common import require_mitsuba, small_scene
 
@@ -13,12 +13,12 @@ pytestmark = pytest.mark.mitsuba
 
 
 def test_camera_rays_match_pinhole_model():
-    """Mitsuba's perspective sensor rays equal polspike.physics.geometry's pixel rays (roll included)."""
+    """Mitsuba's perspective sensor rays equal polphysics.geometry's pixel rays (roll included)."""
     mi = require_mitsuba()
     from generator.mitsuba_scene import build_scene_dict, specs_from_scene
 
     from generator.scene import scene_from_dict
-    from polspike.config import to_dict
+    from polinfra.config import to_dict
 
     for roll in (0.0, 17.0):
         d = to_dict(small_scene("oblique_diagonal"))
@@ -67,7 +67,7 @@ def test_thindielectric_depolarizes_so_slabs_use_two_interfaces():
     mi = require_mitsuba()
     from generator.mitsuba_integrator import pane_coefficients
     from generator.mitsuba_scene import build_scene_dict, specs_from_scene
-    from polspike.physics.fresnel import pane_coefficients as ref
+    from polphysics.fresnel import pane_coefficients as ref
 
     sc = small_scene("brewster", width=40, height=25)
     cam, pane = specs_from_scene(sc)
@@ -94,6 +94,6 @@ def test_thindielectric_depolarizes_so_slabs_use_two_interfaces():
 
 
 def _theta(sc):
-    from polspike.physics.geometry import incidence_geometry
+    from polphysics.geometry import incidence_geometry
 
     return incidence_geometry(sc.camera_model(), sc.pane_plane())["theta"]

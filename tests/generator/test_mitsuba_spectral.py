@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from polspike.errors import ConfigError
+from polinfra.errors import ConfigError
 
 from _mitsuba_common import require_mitsuba, small_scene, uniform_layers
 
@@ -37,8 +37,8 @@ def test_full_tier_spectral_bands_match_weighted_analytic():
     from generator import tiers_mitsuba as tm
     from generator.analytic import frame_stokes
     from generator.render import RenderOptions
-    from polspike.physics.fresnel import pane_coefficients
-    from polspike.physics.geometry import incidence_geometry
+    from polphysics.fresnel import pane_coefficients
+    from polphysics.geometry import incidence_geometry
 
     sc = uniform_layers(small_scene("bk7_single", width=40, height=25, model="thin_slab", thickness_mm=4.0), 0.5, 1.0)
     info: dict = {}

@@ -12,7 +12,7 @@ from _mitsuba_common import require_mitsuba, small_scene
 
 def _render(scene, tmp_path, **opts):
     from generator.render import RenderOptions, render
-    from polspike.renderdir import open_render
+    from spike_sim.renderdir import open_render
 
     render(scene, tmp_path / "r", RenderOptions(duration_s=0.0, **opts))
     return open_render(tmp_path / "r")
@@ -67,7 +67,7 @@ def test_steep_incidence_analytic(tmp_path):
     for k in ("R_perp", "R_par", "T_perp", "T_par"):
         assert np.all(np.isfinite(m[k])) and np.all((m[k] >= 0) & (m[k] <= 1)), k
     assert float(m["theta"].max()) > np.deg2rad(88.5)
-    from polspike.physics.fresnel import fresnel_power
+    from polphysics.fresnel import fresnel_power
 
     k = np.unravel_index(np.argmax(m["theta"]), m["theta"].shape)
     assert float(m["R_perp"][k]) >= float(fresnel_power(m["theta"][k], 1.5)[0]) - 1e-6  # a slab reflects at least one interface's share

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from generator.scene import default_scenes, load_scene, scene_from_dict, check_scene_geometry
-from polspike.errors import ConfigError, SceneError
+from polinfra.errors import ConfigError, SceneError
 
 
 def test_default_scenes_cover_distinct_geometries():

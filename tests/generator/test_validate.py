@@ -9,7 +9,7 @@ import pytest
 
 from generator.analytic import analytic_maps
 from generator.validate import fit_reflection, fit_transmission, validate_zeta
-from polspike.physics.zeta import stokes_from_layers
+from polphysics.zeta import stokes_from_layers
 
 
 def test_probe_fit_inverts_stokes_form(np_rng):

@@ -6,9 +6,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from polspike.physics.fresnel import fresnel_power, pane_coefficients
-from polspike.physics.stokes import aolp, dop, polarizer_intensity
-from polspike.physics.zeta import mix_eq1, stokes_from_layers, zeta
+from polphysics.fresnel import fresnel_power, pane_coefficients
+from polphysics.stokes import aolp, dop, polarizer_intensity
+from polphysics.zeta import mix_eq1, stokes_from_layers, zeta
 
 deg = np.deg2rad
 

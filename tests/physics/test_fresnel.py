@@ -7,7 +7,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from polspike.physics.fresnel import (
+from polphysics.fresnel import (
     brewster_angle,
     critical_angle,
     fresnel_amplitudes,

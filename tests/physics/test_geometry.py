@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from polspike.physics.geometry import PinholeCamera, Plane, incidence_geometry, intersect_plane, normalize, reflect_dir
+from polphysics.geometry import PinholeCamera, Plane, incidence_geometry, intersect_plane, normalize, reflect_dir
 
 
 def _pane(tilt_deg: float, axis=(0.0, 1.0, 0.0), dist=1.0) -> Plane:

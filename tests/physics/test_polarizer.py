@@ -7,7 +7,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from polspike.physics.polarizer import (
+from polphysics.polarizer import (
     PolarizerConfig,
     phi_nominal,
     phi_true,
@@ -16,7 +16,7 @@ from polspike.physics.polarizer import (
     step_mean_intensity,
     step_moments,
 )
-from polspike.physics.stokes import polarizer_intensity
+from polphysics.stokes import polarizer_intensity
 
 DT = 5e-5
 RIEMANN = 20000  # midpoint samples per step: error ~ (0.0094 rad)^2 / RIEMANN^2, far below the tolerances

@@ -7,9 +7,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from polspike.physics.fresnel import pane_coefficients
-from polspike.physics.stokes import aolp, dop, polarizer_intensity
-from polspike.physics.zeta import mix_eq1, stokes_from_layers, zeta
+from polphysics.fresnel import pane_coefficients
+from polphysics.stokes import aolp, dop, polarizer_intensity
+from polphysics.zeta import mix_eq1, stokes_from_layers, zeta
 
 unit = st.floats(0.0, 1.0)
 angle = st.floats(-2 * np.pi, 2 * np.pi)

@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from polspike.errors import OutputError
+from polinfra.errors import OutputError
 from polspike.pipeline.dataset import BuildCallbacks, build_dataset, content_sha256, verify_dataset, verify_group_files
 from polspike.pipeline.manifest import MANIFESTS_DIR, dump_manifest, load_manifest
 

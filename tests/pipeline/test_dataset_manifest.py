@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from polspike.errors import ConfigError
+from polinfra.errors import ConfigError
 from polspike.pipeline.manifest import MANIFESTS_DIR, check_split, content_keys, load_manifest, parse_manifest
 from polspike.pipeline.sampler import CONTENT_POOLS, RANGES, sample_manifest, sample_manifest_text
 
@@ -124,7 +124,7 @@ def test_sampler_respects_ranges_and_split():
         inside("phase_deg", pol["phase_deg"])
     for g in m.groups:  # resolved scenes keep every incidence angle below the rejection bound
         from generator.scene import scene_from_dict
-        from polspike.physics.geometry import incidence_geometry
+        from polphysics.geometry import incidence_geometry
 
         sc = scene_from_dict(g.scene)
         th = incidence_geometry(sc.camera_model(), sc.pane_plane())["theta"]

@@ -12,9 +12,9 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from polspike.errors import ConfigError, DataFormatError
-from polspike.physics.polarizer import PolarizerConfig
-from polspike.physics.zeta import mix_eq1, stokes_from_layers
+from polinfra.errors import ConfigError, DataFormatError
+from polphysics.polarizer import PolarizerConfig
+from polphysics.zeta import mix_eq1, stokes_from_layers
 from polspike.pipeline.inspect import FIGURES, inspect_group, resolve_group
 from spike_sim.config import DEFAULT
 from spike_sim.simulate import keyframes_from_arrays, simulate

@@ -16,7 +16,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from polspike.errors import DataFormatError
+from polinfra.errors import DataFormatError
 
 REPO = Path(__file__).resolve().parents[2]
 CLI = [sys.executable, "-c", "from polspike.cli import app; app()"]

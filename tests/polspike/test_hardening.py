@@ -12,7 +12,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from polspike.errors import ConfigError, PolspikeError
+from polinfra.errors import ConfigError, PolspikeError
 
 REPO = Path(__file__).resolve().parents[2]
 CLI = [sys.executable, "-c", "from polspike.cli import app; app()"]
@@ -78,7 +78,7 @@ def test_full_disk_leaves_no_partial_file(tmp_path):
     frames = list((out / "frames").glob("*.exr")) if (out / "frames").exists() else []
     leftovers = [p for p in out.rglob("*") if ".tmp-" in p.name]
     assert not leftovers
-    from polspike.exr import read_exr
+    from polinfra.exr import read_exr
 
     for fr in frames:  # whatever exists under a final name is whole
         read_exr(fr)

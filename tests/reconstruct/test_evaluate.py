@@ -41,7 +41,7 @@ def test_physics_zeta_equals_gt_for_the_matching_pane():
 
 
 def test_missing_checkpoint_is_a_clear_error(tmp_path):
-    from polspike.errors import CheckpointError
+    from polinfra.errors import CheckpointError
 
     g = make_group(_small(), 0)
     with pytest.raises(CheckpointError, match="not found"):

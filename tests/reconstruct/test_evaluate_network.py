@@ -10,7 +10,7 @@ import torch
 from typer.testing import CliRunner
 
 from polspike.cli import get_app
-from polspike.errors import CheckpointError, ConfigError
+from polinfra.errors import CheckpointError, ConfigError
 from reconstruct.checkpoint import save_checkpoint
 from reconstruct.evaluate import EvalConfig, evaluate_groups
 from reconstruct.network import NetConfig, PolSpikeNet, init_weights

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from polspike.physics.stokes import dop as stokes_dop
-from polspike.physics.stokes import polarizer_intensity
+from polphysics.stokes import dop as stokes_dop
+from polphysics.stokes import polarizer_intensity
 from reconstruct.harmonic_fit import aolp, dop, harmonic_eval, harmonic_fit
 
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from polspike.errors import ShapeError
+from polinfra.errors import ShapeError
 from reconstruct.metrics import LPIPS_NA, lpips_status, psnr, ssim
 
 

@@ -8,7 +8,7 @@ import math
 import pytest
 import torch
 
-from polspike.errors import ShapeError
+from polinfra.errors import ShapeError
 from reconstruct.network import AngleAttention, NetConfig, PolSpikeNet, count_parameters, init_weights
 
 PAPER_PARAMS = 0.51e6  # supp. Sec. 10: "about 0.51M parameters"

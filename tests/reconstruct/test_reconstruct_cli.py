@@ -50,7 +50,7 @@ def test_chunking_does_not_change_the_result(tmp_path, model):
     a = reconstruct_stream(array_source(spikes, 0.3, 30.0, chunk_steps=37), model, tmp_path / "a", cfg)
     b = reconstruct_stream(array_source(spikes, 0.3, 30.0, chunk_steps=5000), model, tmp_path / "b", cfg)
     assert a["frames"] == b["frames"] >= 3
-    from polspike.exr import read_exr
+    from polinfra.exr import read_exr
 
     for i in range(a["frames"]):
         fa = read_exr(tmp_path / "a" / "frames" / f"{i:06d}.exr", ["T", "R"])
@@ -78,7 +78,7 @@ def test_real_uhsr_capture(tmp_path, model, shared_data):
     # the whole-recording mean is 0.50), so T, which the refinement denoises, is checked against that mean.
     s = reconstruct_stream(array_source(sp, 0.0, 90.0), model, tmp_path, ReconstructConfig(max_frames=1, exposure=0.1, frames="exr"))
     _check_tfp(tmp_path, s, T_min_corr=0.55)  # measured 0.67 with polspike_v1
-    from polspike.exr import read_exr
+    from polinfra.exr import read_exr
 
     T = read_exr(tmp_path / "frames" / "000000.exr", ["T"])["T"].ravel()
     ref = sp.mean(0).astype(np.float64).ravel()
@@ -114,7 +114,7 @@ def test_cli_group_store_end_to_end(tmp_path):
     """Static two-layer scene -> spike_sim group -> polspike reconstruct: T near the GT layer."""
     from spike_sim.simulate import keyframes_from_arrays, simulate
 
-    from polspike.physics.zeta import stokes_from_layers
+    from polphysics.zeta import stokes_from_layers
 
     H, W = 16, 20
     yy, xx = np.mgrid[0:H, 0:W]
@@ -129,7 +129,7 @@ def test_cli_group_store_end_to_end(tmp_path):
     s = json.loads((tmp_path / "o" / "reconstruct.json").read_text())
     assert s["frames"] >= 2 and s["nan_frames"] == 0
     assert math.isclose(s["fps"], 10800 / 31.5, rel_tol=1e-9)
-    from polspike.exr import read_exr
+    from polinfra.exr import read_exr
 
     for i in range(s["frames"]):
         Th = read_exr(tmp_path / "o" / "frames" / f"{i:06d}.exr", ["T"])["T"]

@@ -116,7 +116,7 @@ def test_noise_ordering_rwps_beats_ls(np_rng):
 
 
 def test_unknown_method_lists_choices():
-    from polspike.errors import ConfigError
+    from polinfra.errors import ConfigError
 
     with pytest.raises(ConfigError, match="rwps"):
         solve("svd", torch.zeros(3, 1, 1), torch.zeros(3, 1, 1))

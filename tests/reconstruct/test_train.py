@@ -11,7 +11,7 @@ import pytest
 import torch
 from scipy import ndimage
 
-from polspike.errors import CheckpointError, ConfigError
+from polinfra.errors import CheckpointError, ConfigError
 from reconstruct.checkpoint import load_model, read_checkpoint
 from reconstruct.onthefly import ITEM_KEYS, OnTheFlyWindows, WindowConfig, item_from_stream
 from reconstruct.train import TINY, TrainConfig, alpha_at, train

@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 import torch
 
-from polspike.errors import ConfigError, DataFormatError
-from polspike.physics.polarizer import PolarizerConfig
-from polspike.physics.zeta import mix_eq1, stokes_from_layers, zeta
+from polinfra.errors import ConfigError, DataFormatError
+from polphysics.polarizer import PolarizerConfig
+from polphysics.zeta import mix_eq1, stokes_from_layers, zeta
 from reconstruct.onthefly import WindowConfig
 from reconstruct.windows import ITEM_KEYS, StoreWindows, open_window_datasets, window_centres
 from spike_sim.config import DEFAULT, IDEAL

@@ -1,4 +1,4 @@
-"""zeta sources: paper Eq. (2) in torch agrees with polspike.physics.zeta; physics maps from pane geometry."""
+"""zeta sources: paper Eq. (2) in torch agrees with polphysics.zeta; physics maps from pane geometry."""
 
 from __future__ import annotations
 
@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 import torch
 
-from polspike.errors import PolspikeError
-from polspike.physics.zeta import zeta as zeta_np
+from polinfra.errors import PolspikeError
+from polphysics.zeta import zeta as zeta_np
 from reconstruct.zeta_source import PaneMaps, pane_maps_from_geometry, zeta_from_maps, zeta_learned
 
 
@@ -37,7 +37,7 @@ def test_zeta_equals_R_perp_along_phi_perp():
 
 
 def test_physics_maps_from_geometry_normal_incidence():
-    from polspike.physics.geometry import PinholeCamera, Plane
+    from polphysics.geometry import PinholeCamera, Plane
 
     cam = PinholeCamera.look_at([0, 0, 0], [0, 0, 1], [0, 1, 0], fov_x_deg=1.0, width=3, height=3)
     m = pane_maps_from_geometry(cam, Plane(np.array([0.0, 0.0, 1.0]), np.array([0.0, 0.0, -1.0])), 1.5)

@@ -7,7 +7,7 @@ import dataclasses
 import numpy as np
 import pytest
 
-from polspike.physics.polarizer import PolarizerConfig
+from polphysics.polarizer import PolarizerConfig
 from spike_sim.config import DEFAULT
 from spike_sim.simulate import keyframes_from_arrays
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from polspike.errors import ConfigError, ShapeError
+from polinfra.errors import ConfigError, ShapeError
 from spike_sim.aggregate import AggregateConfig, aggregate_stream, frame_centres, observation_stack, output_fps
 
 DT = 5e-5

@@ -10,7 +10,7 @@ import pytest
 from typer.testing import CliRunner
 
 from polspike.cli import get_app
-from polspike.physics.polarizer import PolarizerConfig
+from polphysics.polarizer import PolarizerConfig
 from spike_sim.config import DEFAULT
 from spike_sim.simulate import keyframes_from_arrays, simulate
 
@@ -57,7 +57,7 @@ def test_glass_scene_group_uses_the_stored_phi_perp_map(tmp_path):
 
 
 def test_group_without_maps_needs_a_target(tmp_path):
-    from polspike.errors import ConfigError
+    from polinfra.errors import ConfigError
 
     st = np.stack([np.full((H, W), 0.6), np.full((H, W), 0.3), np.zeros((H, W))])
     g = _group(tmp_path, st, PolarizerConfig(), duration=0.01)

@@ -8,7 +8,7 @@ import dataclasses
 import numpy as np
 import pytest
 
-from polspike.physics.polarizer import PolarizerConfig
+from polphysics.polarizer import PolarizerConfig
 from spike_sim.calibrate import isi_cv
 from spike_sim.config import IDEAL
 from spike_sim.integrate_fire import simulate_constant

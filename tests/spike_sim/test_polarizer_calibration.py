@@ -7,7 +7,7 @@ import dataclasses
 import numpy as np
 import pytest
 
-from polspike.physics.polarizer import PolarizerConfig, phi_true
+from polphysics.polarizer import PolarizerConfig, phi_true
 from spike_sim.calibrate import calibrate_flat_target, calibrate_from_modulation, darkest_phase, phase_error
 from spike_sim.config import DEFAULT
 from spike_sim.simulate import keyframes_from_arrays, simulate

@@ -6,8 +6,8 @@ import dataclasses
 
 import pytest
 
-from polspike.config import from_dict, to_dict
-from polspike.errors import ConfigError
+from polinfra.config import from_dict, to_dict
+from polinfra.errors import ConfigError
 from spike_sim.config import DEFAULT, IDEAL, PRESETS, SpikeSimConfig, preset
 
 

@@ -13,7 +13,7 @@ from spike_sim.vidar_dat import read_dat
 
 
 def _render_dir(tmp_path, kf):
-    from polspike.exr import write_exr
+    from polinfra.exr import write_exr
 
     rd = tmp_path / "render"
     (rd / "frames").mkdir(parents=True)
@@ -79,7 +79,7 @@ def test_simulate_flags_preset_chunking_compression(tmp_path, keyframes):
     assert not np.array_equal(open_group(tmp_path / "c").read(), ga.read())
     ga.close()
     gb.close()
-    from polspike.errors import ConfigError
+    from polinfra.errors import ConfigError
 
     r = run("d", "--preset", "bogus")  # PolspikeError -> exit 2 in polspike.cli.main
     assert isinstance(r.exception, ConfigError) and "bogus" in str(r.exception)
@@ -92,7 +92,7 @@ def test_simulate_flags_preset_chunking_compression(tmp_path, keyframes):
 
 def test_store_zeta_flag_writes_eq2_at_output_times(tmp_path, keyframes):
     """--store-zeta: gt/zeta (M, H, W) = paper Eq. (2) at each output frame's mean true angle (float16)."""
-    from polspike.physics.zeta import zeta
+    from polphysics.zeta import zeta
 
     rd = _render_dir(tmp_path, keyframes)
     r = CliRunner().invoke(get_app(), ["simulate", str(rd), "--duration", "0.03", "--out", str(tmp_path / "g"), "--store-zeta", "--quiet"])

@@ -9,7 +9,7 @@ import numba
 import numpy as np
 import pytest
 
-from polspike.physics.polarizer import PolarizerConfig
+from polphysics.polarizer import PolarizerConfig
 from spike_sim.config import IDEAL
 from spike_sim.simulate import keyframes_from_arrays, keyframes_from_render, simulate
 from spike_sim.store import open_group
@@ -37,7 +37,7 @@ def test_deterministic_for_a_seed_regardless_of_chunking_and_threads(keyframes, 
 
 def test_noise_free_counts_follow_the_closed_form_intensity(keyframes):
     """IDEAL sensor: spike count over the stream = floor(sum of step-mean intensities) +- float rounding."""
-    from polspike.physics.polarizer import step_keyframe_weights
+    from polphysics.polarizer import step_keyframe_weights
 
     cfg = dataclasses.replace(IDEAL, width=24, height=16)
     s = _collect(keyframes, cfg, 0, 128)
@@ -82,7 +82,7 @@ def test_group_and_dat_round_trip_bit_exactly(tmp_path, keyframes, small_cfg):
 
 def test_render_dir_source(tmp_path, keyframes):
     """A polspike-render/1 folder is read lazily and gives the same stream as the same arrays."""
-    from polspike.exr import write_exr
+    from polinfra.exr import write_exr
 
     rd = tmp_path / "render"
     (rd / "frames").mkdir(parents=True)
@@ -118,7 +118,7 @@ def test_static_scene_single_keyframe(small_cfg):
 
 
 def test_much_noisier_than_real_cameras_warns(keyframes, small_cfg):
-    from polspike.errors import PolspikeWarning
+    from polinfra.errors import PolspikeWarning
 
     with pytest.warns(PolspikeWarning, match="ISI CV"):
         simulate(keyframes, 0.001, 0, dataclasses.replace(small_cfg, photons_per_threshold=20.0), out=None)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from polspike.errors import DataFormatError, OutputError
+from polinfra.errors import DataFormatError, OutputError
 from spike_sim.store import SPIKES_FILE, SUMMARY_FILE, GroupWriter, open_group
 
 

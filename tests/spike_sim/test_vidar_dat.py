@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from polspike.errors import DataFormatError
+from polinfra.errors import DataFormatError
 from spike_sim.vidar_dat import DatWriter, dat_frame_count, iter_dat, read_dat, write_dat
 
 REAL = Path(__file__).resolve().parents[2] / ".." / "shared" / "data" / "real_spikes"
@@ -117,7 +117,7 @@ def test_camera_file_whose_size_also_fits_plain_frames(tmp_path, np_rng, caplog)
 
 def test_odd_geometry_and_single_frame(tmp_path):
     """One frame is a valid file; H*W not divisible by 8 cannot be written (.dat frames are whole bytes)."""
-    from polspike.errors import ShapeError
+    from polinfra.errors import ShapeError
 
     one = np.zeros((1, 250, 400), np.uint8)
     one[0, 10, 20] = 1
