@@ -115,6 +115,10 @@ def keyframes_from_render(render_dir: str | os.PathLike) -> KeyframeSource:
     )
 
 
+_TIMING_KEYS = ("group_dir", "seconds", "sim_seconds", "pixel_steps_per_s")
+"""Summary fields that vary between two runs of the same inputs (wall clock, output path)."""
+
+
 @dataclasses.dataclass
 class SimulationSummary:
     """What :func:`simulate` did."""
@@ -204,6 +208,7 @@ def simulate(
     overwrite: bool = False,
     store_zeta: bool = False,
     spikes_sink: Callable[[int, np.ndarray], None] | None = None,
+    store_timings: bool = True,
 ) -> SimulationSummary:
     """Simulate ``duration_s`` seconds of spikes behind the rotating polarizer.
 
@@ -224,6 +229,10 @@ def simulate(
         store_zeta: also store paper Eq. (2) zeta at output times (float16) when maps
             exist (off by default: it follows from the stored maps and phi(i)).
         spikes_sink: optional callback (first step, packed chunk) (tests, streaming users).
+        store_timings: keep the wall-clock fields (seconds, sim_seconds, pixel_steps_per_s)
+            and the output path in the stored summary (``summary_json``, group.json).  False
+            (dataset builds) leaves them out, so the same inputs give the same file bytes;
+            the returned summary always has them.
 
     Returns:
         :class:`SimulationSummary`.
@@ -332,7 +341,10 @@ def simulate(
         )
         if writer is not None:
             if ok:
-                writer.set_attr("summary_json", summary.to_dict())
+                stored = summary.to_dict()
+                if not store_timings:
+                    stored = {k: v for k, v in stored.items() if k not in _TIMING_KEYS}
+                writer.set_attr("summary_json", stored)
                 writer.close(
                     summary={
                         "seed": int(seed),
@@ -340,7 +352,7 @@ def simulate(
                         "config": to_dict(cfg),
                         "polarizer": to_dict(pol),
                         "aggregate": to_dict(aggregate),
-                        "summary": summary.to_dict(),
+                        "summary": stored,
                     }
                 )
             else:

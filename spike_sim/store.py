@@ -26,6 +26,13 @@ Layout of ``GROUP/spikes.h5`` (format ``polspike-spikes/1``)::
     /maps/<name>                (H, W) float32       coefficient maps (theta, phi_perp, R_perp, R_par, T_perp, T_par)
     attrs: format, width, height, rate_hz, n_steps, seed, scene_hash, config_json, polarizer_json, aggregate_json
 
+Byte layout.  The file is written the same way every time: no object timestamps
+(``track_times=False`` on every dataset and group), a pinned file-format range
+(:data:`LIBVER`, so a newer HDF5 library does not silently switch to newer object
+headers), attributes in the order the writer sets them, chunks written in order.
+The same inputs therefore give the same bytes; wall-clock timings do not belong in
+the file (``simulate(..., store_timings=False)`` leaves them out of ``summary_json``).
+
 Everything is written to a temporary file beside the final one and renamed when
 complete (:class:`GroupWriter`), then ``GROUP/group.json`` (plain-data summary)
 is written atomically: a group without group.json is incomplete.
@@ -56,6 +63,8 @@ FORMAT = "polspike-spikes/1"
 SPIKES_FILE = "spikes.h5"
 SUMMARY_FILE = "group.json"
 _DEFLATE = 1  # zlib level: 30 % smaller than raw bits at ~100 MB/s per thread
+LIBVER = ("earliest", "v110")
+"""HDF5 file-format bounds (pinned: part of the byte layout)."""
 
 
 class GroupWriter:
@@ -96,9 +105,9 @@ class GroupWriter:
         self.compression = compression
         self._ctx = atomic_path(self.dir / SPIKES_FILE, suffix=".h5")
         self._tmp = self._ctx.__enter__()
-        self.f = h5py.File(self._tmp, "w")
+        self.f = h5py.File(self._tmp, "w", libver=LIBVER, track_order=False)
         kw: dict[str, Any] = {"compression": "gzip", "compression_opts": _DEFLATE} if compression == "gzip" else {}
-        self.spikes = self.f.create_dataset("spikes", shape=(self.n_steps, self.nbytes), dtype="u1", chunks=(self.chunk_steps, self.nbytes), **kw)
+        self.spikes = self.f.create_dataset("spikes", shape=(self.n_steps, self.nbytes), dtype="u1", chunks=(self.chunk_steps, self.nbytes), track_times=False, **kw)
         a = self.f.attrs
         a["format"] = FORMAT
         a["width"], a["height"], a["rate_hz"], a["n_steps"] = self.width, self.height, float(rate_hz), self.n_steps
@@ -168,11 +177,25 @@ class GroupWriter:
         kw: dict[str, Any] = {"compression": "gzip", "compression_opts": _DEFLATE} if compress else {}
         if chunks is not None:
             kw["chunks"] = chunks
-        return self.f.create_dataset(name, data=np.asarray(data), **kw)
+        return self._parent(name).create_dataset(name.rsplit("/", 1)[-1], data=np.asarray(data), track_times=False, **kw)
+
+    def _parent(self, name: str) -> h5py.Group:
+        """The group holding dataset ``name``, its missing ancestors created without timestamps."""
+        g = self.f
+        for part in name.strip("/").split("/")[:-1]:
+            if part not in g:
+                gcpl = h5py.h5p.create(h5py.h5p.GROUP_CREATE)
+                gcpl.set_obj_track_times(False)
+                h5py.h5g.create(g.id, part.encode(), gcpl=gcpl)
+            g = g[part]
+        return g
 
     def create_frames(self, name: str, n: int, dtype="f4") -> h5py.Dataset:
         """Create an (n, H, W) dataset chunked per frame, compressed (fill it by index)."""
-        return self.f.create_dataset(name, shape=(n, self.height, self.width), dtype=dtype, chunks=(1, self.height, self.width), compression="gzip", compression_opts=_DEFLATE)
+        return self._parent(name).create_dataset(
+            name.rsplit("/", 1)[-1], shape=(n, self.height, self.width), dtype=dtype, chunks=(1, self.height, self.width),
+            compression="gzip", compression_opts=_DEFLATE, track_times=False,
+        )
 
     def flush_pending(self) -> None:
         """Wait for every compressed chunk and write it."""

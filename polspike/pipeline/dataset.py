@@ -29,15 +29,18 @@ Output layout::
     DIR/groups/NAME/group_spec.json   resolved scene + simulator config
     DIR/groups/NAME/checksums.json    spec_sha256, content_sha256, sha256 + size of every file above
 
-Checksums.  ``files[...].sha256`` is the sha256 of each file's bytes: it
-detects any changed byte (``verify``; resume).  The HDF5 file and group.json
-also hold the wall-clock timings spike_sim records (``summary_json``), so their
-bytes differ between two builds; **determinism is therefore defined over
-content**: ``content_sha256`` hashes every HDF5 dataset (name, dtype, shape,
-values) and attribute, group.json and group_spec.json, leaving out only the
-volatile keys :data:`VOLATILE_KEYS` (timings and the temporary build path).
-The same manifest gives the same ``content_sha256`` for every group whatever
-the executor, worker count or thread count (tested).
+Checksums and byte identity.  ``files[...].sha256`` is the sha256 of each file's
+bytes: it detects any changed byte (``verify``; resume).  Group files hold no
+wall-clock data: spike_sim is asked to leave its timings and temporary path out
+of ``summary_json`` and group.json (``store_timings=False``), and the HDF5 store
+is written without object timestamps in a fixed layout (:mod:`spike_sim.store`).
+So **the same manifest gives the same bytes**, file by file (every file except
+``build_log.json``, which alone holds the timings), whatever the executor (in
+process, process pool, Dask), worker or thread count, and after a kill -9 and
+resume (tested).  ``content_sha256`` hashes every HDF5 dataset (name, dtype,
+shape, values) and attribute, group.json and group_spec.json, leaving out the
+keys :data:`VOLATILE_KEYS` (which older builds stored): it compares content
+across builds made before byte identity, or after a re-compression.
 
 Resume.  A build holds ``DIR/.lock``.  At start it deletes ``DIR/.tmp``
 (partial groups of a killed build); a group under ``DIR/groups`` is skipped
@@ -103,7 +106,7 @@ CHECKSUM_DEFINITION = (
     "files.*.sha256: sha256 of the file bytes (integrity). content_sha256: sha256 over every HDF5 dataset "
     "(name, dtype, shape, values) and attribute, group.json and group_spec.json, without the volatile keys "
     + ", ".join(sorted(VOLATILE_KEYS))
-    + " (identical for identical content; the file bytes hold wall-clock timings)"
+    + " (kept for builds that stored them). Files hold no timings: the same manifest gives the same bytes; timings are in build_log.json"
 )
 
 
@@ -355,10 +358,10 @@ def build_group(spec: dict, out_dir: str, chunk_steps: int = 1000, numba_threads
         timings["setup_cpu_s"] = time.process_time() - c0 - timings.get("render_frames_s", 0.0)
         timings["n_keyframes"] = float(src.times_s.size)
         ts = time.perf_counter()
-        summ = simulate(src, float(spec["duration_s"]), int(spec["seed"]), config=sim, out=work, chunk_steps=chunk_steps, progress=lambda d, t: progress("simulate", d, t))
+        summ = simulate(src, float(spec["duration_s"]), int(spec["seed"]), config=sim, out=work, chunk_steps=chunk_steps, progress=lambda d, t: progress("simulate", d, t), store_timings=False)
         timings["simulate_s"] = time.perf_counter() - ts
         timings["kernel_s"] = summ.sim_seconds
-        # group.json: the final location instead of the temporary one
+        # group.json: the final location (the temporary one is random and left out by store_timings=False)
         gj = json.loads((work / "group.json").read_text())
         if isinstance(gj.get("summary"), dict):
             gj["summary"]["group_dir"] = f"groups/{name}"

@@ -31,6 +31,15 @@ def _contents(root: Path) -> dict[str, str]:
     return {g["name"]: g["content_sha256"] for g in doc["groups"]}
 
 
+def _bytes(root: Path) -> dict[str, str]:
+    """sha256 of every file of a built dataset except build_log.json (the one file with timings)."""
+    from polspike.pipeline.dataset import file_sha256
+
+    out = {str(p.relative_to(root)): file_sha256(p) for p in sorted(root.rglob("*")) if p.is_file() and p.name not in ("build_log.json", ".lock")}
+    assert any(k.endswith("spikes.h5") for k in out)
+    return out
+
+
 @pytest.fixture(scope="module")
 def built(tmp_path_factory) -> Path:
     """small.toml built once, in this process (local executor, one worker)."""
@@ -77,7 +86,26 @@ def test_dask_local_cluster_matches_local_checksums(built, tmp_path):
         r = build_dataset(SMALL, tmp_path / "dask", executor="dask", scheduler=cluster.scheduler_address, workers=2, poll_s=0.05)
     assert len(r["built"]) == 3
     assert _contents(tmp_path / "dask") == _contents(built)
+    # byte identity: every file but build_log.json, including spikes.h5 and dataset.json
+    assert _bytes(tmp_path / "dask") == _bytes(built)
     assert verify_dataset(tmp_path / "dask")["ok"]
+
+
+def test_group_files_hold_no_wall_clock_timings(built):
+    import h5py
+
+    log_doc = json.loads((built / "build_log.json").read_text())
+    assert log_doc["groups"]["train_brewster"]["total_s"] > 0  # the timings live here
+    for gd in sorted((built / "groups").iterdir()):
+        gj = json.loads((gd / "group.json").read_text())
+        assert gj["summary"]["group_dir"] == f"groups/{gd.name}"
+        assert not {"seconds", "sim_seconds", "pixel_steps_per_s"} & set(gj["summary"]), gd.name
+        with h5py.File(gd / "spikes.h5", "r") as f:
+            summ = json.loads(f.attrs["summary_json"])
+            assert not {"group_dir", "seconds", "sim_seconds", "pixel_steps_per_s"} & set(summ)
+            objs = [f["spikes"], f["maps"], f["gt/T"], f["polarizer"]]
+            # no object timestamps: HDF5 reports 0 for an object whose times are not tracked
+            assert all(h5py.h5g.get_objinfo(f.id, o.name.encode()).mtime == 0 for o in objs)
 
 
 def test_rebuild_skips_finished_groups_by_checksum(built, tmp_path):
@@ -157,6 +185,9 @@ def test_build_resumes_after_kill_9_mid_group(tmp_path):
     assert (out / "groups" / names[0] / "spikes.h5").stat().st_ino == ino
     assert verify_dataset(out)["ok"]
     assert not (out / ".tmp").exists()
+    # the resumed build has the bytes of an uninterrupted one (every file except build_log.json)
+    build_dataset(man, tmp_path / "straight")
+    assert _bytes(out) == _bytes(tmp_path / "straight")
 
 
 def test_second_build_on_the_same_folder_is_refused(built, tmp_path):
@@ -189,10 +220,12 @@ def test_process_pool_and_process_cluster_match(built, tmp_path):
     r = build_dataset(SMALL, tmp_path / "pool", workers=2, poll_s=0.1)
     assert len(r["built"]) == 3
     assert _contents(tmp_path / "pool") == _contents(built)
+    assert _bytes(tmp_path / "pool") == _bytes(built)
     pytest.importorskip("distributed")
     r = build_dataset(SMALL, tmp_path / "cluster", workers=2, executor="dask", poll_s=0.1)
     assert len(r["built"]) == 3
     assert _contents(tmp_path / "cluster") == _contents(built)
+    assert _bytes(tmp_path / "cluster") == _bytes(built)
 
 
 @pytest.mark.slow
