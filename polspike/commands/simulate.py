@@ -40,7 +40,7 @@ def simulate_cmd(
     duration: float = typer.Option(1.0, "--duration", help="stream length in seconds"),
     seed: int = typer.Option(0, "--seed", help="sensor/noise seed (same seed, same bits, any chunking)"),
     dat: Optional[Path] = typer.Option(None, "--dat", help="also write a raw Vidar .dat file (SpikeCV / spikezoo layout)"),
-    config: Optional[Path] = typer.Option(None, "--config", help="TOML with a \\[spike_sim] table (and optional \\[aggregate])"),
+    config: Optional[Path] = typer.Option(None, "--config", help="TOML with a [spike_sim] table (and optional [aggregate])"),
     preset: str = typer.Option("default", "--preset", help="base noise preset: ideal, default, noisy"),
     chunk_steps: int = typer.Option(1000, "--chunk-steps", help="steps per chunk (memory ~ chunk * H W / 8 bytes)"),
     overwrite: bool = typer.Option(False, "--overwrite", help="replace an existing group"),
