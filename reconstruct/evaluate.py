@@ -180,11 +180,17 @@ def group_zeta(group: EvalGroup, cfg: EvalConfig) -> np.ndarray | None:
     ``gt``: the group's pane maps at the true window-mean angles (paper Eq. (2),
     window-averaged); ``physics``: Fresnel reflectances of the calibrated pane
     (``pane_n``, ``pane_model``) at the group's incidence-angle map, with the
-    nominal (calibrated) angles; ``learned``: per window from the network
+    nominal (calibrated) angles; ``self``: the pane fitted to the group's own
+    frames (:func:`reconstruct.selfcal.group_self_zeta`; None where nothing
+    modulates); ``learned``: per window from the network
     (:func:`reconstruct.zeta_source.zeta_learned`), so this returns None.
     """
     if cfg.zeta == "learned":
         return None
+    if cfg.zeta == "self":  # pane fitted to the stream (reconstruct.selfcal); None where nothing modulates -> learned
+        from reconstruct.selfcal import group_self_zeta
+
+        return group_self_zeta(group, cfg.pane_n, cfg.pane_model)
     if cfg.zeta == "gt":
         if group.maps is not None:
             return zeta_from_maps(group.maps, group.phi_true, group.span_rad, dtype=torch.float64).numpy()
@@ -250,6 +256,8 @@ def evaluate_groups(
     for gi, g in enumerate(groups):
         t0 = time.perf_counter()
         Z = group_zeta(g, cfg)
+        if Z is None and model is None:  # --zeta self found nothing modulating: the learned zeta instead
+            model, net_info = load_network(cfg)
         t["zeta"] += time.perf_counter() - t0
         M = g.I.shape[0]
         has = np.ones(M, bool) if g.has_gt is None else g.has_gt
@@ -271,7 +279,7 @@ def evaluate_groups(
                 Zw = None if Zw is None else warp(Zw, sh)
                 t["rir"] += time.perf_counter() - t0
             W_learned = None
-            if cfg.zeta == "learned" and solvers:
+            if Z is None and solvers:
                 t0 = time.perf_counter()
                 Zw, W_learned = zeta_learned(model, Iw, Pw)
                 t["learned_zeta"] += time.perf_counter() - t0

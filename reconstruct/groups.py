@@ -62,6 +62,8 @@ class EvalGroup:
     theta: np.ndarray | None = None
     has_gt: np.ndarray | None = None
     gt_zeta: np.ndarray | None = None
+    fov_deg: float | None = None
+    """horizontal field of view of the camera (degrees) when known (a dataset group's scene), for ``--zeta self``"""
 
 
 
@@ -139,6 +141,8 @@ def load_store_group(
     from spike_sim.aggregate import AggregateConfig, frame_centres
     from spike_sim.store import open_group
 
+    from reconstruct.selfcal import fov_from_group_dir
+
     cfg = AggregateConfig(window_steps=window_steps, stride_deg=stride_deg, n_obs=n_obs)
     with open_group(path) as g:
         sim = g.json_attr("config_json") or {}
@@ -189,4 +193,5 @@ def load_store_group(
             maps=maps,
             theta=mp.get("theta"),
             has_gt=has,
+            fov_deg=fov_from_group_dir(path),
         )

@@ -147,6 +147,7 @@ def make_group(cfg: SyntheticConfig, index: int) -> EvalGroup:
         theta=geo["theta"],
         has_gt=np.ones(M, bool),
         gt_zeta=f32(Zs),
+        fov_deg=60.0,
     )
 
 

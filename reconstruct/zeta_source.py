@@ -6,6 +6,8 @@
   model) -> theta(p), phi_perp(p) by :mod:`polphysics.geometry`, Fresnel
   reflectances by :mod:`polphysics.fresnel`, then paper Eq. (2).
 * ``learned``: the parameter branch of the network of issue 9 (:func:`zeta_learned`).
+* ``self``: the pane geometry estimated from the stream itself (:mod:`reconstruct.selfcal`),
+  then as ``physics``; falls back to ``learned`` where nothing modulates.
 
 A spike frame integrates over an aggregation window during which the polarizer
 turns by ``span`` radians (0.65 ms at 30 rev/s = 7 deg).  The frame's zeta is the
@@ -25,7 +27,7 @@ from polinfra.errors import ShapeError
 
 __all__ = ["ZETA_SOURCES", "zeta_eq2", "PaneMaps", "zeta_from_maps", "pane_maps_from_geometry", "zeta_learned"]
 
-ZETA_SOURCES = ("gt", "physics", "learned")
+ZETA_SOURCES = ("gt", "physics", "learned", "self")
 """Names accepted by the evaluation harness's ``--zeta`` option."""
 
 

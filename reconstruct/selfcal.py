@@ -1,0 +1,435 @@
+"""Self-calibrated zeta (``--zeta self``): the pane's geometry estimated from the spikes themselves.
+
+For a planar pane seen by a pinhole camera, the plane of incidence at pixel p
+contains the viewing ray d(p) and the pane normal N, so the s-direction
+phi_perp(p) (in the ray's own Stokes frame, :mod:`polphysics.geometry`) is a
+function of N (2 numbers) and the field of view (1 number).  Paper Eq. (1)-(2)
+give, for the light behind the polarizer,
+
+    I_k = 1/2 [T + A (R - T)] + 1/4 (R_perp - R_par)(R - T) cos 2(phi_k - phi_perp),
+
+so the angle of linear polarization of the stream is phi_perp where R > T and
+phi_perp + 90 deg where R < T (RECONSTRUCTION_NOTES.md, section 2): only the
+orientation *modulo 90 deg* is a property of the pane.
+
+Estimator (:func:`self_calibrate`):
+
+1. Harmonic fit (supp. Eq. (1), :func:`reconstruct.harmonic_fit.harmonic_fit`) on
+   consecutive chunks of frames, each covering about half a polarizer turn
+   (one cycle of 2 phi), over a long span (default 0.1 s).  Each chunk's
+   (ac, as) is squared as a complex number, z4 = (ac + i as)^2, whose angle is
+   4 AoLP: the sign of R - T, which changes as the layers move, drops out.
+   Summing z4 over chunks and over s x s pixel blocks gives a coherent
+   orientation psi = arg(sum z4) / 4 (mod 90 deg) and a coherence
+   |sum z4| / sum |z4| in [0, 1] (about 1 / sqrt(samples) for pure noise).
+2. Blocks whose coherence clears the noise level are "modulating".  The normal
+   N (tilt from the optical axis, azimuth) and, when it is not given, the
+   horizontal field of view are fitted to minimise
+   sum_p c_p sin^2 2(psi_p - phi_perp(p; N, fov)) -- invariant to the
+   90 deg flip -- by a grid search over the hemisphere followed by robust
+   nonlinear least squares (``scipy.optimize.least_squares``, soft-L1 loss).
+   phi_perp(p; N) comes from :func:`polphysics.geometry.incidence_geometry` on
+   a block-grid camera (the same pinhole, W/s x H/s pixels: its pixel centres
+   are the block centres), so the per-ray frame convention is the project's.
+3. theta(p), phi_perp(p) on the full grid, the index (given, default 1.5) and
+   the pane model give R_perp, R_par by :func:`reconstruct.zeta_source.pane_maps_from_geometry`,
+   and zeta_k(p) by paper Eq. (2) (:func:`reconstruct.zeta_source.zeta_from_maps`).
+
+Where nothing modulates (no reflection, near-normal incidence, too few
+modulating blocks or an orientation field the planar model does not explain)
+the result carries ``ok = False`` and a reason, a warning is logged, and the
+callers fall back to the learned zeta.
+
+T depends on zeta's *shape* (phi_perp and DoP_R = (R_perp - R_par) / (R_perp + R_par)),
+not its scale (RECONSTRUCTION_NOTES.md, section 1): the index matters little,
+the geometry (N and the field of view, hence theta) matters much.
+
+Camera frame: a pinhole at the origin looking along +z with up +y
+(``PinholeCamera.look_at([0,0,0], [0,0,1], [0,1,0], ...)``); N is reported in
+that frame, with N . forward > 0, and as the vanishing point of N in pixels.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import logging
+import math
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from polinfra.config import opt
+from polinfra.errors import ConfigError, ShapeError
+
+from reconstruct.harmonic_fit import harmonic_fit
+from reconstruct.zeta_source import PaneMaps, pane_maps_from_geometry, zeta_from_maps
+
+__all__ = [
+    "SelfCalConfig",
+    "SelfCalResult",
+    "orientation_field",
+    "fit_normal",
+    "self_calibrate",
+    "self_zeta",
+    "group_self_zeta",
+    "camera_for",
+    "normal_from_angles",
+    "fov_from_group_dir",
+]
+
+log = logging.getLogger(__name__)
+
+
+@dataclasses.dataclass(frozen=True)
+class SelfCalConfig:
+    """Self-calibration parameters."""
+
+    span_s: float = opt(0.1, "length of the stream used to measure the orientation field, seconds (stationary pane)", lo=0.001, hi=100.0)
+    block_px: int = opt(0, "block size of the orientation field in pixels (0 = about 48 blocks across the width)", lo=0, hi=1024)
+    fov_deg: float = opt(0.0, "horizontal field of view in degrees (0 = fit it from the orientation field)", lo=0.0, hi=170.0)
+    fov_init_deg: float = opt(60.0, "start value when the field of view is fitted", lo=5.0, hi=170.0)
+    n: float = opt(1.5, "refractive index of the pane", lo=1.0, hi=4.0)
+    model: str = opt("single", "pane model", choices=("single", "thin_slab", "thick_slab"))
+    z_min: float = opt(8.0, "the fitted pane must explain the orientation field this many noise standard deviations above chance, else 'nothing modulates' (ok = False)", lo=0.0, hi=1e6)
+    coherence_sigmas: float = opt(4.0, "diagnostics: a block counts as modulating when its |sum z4| exceeds this many noise standard deviations", lo=0.0, hi=100.0)
+    min_tilt_deg: float = opt(3.0, "a fitted tilt below this is near-normal incidence: no usable modulation (ok = False)", lo=0.0, hi=89.0)
+
+
+@dataclasses.dataclass
+class SelfCalResult:
+    """Outcome of :func:`self_calibrate`.
+
+    Attributes:
+        ok: True when the pane was calibrated; False means "nothing modulates" (use another zeta source).
+        reason: why not (empty when ok).
+        normal: (3,) unit pane normal in the camera frame (module docstring), N . forward > 0, or None.
+        tilt_deg: angle between N and the optical axis.
+        azimuth_deg: direction of N's projection in the image, degrees counter-clockwise from image +x.
+        vp_px: vanishing point of N (x, y) in pixels (None when N is perpendicular to the axis).
+        fov_deg: field of view used; fov_fitted says whether it was fitted.
+        n, model: index and pane model of the maps.
+        maps: full-resolution :class:`PaneMaps` (None unless ok); theta: (H, W) incidence angle, radians.
+        modulating_fraction: share of blocks that modulate; residual_deg: weighted median orientation residual.
+        runner_up_cost_ratio: matched score of the best pane at least 15 deg (in N) from the optimum over the
+            optimum's (near 1 = ambiguous geometry).
+        diagnostics: block-grid fields (psi, coherence, mask, s4), the detection ``z`` and ``alignment``, sizes.
+    """
+
+    ok: bool
+    reason: str
+    normal: np.ndarray | None
+    tilt_deg: float | None
+    azimuth_deg: float | None
+    vp_px: tuple[float, float] | None
+    fov_deg: float
+    fov_fitted: bool
+    n: float
+    model: str
+    maps: PaneMaps | None
+    theta: np.ndarray | None
+    modulating_fraction: float
+    residual_deg: float | None
+    runner_up_cost_ratio: float | None
+    diagnostics: dict
+
+    def summary(self) -> dict:
+        """Plain-data summary (for JSON)."""
+        return {
+            "ok": self.ok,
+            "reason": self.reason,
+            "normal": None if self.normal is None else [float(v) for v in self.normal],
+            "tilt_deg": self.tilt_deg,
+            "azimuth_deg": self.azimuth_deg,
+            "vp_px": None if self.vp_px is None else [float(v) for v in self.vp_px],
+            "fov_deg": self.fov_deg,
+            "fov_fitted": self.fov_fitted,
+            "n": self.n,
+            "model": self.model,
+            "modulating_fraction": self.modulating_fraction,
+            "residual_deg": self.residual_deg,
+            "runner_up_cost_ratio": self.runner_up_cost_ratio,
+            "z": self.diagnostics.get("z"),
+            "alignment": self.diagnostics.get("alignment"),
+        }
+
+
+def camera_for(width: int, height: int, fov_deg: float):
+    """The reference pinhole (origin, looking along +z, up +y) of ``width`` x ``height`` pixels."""
+    from polphysics.geometry import PinholeCamera
+
+    return PinholeCamera.look_at([0.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, 1.0, 0.0], fov_x_deg=float(fov_deg), width=int(width), height=int(height))
+
+
+def normal_from_angles(tilt_rad: float, azimuth_rad: float, camera) -> np.ndarray:
+    """Unit normal at ``tilt`` from the camera's forward axis, its image projection at ``azimuth``
+    counter-clockwise from image +x (camera.right) towards image up (camera.up)."""
+    st = math.sin(tilt_rad)
+    return st * math.cos(azimuth_rad) * camera.right + st * math.sin(azimuth_rad) * camera.up + math.cos(tilt_rad) * camera.forward
+
+
+def _angles_of(normal: np.ndarray, camera) -> tuple[float, float]:
+    n = np.asarray(normal, np.float64) / np.linalg.norm(normal)
+    if float(n @ camera.forward) < 0:
+        n = -n
+    tilt = math.acos(min(1.0, float(n @ camera.forward)))
+    az = math.atan2(float(n @ camera.up), float(n @ camera.right)) % (2 * math.pi)
+    return tilt, az
+
+
+def fov_from_group_dir(path) -> float | None:
+    """Horizontal field of view (degrees) recorded in a dataset group's ``group_spec.json`` (scene.camera.fov_deg), else None."""
+    p = Path(path) / "group_spec.json"
+    try:
+        doc = json.loads(p.read_text())
+        return float(doc["scene"]["camera"]["fov_deg"])
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+
+
+def _block(x: np.ndarray, s: int) -> np.ndarray:
+    H, W = x.shape[-2:]
+    h, w = H // s, W // s
+    return x[..., : h * s, : w * s].reshape(*x.shape[:-2], h, s, w, s).sum(axis=(-3, -1))
+
+
+def orientation_field(I: np.ndarray, phi: np.ndarray, block: int) -> dict:
+    """Modulation orientation (mod 90 deg) and coherence on a block grid (module docstring, step 1).
+
+    Each chunk's harmonic coefficients are normalised by the chunk mean (a0, with a small floor):
+    z = (ac + i as) / a0, and z4 = z^2 carries angle 4 AoLP.  Spike noise on z grows as 1/sqrt(a0),
+    so this roughly whitens bright and dark pixels alike.  Pure noise gives z4 of random phase:
+    sum z4 grows as sqrt(samples) there and as samples where the pane modulates.
+
+    Args:
+        I: (M, H, W) Eq. (3) frames, radiance units, consecutive in time.
+        phi: (M,) polarizer angles (window centres, unwrapped), radians.
+        block: block size s in pixels.
+
+    Returns:
+        dict with block-grid (h, w) fields ``s4`` (complex sum of z4), ``q`` (sum |z4|^2, the
+        noise scale: Var Re(s4 e^{-i t}) = q / 2 under pure noise), ``energy`` (sum |z4|),
+        ``psi`` = arg(s4) / 4 in [0, pi/2), ``coherence`` = |s4| / energy in [0, 1]; and
+        ``samples`` (chunks x s^2), ``chunks``, ``chunk_frames``, full-grid ``dop`` (mean per-chunk DoP)
+        and ``a0`` (mean intensity).
+    """
+    I = np.asarray(I, np.float64)
+    phi = np.asarray(phi, np.float64)
+    if I.ndim != 3 or phi.shape != I.shape[:1]:
+        raise ShapeError(f"orientation_field needs I (M, H, W) and phi (M,); got {I.shape} and {phi.shape}", actual_shape=I.shape, expected_shape="(M, H, W)")
+    # chunks of about half a polarizer turn (one cycle of 2 phi), at least 3 frames
+    step = float(np.median(np.abs(np.diff(phi)))) if phi.size > 1 else math.pi
+    L = max(3, int(math.ceil(math.pi / max(step, 1e-9) - 1e-6)))
+    n_chunks = I.shape[0] // L
+    if n_chunks < 1:
+        raise ConfigError(f"self-calibration needs at least {L} frames (half a polarizer turn); got {I.shape[0]}: use a longer span")
+    H, W = I.shape[1:]
+    s4 = np.zeros((H, W), np.complex128)
+    q = np.zeros((H, W))
+    en = np.zeros((H, W))
+    dop = np.zeros((H, W))
+    a0s = np.zeros((H, W))
+    floor = 0.05 * max(float(I.mean()), 1e-12)
+    # sliding windows (every start frame): the design's anisotropy (angles not uniform over a cycle)
+    # biases z4 of noise and of content drift along 4 x the window's start angle; over all starts
+    # (the start advances by one stride) that angle turns round and the bias averages out
+    starts = range(0, I.shape[0] - L + 1)
+    for j in starts:
+        sl = slice(j, j + L)
+        a0, ac, as_ = (t.numpy() for t in harmonic_fit(torch.from_numpy(I[sl]), torch.from_numpy(phi[sl])))  # supp. Eq. (1)
+        z = (ac + 1j * as_) / (np.abs(a0) + floor)
+        z4 = z * z  # angle 4 AoLP: the sign of R - T (the 90 deg flip) drops out
+        s4 += z4
+        a = np.abs(z4)
+        en += a
+        q += a * a
+        dop += np.abs(ac + 1j * as_) / np.maximum(np.abs(a0), 1e-12)
+        a0s += a0
+    n_win = len(starts)
+    q *= L  # overlapping windows: each sample is correlated with about L neighbours (conservative noise scale)
+    bs4 = _block(s4.real, block) + 1j * _block(s4.imag, block)
+    ben, bq = _block(en, block), _block(q, block)
+    coh = np.where(ben > 0, np.abs(bs4) / np.maximum(ben, 1e-300), 0.0)
+    psi = np.mod(0.25 * np.angle(bs4), 0.5 * math.pi)
+    return {"s4": bs4, "q": bq, "energy": ben, "psi": psi, "coherence": coh, "samples": n_chunks * block * block, "chunks": n_chunks, "windows": n_win, "chunk_frames": L, "dop": dop / n_win, "a0": a0s / n_win}
+
+
+def _phi_perp_grid(camera, normal: np.ndarray) -> np.ndarray:
+    from polphysics.geometry import Plane, incidence_geometry
+
+    return incidence_geometry(camera, Plane(camera.position + camera.forward, normal))["phi_perp"]
+
+
+def fit_normal(s4: np.ndarray, q: np.ndarray, width_blocks: int, height_blocks: int, fov_deg: float | None, fov_init_deg: float = 60.0) -> dict:
+    """Fit the pane normal (and optionally the field of view) to a block-grid orientation field.
+
+    Maximises the matched statistic C(N) = sum_b Re(s4_b exp(-4 i phi_perp_b(N))) (module docstring,
+    step 2), i.e. minimises sum_b |s4_b| (1 - cos 4 delta_b) = 2 sum_b |s4_b| sin^2 2 delta_b with
+    delta_b = psi_b - phi_perp_b: invariant to the 90 deg flip, blocks weighted by their coherent
+    modulation (noise blocks add little and have random phase).
+
+    Args:
+        s4: (h, w) complex block sums of z4 (:func:`orientation_field`).
+        q: (h, w) block sums of |z4|^2 (noise scale).
+        width_blocks, height_blocks: w, h.
+        fov_deg: known horizontal field of view, or None to fit it.
+        fov_init_deg: start value for a fitted field of view.
+
+    Returns:
+        dict with ``tilt``, ``azimuth`` (radians), ``fov_deg``, ``score`` = C(N*), ``z`` = C(N*) / sqrt(q_total / 2)
+        (its size in noise standard deviations), ``alignment`` = C(N*) / sum |s4| in [-1, 1],
+        ``runner_up_ratio`` = best C at least 15 deg (in N) away / C(N*).
+    """
+    from scipy.optimize import least_squares
+
+    mag = np.abs(s4).ravel()
+    ang4 = np.angle(s4).ravel()
+    tot = float(mag.sum())
+    if tot <= 0:
+        return {"tilt": 0.0, "azimuth": 0.0, "fov_deg": float(fov_deg or fov_init_deg), "score": 0.0, "z": 0.0, "alignment": 0.0, "runner_up_ratio": float("nan")}
+    fov0 = float(fov_deg) if fov_deg else float(fov_init_deg)
+
+    def phis(tilt, az, fov):
+        cam = camera_for(width_blocks, height_blocks, fov)
+        return _phi_perp_grid(cam, normal_from_angles(tilt, az, cam)).ravel()
+
+    def score(tilt, az, fov):
+        return float(np.sum(mag * np.cos(ang4 - 4.0 * phis(tilt, az, fov))))
+
+    # grid search over the hemisphere (tilt up to 88 deg, every azimuth): Hough-like, no local-minimum trap
+    tilts = np.deg2rad(np.arange(2.0, 89.0, 3.0))
+    azs = np.deg2rad(np.arange(0.0, 360.0, 6.0))
+    grid = np.array([[score(t, a, fov0) for a in azs] for t in tilts])
+    order = np.argsort(-grid, axis=None)
+    starts: list[tuple[float, float]] = []
+    for idx in order:
+        ti, ai = np.unravel_index(idx, grid.shape)
+        t, a = float(tilts[ti]), float(azs[ai])
+        if all(_sep(t, a, t2, a2) > math.radians(15) for t2, a2 in starts):
+            starts.append((t, a))
+        if len(starts) >= 3:
+            break
+    sw = np.sqrt(2.0 * mag / tot)
+    fits = []
+    for t0, a0 in starts:
+        if fov_deg:
+            fun = lambda x: sw * np.sin(0.5 * (ang4 - 4.0 * phis(x[0], x[1], fov0)))  # noqa: E731  (= sin 2 delta)
+            x0, lb, ub = [t0, a0], [0.0, a0 - math.pi], [math.radians(89.9), a0 + math.pi]
+        else:
+            fun = lambda x: sw * np.sin(0.5 * (ang4 - 4.0 * phis(x[0], x[1], x[2])))  # noqa: E731
+            x0, lb, ub = [t0, a0, fov0], [0.0, a0 - math.pi, 5.0], [math.radians(89.9), a0 + math.pi, 150.0]
+        r = least_squares(fun, x0, bounds=(lb, ub), x_scale=[0.1, 0.1] + ([10.0] if not fov_deg else []))
+        f = float(r.x[2]) if not fov_deg else fov0
+        fits.append((score(r.x[0], r.x[1], f), float(r.x[0]), float(r.x[1]) % (2 * math.pi), f))
+    fits.sort(reverse=True)
+    best = fits[0]
+    far = [c for c, t, a, _ in fits[1:] if _sep(best[1], best[2], t, a) > math.radians(15)]
+    far += [grid[i, j] for i in range(len(tilts)) for j in range(len(azs)) if _sep(best[1], best[2], tilts[i], azs[j]) > math.radians(15)]
+    runner = max(far) if far else float("nan")
+    z = best[0] / math.sqrt(0.5 * max(float(q.sum()), 1e-300))
+    return {"tilt": best[1], "azimuth": best[2], "fov_deg": best[3], "score": best[0], "z": z, "alignment": best[0] / tot, "runner_up_ratio": runner / best[0] if best[0] > 0 else float("nan")}
+
+
+def _sep(t1, a1, t2, a2) -> float:
+    """Angle between two normals given as (tilt, azimuth)."""
+    v1 = np.array([math.sin(t1) * math.cos(a1), math.sin(t1) * math.sin(a1), math.cos(t1)])
+    v2 = np.array([math.sin(t2) * math.cos(a2), math.sin(t2) * math.sin(a2), math.cos(t2)])
+    return math.acos(max(-1.0, min(1.0, float(v1 @ v2))))
+
+
+def self_calibrate(I: np.ndarray, phi: np.ndarray, cfg: SelfCalConfig = SelfCalConfig(), *, frames_per_s: float | None = None, name: str = "stream") -> SelfCalResult:
+    """Estimate the pane (normal, field of view) from a stream's frames and build its pane maps.
+
+    Args:
+        I: (M, H, W) Eq. (3) frames in radiance units, consecutive (the first ``cfg.span_s`` are used).
+        phi: (M,) their polarizer angles (window centres, calibrated), radians.
+        cfg: :class:`SelfCalConfig`.
+        frames_per_s: frame cadence, to turn ``span_s`` into frames (None: use every frame given).
+        name: for the log.
+
+    Returns:
+        :class:`SelfCalResult`; ``ok = False`` (with a logged warning) where nothing modulates.
+    """
+    I = np.asarray(I)
+    if I.ndim != 3:
+        raise ShapeError(f"self_calibrate needs frames (M, H, W); got {I.shape}", actual_shape=I.shape, expected_shape="(M, H, W)")
+    M, H, W = I.shape
+    m = M if frames_per_s is None else max(3, min(M, int(round(cfg.span_s * frames_per_s))))
+    s = cfg.block_px or max(1, W // 48)
+    s = max(1, min(s, max(1, H // 4), max(1, W // 4)))
+    f = orientation_field(I[:m], np.asarray(phi)[:m], s)
+    h, w = f["psi"].shape
+    thr = cfg.coherence_sigmas
+    mask = np.abs(f["s4"]) > thr * np.sqrt(0.5 * np.maximum(f["q"], 1e-300))  # blocks that modulate on their own
+    frac = float(mask.mean())
+    diag = {"psi": f["psi"], "coherence": f["coherence"], "mask": mask, "block_px": s, "threshold": thr, "frames": m, "chunks": f["chunks"], "dop": f["dop"], "s4": f["s4"]}
+    fov_given = cfg.fov_deg if cfg.fov_deg > 0 else None
+    fit = fit_normal(f["s4"], f["q"], w, h, fov_given, cfg.fov_init_deg)
+    diag.update({"z": fit["z"], "alignment": fit["alignment"]})
+    # weighted median orientation residual over the coherent blocks (a report, not a gate)
+    res_deg = None
+    if mask.any():
+        cam_b = camera_for(w, h, fit["fov_deg"])
+        d = f["psi"] - _phi_perp_grid(cam_b, normal_from_angles(fit["tilt"], fit["azimuth"], cam_b))
+        d = np.abs(np.mod(d + math.pi / 4, math.pi / 2) - math.pi / 4)[mask]
+        wv = np.abs(f["s4"])[mask]
+        o = np.argsort(d)
+        cw = np.cumsum(wv[o])
+        res_deg = float(np.degrees(d[o][min(len(o) - 1, int(np.searchsorted(cw, 0.5 * cw[-1])))]))
+
+    def fail(reason):
+        log.warning("self-calibrated zeta for %s: %s; falling back to the learned zeta", name, reason)
+        return SelfCalResult(False, reason, None, None, None, None, float(fit["fov_deg"]), False, cfg.n, cfg.model, None, None, frac, res_deg, fit["runner_up_ratio"], diag)
+
+    if not fit["z"] >= cfg.z_min:
+        return fail(f"nothing modulates: the best planar pane explains the polarization orientation only {fit['z']:.1f} noise sigmas above chance (need {cfg.z_min:g}); no reflection, R = T, or near-normal incidence")
+    tilt_deg = math.degrees(fit["tilt"])
+    if tilt_deg < cfg.min_tilt_deg:
+        return fail(f"near-normal incidence (fitted tilt {tilt_deg:.1f} deg): no usable modulation")
+    from polphysics.geometry import Plane, incidence_geometry
+
+    cam = camera_for(W, H, fit["fov_deg"])
+    N = normal_from_angles(fit["tilt"], fit["azimuth"], cam)
+    plane = Plane(cam.position + cam.forward, N)
+    maps = pane_maps_from_geometry(cam, plane, cfg.n, model=cfg.model)
+    theta = incidence_geometry(cam, plane)["theta"]
+    vp = None
+    if float(N @ cam.forward) > 1e-6:
+        x, y = cam.project(cam.position + N)
+        vp = (float(x), float(y))
+    res = SelfCalResult(
+        True, "", N, tilt_deg, math.degrees(fit["azimuth"]), vp, float(fit["fov_deg"]), fov_given is None, cfg.n, cfg.model, maps, theta, frac,
+        res_deg, fit["runner_up_ratio"], diag,
+    )
+    log.info("self-calibrated pane for %s: tilt %.1f deg, azimuth %.1f deg, fov %.1f deg%s, z %.1f, %.0f %% of blocks coherent",
+             name, tilt_deg, res.azimuth_deg, res.fov_deg, " (fitted)" if res.fov_fitted else "", fit["z"], 100 * frac)
+    return res
+
+
+def group_self_zeta(group, n: float = 1.5, model: str = "single", cfg: SelfCalConfig | None = None) -> np.ndarray | None:
+    """The ``self`` zeta source for an evaluation group: zeta (M, H, W) at the group's nominal angles, or None.
+
+    The field of view is the group's (``group.fov_deg``, from its scene) when recorded, else fitted.
+    None (with a logged warning) where nothing modulates: the caller falls back to the learned zeta.
+    """
+    base = cfg or SelfCalConfig()
+    fov = getattr(group, "fov_deg", None)
+    c = dataclasses.replace(base, n=float(n), model=model, fov_deg=float(fov) if (fov and not base.fov_deg) else base.fov_deg)
+    frames = min(group.I.shape[0], MAX_FRAMES)
+    r = self_calibrate(group.I[:frames], np.asarray(group.phi_nominal)[:frames], c, name=group.name)
+    group_self_zeta.last = r  # the latest calibration, for reports
+    if not r.ok:
+        return None
+    return self_zeta(r, group.phi_nominal, group.span_rad)
+
+
+MAX_FRAMES = 400
+"""At most this many frames of a group go into the self-calibration (about 1.2 s at 343 frames/s)."""
+
+
+def self_zeta(result: SelfCalResult, phi: np.ndarray, span_rad: float = 0.0, dtype: torch.dtype = torch.float64) -> np.ndarray:
+    """zeta (M, H, W) at angles phi (M,) from a successful calibration, paper Eq. (2) (window-averaged over span_rad)."""
+    if not result.ok or result.maps is None:
+        raise ConfigError(f"no self-calibrated pane ({result.reason}); use --zeta learned or physics")
+    return zeta_from_maps(result.maps, np.asarray(phi, np.float64), span_rad, dtype=dtype).numpy()
