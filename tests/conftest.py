@@ -38,3 +38,36 @@ def tiny_scene():
     s = load_scene("brewster")
     cam = dataclasses.replace(s.camera, width=41, height=25)
     return dataclasses.replace(s, camera=cam, render=dataclasses.replace(s.render, duration_s=0.02, fps=100.0))
+
+
+class ConsoleScript:
+    """Runs the installed ``polspike`` console script (the one next to this interpreter) in a subprocess."""
+
+    def __init__(self) -> None:
+        import sys
+
+        self.exe = Path(sys.executable).parent / "polspike"
+        assert self.exe.is_file(), f"console script {self.exe} missing: pip install -e '.[test]'"
+
+    def __call__(self, *args, timeout: float = 300, env: dict | None = None, cwd: Path | None = None):
+        import subprocess
+
+        full_env = {**os.environ, **(env or {})}
+        return subprocess.run([str(self.exe), *map(str, args)], capture_output=True, text=True, timeout=timeout, env=full_env, cwd=cwd or REPO)
+
+    @staticmethod
+    def one_line_exit_2(r, *fragments: str) -> str:
+        """Exit code 2, no traceback, exactly one non-empty line on stderr that holds every fragment."""
+        assert r.returncode == 2, (r.returncode, r.stdout[-400:], r.stderr[-1500:])
+        assert "Traceback" not in r.stderr, r.stderr[-1500:]
+        lines = [ln for ln in r.stderr.strip().splitlines() if ln.strip()]
+        assert len(lines) == 1, r.stderr
+        for f in fragments:
+            assert f in lines[0], (f, lines[0])
+        return lines[0]
+
+
+@pytest.fixture
+def polspike_cli() -> ConsoleScript:
+    """The installed ``polspike`` console script: ``polspike_cli(*args)`` -> CompletedProcess."""
+    return ConsoleScript()

@@ -24,7 +24,11 @@ def validate_zeta_cmd(
     seed: Optional[int] = typer.Option(None, "--seed", help="render seed"),
     as_json: bool = typer.Option(False, "--json", help="print summary.json to stdout"),
 ) -> None:
-    """Cross-validate analytic zeta against a rendered tier: error maps, histogram and a verdict."""
+    """Cross-validate analytic zeta against a rendered tier: error maps, histogram and a verdict.
+
+    Exit code: 0 when the verdict is "pass", 1 when it is "fail" (p99 |zeta error|
+    above the noise floor exceeds --tolerance), 2 for bad input.
+    """
     from generator.render import RenderOptions
     from generator.scene import load_scene
     from generator.validate import validate_zeta
@@ -36,11 +40,17 @@ def validate_zeta_cmd(
         summary = validate_zeta(sc, out, opts, model=model, tolerance=tolerance, progress=cb)
     if as_json:
         typer.echo(json.dumps(summary, indent=2))
-        return
+    else:
+        _print_table(sc.name, tier, tolerance, out, summary)
+    if summary["verdict"] != "pass":
+        raise typer.Exit(1)
+
+
+def _print_table(name: str, tier: str, tolerance: float, out: Path, summary: dict) -> None:
     from rich.console import Console
     from rich.table import Table
 
-    tab = Table(title=f"{sc.name}: tier {tier} vs analytic '{summary['analytic_model']}'")
+    tab = Table(title=f"{name}: tier {tier} vs analytic '{summary['analytic_model']}'")
     for c in ("quantity", "max", "mean", "p99"):
         tab.add_column(c)
     for k, v in summary["errors"].items():
@@ -48,4 +58,5 @@ def validate_zeta_cmd(
     con = Console()
     con.print(tab)
     colour = "green" if summary["verdict"] == "pass" else "red"
-    con.print(f"noise floor (p99) {summary['noise_floor_p99']:.3g}; verdict [bold {colour}]{summary['verdict']}[/] at tolerance {tolerance:g}; maps in {out}/figures")
+    con.print(f"noise floor (p99) {summary['noise_floor_p99']:.3g}; verdict [bold {colour}]{summary['verdict']}[/] at tolerance {tolerance:g}; maps in {out}/figures"
+              + ("; exit code 1" if summary["verdict"] != "pass" else ""))

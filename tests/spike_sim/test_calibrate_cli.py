@@ -63,3 +63,27 @@ def test_group_without_maps_needs_a_target(tmp_path):
     g = _group(tmp_path, st, PolarizerConfig(), duration=0.01)
     r = CliRunner().invoke(get_app(), ["calibrate", str(g)])
     assert isinstance(r.exception, ConfigError) and "--target-aolp-deg" in str(r.exception)
+
+
+def test_calibration_verdict_is_the_exit_code_of_the_console_script(tmp_path, polspike_cli):
+    """Through the installed `polspike` script: a good calibration exits 0; one whose phi(t) misses the
+    true angle by more than --tolerance-deg rms exits 1 with verdict "fail"; a bad tolerance exits 2."""
+    psi = np.deg2rad(20.0)
+    st = np.stack([np.full((H, W), 0.6), np.full((H, W), 0.6 * np.cos(2 * psi)), np.full((H, W), 0.6 * np.sin(2 * psi))])
+    g = _group(tmp_path, st, PolarizerConfig(rate_hz=29.7, phase_deg=37.0, calibration_offset_deg=3.0))
+    ok = polspike_cli("calibrate", g, "--target-aolp-deg", "20", "--json")
+    assert ok.returncode == 0, ok.stderr[-1500:]
+    res = json.loads(ok.stdout)
+    assert res["verdict"] == "pass" and res["rms_deg"] < 0.1 and res["tolerance_deg"] == 1.0
+    # the operator gives the wrong target angle (50 instead of 20 deg): phi0 is off by 30 deg
+    bad = polspike_cli("calibrate", g, "--target-aolp-deg", "50", "--json")
+    assert bad.returncode == 1, (bad.returncode, bad.stdout[-400:], bad.stderr[-1500:])
+    res = json.loads(bad.stdout)
+    assert res["verdict"] == "fail" and res["rms_deg"] == pytest.approx(30.0, abs=0.2)
+    # the same run in sentence form: exit 1 and the verdict printed
+    text = polspike_cli("calibrate", g, "--target-aolp-deg", "50")
+    assert text.returncode == 1 and "verdict fail" in " ".join(text.stdout.split())
+    # a tighter tolerance than the achieved error fails a good calibration too
+    tight = polspike_cli("calibrate", g, "--target-aolp-deg", "20", "--tolerance-deg", "1e-6", "--json")
+    assert tight.returncode == 1 and json.loads(tight.stdout)["verdict"] == "fail"
+    polspike_cli.one_line_exit_2(polspike_cli("calibrate", g, "--tolerance-deg", "0"), "--tolerance-deg")
