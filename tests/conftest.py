@@ -71,3 +71,28 @@ class ConsoleScript:
 def polspike_cli() -> ConsoleScript:
     """The installed ``polspike`` console script: ``polspike_cli(*args)`` -> CompletedProcess."""
     return ConsoleScript()
+
+
+@pytest.fixture
+def polspike_main(capsys, monkeypatch):
+    """Run the console-script entry point ``polspike.cli.app`` in this process (same error mapping as the
+    installed script, without a subprocess): ``polspike_main(*args)`` -> CompletedProcess-like result
+    with ``returncode``, ``stdout``, ``stderr``; check it with ``polspike_main.one_line_exit_2(r, ...)``."""
+    import subprocess
+    import sys
+
+    from polspike.cli import app
+
+    def run(*args):
+        capsys.readouterr()
+        monkeypatch.setattr(sys, "argv", ["polspike", *map(str, args)])
+        code = 0
+        try:
+            app()
+        except SystemExit as exc:
+            code = exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 1)
+        out, err = capsys.readouterr()
+        return subprocess.CompletedProcess(["polspike", *map(str, args)], code, out, err)
+
+    run.one_line_exit_2 = ConsoleScript.one_line_exit_2
+    return run

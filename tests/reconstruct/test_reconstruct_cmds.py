@@ -16,9 +16,10 @@ def test_evaluate_synthetic(tmp_path):
     assert "rwps" in r.output
 
 
-def test_evaluate_bad_method_is_a_one_line_error(tmp_path):
-    r = CliRunner().invoke(get_app(), ["evaluate", "synthetic", "--method", "svd", "--out", str(tmp_path), "--quiet"])
-    assert r.exit_code != 0
+def test_evaluate_bad_method_is_a_one_line_error(tmp_path, polspike_main):
+    r = polspike_main("evaluate", "synthetic", "--method", "svd", "--out", tmp_path / "e", "--quiet")
+    polspike_main.one_line_exit_2(r, "svd")
+    assert not (tmp_path / "e" / "results.csv").exists()
 
 
 def test_bench_reconstruct_small(tmp_path):

@@ -30,7 +30,7 @@ def _render_dir(tmp_path, kf):
     return rd
 
 
-def test_simulate_command(tmp_path, keyframes):
+def test_simulate_command(tmp_path, keyframes, polspike_main):
     rd = _render_dir(tmp_path, keyframes)
     cfg = tmp_path / "sim.toml"
     cfg.write_text("[spike_sim]\nexposure = 2.0\nshot_noise = false\n[aggregate]\nwindow_steps = 11\n")
@@ -40,17 +40,19 @@ def test_simulate_command(tmp_path, keyframes):
     assert g.json_attr("config_json")["exposure"] == 2.0 and g.json_attr("aggregate_json")["window_steps"] == 11
     assert np.array_equal(read_dat(tmp_path / "g.dat", 16, 24), g.read())
     # same again without --overwrite: refused with exit code 2 and a one-line message
-    r2 = CliRunner().invoke(get_app(), ["simulate", str(rd), "--duration", "0.02", "--out", str(tmp_path / "g"), "--quiet"])
-    assert r2.exit_code != 0
+    before = {p: p.stat().st_mtime_ns for p in (tmp_path / "g").rglob("*")}
+    r2 = polspike_main("simulate", rd, "--duration", "0.02", "--out", tmp_path / "g", "--quiet")
+    polspike_main.one_line_exit_2(r2, "--overwrite")
+    assert {p: p.stat().st_mtime_ns for p in (tmp_path / "g").rglob("*")} == before  # the existing group is untouched
 
 
-def test_bad_config_key_is_reported(tmp_path, keyframes):
+def test_bad_config_key_is_reported(tmp_path, keyframes, polspike_main):
     rd = _render_dir(tmp_path, keyframes)
     cfg = tmp_path / "sim.toml"
     cfg.write_text("[spike_sim]\nexposur = 2.0\n")
-    r = CliRunner().invoke(get_app(), ["simulate", str(rd), "--duration", "0.01", "--out", str(tmp_path / "g"), "--config", str(cfg), "--quiet"])
-    assert r.exit_code != 0
-    assert "exposur" in str(r.exception) + r.output
+    r = polspike_main("simulate", rd, "--duration", "0.01", "--out", tmp_path / "g", "--config", cfg, "--quiet")
+    polspike_main.one_line_exit_2(r, "exposur")
+    assert not (tmp_path / "g").exists()
 
 
 def test_bench_json(tmp_path):
