@@ -82,7 +82,9 @@ def load_model(path: str | os.PathLike = DEFAULT_WEIGHTS, device: str | torch.de
     """
     data = read_checkpoint(path)
     try:
-        net = from_dict(NetConfig, {**data["net"], **overrides}, where=f"{path} [net]")
+        net_d = dict(data["net"])
+        net_d.setdefault("arch", "v1")  # written before NetConfig.arch existed: the v1 network
+        net = from_dict(NetConfig, {**net_d, **overrides}, where=f"{path} [net]")
         solver = from_dict(SolverConfig, data["solver"], where=f"{path} [solver]")
     except ConfigError as exc:
         raise CheckpointError(f"incompatible checkpoint: {exc}") from None

@@ -55,15 +55,27 @@ from polinfra.errors import ShapeError
 
 from reconstruct.solvers import SolverConfig, solve
 
-__all__ = ["NetConfig", "NetOutput", "AngleAttention", "ParameterBranch", "Refinement", "PolSpikeNet", "count_parameters", "init_weights", "predict_parameters"]
+__all__ = ["NetConfig", "NetOutput", "AngleAttention", "ParameterBranch", "LowResParameterBranch", "Refinement", "window_scale", "PolSpikeNet", "count_parameters", "init_weights", "predict_parameters"]
 
 
 @dataclasses.dataclass(frozen=True)
 class NetConfig:
-    """Architecture and ablation switches of :class:`PolSpikeNet`."""
+    """Architecture and ablation switches of :class:`PolSpikeNet`.
 
+    ``arch`` selects the parameter branch: ``"v1"`` (:class:`ParameterBranch`, full
+    resolution, the shipped ``polspike_v1.pt``) or ``"v2"``
+    (:class:`LowResParameterBranch`, features at 1/``down`` resolution plus a light
+    full-resolution path for w_k; per-observation features cacheable).  Checkpoints
+    written before the field existed have no ``arch`` key and load as ``"v1"``
+    (:func:`reconstruct.checkpoint.load_model`).
+    """
+
+    arch: str = opt("v2", "parameter branch: v1 (full resolution, 257 GFLOP/frame) | v2 (low resolution + light full-resolution w path)", choices=("v1", "v2"))
+    down: int = opt(4, "v2: downsampling factor of the per-observation features (pixel-unshuffle), 2 | 4 | 8", choices=(2, 4, 8))
+    lr_ch: int = opt(48, "v2: channels of the low-resolution per-observation features (and of the angle attention)", lo=4, hi=512)
+    w_ch: int = opt(8, "v2: channels of the full-resolution reliability (w_k) path", lo=1, hi=64)
     n_obs: int = opt(7, "observations per window N = 2K+1", lo=3, hi=31)
-    feat_ch: int = opt(64, "channels of the parameter branch ConvBlocks (supp. Sec. 10: 64)", lo=4, hi=512)
+    feat_ch: int = opt(64, "v1: channels of the parameter branch ConvBlocks (supp. Sec. 10: 64)", lo=4, hi=512)
     heads: int = opt(2, "angle attention heads (supp. Sec. 10: 2)", lo=1, hi=16)
     ref_ch: tuple[int, int, int] = opt((32, 64, 80), "refinement encoder widths at scales 1, 1/2, 1/4", lo=4, hi=1024)
     dec_ch: tuple[int, int, int] = opt((40, 32, 32), "each refinement decoder's widths at scales 1/4->1/2, 1/2->1, full", lo=4, hi=1024)
@@ -179,6 +191,86 @@ class ParameterBranch(nn.Module):
         return zeta, w, a
 
 
+def window_scale(I: torch.Tensor) -> torch.Tensor:
+    """Brightness normaliser of the v2 branch: the window mean rounded to a power of two, (B,) -> shaped (B, 1, 1, 1).
+
+    Rounding makes the scale the same for overlapping windows of a stream (it changes only
+    when the mean brightness crosses a power of two), so per-observation features computed
+    for one window are exact for the next (:meth:`LowResParameterBranch.encode_obs`).
+    """
+    m = I.detach().float().mean(dim=(1, 2, 3), keepdim=True).clamp_min(1e-4)
+    return torch.exp2(torch.round(torch.log2(m))).to(I.dtype)
+
+
+class LowResParameterBranch(nn.Module):
+    """v2 parameter branch: (a0, ac, as) from features at 1/``down`` resolution, w_k from a light full-resolution path.
+
+    Per observation k (weights shared over k; a function of I_k and the scale only, so a
+    stream computes it once per Eq. (3) frame, :meth:`encode_obs`):
+
+    * low resolution: pixel-unshuffle of x_k = I_k / s by ``down`` (no information lost),
+      three ``lr_ch`` ConvBlocks -> f_k (C, H/down, W/down);
+    * full resolution: two ``w_ch`` ConvBlocks on x_k -> g_k (w_ch, H, W).
+
+    Per window: two-head **angle attention** over the N low-resolution features (as v1);
+    (a0, ac, as) from the window-mean feature (3x3 + 1x1 convolutions) at low resolution,
+    upsampled bilinearly to full resolution (zeta is smooth by physics:
+    it follows from the pane geometry); zeta_k = sigmoid(a0 + ac cos 2phi_k + as sin 2phi_k)
+    (supp. Eq. (19)); reliability logits from [g_k, upsampled projection of the attended f_k,
+    x_k - mean_k x] by two 1x1 convolutions at full resolution, w = softmax over k.
+    """
+
+    def __init__(self, cfg: NetConfig):
+        super().__init__()
+        c, d, wc = cfg.lr_ch, cfg.down, cfg.w_ch
+        self.cfg = cfg
+        self.down = d
+        self.enc = nn.Sequential(ConvBlock(d * d, c), ConvBlock(c, c), ConvBlock(c, c))
+        self.wenc = nn.Sequential(ConvBlock(1, wc), ConvBlock(wc, wc))
+        self.att = AngleAttention(c, cfg.heads) if cfg.use_attention else None
+        self.wproj = nn.Conv2d(c, wc, 1)
+        self.whead1 = nn.Conv2d(2 * wc + 1, wc, 1)
+        self.rel = nn.Conv2d(wc, 1, 1)
+        self.par1 = nn.Conv2d(c, c // 2, 3, padding=1)
+        self.par2 = nn.Conv2d(c // 2, 3, 1)
+
+    def encode_obs(self, I: torch.Tensor, scale: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Per-observation features: I (M, H, W) radiance units, scale (M,) -> (f (M, C, H/d, W/d), g (M, w_ch, H, W))."""
+        x = (I / scale.reshape(-1, 1, 1))[:, None]
+        f = self.enc(F.pixel_unshuffle(x, self.down))
+        g = self.wenc(x)
+        return f, g
+
+    def forward(self, I: torch.Tensor, phi: torch.Tensor, feats: tuple[torch.Tensor, torch.Tensor] | None = None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """I (B, N, H, W), phi (B, N) -> (zeta_hat, w, (a0, ac, as) (B, 3, H, W)).
+
+        ``feats``: optional precomputed :meth:`encode_obs` output for the B*N observations
+        (with ``scale = window_scale(I)``); computed here when omitted.
+        """
+        B, N, H, W = I.shape
+        scale = window_scale(I)
+        if feats is None:
+            feats = self.encode_obs(I.reshape(B * N, H, W), scale.expand(B, N, 1, 1).reshape(B * N))
+        f, g = feats
+        h, w_ = f.shape[-2:]
+        f = f.reshape(B, N, -1, h, w_)
+        if self.att is not None:
+            f = self.att(f, phi)
+        a = self.par2(F.leaky_relu(self.par1(f.mean(1)), 0.1))
+        a = F.interpolate(a, size=(H, W), mode="bilinear", align_corners=False).float()
+        x = I / scale
+        dx = (x - x.mean(1, keepdim=True)).reshape(B * N, 1, H, W)
+        p = F.interpolate(self.wproj(f.reshape(B * N, -1, h, w_)), size=(H, W), mode="bilinear", align_corners=False)
+        z = F.leaky_relu(self.whead1(torch.cat([g, p, dx.to(g.dtype)], 1)), 0.1)
+        logits = self.rel(z).view(B, N, H, W).float()
+        w = torch.softmax(logits, dim=1)
+        a0, ac, as_ = a[:, 0:1], a[:, 1:2], a[:, 2:3]
+        c2 = torch.cos(2 * phi)[..., None, None].float()
+        s2 = torch.sin(2 * phi)[..., None, None].float()
+        zeta = torch.sigmoid(a0 - 2.0 + ac * c2 + as_ * s2)  # supp. Eq. (19), as v1
+        return zeta, w, a
+
+
 class Refinement(nn.Module):
     """Shared encoder, two light decoders predicting Delta_t and Delta_r (paper Sec. 3.3)."""
 
@@ -228,8 +320,24 @@ class PolSpikeNet(nn.Module):
         self.cfg = cfg
         self.solver_cfg_in = solver
         self.solver_cfg = solver if cfg.use_conf else dataclasses.replace(solver, lambda_low=solver.ridge_lambda, lambda_high=solver.ridge_lambda)
-        self.param = ParameterBranch(cfg)
+        self.param = ParameterBranch(cfg) if cfg.arch == "v1" else LowResParameterBranch(cfg)
         self.refine = Refinement(cfg)
+
+    @property
+    def pad_multiple(self) -> int:
+        """H and W must be multiples of this (refinement: 4; v2 pixel-unshuffle: ``down``)."""
+        return 4 if self.cfg.arch == "v1" else max(4, self.cfg.down)
+
+    @property
+    def cacheable(self) -> bool:
+        """Per-observation features may be computed once per frame and reused (v2 with RIR off)."""
+        return self.cfg.arch == "v2" and not self.cfg.use_rir
+
+    def encode_obs(self, I: torch.Tensor, scale: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """v2: per-observation features of frames I (M, H, W) at scales (M,) (see :class:`LowResParameterBranch`)."""
+        if not self.cacheable:
+            raise ShapeError("encode_obs needs a v2 network with RIR off", actual_shape=None, expected_shape="arch v2, use_rir false")
+        return self.param.encode_obs(I, scale)
 
     def align(self, I: torch.Tensor, phi: torch.Tensor, zeta_gt: torch.Tensor | None) -> tuple[torch.Tensor, torch.Tensor | None]:
         """RIR per batch item (shift estimates are not differentiated; the warp is)."""
@@ -253,6 +361,7 @@ class PolSpikeNet(nn.Module):
         phi: torch.Tensor,
         zeta_gt: torch.Tensor | None = None,
         alpha: float = 0.0,
+        feats: tuple[torch.Tensor, torch.Tensor] | None = None,
     ) -> NetOutput:
         """Reconstruct the centre frame of each window.
 
@@ -261,6 +370,9 @@ class PolSpikeNet(nn.Module):
             phi: (B, N) polarizer angles (window centres), radians.
             zeta_gt: optional (B, N, H, W) ground-truth zeta for teacher forcing and L_phys.
             alpha: teacher-forcing ratio in [0, 1] (needs ``zeta_gt`` when > 0).
+            feats: v2 only: precomputed per-observation features of the B*N frames
+                (:meth:`encode_obs` with :func:`window_scale`), e.g. cached by a stream;
+                not allowed with RIR on (RIR warps the frames first).
 
         Returns:
             :class:`NetOutput`.
@@ -270,13 +382,18 @@ class PolSpikeNet(nn.Module):
         if phi.shape != I.shape[:2]:
             raise ShapeError(f"phi must be (B, N) = {tuple(I.shape[:2])}; got {tuple(phi.shape)}", actual_shape=tuple(phi.shape), expected_shape=tuple(I.shape[:2]))
         H, W = I.shape[-2:]
-        if H % 4 or W % 4:
-            raise ShapeError(f"H and W must be multiples of 4 (pad the input); got {H}x{W}", actual_shape=(H, W), expected_shape="multiples of 4")
+        m = self.pad_multiple
+        if H % m or W % m:
+            raise ShapeError(f"H and W must be multiples of {m} (pad the input); got {H}x{W}", actual_shape=(H, W), expected_shape=f"multiples of {m}")
+        if feats is not None and not self.cacheable:
+            raise ShapeError("precomputed features need a v2 network with RIR off", actual_shape=None, expected_shape="feats=None")
         if alpha > 0 and zeta_gt is None:
             raise ShapeError("teacher forcing alpha > 0 needs zeta_gt", actual_shape=None, expected_shape="(B, N, H, W)")
         if self.cfg.use_rir:
             I, zeta_gt = self.align(I, phi, zeta_gt)
-        zeta_hat, w, _ = self.param(I, phi)
+        zeta_hat, w, _ = self.param(I, phi) if feats is None else self.param(I, phi, feats)
+        zeta_hat, w = zeta_hat.float(), w.float()  # the solver runs in float32 (also under bf16 autocast)
+        I = I.float()
         zeta_used = zeta_hat if (alpha <= 0 or zeta_gt is None) else alpha * zeta_gt + (1 - alpha) * zeta_hat  # teacher forcing
         res = solve(self.cfg.solver_method, zeta_used, I, w, self.solver_cfg)
         T0, R0 = res.T, res.R

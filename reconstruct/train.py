@@ -79,7 +79,7 @@ class TrainConfig:
 
 TINY = TrainConfig(
     epochs=4, steps_per_epoch=2, batch_size=2, ckpt_every=2, log_every=1, val_items=4, train_items=64,
-    net=NetConfig(feat_ch=8, ref_ch=(8, 8, 8), dec_ch=(8, 8, 8), use_rir=False),
+    net=NetConfig(feat_ch=8, lr_ch=8, w_ch=4, ref_ch=(8, 8, 8), dec_ch=(8, 8, 8), use_rir=False),
     window=WindowConfig(crop=16), train_scenes=2, test_scenes=1,
 )
 """Shrunken preset for tests: a few steps on 16x16 crops in seconds."""
@@ -228,6 +228,30 @@ def _read_log(run: Path, max_step: int) -> list[dict[str, Any]]:
         return [r for r in csv.DictReader(fh) if int(r["step"]) <= max_step]
 
 
+class _BatchOrder:
+    """Item indices of steps ``start`` .. ``end`` - 1: batch b of step s is a pure function of (seed, epoch, position)."""
+
+    def __init__(self, cfg: TrainConfig, n_items: int, spe: int, start: int, end: int):
+        self.cfg, self.n, self.spe, self.start, self.end = cfg, n_items, spe, start, end
+
+    def __len__(self) -> int:
+        return max(0, self.end - self.start)
+
+    def __iter__(self):
+        perm_epoch, perm = -1, None
+        for step in range(self.start, self.end):
+            epoch, pos = divmod(step, self.spe)
+            if epoch != perm_epoch:
+                g = torch.Generator().manual_seed(self.cfg.seed * 1_000_003 + epoch)
+                perm = torch.randperm(self.n, generator=g)
+                perm_epoch = epoch
+            yield [int(perm[(pos * self.cfg.batch_size + j) % self.n]) for j in range(self.cfg.batch_size)]
+
+
+def _worker_init(_: int) -> None:
+    torch.set_num_threads(1)
+
+
 def train(
     cfg: TrainConfig,
     train_set,
@@ -237,6 +261,7 @@ def train(
     progress: ProgressFn | None = None,
     stop_after: int | None = None,
     max_seconds: float | None = None,
+    workers: int = 0,
 ) -> dict[str, Any]:
     """Train (or resume) a :class:`PolSpikeNet`.
 
@@ -251,6 +276,11 @@ def train(
             for time-boxed runs and the resume test.
         max_seconds: stop (after checkpointing) once this much wall time has
             passed in this call; a later call resumes.
+        workers: DataLoader worker processes that build the batches ahead of the
+            optimizer (0 = in this process).  The batches are the same either way
+            (items are pure functions of (seed, index), the order is this loop's), so
+            the trajectory does not depend on it; on-the-fly window generation then
+            overlaps the forward/backward pass.
 
     Returns:
         dict with ``step``, ``total_steps``, ``param_count`` and the last validation metrics.
@@ -286,18 +316,16 @@ def train(
         if plot:
             _plot(run, rows)
 
-    perm_epoch, perm = -1, None
     t0 = time.perf_counter()
     model.train()
     end = total if stop_after is None else min(total, stop_after)
-    while step < end:
-        epoch, pos = divmod(step, spe)
-        if epoch != perm_epoch:
-            g = torch.Generator().manual_seed(cfg.seed * 1_000_003 + epoch)
-            perm = torch.randperm(len(train_set), generator=g)
-            perm_epoch = epoch
-        idx = [int(perm[(pos * cfg.batch_size + j) % len(train_set)]) for j in range(cfg.batch_size)]
-        b = collate([train_set[i] for i in idx])
+    batches = _BatchOrder(cfg, len(train_set), spe, step, end)
+    if workers > 0:
+        loader = torch.utils.data.DataLoader(train_set, batch_sampler=batches, num_workers=workers, collate_fn=collate, worker_init_fn=_worker_init, prefetch_factor=4, persistent_workers=False)
+    else:
+        loader = (collate([train_set[i] for i in idx]) for idx in batches)
+    for b in loader:
+        epoch = step // spe
         alpha = alpha_at(epoch, cfg)
         I, phi, T, R, z = (b[k].to(dev) for k in ("I", "phi", "T", "R", "zeta"))
         out = model(I, phi, zeta_gt=z, alpha=alpha)

@@ -41,7 +41,7 @@ from polinfra.atomic import atomic_path, ensure_dir, write_json
 from polinfra.config import opt
 from polinfra.errors import ConfigError, DataFormatError
 
-__all__ = ["ReconstructConfig", "SpikeSource", "dat_source", "group_source", "reconstruct_stream", "run_model_on_windows"]
+__all__ = ["ReconstructConfig", "SpikeSource", "FeatureCache", "auto_tile", "dat_source", "group_source", "reconstruct_stream", "run_model_on_windows"]
 
 log = logging.getLogger(__name__)
 
@@ -60,6 +60,9 @@ class ReconstructConfig:
     video: bool = opt(True, "write T.mp4, R.mp4 and preview.mp4")
     chunk_steps: int = opt(2000, "spike steps read per chunk", lo=16, hi=10**8)
     max_frames: int = opt(0, "stop after this many output frames (0 = all)", lo=0, hi=10**9)
+    tile: int = opt(-1, "tile side for bounded memory (0 = whole frames, -1 = auto: whole frames for v2 networks and on CUDA, 128 for v1 on CPU)", lo=-1, hi=1 << 16)
+    precision: str = opt("float32", "float32 | bfloat16 (autocast; the solver stays float32)", choices=("float32", "bfloat16"))
+    cache: bool = opt(True, "reuse per-observation features across overlapping windows (v2 networks, RIR off, whole frames)")
 
 
 @dataclasses.dataclass
@@ -123,9 +126,9 @@ def group_source(path: str | os.PathLike, chunk_steps: int = 2000) -> SpikeSourc
     )
 
 
-def _pad4(x: torch.Tensor) -> tuple[torch.Tensor, tuple[int, int]]:
+def _pad4(x: torch.Tensor, multiple: int = 4) -> tuple[torch.Tensor, tuple[int, int]]:
     H, W = x.shape[-2:]
-    ph, pw = (-H) % 4, (-W) % 4
+    ph, pw = (-H) % multiple, (-W) % multiple
     if ph or pw:
         x = F.pad(x, (0, pw, 0, ph), mode="replicate")
     return x, (H, W)
@@ -134,33 +137,123 @@ def _pad4(x: torch.Tensor) -> tuple[torch.Tensor, tuple[int, int]]:
 _KEYS = ("T", "R", "T_base", "R_base")
 
 
-@torch.no_grad()
-def run_model_on_windows(model, I: np.ndarray, phi: np.ndarray, device: str | torch.device = "cpu", tile: int = 128, margin: int = 16) -> dict[str, np.ndarray]:
+def _multiple(model) -> int:
+    return int(getattr(model, "pad_multiple", 4))
+
+
+def _autocast(device: torch.device, precision: str):
+    """bf16 autocast context for ``precision == "bfloat16"`` (CPU or CUDA), else a no-op."""
+    if precision == "bfloat16":
+        return torch.autocast(device.type, dtype=torch.bfloat16)
+    return contextlib.nullcontext()
+
+
+def auto_tile(model, device: str | torch.device = "cpu") -> int:
+    """Default tile side: whole frames (0) for cacheable (v2) networks and on CUDA, 128 otherwise (v1 on CPU)."""
+    return 0 if (getattr(model, "cacheable", False) or torch.device(device).type == "cuda") else 128
+
+
+def run_model_on_windows(model, I: np.ndarray, phi: np.ndarray, device: str | torch.device = "cpu", tile: int = 128, margin: int = 16, *, precision: str = "float32", max_batch: int = 16) -> dict[str, np.ndarray]:
     """Network on windows I (B, N, H, W) radiance units, phi (B, N) -> dict of (B, H, W) T, R, T_base, R_base.
 
-    Frames larger than ``tile`` are processed in tile x tile pieces with a
-    ``margin``-pixel overlap whose border is discarded (bounded memory; the
-    network is fully convolutional, the per-pixel solver is exact per tile).
-    RIR, when enabled, then aligns each tile separately.
+    ``model`` is any object with ``cfg.n_obs`` that maps ``(I (B, N, H, W), phi (B, N))`` float32
+    tensors to an object with ``T``, ``R``, ``T_base``, ``R_base`` (B, H, W) tensors (optional
+    ``pad_multiple``: H and W are replicate-padded to a multiple of it, default 4).
+    Frames larger than ``tile`` (> 0) are cut into tile x tile pieces with a ``margin``-pixel
+    overlap whose border is discarded (bounded memory; the network is fully convolutional, the
+    per-pixel solver is exact per tile); all tiles of all windows go through the model as one
+    batch (at most ``max_batch`` tiles per call).  ``tile <= 0``: whole frames.  RIR, when
+    enabled, aligns each tile separately.  ``precision``: "float32" or "bfloat16" (autocast).
     """
-    x = torch.as_tensor(I, dtype=torch.float32, device=device)
-    p = torch.as_tensor(phi, dtype=torch.float32, device=device)
+    dev = torch.device(device)
+    x = torch.as_tensor(I, dtype=torch.float32, device=dev)
+    p = torch.as_tensor(phi, dtype=torch.float32, device=dev)
     B, N, H, W = x.shape
-    if tile <= 0 or (H <= tile and W <= tile):
-        xp, _ = _pad4(x)
-        out = model(xp, p)
-        return {k: getattr(out, k)[..., :H, :W].float().cpu().numpy() for k in _KEYS}
-    res = {k: np.zeros((B, H, W), np.float32) for k in _KEYS}
-    for y0 in range(0, H, tile):
-        for x0 in range(0, W, tile):
-            y1, x1 = min(H, y0 + tile), min(W, x0 + tile)
-            ya, xa = max(0, y0 - margin), max(0, x0 - margin)
-            yb, xb = min(H, y1 + margin), min(W, x1 + margin)
-            xp, (h, w) = _pad4(x[..., ya:yb, xa:xb])
-            out = model(xp, p)
+    mult = _multiple(model)
+    with torch.inference_mode(), _autocast(dev, precision):
+        if tile <= 0 or (H <= tile and W <= tile):
+            xp, _ = _pad4(x, mult)
+            outs = [model(xp[i : i + max_batch], p[i : i + max_batch]) for i in range(0, B, max_batch)]
+            return {k: torch.cat([getattr(o, k) for o in outs])[..., :H, :W].float().cpu().numpy() for k in _KEYS}
+        ts = tile + 2 * margin
+        ts += (-ts) % mult
+        ny, nx = -(-H // tile), -(-W // tile)
+        # replicate-pad the frame so every tile with its margin has the same size ts x ts
+        xp = F.pad(x, (margin, nx * tile - W + ts - tile - margin, margin, ny * tile - H + ts - tile - margin), mode="replicate")
+        pos = [(ty * tile, tx * tile) for ty in range(ny) for tx in range(nx)]
+        tiles = torch.stack([xp[..., y0 : y0 + ts, x0 : x0 + ts] for (y0, x0) in pos], 1).reshape(B * len(pos), N, ts, ts)
+        pt = p.repeat_interleave(len(pos), 0)
+        res = {k: [] for k in _KEYS}
+        for i in range(0, tiles.shape[0], max_batch):
+            o = model(tiles[i : i + max_batch], pt[i : i + max_batch])
             for k in _KEYS:
-                res[k][:, y0:y1, x0:x1] = getattr(out, k)[:, y0 - ya : y0 - ya + (y1 - y0), x0 - xa : x0 - xa + (x1 - x0)].float().cpu().numpy()
-    return res
+                res[k].append(getattr(o, k)[:, margin : margin + tile, margin : margin + tile].float())
+        out = {}
+        for k in _KEYS:
+            t = torch.cat(res[k]).reshape(B, ny, nx, tile, tile).permute(0, 1, 3, 2, 4).reshape(B, ny * tile, nx * tile)
+            out[k] = t[:, :H, :W].cpu().numpy()
+        return out
+
+
+class FeatureCache:
+    """Per-observation features of a v2 network kept across the overlapping windows of a stream.
+
+    Consecutive output frames share N - 1 of their N observations; each Eq. (3) frame is
+    encoded once (:meth:`reconstruct.network.PolSpikeNet.encode_obs`) at the window's scale
+    (:func:`reconstruct.network.window_scale`, a power of two, so neighbouring windows almost
+    always agree; a frame is re-encoded when it does not) and dropped once no later window uses it.
+    Output is identical to running the model on each window (tests/reconstruct/test_reconstruct_cli.py).
+    """
+
+    def __init__(self, model, device: str | torch.device = "cpu", precision: str = "float32"):
+        self.model, self.device, self.precision = model, torch.device(device), precision
+        self.store: dict[int, tuple[float, torch.Tensor, torch.Tensor]] = {}
+        self.encoded = 0
+        self.reused = 0
+
+    def run(self, I: np.ndarray, phi: np.ndarray, idx: np.ndarray) -> dict[str, np.ndarray]:
+        """Windows I (B, N, H, W), phi (B, N), frame indices idx (B, N) -> dict of (B, H, W) maps."""
+        from reconstruct.network import window_scale
+
+        dev = self.device
+        x = torch.as_tensor(I, dtype=torch.float32, device=dev)
+        p = torch.as_tensor(phi, dtype=torch.float32, device=dev)
+        B, N, H, W = x.shape
+        xp, _ = _pad4(x, _multiple(self.model))
+        with torch.inference_mode(), _autocast(dev, self.precision):
+            sc = window_scale(xp).reshape(B)
+            need: dict[int, tuple[int, int]] = {}
+            for b in range(B):
+                for k in range(N):
+                    key = int(idx[b, k])
+                    hit = self.store.get(key)
+                    if (hit is None or hit[0] != float(sc[b])) and key not in need:
+                        need[key] = (b, k)
+            if need:
+                keys = list(need)
+                frames = torch.stack([xp[b, k] for b, k in need.values()])
+                scales = torch.stack([sc[b] for b, _ in need.values()])
+                f, g = self.model.encode_obs(frames, scales)
+                for j, key in enumerate(keys):
+                    self.store[key] = (float(scales[j]), f[j], g[j])
+                self.encoded += len(keys)
+            # a frame whose cached scale differs from this window's (rare) is encoded for this window only
+            fs, gs = [], []
+            for b in range(B):
+                for k in range(N):
+                    s_, f_, g_ = self.store[int(idx[b, k])]
+                    if s_ != float(sc[b]):
+                        f_, g_ = (t[0] for t in self.model.encode_obs(xp[b, k][None], sc[b][None]))
+                        self.encoded += 1
+                    fs.append(f_)
+                    gs.append(g_)
+            self.reused += B * N - len(need)
+            out = self.model(xp, p, feats=(torch.stack(fs), torch.stack(gs)))
+            res = {k: getattr(out, k)[..., :H, :W].float().cpu().numpy() for k in _KEYS}
+        lo = int(idx[:, 0].max()) + 1  # windows advance: the next one starts after this batch's last first frame
+        for key in [k for k in self.store if k < lo]:  # the next window starts one frame later
+            del self.store[key]
+        return res
 
 
 def _to8(x: np.ndarray, gain: float) -> np.ndarray:
@@ -227,7 +320,11 @@ def reconstruct_stream(
 
     Args:
         source: spike stream and calibrated polarizer angles.
-        model: :class:`reconstruct.network.PolSpikeNet` (eval mode).
+        model: :class:`reconstruct.network.PolSpikeNet` (eval mode), or any object following the
+            protocol of :func:`run_model_on_windows` (``cfg.n_obs``; ``model(I, phi)`` -> ``T``, ``R``,
+            ``T_base``, ``R_base``), e.g. a physics-only reconstructor.  Models with
+            ``cacheable = True`` must also provide ``encode_obs(frames, scales)`` and accept
+            ``feats=`` (:class:`FeatureCache`); others run window by window.
         out_dir: output directory (created).
         cfg: options; ``exposure`` is overridden by the source's own when it has one.
         device: torch device.
@@ -263,13 +360,19 @@ def reconstruct_stream(
     tail = np.zeros((0, source.height, source.width), np.uint8)
     tail_start = 0
 
+    tile = auto_tile(model, device) if cfg.tile < 0 else cfg.tile
+    cache = FeatureCache(model, device, cfg.precision) if (cfg.cache and tile == 0 and getattr(model, "cacheable", False)) else None
+
     def flush(writers: _Writers) -> None:
         nonlocal done
         if not pending:
             return
         I = np.stack([p[0] for p in pending])
         ph = np.stack([p[1] for p in pending])
-        res = run_model_on_windows(model, I, ph, device)
+        if cache is not None:
+            res = cache.run(I, ph, np.stack([p[2] for p in pending]))
+        else:
+            res = run_model_on_windows(model, I, ph, device, tile, precision=cfg.precision)
         for b in range(I.shape[0]):
             T, R = res["T"][b], res["R"][b]
             if not (np.isfinite(T).all() and np.isfinite(R).all()):
@@ -294,7 +397,7 @@ def reconstruct_stream(
                 frames_I.append(buf[c - half : c + half + 1].sum(0, dtype=np.int32).astype(np.float32) / (cfg.window_steps * exposure))  # Eq. (3), radiance units
                 next_c += 1
                 if len(frames_I) == N:
-                    pending.append((np.stack(frames_I), phi_i[next_c - N : next_c]))
+                    pending.append((np.stack(frames_I), phi_i[next_c - N : next_c], np.arange(next_c - N, next_c)))
                     if len(pending) >= cfg.batch:
                         flush(writers)
             if done + len(pending) >= n_out:
@@ -320,6 +423,9 @@ def reconstruct_stream(
         "frames_per_second_processed": done / secs if secs > 0 else None,
         "outputs": sorted(p.name for p in out.iterdir() if p.is_file() and p.suffix == ".mp4"),
         "display_gain": writers.gain,
+        "tile": tile,
+        "precision": cfg.precision,
+        "feature_cache": None if cache is None else {"encoded_frames": cache.encoded, "reused": cache.reused},
     }
     write_json(out / "reconstruct.json", summary)
     return summary

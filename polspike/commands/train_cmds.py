@@ -31,6 +31,7 @@ def train_cmd(
     device: Optional[str] = typer.Option(None, "--device", help="auto | cpu | cuda [default: config device]"),
     quiet: bool = typer.Option(False, "--quiet", help="no progress bar"),
     threads: int = typer.Option(0, "--threads", help="torch CPU threads (0 = torch default); use 1 on a shared machine: oversubscribed threads run ~20x slower"),
+    workers: int = typer.Option(1, "--workers", help="processes building batches ahead of the optimizer (0 = in the training process); the trajectory does not depend on it"),
 ) -> None:
     """Train the reconstructor (paper Sec. 3.4 curriculum); resumable, deterministic for a seed on CPU."""
     import dataclasses
@@ -58,7 +59,7 @@ def train_cmd(
         train_set, val_set = open_window_datasets(data, cfg)
         src = f"stored windows in {data}"
     with rich_progress("train", enabled=not quiet) as cb:
-        res = train(cfg, train_set, val_set, out, progress=cb, max_seconds=None if minutes is None else 60.0 * minutes)
+        res = train(cfg, train_set, val_set, out, progress=cb, max_seconds=None if minutes is None else 60.0 * minutes, workers=max(0, workers))
     c = Console()
     c.print(f"data: {src}")
     c.print(f"PolSpikeNet: {res['param_count']:,} trainable parameters; step {res['step']}/{res['total_steps']}")
