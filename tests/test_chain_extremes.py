@@ -32,15 +32,16 @@ def test_zero_light_default_sensor_fires_at_dark_rate_only():
     rate = s.mean()
     # dark current ~ dark_mean thresholds per step; a random initial accumulator adds < 1 spike per pixel
     assert rate < 3 * cfg.dark_mean + 1.0 / 20000
-    assert np.all(np.isfinite(s))
+    assert rate == pytest.approx(cfg.dark_mean, rel=0.25)  # and it does fire: dark current is integrated
 
 
 @pytest.mark.parametrize("exposure", [1.0, 3.0, 1e3])
 def test_saturated_light_caps_at_one_spike_per_step(exposure):
     """A binary readout: intensity x exposure >= 1 threshold per step fires every step, never more."""
-    s = simulate_constant(np.ones((6, 8)), 500, _cfg(IDEAL, exposure=exposure), seed=3)
-    assert s.max() == 1
-    assert s[5:].mean() == pytest.approx(1.0)
+    n = 500
+    s = simulate_constant(np.ones((6, 8)), n, _cfg(IDEAL, exposure=exposure), seed=3)
+    # unclipped, the integrator would count floor(n * exposure) thresholds; the readout gives exactly n
+    assert np.all(s.sum(0) == min(n, int(np.floor(n * exposure))))
 
 
 def test_half_light_ideal_rate_exact():
