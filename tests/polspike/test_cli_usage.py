@@ -330,3 +330,26 @@ def test_entry_point_keeps_other_exceptions_and_project_error_brackets(monkeypat
         cli.app()
     err = capsys.readouterr().err
     assert info.value.code == 2 and "[net]" in err and len(err.strip().splitlines()) == 1, err
+
+
+def test_entry_point_keeps_exit_codes_of_typer_exit_and_ctrl_c(monkeypatch, capsys):
+    """In non-standalone mode click returns (not raises) these codes; the entry point must still exit with them."""
+    for exc, want in ((typer.Exit(3), 3), (KeyboardInterrupt(), 130)):
+        code, err = _run_entry(monkeypatch, capsys, exc)
+        assert code == want and "Traceback" not in err, (type(exc), code, err)
+    import polspike.cli as cli
+
+    app = typer.Typer(add_completion=False)
+
+    @app.command()
+    def ok() -> None:
+        print("fine")
+
+    @app.command()
+    def other() -> None:
+        pass
+
+    monkeypatch.setattr(cli, "app_typer", app)
+    monkeypatch.setattr(sys, "argv", ["polspike", "ok"])
+    cli.app()  # a normal run returns without SystemExit
+    assert capsys.readouterr().out.strip() == "fine"
