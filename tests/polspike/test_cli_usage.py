@@ -264,9 +264,16 @@ def test_help_keeps_every_bracketed_word(tmp_path):
 # -- in process: the entry point's mapping for each kind of click exception ------------------------
 
 
-def _run_entry(monkeypatch, capsys, exc: BaseException) -> tuple[int | None, str]:
+def _patched_cli():
+    """polspike.cli with every real command already registered (so none lands on a test app)."""
     import polspike.cli as cli
 
+    cli.get_app()
+    return cli
+
+
+def _run_entry(monkeypatch, capsys, exc: BaseException) -> tuple[int | None, str]:
+    cli = _patched_cli()
     app = typer.Typer(add_completion=False)
 
     @app.command()
@@ -309,8 +316,7 @@ def test_entry_point_keeps_other_exceptions_and_project_error_brackets(monkeypat
     """A bug keeps its traceback (not swallowed as a usage error); a project error keeps its [brackets]."""
     from polinfra.errors import ConfigError
 
-    import polspike.cli as cli
-
+    cli = _patched_cli()
     app = typer.Typer(add_completion=False)
 
     @app.command()
@@ -337,8 +343,7 @@ def test_entry_point_keeps_exit_codes_of_typer_exit_and_ctrl_c(monkeypatch, caps
     for exc, want in ((typer.Exit(3), 3), (KeyboardInterrupt(), 130)):
         code, err = _run_entry(monkeypatch, capsys, exc)
         assert code == want and "Traceback" not in err, (type(exc), code, err)
-    import polspike.cli as cli
-
+    cli = _patched_cli()
     app = typer.Typer(add_completion=False)
 
     @app.command()
