@@ -68,11 +68,20 @@ def test_conf_switch_and_window_length(tmp_path, group):
 
 
 def test_learned_zeta_source_feeds_the_solvers(tmp_path, group):
+    """--zeta learned: the solvers run on the network's zeta, not the ground truth: their output changes
+    against --zeta gt, and changes again with another network's weights."""
     ck = _ckpt(tmp_path / "m.pt", use_rir=False)
     rep = evaluate_groups([group], EvalConfig(methods="ls,rwps", zeta="learned", rir=False, checkpoint=str(ck)))
     ov = _overall(rep)
     assert np.isfinite(ov["ls"]["psnr_T"]) and np.isfinite(ov["rwps"]["psnr_T"])
     assert rep.timings["learned_zeta"] > 0
+    gt = _overall(evaluate_groups([group], EvalConfig(methods="ls,rwps", zeta="gt", rir=False)))
+    for m in ("ls", "rwps"):
+        assert abs(ov[m]["psnr_T"] - gt[m]["psnr_T"]) > 0.01, (m, ov[m]["psnr_T"], gt[m]["psnr_T"])
+    cfg = NetConfig(feat_ch=8, ref_ch=(8, 8, 8), dec_ch=(8, 8, 8), use_rir=False)
+    other = save_checkpoint(tmp_path / "other.pt", init_weights(PolSpikeNet(cfg), torch.Generator().manual_seed(1)))
+    ov2 = _overall(evaluate_groups([group], EvalConfig(methods="ls", zeta="learned", rir=False, checkpoint=str(other))))
+    assert abs(ov2["ls"]["psnr_T"] - ov["ls"]["psnr_T"]) > 1e-3, (ov2["ls"]["psnr_T"], ov["ls"]["psnr_T"])
 
 
 def test_cli_full_method(tmp_path):

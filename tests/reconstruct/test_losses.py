@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 from types import SimpleNamespace
 
+import pytest
 import torch
 
 from reconstruct.losses import LossConfig, image_grad, loss_excl, loss_grad, loss_phys, loss_rec, reflection_mask, total_loss
@@ -59,14 +60,25 @@ def test_exclusion_tanh_form():
     assert gx.shape == (1, 5, 4) and gy.shape == (1, 4, 5)
 
 
-def test_total_is_eq12_plus_base_term():
+@pytest.mark.parametrize("alpha", [1.0, 0.5, 0.0])
+def test_total_is_eq12_plus_base_term(alpha):
+    """Total = paper Eq. (12) + lambda_base (0.2 + 0.8 alpha) L_rec(T^, R^): the solver-output term is non-zero
+    for solver outputs that differ from the truth, counted in the total and back-propagated to T^."""
     g = torch.Generator().manual_seed(1)
     B, N, H, W = 2, 7, 8, 8
     T, R = torch.rand(B, H, W, generator=g), torch.rand(B, H, W, generator=g)
     z = 0.1 * torch.ones(B, N, H, W)
-    out = SimpleNamespace(T=T + 0.1, R=R, T_base=T, R_base=R, zeta_hat=z, zeta_gt=z, I=0.5 * (z * R[:, None] + (1 - z) * T[:, None]))
-    cfg = LossConfig(lambda_base=0.0)
-    tot, parts = total_loss(out, T, R, 0.0, cfg)
-    want = parts["l_rec"] + cfg.lambda_g * parts["l_grad"] + cfg.lambda_p * parts["l_phys"] + cfg.lambda_e * parts["l_excl"]
-    assert math.isclose(float(tot), want, rel_tol=1e-6)
-    assert parts["l_base"] == 0.0
+    I = 0.5 * (z * R[:, None] + (1 - z) * T[:, None])
+    T_base = (T + 0.2).requires_grad_(True)  # the solver's T^ is off by 0.2
+    out = SimpleNamespace(T=T + 0.1, R=R, T_base=T_base, R_base=R, zeta_hat=z, zeta_gt=z, I=I)
+    cfg = LossConfig(lambda_base=0.5)
+    tot, parts = total_loss(out, T, R, alpha, cfg)
+    # oracle for the base term: the reconstruction term of a network whose refined output IS the solver output
+    _, as_refined = total_loss(SimpleNamespace(T=T + 0.2, R=R, T_base=T, R_base=R, zeta_hat=z, zeta_gt=z, I=I), T, R, alpha, cfg)
+    assert parts["l_base"] > 0.05 and math.isclose(parts["l_base"], as_refined["l_rec"], rel_tol=1e-6)
+    eq12 = parts["l_rec"] + cfg.lambda_g * parts["l_grad"] + cfg.lambda_p * parts["l_phys"] + cfg.lambda_e * parts["l_excl"]
+    assert math.isclose(float(tot.detach()), eq12 + 0.5 * (0.2 + 0.8 * alpha) * parts["l_base"], rel_tol=1e-6)
+    tot.backward()
+    assert float(T_base.grad.abs().sum()) > 0
+    off, _ = total_loss(out, T, R, alpha, LossConfig(lambda_base=0.0))
+    assert math.isclose(float(off), eq12, rel_tol=1e-6)

@@ -18,6 +18,10 @@ from reconstruct.train import TINY, TrainConfig, alpha_at, train
 
 RATE_HZ = 20000.0
 POL_HZ = 30.0
+#: TINY with curriculum stage ends at 1/4 and 1/2 of its 4 epochs, so the short run passes through all
+#: three stages (alpha 1.0, 0.5, 0.0, 0.0); with the paper's fractions (5/60, 15/60) a 4-epoch run
+#: jumps from alpha 1.0 straight to 0.0 and the alpha = 0.5 stage would go untested.
+CFG = dataclasses.replace(TINY, curriculum_fracs=(0.25, 0.5))
 
 
 def _stream_item(seed: int, index: int, cfg: WindowConfig = TINY.window, static: bool = False, noise: bool = True):
@@ -58,15 +62,15 @@ def one_thread():
 
 @pytest.fixture(scope="module")
 def sets():
-    return OnTheFlyWindows(_stream_item, length=TINY.train_items, seed=1), OnTheFlyWindows(_stream_item, length=TINY.val_items, seed=2)
+    return OnTheFlyWindows(_stream_item, length=CFG.train_items, seed=1), OnTheFlyWindows(_stream_item, length=CFG.val_items, seed=2)
 
 
 @pytest.fixture(scope="module")
 def tiny_run(sets, tmp_path_factory):
-    """One uninterrupted TINY run, shared by several tests."""
+    """One uninterrupted CFG run, shared by several tests."""
     tr, va = sets
     run = tmp_path_factory.mktemp("tiny") / "run"
-    return run, train(TINY, tr, va, run)
+    return run, train(CFG, tr, va, run)
 
 
 def test_curriculum_paper_fractions():
@@ -103,11 +107,13 @@ def test_item_from_stream_matches_eq1_to_count_quantisation():
 def test_tiny_training_runs_and_writes_outputs(tiny_run):
     run, res = tiny_run
     tmp_path = run.parent
-    assert res["step"] == TINY.epochs * TINY.steps_per_epoch
+    assert res["step"] == CFG.epochs * CFG.steps_per_epoch
     for f in ("last.pt", "log.csv", "config.json", "curves.png"):
         assert (tmp_path / "run" / f).is_file()
     rows = list(csv.DictReader(open(tmp_path / "run" / "log.csv")))
-    assert {float(r["alpha"]) for r in rows} == {1.0, 0.5, 0.0} or {float(r["alpha"]) for r in rows} >= {1.0, 0.0}
+    # the curriculum: every epoch logs alpha_at(epoch), and the run passes through all three stages
+    by_epoch = {int(r["epoch"]): float(r["alpha"]) for r in rows}
+    assert by_epoch == {e + 1: alpha_at(e, CFG) for e in range(CFG.epochs)} == {1: 1.0, 2: 0.5, 3: 0.0, 4: 0.0}
     assert any(r["val_psnr_T"] for r in rows)
     assert all(math.isfinite(float(r["loss"])) for r in rows if r["loss"])
     model, data = load_model(tmp_path / "run" / "last.pt")
@@ -116,11 +122,11 @@ def test_tiny_training_runs_and_writes_outputs(tiny_run):
 
 def test_resume_continues_to_identical_weights(tmp_path, sets, tiny_run):
     tr, va = sets
-    r1 = train(TINY, tr, va, tmp_path / "b", stop_after=3)  # "killed" after step 3 (checkpointed)
+    r1 = train(CFG, tr, va, tmp_path / "b", stop_after=3)  # "killed" after step 3 (checkpointed)
     assert r1["step"] == 3
     assert read_checkpoint(tmp_path / "b" / "last.pt")["step"] == 3
-    r2 = train(TINY, tr, va, tmp_path / "b")
-    assert r2["step"] == TINY.epochs * TINY.steps_per_epoch
+    r2 = train(CFG, tr, va, tmp_path / "b")
+    assert r2["step"] == CFG.epochs * CFG.steps_per_epoch
     a = read_checkpoint(tiny_run[0] / "last.pt")["state_dict"]
     b = read_checkpoint(tmp_path / "b" / "last.pt")["state_dict"]
     for k in a:
@@ -130,9 +136,9 @@ def test_resume_continues_to_identical_weights(tmp_path, sets, tiny_run):
 def test_loader_worker_gives_the_same_trajectory(tmp_path, sets, tiny_run):
     """Batches built by a DataLoader worker process (and a resume in between) give bit-identical weights."""
     tr, va = sets
-    train(TINY, tr, va, tmp_path / "w", stop_after=3, workers=1)
-    r = train(TINY, tr, va, tmp_path / "w", workers=1)
-    assert r["step"] == TINY.epochs * TINY.steps_per_epoch
+    train(CFG, tr, va, tmp_path / "w", stop_after=3, workers=1)
+    r = train(CFG, tr, va, tmp_path / "w", workers=1)
+    assert r["step"] == CFG.epochs * CFG.steps_per_epoch
     a = read_checkpoint(tiny_run[0] / "last.pt")["state_dict"]
     b = read_checkpoint(tmp_path / "w" / "last.pt")["state_dict"]
     for k in a:
@@ -141,7 +147,7 @@ def test_loader_worker_gives_the_same_trajectory(tmp_path, sets, tiny_run):
 
 def test_deterministic_for_a_seed_and_different_across_seeds(tmp_path, sets):
     tr, va = sets
-    cfg = dataclasses.replace(TINY, epochs=1)
+    cfg = dataclasses.replace(CFG, epochs=1)
     train(cfg, tr, va, tmp_path / "x")
     train(cfg, tr, va, tmp_path / "y")
     train(dataclasses.replace(cfg, seed=7), tr, va, tmp_path / "z")
@@ -153,7 +159,7 @@ def test_deterministic_for_a_seed_and_different_across_seeds(tmp_path, sets):
 def test_resume_with_other_config_is_refused(sets, tiny_run):
     tr, va = sets
     with pytest.raises(CheckpointError):
-        train(dataclasses.replace(TINY, lr=1e-3), tr, va, tiny_run[0])
+        train(dataclasses.replace(CFG, lr=1e-3), tr, va, tiny_run[0])
 
 
 def test_checkpoint_errors(tmp_path):
