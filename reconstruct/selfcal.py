@@ -298,8 +298,8 @@ def fit_normal(s4: np.ndarray, q: np.ndarray, width_blocks: int, height_blocks: 
         return float(np.sum(mag * np.cos(ang4 - 4.0 * phis(tilt, az, fov))))
 
     # grid search over the hemisphere (tilt up to 88 deg, every azimuth): Hough-like, no local-minimum trap
-    tilts = np.deg2rad(np.arange(2.0, 89.0, 3.0))
-    azs = np.deg2rad(np.arange(0.0, 360.0, 6.0))
+    tilts = np.deg2rad(np.arange(2.0, 89.0, 4.0))
+    azs = np.deg2rad(np.arange(0.0, 360.0, 8.0))
     grid = np.array([[score(t, a, fov0) for a in azs] for t in tilts])
     order = np.argsort(-grid, axis=None)
     starts: list[tuple[float, float]] = []
