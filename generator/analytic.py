@@ -10,8 +10,12 @@ What it models, and what it leaves out (stated in ``render.json``):
 - reflection: the R layer seen by the mirrored camera through the pane point of
   each pixel; ``thick_slab`` adds the second-surface ghost, displaced by
   2 d tan(theta_t) along the pane in the plane of incidence, with weight G;
-- transmission: the T layer along the camera ray; slabs displace the ray
-  laterally by their thickness (the exit point), the direction is unchanged;
+- transmission: the T layer where the transmitted ray lands.  ``single``: the
+  ray refracts into the glass at the pane point (Snell, per pixel; the T layer
+  lies inside the glass, as in the full tier), so the T image is displaced and
+  magnified against the straight-ray view; slabs: the ray leaves the slab
+  parallel to the camera ray, displaced laterally by the thickness (the exit
+  point after the refracted path through the glass);
 - the radiance compression 1/n^2 of a ``single`` interface is NOT applied
   (paper Eq. (1) omits it; :func:`polphysics.fresnel.radiance_scale`);
 - the pane is treated as infinite (coverage is checked separately); layer
@@ -39,7 +43,7 @@ MAP_CHANNELS = ("theta", "phi_perp", "R_perp", "R_par", "T_perp", "T_par")
 ANALYTIC_MODELLED = {
     "fresnel": "per-pixel incidence angle, pane model coefficients (paper Eq. (2))",
     "ghost": "thick_slab second-surface ghost displaced by 2 d tan(theta_t)",
-    "transmitted_ray_offset": "slab lateral displacement of the transmitted ray",
+    "transmitted_ray_offset": "single: ray refracted into the glass (Snell per pixel); slabs: lateral displacement of the transmitted ray",
     "radiance_compression_1_over_n2": False,
     "spectral": False,
     "pane_extent": "infinite (coverage checked)",
@@ -96,8 +100,12 @@ def analytic_maps(scene: SceneConfig, wavelength_nm: float = 550.0) -> PaneMaps:
     nrm = normalize(plane.normal)
     d_r = reflect_dir(d, nrm)
     t_origin = cam.position + np.zeros_like(d)
+    t_dir = d
     g_xy = None
-    if model != "single" and scene.pane.thickness_m > 0:
+    if model == "single":
+        # the transmitted ray bends into the glass at the pane point and stays in it (closed form for a plane)
+        t_origin, t_dir = hit, refract_dir(d, nrm, n_idx)
+    elif scene.pane.thickness_m > 0:
         d_t = refract_dir(d, nrm, n_idx)
         cos_t = np.clip(-np.sum(d_t * nrm, axis=-1, keepdims=True), 1e-6, 1.0)
         exit_pt = hit + scene.pane.thickness_m / cos_t * d_t
@@ -113,7 +121,7 @@ def analytic_maps(scene: SceneConfig, wavelength_nm: float = 550.0) -> PaneMaps:
     return PaneMaps(
         theta=geo["theta"],
         phi_perp=geo["phi_perp"],
-        t_xy=t_plane.uv(t_origin, d),
+        t_xy=t_plane.uv(t_origin, t_dir),
         r_xy=r_plane.uv(hit, d_r),
         g_xy=g_xy,
         **{k: co[k] for k in ("R_perp", "R_par", "T_perp", "T_par", "G_perp", "G_par")},

@@ -311,15 +311,16 @@ def single_interface_t_scale(scene, t_plane, indices, content_extent: float) -> 
     return max(1.0, 1.02 * need / content_extent)
 
 
-def _layer_coverage_warnings(scene, tc, rc) -> list[str]:
+def _layer_coverage_warnings(scene, tc, rc, t_scale: float = 1.0) -> list[str]:
     """Pixels whose T or R ray leaves its finite layer plane (black in the full tier; the analytic
-    ground truth mirrors the texture there) or whose R point lies behind the pane."""
+    ground truth mirrors the texture there) or whose R point lies behind the pane.  ``t_scale``: the
+    T plane's enlargement (a single interface's refracted rays land beyond the straight-ray view)."""
     from generator.analytic import analytic_maps, layer_planes
 
     m = analytic_maps(scene)
     out = []
-    for name, (X, Y), content in (("T", m.t_xy, tc), ("R", m.r_xy, rc)):
-        half = 0.5 * content.extent
+    for name, (X, Y), content, k in (("T", m.t_xy, tc, t_scale), ("R", m.r_xy, rc, 1.0)):
+        half = 0.5 * content.extent * k
         outside = (np.abs(X) > half) | (np.abs(Y) > half) | ~np.isfinite(X) | ~np.isfinite(Y)
         if outside.any():
             out.append(f"{name} layer plane does not cover {100 * outside.mean():.2f}% of the view; raise layers.{'transmission' if name == 'T' else 'reflection'}.margin")
@@ -385,7 +386,7 @@ class FullRenderer:
             "fresnel": "Mitsuba smooth dielectric, stokes+path integrator (Monte Carlo lobe choice)",
             "slab": "two dielectric interfaces with real thickness (ghost displaced physically)" if scene.pane.model != "single" else False,
             "single_interface": (
-                "T rays refract into glass (bent geometry: the T image is displaced against the straight-ray ground truth); "
+                "T rays refract into glass (bent geometry, as the analytic tier's Snell sampling of T); "
                 f"T radiance x n^2 undoes the 1/n^2 compression; T plane enlarged x{self.t_scale:.2f} (content mirrored beyond its edge) to catch the bent rays"
             ) if scene.pane.model == "single" else False,
             "absorption": "not modelled in the full tier (dielectric surfaces only)" if scene.pane.absorption_per_m > 0 else False,
@@ -397,7 +398,7 @@ class FullRenderer:
             "max_depth": MAX_DEPTH_FULL,
             "backend": self.be.to_dict(),
         }
-        warn = _layer_coverage_warnings(scene, self.tc, self.rc)
+        warn = _layer_coverage_warnings(scene, self.tc, self.rc, self.t_scale)
         if warn:
             info["modelled"]["warnings"] = warn
             for w in warn:
