@@ -87,6 +87,8 @@ def reconstruct_cmd(
     max_frames: int = typer.Option(0, "--max-frames", help="stop after this many output frames (0 = all)"),
     device: str = typer.Option("auto", "--device", help="auto | cpu | cuda"),
     quiet: bool = typer.Option(False, "--quiet", help="no progress bar"),
+    method: str = typer.Option("net", "--method", help="net (the network) | ls | ridge | irls | rwps (a physics solver alone: no checkpoint unless --zeta learned)"),
+    zeta: Optional[str] = typer.Option(None, "--zeta", help="physics methods: self (pane fitted to the stream) | learned | physics | gt (group stores only) [default: self]; the network estimates its own"),
 ) -> None:
     """Turn a spike group or a .dat into reflection-free T and R video at the output cadence (~343 FPS)."""
     import math
@@ -98,6 +100,16 @@ def reconstruct_cmd(
     from reconstruct.checkpoint import DEFAULT_WEIGHTS, load_model
     from reconstruct.video import ReconstructConfig, dat_source, group_source, reconstruct_stream
 
+    from reconstruct.physics_video import PHYSICS_METHODS, STREAM_ZETA_SOURCES
+
+    if method not in ("net", *PHYSICS_METHODS):
+        raise ConfigError(f"--method {method!r}: choose net or one of {', '.join(PHYSICS_METHODS)}")
+    if zeta is not None and zeta not in STREAM_ZETA_SOURCES:
+        raise ConfigError(f"--zeta {zeta!r}: choose one of {', '.join(STREAM_ZETA_SOURCES)}")
+    if method == "net" and zeta not in (None, "learned"):
+        raise ConfigError(f"--zeta {zeta} needs a physics --method (ls, ridge, irls, rwps); the network estimates its own zeta")
+    if zeta in ("gt", "physics") and input.suffix.lower() == ".dat":
+        raise ConfigError(f"--zeta {zeta} needs a stored group's pane maps; a raw .dat has none: use --zeta self or learned")
     dev = "cuda" if device == "auto" and torch.cuda.is_available() else ("cpu" if device == "auto" else device)
     cfg = ReconstructConfig(window_steps=window_steps, stride_deg=stride_deg, exposure=exposure, frames=frames, max_frames=max_frames)
     if input.suffix.lower() == ".dat":
@@ -109,10 +121,27 @@ def reconstruct_cmd(
         src = group_source(input, cfg.chunk_steps)
     else:
         raise ConfigError(f"input {input} is neither a .dat file nor a spike group directory")
-    model, _ = load_model(weights or DEFAULT_WEIGHTS, dev, **({} if rir is None else {"use_rir": rir}))
+    load = lambda: load_model(weights or DEFAULT_WEIGHTS, dev, **({} if rir is None else {"use_rir": rir}))[0]  # noqa: E731
+    info = None
+    if method == "net":
+        model = load()
+    else:
+        from reconstruct.physics_video import build_physics_model
+
+        model, info = build_physics_model(method, zeta or "self", src, group_dir=None if input.suffix.lower() == ".dat" else input, window_steps=window_steps,
+                                          exposure=None if src.exposure is not None else exposure, rir=True if rir is None else rir, load_learned=load)
     with rich_progress("reconstruct", enabled=not quiet) as cb:
         s = reconstruct_stream(src, model, out, cfg, device=dev, progress=cb)
     c = Console()
+    if info is not None:
+        from polinfra.atomic import write_json
+
+        write_json(out / "physics.json", {"method": method, **info})
+        sc = info["selfcal"]
+        if sc and sc["ok"]:
+            c.print(f"{method} on self-calibrated zeta: pane tilt {sc['tilt_deg']:.1f} deg, azimuth {sc['azimuth_deg']:.1f} deg, fov {sc['fov_deg']:.1f} deg{' (fitted)' if sc['fov_fitted'] else ''}")
+        else:
+            c.print(f"{method} on zeta: {info['zeta']}" + (f" ({sc['reason']})" if sc else ""))
     c.print(f"{s['frames']} frames at {s['fps']:.1f} FPS from {s['input']} ({s['size'][1]}x{s['size'][0]}); NaN frames: {s['nan_frames']}")
     if s["tfp_corr_mean"] is not None:
         c.print(f"correlation of T with the plain TFP image: {s['tfp_corr_mean']:.3f}")

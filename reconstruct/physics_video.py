@@ -1,0 +1,238 @@
+"""Physics-only streaming reconstruction: a solver (ls, ridge, irls, rwps) on a zeta source, no network.
+
+:class:`PhysicsModel` follows the model protocol of :func:`reconstruct.video.run_model_on_windows`
+(``cfg.n_obs``; ``model(I (B, N, H, W), phi (B, N))`` -> ``T``, ``R``, ``T_base``, ``R_base``),
+so :func:`reconstruct.video.reconstruct_stream` streams it exactly as it streams the network.  Its
+zeta maps are per full-frame pixel, so it asks for whole frames (``stream_tile = 0``) and no
+padding (``pad_multiple = 1``).  Per window: RIR (optional; shifts estimated on the frames, applied
+to frames and zeta alike, as the evaluation harness does), then :func:`reconstruct.solvers.solve`.
+
+zeta sources (:func:`build_physics_model`):
+
+* ``self``: the pane fitted to the first ``span_s`` of the stream itself
+  (:func:`calibrate_source`, :mod:`reconstruct.selfcal`); where nothing modulates, the
+  learned zeta of a checkpoint instead (a warning says so);
+* ``physics``: a group store's incidence-angle and phi_perp maps with a calibrated index and
+  pane model (as ``polspike evaluate --zeta physics``); a raw .dat has no pane description;
+* ``gt``: a group store's true pane maps (R_perp, R_par, phi_perp), at the calibrated angles;
+* ``learned``: zeta and reliability weights of a checkpoint's parameter branch
+  (:func:`reconstruct.zeta_source.zeta_learned`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import math
+
+import numpy as np
+import torch
+
+from polinfra.errors import ConfigError
+
+from reconstruct.selfcal import SelfCalConfig, SelfCalResult, self_calibrate
+from reconstruct.solvers import SOLVERS, SolverConfig, solve
+from reconstruct.zeta_source import PaneMaps, zeta_from_maps, zeta_learned
+
+__all__ = ["PHYSICS_METHODS", "STREAM_ZETA_SOURCES", "PhysicsModel", "PhysicsOutput", "calibrate_source", "group_pane_maps", "build_physics_model"]
+
+log = logging.getLogger(__name__)
+
+PHYSICS_METHODS = SOLVERS
+"""Solver names usable for a physics-only stream."""
+
+STREAM_ZETA_SOURCES = ("self", "learned", "physics", "gt")
+"""zeta sources of a physics-only stream (module docstring)."""
+
+
+@dataclasses.dataclass
+class PhysicsOutput:
+    """What :class:`PhysicsModel` returns: T, R (B, H, W); the solver output is also the base."""
+
+    T: torch.Tensor
+    R: torch.Tensor
+    T_base: torch.Tensor
+    R_base: torch.Tensor
+
+
+@dataclasses.dataclass(frozen=True)
+class _Cfg:
+    n_obs: int
+
+
+class PhysicsModel:
+    """A solver on a zeta source, callable like the network (module docstring).
+
+    Args:
+        method: one of :data:`PHYSICS_METHODS`.
+        n_obs: observations per output frame N (odd).
+        maps: per-pixel pane maps (H, W) for ``self`` / ``physics`` / ``gt``, or None with ``learned_model``.
+        span_rad: polarizer rotation during one Eq. (3) window (zeta is window-averaged).
+        learned_model: a network whose parameter branch gives zeta and w (``learned``), or None.
+        solver_cfg: solver parameters.
+        rir: align each window (reflection-invariant registration) before solving.
+    """
+
+    stream_tile = 0  # zeta maps are per full-frame pixel: whole frames, never tiles
+    pad_multiple = 1
+
+    def __init__(self, method: str, n_obs: int = 7, maps: PaneMaps | None = None, span_rad: float = 0.0, learned_model=None,
+                 solver_cfg: SolverConfig | None = None, rir: bool = True):
+        if method not in PHYSICS_METHODS:
+            raise ConfigError(f"unknown physics method {method!r}; choose one of {list(PHYSICS_METHODS)}")
+        if n_obs < 1 or n_obs % 2 == 0:
+            raise ConfigError(f"n_obs = {n_obs} must be odd (N = 2K + 1)")
+        if (maps is None) == (learned_model is None):
+            raise ConfigError("a physics model needs exactly one zeta source: pane maps or a learned model")
+        self.cfg = _Cfg(int(n_obs))
+        self.method = method
+        self.maps = maps
+        self.span_rad = float(span_rad)
+        self.learned_model = learned_model
+        self.solver_cfg = solver_cfg if solver_cfg is not None else _default_solver_cfg()
+        self.rir = bool(rir)
+
+    def eval(self) -> PhysicsModel:
+        return self
+
+    def __call__(self, I: torch.Tensor, phi: torch.Tensor) -> PhysicsOutput:
+        I = I.float()
+        phi = phi.float()
+        B, N, H, W = I.shape
+        if N != self.cfg.n_obs:
+            raise ConfigError(f"the physics model takes N = {self.cfg.n_obs} observations per window; got {N}")
+        if self.maps is not None and tuple(self.maps.phi_perp.shape) != (H, W):
+            raise ConfigError(f"pane maps are {self.maps.phi_perp.shape[1]}x{self.maps.phi_perp.shape[0]} but frames are {W}x{H}")
+        Z = None
+        if self.maps is not None:
+            Z = zeta_from_maps(self.maps, phi.cpu().numpy().astype(np.float64), self.span_rad, dtype=torch.float32, device=I.device)  # paper Eq. (2)
+        if self.rir and N > 1:
+            from reconstruct.rir import estimate_shifts, warp
+
+            sh = torch.stack([estimate_shifts(I[b], phi[b]) for b in range(B)]).to(I.dtype)
+            I = warp(I, sh)
+            Z = None if Z is None else warp(Z, sh)
+        w = None
+        if Z is None:
+            Z, w_learned = zeta_learned(self.learned_model, I, phi)
+            w = w_learned if self.method == "rwps" else None
+        r = solve(self.method, Z, I, weights=w, config=self.solver_cfg)
+        T, R = r.T.clamp_min(0.0), r.R.clamp_min(0.0)
+        return PhysicsOutput(T=T, R=R, T_base=T, R_base=R)
+
+
+def _default_solver_cfg() -> SolverConfig:
+    """The physics evaluation's solver settings when the solvers module defines them, else the defaults."""
+    import reconstruct.solvers as S
+
+    return getattr(S, "PHYSICS_SOLVER_CONFIG", SolverConfig())
+
+
+def calibrate_source(source, window_steps: int = 13, exposure: float | None = None, cfg: SelfCalConfig = SelfCalConfig()) -> SelfCalResult:
+    """Self-calibrate the pane on the first ``cfg.span_s`` of a spike stream (:class:`reconstruct.video.SpikeSource`).
+
+    Every spike of the span is used: back-to-back Eq. (3) windows of ``window_steps`` steps, each at
+    its mean calibrated polarizer angle (denser than the output cadence: more data, same model).
+    """
+    steps_needed = max(window_steps * 3, int(round(cfg.span_s * source.rate_hz)))
+    steps_needed = min(steps_needed, int(source.phi_step_rad.size))
+    ex = exposure if exposure is not None else (source.exposure or 1.0)
+    bufs, have = [], 0
+    for _, chunk in source.chunks():
+        bufs.append(np.asarray(chunk))
+        have += chunk.shape[0]
+        if have >= steps_needed:
+            break
+    sp = np.concatenate(bufs)[:steps_needed] if bufs else np.zeros((0, source.height, source.width), np.uint8)
+    M = sp.shape[0] // window_steps
+    if M < 3:
+        raise ConfigError(f"{source.name}: self-calibration needs at least {3 * window_steps} steps; the stream has {sp.shape[0]}")
+    counts = sp[: M * window_steps].reshape(M, window_steps, source.height, source.width).sum(1, dtype=np.int32)
+    I = counts.astype(np.float32) / np.float32(window_steps * ex)  # Eq. (3), radiance units
+    phi = source.phi_step_rad[: M * window_steps].reshape(M, window_steps).mean(1)
+    return self_calibrate(I, phi, cfg, name=source.name)
+
+
+def group_pane_maps(group_dir, zeta: str, n: float = 1.5, model: str = "single") -> PaneMaps:
+    """Pane maps of a stored group for ``gt`` (its true R_perp, R_par, phi_perp) or ``physics`` (its theta and
+    phi_perp maps, Fresnel reflectances of the calibrated index and pane model)."""
+    from spike_sim.store import open_group
+
+    with open_group(group_dir) as g:
+        mp = g.maps()
+    if zeta == "gt":
+        if not {"R_perp", "R_par", "phi_perp"} <= set(mp):
+            raise ConfigError(f"{group_dir}: no stored pane maps for --zeta gt; use --zeta self")
+        return PaneMaps(R_perp=mp["R_perp"], R_par=mp["R_par"], phi_perp=mp["phi_perp"])
+    if not {"theta", "phi_perp"} <= set(mp):
+        raise ConfigError(f"{group_dir}: no incidence-angle / phi_perp maps for --zeta physics; use --zeta self")
+    from polphysics.fresnel import pane_coefficients
+
+    co = pane_coefficients(mp["theta"], n, model=model)
+    return PaneMaps(R_perp=co["R_perp"], R_par=co["R_par"], phi_perp=mp["phi_perp"])
+
+
+def build_physics_model(
+    method: str,
+    zeta: str,
+    source,
+    *,
+    group_dir=None,
+    n_obs: int = 7,
+    window_steps: int = 13,
+    exposure: float | None = None,
+    rir: bool = True,
+    load_learned=None,
+    selfcal: SelfCalConfig | None = None,
+    pane_n: float = 1.5,
+    pane_model: str = "single",
+) -> tuple[PhysicsModel, dict]:
+    """A :class:`PhysicsModel` for ``method`` on zeta source ``zeta`` for this stream.
+
+    Args:
+        method: solver name.
+        zeta: one of :data:`STREAM_ZETA_SOURCES`.
+        source: the :class:`reconstruct.video.SpikeSource`.
+        group_dir: the stored group's directory (``physics`` and ``gt`` need it), or None for a raw .dat.
+        n_obs, window_steps, exposure: window geometry (as the stream's).
+        rir: RIR alignment per window.
+        load_learned: callable () -> network, for ``learned`` and for the ``self`` fallback.
+        selfcal: self-calibration settings (``self``); its field of view defaults to the group's scene.
+        pane_n, pane_model: calibrated index and pane model (``physics``, ``self``).
+
+    Returns:
+        (model, info) with info = {"zeta": source used, "selfcal": summary or None}.
+
+    Raises:
+        ConfigError: a source this input cannot provide (one line).
+    """
+    if zeta not in STREAM_ZETA_SOURCES:
+        raise ConfigError(f"unknown zeta source {zeta!r}; choose one of {list(STREAM_ZETA_SOURCES)}")
+    if zeta in ("gt", "physics") and group_dir is None:
+        raise ConfigError(f"--zeta {zeta} needs a stored group (its pane maps); a raw .dat has none: use --zeta self or learned")
+    span = 2 * math.pi * source.polarizer_rev_s * window_steps / source.rate_hz
+    info: dict = {"zeta": zeta, "selfcal": None}
+    if zeta == "learned":
+        return PhysicsModel(method, n_obs, learned_model=_need(load_learned), rir=rir), info
+    if zeta in ("gt", "physics"):
+        return PhysicsModel(method, n_obs, maps=group_pane_maps(group_dir, zeta, pane_n, pane_model), span_rad=span, rir=rir), info
+    sc = selfcal or SelfCalConfig()
+    if not sc.fov_deg and group_dir is not None:
+        from reconstruct.selfcal import fov_from_group_dir
+
+        fov = fov_from_group_dir(group_dir)
+        if fov:
+            sc = dataclasses.replace(sc, fov_deg=fov)
+    sc = dataclasses.replace(sc, n=pane_n, model=pane_model)
+    res = calibrate_source(source, window_steps, exposure, sc)
+    info["selfcal"] = res.summary()
+    if res.ok:
+        return PhysicsModel(method, n_obs, maps=res.maps, span_rad=span, rir=rir), info
+    info["zeta"] = "learned (self-calibration found nothing modulating)"
+    return PhysicsModel(method, n_obs, learned_model=_need(load_learned), rir=rir), info
+
+
+def _need(load_learned):
+    if load_learned is None:
+        raise ConfigError("the learned zeta needs a checkpoint (--weights)")
+    return load_learned()
