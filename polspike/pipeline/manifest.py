@@ -84,6 +84,7 @@ MANIFESTS_DIR = REPO_ROOT / "datasets" / "manifests"
 _NAME_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,99}$")
 _SCENE_SECTIONS = ("camera", "pane", "layers", "polarizer", "render")
 _CONTENT_ALIASES = {"skimage:cat": "skimage:chelsea"}  # skimage.data.cat() is the chelsea image
+_CONTENT_FREE = frozenset({"procedural:flat", "procedural:disk"})  # no texture: shared use is no leak
 
 
 @dataclasses.dataclass(frozen=True)
@@ -316,7 +317,9 @@ def content_keys(scene: dict) -> set[str]:
     """Identities of the layer content a resolved scene uses (T, R and sprites).
 
     ``procedural:noise`` is seeded, so its key carries the seed; other procedural
-    kinds are the same image whatever the seed.
+    kinds are the same image whatever the seed.  Content-free shapes
+    (``procedural:flat``, ``procedural:disk``: a constant or a uniform disc, e.g. a
+    specular highlight) carry no texture to learn and are not keys.
     """
     keys: set[str] = set()
     for lname in ("transmission", "reflection"):
@@ -325,6 +328,8 @@ def content_keys(scene: dict) -> set[str]:
         srcs += [(sp["source"], int(lay.get("seed", 0)) + 1 + i) for i, sp in enumerate(lay.get("sprites", ()))]
         for src, seed in srcs:
             k = _CONTENT_ALIASES.get(src, src)
+            if k in _CONTENT_FREE:
+                continue
             if k == "procedural:noise":
                 k = f"{k}#seed={seed}"
             keys.add(k)

@@ -52,9 +52,9 @@ from polinfra.errors import ConfigError, SceneError
 
 from polspike.pipeline.manifest import MANIFEST_FORMAT, dump_manifest, parse_manifest
 
-__all__ = ["sample_manifest", "sample_manifest_text", "RANGES", "CONTENT_POOLS"]
+__all__ = ["sample_manifest", "sample_manifest_text", "RANGES", "RANGES_V1", "PROFILES", "CONTENT_POOLS"]
 
-RANGES: dict[str, tuple[float, float]] = {
+RANGES_V1: dict[str, tuple[float, float]] = {
     "fov_deg": (35.0, 55.0),
     "yaw_deg": (-15.0, 15.0),
     "pitch_deg": (-10.0, 10.0),
@@ -76,11 +76,59 @@ RANGES: dict[str, tuple[float, float]] = {
     "sprite_velocity_per_s": (-1.0, 1.0),
     "phase_deg": (0.0, 180.0),
 }
-"""Uniform ranges of the sampled parameters (see the module docstring)."""
+"""Uniform ranges of the ``v1`` profile (``paper_v1.toml``; module docstring)."""
+
+RANGES: dict[str, tuple[float, float]] = {
+    "fov_deg": (25.0, 55.0),
+    "yaw_deg": (-15.0, 15.0),
+    "pitch_deg": (-10.0, 10.0),
+    "roll_deg": (-10.0, 10.0),
+    "n": (1.45, 1.75),
+    "pane_distance_m": (0.5, 1.5),
+    "tilt_deg": (20.0, 78.0),
+    "brewster_window_deg": (-8.0, 8.0),
+    "tilt_axis_deg": (0.0, 180.0),
+    "thickness_mm": (2.0, 10.0),
+    "t_distance_m": (2.0, 8.0),
+    "r_distance_m": (1.0, 4.0),
+    "log_rt_ratio": (math.log(0.2), math.log(5.0)),
+    "t_brightness": (0.5, 1.0),
+    "r_brightness": (0.0, 1.0),
+    "haze_level": (0.5, 0.9),
+    "speed_view_per_s": (0.0, 1.0),
+    "pan_per_s": (-0.25, 0.25),
+    "translate_per_s": (-1.25, 1.25),
+    "rotate_deg_per_s": (-30.0, 30.0),
+    "zoom_per_s": (-0.3, 0.3),
+    "sprite_size": (0.1, 0.3),
+    "sprite_start": (0.2, 0.8),
+    "sprite_velocity_per_s": (-1.5, 1.5),
+    "highlight_size": (0.03, 0.08),
+    "highlight_velocity_per_s": (-0.3, 0.3),
+    "log_rate": (math.log(0.02), math.log(0.35)),
+    "phase_deg": (0.0, 180.0),
+}
+"""Ranges of the ``paper`` profile (``paper.toml``; module docstring).  ``t_brightness``,
+``r_brightness`` and ``translate_per_s`` are the bounds that follow from the other draws."""
 
 PANE_MODELS = (("single", 0.2), ("thin_slab", 0.5), ("thick_slab", 0.3))
 MAX_INCIDENCE_DEG = 82.0
 SPRITE_PROB = 0.3
+PROFILES = ("paper", "v1")
+"""Range profiles: ``paper`` (the paper's difficulty, default) and ``v1`` (the first, easier ranges)."""
+PAPER_PANE_MODELS = (("single", 1.0 / 3.0), ("thin_slab", 1.0 / 3.0), ("thick_slab", 1.0 / 3.0))
+PAPER_MAX_INCIDENCE_DEG = 88.0
+GLANCING_FROM_DEG = 60.0
+GLANCING_FOV_SLOPE = 2.2
+GLANCING_MIN_FOV_DEG = 12.0
+BREWSTER_PROB = 0.4
+HAZE_PROB = 0.25
+HIGHLIGHT_PROB = 0.3
+STATIC_PROB = 0.2
+PAN_PROB = 0.3
+NOMINAL_CONTENT_MEAN = 0.25
+R_MEAN_MAX = 0.85
+"""Mean linear radiance of a layer's content at brightness 1 (gamma-decoded images and textures), for the light level."""
 CONTENT_POOLS: dict[str, dict] = {
     "train": {
         "images": [
@@ -97,6 +145,11 @@ CONTENT_POOLS: dict[str, dict] = {
     },
 }
 """Split-specific layer content (no overlap between the splits)."""
+
+
+def _u1(rng: np.random.Generator, key: str) -> float:
+    lo, hi = RANGES_V1[key]
+    return float(rng.uniform(lo, hi))
 
 
 def _u(rng: np.random.Generator, key: str) -> float:
@@ -120,15 +173,15 @@ def _content(rng: np.random.Generator, split: str, avoid: str | None = None) -> 
             return src, seed
 
 
-def _motion(rng: np.random.Generator) -> dict:
+def _motion(rng: np.random.Generator) -> dict:  # v1 profile
     return {
-        "translate_per_s": [_r(_u(rng, "translate_per_s")), _r(_u(rng, "translate_per_s"))],
-        "rotate_deg_per_s": _r(_u(rng, "rotate_deg_per_s"), 3),
-        "zoom_per_s": _r(_u(rng, "zoom_per_s")),
+        "translate_per_s": [_r(_u1(rng, "translate_per_s")), _r(_u1(rng, "translate_per_s"))],
+        "rotate_deg_per_s": _r(_u1(rng, "rotate_deg_per_s"), 3),
+        "zoom_per_s": _r(_u1(rng, "zoom_per_s")),
     }
 
 
-def _pane_need(scene_d: dict) -> tuple[float, float] | None:
+def _pane_need(scene_d: dict, max_incidence_deg: float) -> tuple[float, float] | None:
     """Pane size (m) that just covers the view, or None when the geometry is rejected."""
     from generator.scene import check_scene_geometry, scene_from_dict
     from polphysics.geometry import incidence_geometry
@@ -141,32 +194,32 @@ def _pane_need(scene_d: dict) -> tuple[float, float] | None:
     except SceneError:
         return None
     geo = incidence_geometry(sc.camera_model(), sc.pane_plane())
-    if float(np.degrees(np.nanmax(geo["theta"]))) >= MAX_INCIDENCE_DEG:
+    if float(np.degrees(np.nanmax(geo["theta"]))) >= max_incidence_deg:
         return None
     e_w, e_h = sc.pane_axes()
     rel = geo["hit"] - sc.pane_plane().point
     return float(np.max(np.abs(rel @ e_w))) * 2, float(np.max(np.abs(rel @ e_h))) * 2
 
 
-def _group(rng: np.random.Generator, name: str, split: str, width: int, height: int) -> dict:
+def _group_v1(rng: np.random.Generator, name: str, split: str, width: int, height: int) -> dict:
     while True:  # rejection sampling of the geometry
-        fov = _r(_u(rng, "fov_deg"), 3)
-        yaw, pitch = math.radians(_u(rng, "yaw_deg")), math.radians(_u(rng, "pitch_deg"))
+        fov = _r(_u1(rng, "fov_deg"), 3)
+        yaw, pitch = math.radians(_u1(rng, "yaw_deg")), math.radians(_u1(rng, "pitch_deg"))
         look = [_r(math.sin(yaw) * math.cos(pitch), 5), _r(math.sin(pitch), 5), _r(-math.cos(yaw) * math.cos(pitch), 5)]
-        roll = _r(_u(rng, "roll_deg"), 3)
+        roll = _r(_u1(rng, "roll_deg"), 3)
         ps = np.array([p for _, p in PANE_MODELS])
         model = PANE_MODELS[int(rng.choice(len(PANE_MODELS), p=ps / ps.sum()))][0]
         pane = {
             "model": model,
-            "n": _r(_u(rng, "n")),
-            "distance_m": _r(_u(rng, "pane_distance_m"), 3),
-            "tilt_deg": _r(_u(rng, "tilt_deg"), 3),
-            "tilt_axis_deg": _r(_u(rng, "tilt_axis_deg"), 3),
-            "thickness_mm": _r(_u(rng, "thickness_mm"), 3),
+            "n": _r(_u1(rng, "n")),
+            "distance_m": _r(_u1(rng, "pane_distance_m"), 3),
+            "tilt_deg": _r(_u1(rng, "tilt_deg"), 3),
+            "tilt_axis_deg": _r(_u1(rng, "tilt_axis_deg"), 3),
+            "thickness_mm": _r(_u1(rng, "thickness_mm"), 3),
             "size_m": [1000.0, 1000.0],
         }
         camera = {"width": width, "height": height, "fov_deg": fov, "position": [0.0, 0.0, 0.0], "look_at": look, "up": [0.0, 1.0, 0.0], "roll_deg": roll}
-        need = _pane_need({"camera": camera, "pane": pane})
+        need = _pane_need({"camera": camera, "pane": pane}, MAX_INCIDENCE_DEG)
         if need is not None:
             break
     pane["size_m"] = [math.ceil(need[0] * 1.25 * 10) / 10, math.ceil(need[1] * 1.25 * 10) / 10]
@@ -174,17 +227,17 @@ def _group(rng: np.random.Generator, name: str, split: str, width: int, height: 
     r_src, r_seed = _content(rng, split, avoid=t_src)
     if r_src == t_src and r_seed == t_seed:
         r_seed = t_seed + 1 if r_seed + 1 < CONTENT_POOLS[split]["noise_seeds"][1] else t_seed - 1
-    trans = {"source": t_src, "seed": t_seed, "distance_m": _r(_u(rng, "t_distance_m"), 3), "brightness": _r(_u(rng, "t_brightness"), 3), "motion": _motion(rng)}
-    refl = {"source": r_src, "seed": r_seed, "distance_m": _r(_u(rng, "r_distance_m"), 3), "brightness": _r(_u(rng, "r_brightness"), 3), "motion": _motion(rng)}
+    trans = {"source": t_src, "seed": t_seed, "distance_m": _r(_u1(rng, "t_distance_m"), 3), "brightness": _r(_u1(rng, "t_brightness"), 3), "motion": _motion(rng)}
+    refl = {"source": r_src, "seed": r_seed, "distance_m": _r(_u1(rng, "r_distance_m"), 3), "brightness": _r(_u1(rng, "r_brightness"), 3), "motion": _motion(rng)}
     if rng.random() < SPRITE_PROB:
         sp_src, _ = _content(rng, split)
         if sp_src == "procedural:noise":
             sp_src = CONTENT_POOLS[split]["images"][-1]
         refl["sprites"] = [{
             "source": sp_src,
-            "size": _r(_u(rng, "sprite_size"), 3),
-            "start": [_r(_u(rng, "sprite_start"), 3), _r(_u(rng, "sprite_start"), 3)],
-            "velocity_per_s": [_r(_u(rng, "sprite_velocity_per_s"), 3), _r(_u(rng, "sprite_velocity_per_s"), 3)],
+            "size": _r(_u1(rng, "sprite_size"), 3),
+            "start": [_r(_u1(rng, "sprite_start"), 3), _r(_u1(rng, "sprite_start"), 3)],
+            "velocity_per_s": [_r(_u1(rng, "sprite_velocity_per_s"), 3), _r(_u1(rng, "sprite_velocity_per_s"), 3)],
         }]
     return {
         "name": name,
@@ -193,7 +246,121 @@ def _group(rng: np.random.Generator, name: str, split: str, width: int, height: 
         "camera": camera,
         "pane": pane,
         "layers": {"transmission": trans, "reflection": refl},
+        "polarizer": {"phase_deg": _r(_u1(rng, "phase_deg"), 3)},
+    }
+
+
+def _lu(rng: np.random.Generator, key: str) -> float:
+    """exp(U[lo, hi]) for a log range."""
+    return float(math.exp(_u(rng, key)))
+
+
+def _motion_paper(rng: np.random.Generator, pan: tuple[float, float]) -> dict:
+    if rng.random() < STATIC_PROB:
+        v, rot, zoom = (0.0, 0.0), 0.0, 0.0
+    else:
+        sp, ang = _u(rng, "speed_view_per_s"), float(rng.uniform(0.0, 2.0 * math.pi))
+        v = (sp * math.cos(ang), sp * math.sin(ang))
+        rot, zoom = _u(rng, "rotate_deg_per_s"), _u(rng, "zoom_per_s")
+    return {"translate_per_s": [_r(v[0] + pan[0]), _r(v[1] + pan[1])], "rotate_deg_per_s": _r(rot, 3), "zoom_per_s": _r(zoom)}
+
+
+def _group_paper(rng: np.random.Generator, name: str, split: str, width: int, height: int) -> dict:
+    ps = np.array([p for _, p in PAPER_PANE_MODELS])
+    need = None
+    while need is None:  # rejection sampling of the geometry: the centre incidence is kept for 20 camera draws
+        model = PAPER_PANE_MODELS[int(rng.choice(len(PAPER_PANE_MODELS), p=ps / ps.sum()))][0]
+        n = _r(_u(rng, "n"))
+        if rng.random() < BREWSTER_PROB:
+            tilt = math.degrees(math.atan(n)) + _u(rng, "brewster_window_deg")
+        else:
+            tilt = _u(rng, "tilt_deg")
+        fov_lo, fov_hi = RANGES["fov_deg"]
+        fov_hi = max(GLANCING_MIN_FOV_DEG, fov_hi - GLANCING_FOV_SLOPE * max(0.0, tilt - GLANCING_FROM_DEG))
+        fov_lo = min(fov_lo, fov_hi - 3.0)
+        for _ in range(20):
+            fov = _r(float(rng.uniform(fov_lo, fov_hi)), 3)
+            yaw, pitch = math.radians(_u(rng, "yaw_deg")), math.radians(_u(rng, "pitch_deg"))
+            look = [_r(math.sin(yaw) * math.cos(pitch), 5), _r(math.sin(pitch), 5), _r(-math.cos(yaw) * math.cos(pitch), 5)]
+            roll = _r(_u(rng, "roll_deg"), 3)
+            pane = {
+                "model": model,
+                "n": n,
+                "distance_m": _r(_u(rng, "pane_distance_m"), 3),
+                "tilt_deg": _r(tilt, 3),
+                "tilt_axis_deg": _r(_u(rng, "tilt_axis_deg"), 3),
+                "thickness_mm": _r(_u(rng, "thickness_mm"), 3),
+                "size_m": [1000.0, 1000.0],
+            }
+            camera = {"width": width, "height": height, "fov_deg": fov, "position": [0.0, 0.0, 0.0], "look_at": look, "up": [0.0, 1.0, 0.0], "roll_deg": roll}
+            need = _pane_need({"camera": camera, "pane": pane}, PAPER_MAX_INCIDENCE_DEG)
+            if need is not None:
+                break
+    pane["size_m"] = [math.ceil(need[0] * 1.25 * 10) / 10, math.ceil(need[1] * 1.25 * 10) / 10]
+    t_src, t_seed = _content(rng, split)
+    r_src, r_seed = _content(rng, split, avoid=t_src)
+    if r_src == t_src and r_seed == t_seed:
+        r_seed = t_seed + 1 if r_seed + 1 < CONTENT_POOLS[split]["noise_seeds"][1] else t_seed - 1
+    # brightness: T at t_brightness; R's mean radiance = ratio x T's (ratio log-uniform), from a
+    # brighter texture plus, past brightness 1, a uniform offset (capped at R_MEAN_MAX); haze: mostly offset
+    ratio = _lu(rng, "log_rt_ratio")
+    t_b = _u(rng, "t_brightness")
+    r_mean = min(ratio * t_b * NOMINAL_CONTENT_MEAN, R_MEAN_MAX)
+    haze = rng.random() < HAZE_PROB
+    if haze:  # bright, low-texture R of the same mean radiance: offset + faint content
+        level = _u(rng, "haze_level")
+        r_offset, r_b = r_mean * level, r_mean * (1.0 - level) / NOMINAL_CONTENT_MEAN
+    else:
+        r_b = min(1.0, r_mean / NOMINAL_CONTENT_MEAN)
+        r_offset = r_mean - r_b * NOMINAL_CONTENT_MEAN
+    pan = (_u(rng, "pan_per_s"), _u(rng, "pan_per_s")) if rng.random() < PAN_PROB else (0.0, 0.0)
+    trans = {"source": t_src, "seed": t_seed, "distance_m": _r(_u(rng, "t_distance_m"), 3), "brightness": _r(t_b, 3), "motion": _motion_paper(rng, pan)}
+    refl = {"source": r_src, "seed": r_seed, "distance_m": _r(_u(rng, "r_distance_m"), 3), "brightness": _r(r_b, 3), "motion": _motion_paper(rng, pan)}
+    if r_offset > 0.0:
+        refl["offset"] = _r(r_offset, 4)
+    tags = [f"R/T {ratio:.2f}", f"centre incidence {pane['tilt_deg']:.1f} deg", model]
+    if haze:
+        tags.append("haze")
+    if rng.random() < SPRITE_PROB:
+        sp_src, _ = _content(rng, split)
+        if sp_src == "procedural:noise":
+            sp_src = CONTENT_POOLS[split]["images"][-1]
+        layer = trans if rng.random() < 0.5 else refl
+        layer["sprites"] = [{
+            "source": sp_src,
+            "size": _r(_u(rng, "sprite_size"), 3),
+            "start": [_r(_u(rng, "sprite_start"), 3), _r(_u(rng, "sprite_start"), 3)],
+            "velocity_per_s": [_r(_u(rng, "sprite_velocity_per_s"), 3), _r(_u(rng, "sprite_velocity_per_s"), 3)],
+        }]
+        tags.append("sprite on " + ("T" if layer is trans else "R"))
+    if rng.random() < HIGHLIGHT_PROB:  # small bright discs on R (content-free: no split leak)
+        k = int(rng.integers(1, 4))
+        refl.setdefault("sprites", [])
+        for _ in range(k):
+            refl["sprites"].append({
+                "source": "procedural:disk",
+                "size": _r(_u(rng, "highlight_size"), 3),
+                "start": [_r(_u(rng, "sprite_start"), 3), _r(_u(rng, "sprite_start"), 3)],
+                "velocity_per_s": [_r(_u(rng, "highlight_velocity_per_s"), 3), _r(_u(rng, "highlight_velocity_per_s"), 3)],
+            })
+        # a disc is content value 1: about 4x the mean R content (NOMINAL_CONTENT_MEAN), saturating at high light
+        tags.append(f"{k} highlight(s)")
+    if pan != (0.0, 0.0):
+        tags.append("camera pan")
+    # light: exposure such that the mean T content fires `rate` spikes per pixel per step
+    rate = _lu(rng, "log_rate")
+    exposure = rate / (0.5 * NOMINAL_CONTENT_MEAN * max(t_b, 1e-3))
+    tags.append(f"{rate:.3f} spikes/px/step")
+    return {
+        "name": name,
+        "split": split,
+        "description": "; ".join(tags),
+        "seed": int(rng.integers(0, 2**31 - 1)),
+        "camera": camera,
+        "pane": pane,
+        "layers": {"transmission": trans, "reflection": refl},
         "polarizer": {"phase_deg": _r(_u(rng, "phase_deg"), 3)},
+        "spike_sim": {"preset": "default", "exposure": _r(exposure, 4)},
     }
 
 
@@ -209,6 +376,7 @@ def sample_manifest(
     keyframe_fps: float = 100.0,
     rate_hz: float = 30.0,
     spike_sim_preset: str = "default",
+    profile: str = "paper",
 ) -> dict:
     """Plain manifest data with ``n_groups`` groups drawn from :data:`RANGES`.
 
@@ -223,11 +391,14 @@ def sample_manifest(
         keyframe_fps: radiance keyframes per second.
         rate_hz: polarizer revolutions per second.
         spike_sim_preset: simulator preset name.
+        profile: range profile, ``paper`` (default) or ``v1`` (:data:`PROFILES`).
 
     Returns:
         dict ready for :func:`polspike.pipeline.manifest.dump_manifest`; it validates
         with :func:`polspike.pipeline.manifest.parse_manifest`.
     """
+    if profile not in PROFILES:
+        raise ConfigError(f"--ranges {profile!r} is unknown; choose one of {list(PROFILES)}")
     if n_groups < 1:
         raise ConfigError(f"--groups = {n_groups} must be >= 1")
     if not 0.0 <= test_fraction <= 1.0:
@@ -241,11 +412,12 @@ def sample_manifest(
     for i in range(n_groups):
         split = "train" if i < n_train else "test"
         idx = i if split == "train" else i - n_train
-        groups.append(_group(rng, f"{split}_{idx:03d}", split, width, height))
+        make = _group_paper if profile == "paper" else _group_v1
+        groups.append(make(rng, f"{split}_{idx:03d}", split, width, height))
     return {
         "format": MANIFEST_FORMAT,
         "name": name,
-        "description": f"{n_groups} groups sampled by `polspike dataset new --groups {n_groups} --seed {seed}` ({n_train} train / {n_test} test)",
+        "description": f"{n_groups} groups sampled by `polspike dataset new --groups {n_groups} --seed {seed}{'' if profile == 'paper' else ' --ranges ' + profile}` ({n_train} train / {n_test} test)",
         "defaults": {
             "tier": tier,
             "duration_s": float(duration_s),
@@ -260,8 +432,36 @@ def sample_manifest(
 def sample_manifest_text(n_groups: int, seed: int, **kw) -> str:
     """TOML text of :func:`sample_manifest` (validated before it is returned)."""
     data = sample_manifest(n_groups, seed, **kw)
-    text = dump_manifest(data, header=f"Sampled by polspike dataset new --groups {n_groups} --seed {seed}.\nRanges: polspike/pipeline/sampler.py (docs/datasets.md).")
+    prof = kw.get("profile", "paper")
+    flag = "" if prof == "paper" else f" --ranges {prof}"
+    text = dump_manifest(data, header=f"Sampled by polspike dataset new --groups {n_groups} --seed {seed}{flag}.\nRanges: polspike/pipeline/sampler.py (docs/datasets.md), profile {prof}.")
     import tomllib
 
     parse_manifest(tomllib.loads(text), where="sampled manifest", source_text=text.encode())
     return text
+
+
+def reduced_manifest(data: dict, name: str, width: int, height: int, duration_s: float, split: str = "test", description: str = "") -> dict:
+    """The groups of ``split`` of plain manifest data at another image size and duration.
+
+    Everything else (panes, layers, seeds, light) is kept, so a reduced build is the same scenes
+    seen by a coarser sensor (same field of view) for a shorter time: e.g. ``eval_paper.toml``
+    is ``paper.toml``'s test split at 200 x 125 and 0.1 s.
+    """
+    import copy
+
+    groups = []
+    for g in data["groups"]:
+        if g["split"] != split:
+            continue
+        g = copy.deepcopy(g)
+        g["camera"]["width"], g["camera"]["height"] = int(width), int(height)
+        groups.append(g)
+    if not groups:
+        raise ConfigError(f"no group in split {split!r}")
+    out = {k: copy.deepcopy(v) for k, v in data.items() if k != "groups"}
+    out["name"] = name
+    out["description"] = description or f"{data['name']}'s {len(groups)} {split} groups at {width} x {height}, {duration_s} s each"
+    out["defaults"]["duration_s"] = float(duration_s)
+    out["groups"] = groups
+    return out
