@@ -53,10 +53,10 @@ from polinfra.errors import ConfigError, DataFormatError
 from reconstruct.groups import EvalGroup
 from reconstruct.metrics import LPIPS_NA, lpips_status, psnr, score
 from reconstruct.rir import RirConfig, estimate_shifts, warp
-from reconstruct.solvers import SOLVERS, SolverConfig, solve
+from reconstruct.solvers import PHYSICS_SOLVER_CONFIG, SOLVERS, SolverConfig, solve
 from reconstruct.zeta_source import ZETA_SOURCES, PaneMaps, zeta_from_maps, zeta_learned
 
-__all__ = ["EvalConfig", "EvalReport", "BASELINES", "NET_METHOD", "load_network", "group_zeta", "evaluate_groups", "write_report", "parse_methods", "load_groups", "window_sweep", "markdown_table", "sweep_markdown"]
+__all__ = ["REGIME_FACTORS", "regime_of", "evaluate_by_regime", "regime_markdown", "EvalConfig", "EvalReport", "BASELINES", "NET_METHOD", "load_network", "group_zeta", "evaluate_groups", "write_report", "parse_methods", "load_groups", "window_sweep", "markdown_table", "sweep_markdown"]
 
 log = logging.getLogger(__name__)
 
@@ -217,7 +217,7 @@ def _means(items: list[dict], keys: tuple[str, ...]) -> dict:
 def evaluate_groups(
     groups: Iterable[EvalGroup],
     cfg: EvalConfig = EvalConfig(),
-    solver_cfg: SolverConfig = SolverConfig(),
+    solver_cfg: SolverConfig = PHYSICS_SOLVER_CONFIG,
     rir_cfg: RirConfig = RirConfig(),
     weights_fn: Callable[[torch.Tensor, torch.Tensor], torch.Tensor] | None = None,
     progress: Callable[[int, int], None] | None = None,
@@ -227,7 +227,8 @@ def evaluate_groups(
     Args:
         groups: :class:`EvalGroup` instances (already aggregated with cfg's window and stride).
         cfg: harness configuration.
-        solver_cfg: solver parameters.
+        solver_cfg: solver parameters (default: the adaptive physics configuration,
+            :data:`reconstruct.solvers.PHYSICS_SOLVER_CONFIG`; the network uses its own stored one).
         rir_cfg: registration parameters.
         weights_fn: optional reliability weights (I, phi) -> (B, N, H, W) in [0, 1] for rwps
             (the learned branch); default: :func:`reconstruct.solvers.poisson_reliability`.
@@ -440,7 +441,7 @@ def load_groups(dataset: str, split: str, cfg: EvalConfig, synthetic=None, progr
     return out
 
 
-def window_sweep(groups: list[EvalGroup] | None, dataset: str, split: str, cfg: EvalConfig, n_values=(5, 7, 9), dt_values=(0.30, 0.65, 1.10), synthetic=None, solver_cfg: SolverConfig = SolverConfig(), rir_cfg: RirConfig = RirConfig()) -> list[dict]:
+def window_sweep(groups: list[EvalGroup] | None, dataset: str, split: str, cfg: EvalConfig, n_values=(5, 7, 9), dt_values=(0.30, 0.65, 1.10), synthetic=None, solver_cfg: SolverConfig = PHYSICS_SOLVER_CONFIG, rir_cfg: RirConfig = RirConfig()) -> list[dict]:
     """Supp. Table 1 analysis: PSNR / SSIM of T for every (N, dt) pair, solvers of cfg.methods.
 
     Groups are re-aggregated for each dt (the window changes the frames).
@@ -461,3 +462,96 @@ def sweep_markdown(rows: list[dict]) -> str:
     """Markdown table of :func:`window_sweep` rows."""
     head = "| N | dt (ms) | method | frames | PSNR T (dB) | SSIM T |\n|---:|---:|---|---:|---:|---:|\n"
     return head + "\n".join(f"| {r['n_obs']} | {r['dt_ms']:.2f} | {r['method']} | {r['n_frames']} | {_fmt(r['psnr_T'], 2)} | {_fmt(r['ssim_T'])} |" for r in rows) + "\n"
+
+
+# ---- per-regime table (stress.toml) ---------------------------------------------------------------
+
+REGIME_FACTORS: dict[str, tuple[str, ...]] = {
+    "refl": ("weak", "strong", "dominant"),
+    "motion": ("static", "fast"),
+    "light": ("dim", "bright"),
+    "inc": ("normal", "brewster", "glancing"),
+    "pane": ("single", "slab"),
+}
+"""Factors and levels of the stress grid; a group named ``refl-weak_motion-fast_light-dim_inc-brewster_pane-slab``
+(any order, ``FACTOR-LEVEL`` joined by ``_``) belongs to one level of each."""
+
+
+def regime_of(name: str) -> dict[str, str]:
+    """{factor: level} parsed from a stress group name (unknown parts are ignored)."""
+    out = {}
+    for part in name.split("_"):
+        f, _, lv = part.partition("-")
+        if f in REGIME_FACTORS and lv in REGIME_FACTORS[f]:
+            out[f] = lv
+    return out
+
+
+def evaluate_by_regime(
+    groups: list[EvalGroup],
+    cfg: EvalConfig,
+    zetas: Iterable[str] = ("gt", "learned"),
+    network: bool = True,
+    solver_cfg: SolverConfig = PHYSICS_SOLVER_CONFIG,
+    rir_cfg: RirConfig = RirConfig(),
+    progress: Callable[[int, int], None] | None = None,
+) -> dict:
+    """Every solver with every zeta source (by name, :data:`reconstruct.zeta_source.ZETA_SOURCES`),
+    the baselines and the network on each group, then one row per regime level.
+
+    Returns:
+        {"columns": [...], "groups": [{"group", "regime", column: PSNR T}], "rows": [{"regime",
+        "n_groups", column: mean PSNR T over the level's groups}], "ssim": same for SSIM T}.
+    """
+    zetas = list(dict.fromkeys(zetas))
+    bad = [z for z in zetas if z not in ZETA_SOURCES]
+    if bad:
+        raise ConfigError(f"unknown zeta source(s) {bad}; choose from {list(ZETA_SOURCES)}")
+    solvers = [m for m in parse_methods(cfg.methods) if m in SOLVERS] or list(SOLVERS)
+    per: dict[str, dict[str, float]] = defaultdict(dict)
+    per_ssim: dict[str, dict[str, float]] = defaultdict(dict)
+    columns: list[str] = list(BASELINES)
+    runs = [(z, solvers) for z in zetas] + ([(None, [NET_METHOD])] if network else [])
+    for j, (z, methods) in enumerate(runs):
+        c = dataclasses.replace(cfg, zeta=z or "gt", methods=",".join(methods), figure_frames=0)
+        rep = evaluate_groups(groups, c, solver_cfg, rir_cfg)
+        for r in rep.rows:
+            if r["group"] == "overall":
+                continue
+            m = r["method"]
+            if m in BASELINES:
+                if j > 0:
+                    continue
+                col = m
+            elif z is None:
+                col = "net:solver" if m.endswith(":solver") else "net"
+            else:
+                col = f"{m}@{z}"
+            per[r["group"]][col] = r["psnr_T"]
+            per_ssim[r["group"]][col] = r["ssim_T"]
+            if col not in columns:
+                columns.append(col)
+        if progress:
+            progress(j + 1, len(runs))
+    grows = [{"group": g, "regime": regime_of(g), **v} for g, v in per.items()]
+    rows, srows = [], []
+    for f, levels in REGIME_FACTORS.items():
+        for lv in levels:
+            names = [g["group"] for g in grows if g["regime"].get(f) == lv]
+            if not names:
+                continue
+            for src, dst in ((per, rows), (per_ssim, srows)):
+                dst.append({"regime": f"{f}={lv}", "n_groups": len(names), **{c: _mean_or_none([src[n].get(c) for n in names]) for c in columns}})
+    return {"columns": columns, "groups": grows, "rows": rows, "ssim": srows}
+
+
+def _mean_or_none(v: list) -> float | None:
+    v = [x for x in v if x is not None and np.isfinite(x)]
+    return float(np.mean(v)) if v else None
+
+
+def regime_markdown(res: dict) -> str:
+    """Markdown table of :func:`evaluate_by_regime` rows (PSNR of T, dB)."""
+    cols = res["columns"]
+    head = "| regime | groups | " + " | ".join(cols) + " |\n|---|---:|" + "---:|" * len(cols) + "\n"
+    return head + "\n".join(f"| {r['regime']} | {r['n_groups']} | " + " | ".join(_fmt(r[c], 2) for c in cols) + " |" for r in res["rows"]) + "\n"

@@ -56,6 +56,8 @@ from polinfra.errors import ConfigError, ShapeError
 
 __all__ = [
     "SOLVERS",
+    "PHYSICS_SOLVER_CONFIG",
+    "adaptive_confidence",
     "SolverConfig",
     "SolverResult",
     "moments",
@@ -83,6 +85,11 @@ class SolverConfig:
     huber_c: float = opt(2.0, "Huber threshold delta in units of the per-pixel robust residual scale", lo=1e-3, hi=100.0)
     # defaults tuned on the closed-form synthetic set (reconstruct/README.md, "Solver defaults")
     huber_floor: float = opt(1e-3, "absolute floor on delta, in units of b (2 I)", lo=0.0, hi=1e6)
+    # Conf -> lambda mapping of rwps; "fixed" is the original one, kept as the default so that every
+    # stored SolverConfig (checkpoints) and SolverConfig() reproduce exactly.
+    lambda_map: str = opt("fixed", "rwps Conf -> lambda: fixed (Conf from 4 Var_w(zeta) alone) or adaptive (noise-aware Conf, module docstring)", choices=("fixed", "adaptive"))
+    snr_kappa: float = opt(1.0, "adaptive: value of the conditioning SNR q at which Conf = 1/2", lo=1e-9, hi=1e9)
+    noise_pool: int = opt(5, "adaptive: side (pixels) of the box over which the residual noise and signal power are pooled", lo=1, hi=101)
 
 
 @dataclasses.dataclass
@@ -94,6 +101,11 @@ class SolverResult:
     conf: torch.Tensor
     weights: torch.Tensor
     lam: torch.Tensor
+
+
+PHYSICS_SOLVER_CONFIG = SolverConfig(lambda_map="adaptive", lambda_low=0.0, lambda_high=3e-2, snr_kappa=1.0)
+"""Solver parameters of the physics-only paths (evaluation, ``polspike reconstruct --method``):
+adaptive RWPS with the constants fitted on training groups (``polspike fit-rwps``, README)."""
 
 
 def _eps(dtype: torch.dtype) -> float:
@@ -127,6 +139,45 @@ def confidence(zeta: torch.Tensor, w: torch.Tensor | None = None, kappa: float =
     tiny = torch.finfo(zeta.dtype).tiny ** 0.5
     d = (4.0 * det / (sw * sw + tiny)).clamp(0.0, 1.0)
     return d * (1.0 + kappa) / (d + kappa)
+
+
+def _box(x: torch.Tensor, k: int) -> torch.Tensor:
+    """Mean over a k x k box (edge-aware: padding does not count) of (..., H, W)."""
+    if k <= 1:
+        return x
+    shp = x.shape
+    y = torch.nn.functional.avg_pool2d(x.reshape(-1, 1, *shp[-2:]), k, stride=1, padding=k // 2, count_include_pad=False)
+    return y[..., : shp[-2], : shp[-1]].reshape(shp)
+
+
+def adaptive_confidence(zeta: torch.Tensor, b: torch.Tensor, w: torch.Tensor, snr_kappa: float = 1.0, pool: int = 5) -> torch.Tensor:
+    """Noise-aware Conf in [0, 1) (``lambda_map = "adaptive"``; module docstring, "Adaptive Conf").
+
+    q = 4 Var_w(zeta) N_eff s^2 / sigma^2 is the signal-to-noise ratio of the worst-determined
+    direction of the 2x2 system: Var_w(zeta) its eigenvalue scale, N_eff = (sum w)^2 / sum w^2,
+    sigma^2 the residual variance of a first weighted least-squares solve (N_eff / (N_eff - 2)
+    corrected) and s^2 the mean of b^2 (the signal power), both pooled over a ``pool`` x ``pool``
+    box.  Conf = q / (q + snr_kappa).
+
+    Args:
+        zeta, b, w: (..., N, H, W) mixing coefficients, right sides (2 I) and weights.
+        snr_kappa: q at which Conf = 1/2.
+        pool: box side in pixels.
+
+    Returns:
+        Conf (..., H, W).
+    """
+    S_rr, S_rt, S_tt, sw = moments(zeta, w)
+    tiny = torch.finfo(zeta.dtype).tiny ** 0.5
+    var_z = ((S_rr * S_tt - S_rt * S_rt).clamp_min(0.0) / (sw * sw + tiny)).clamp(0.0, 0.25)  # = Var_w(zeta)
+    n_eff = sw * sw / ((w * w).sum(-3) + tiny)
+    R, T = solve_weighted_ridge(zeta, b, w, 0.0)
+    r = b - (zeta * R.unsqueeze(-3) + (1.0 - zeta) * T.unsqueeze(-3))
+    dof = (n_eff - 2.0).clamp_min(0.5)
+    sigma2 = _box((w * r * r).sum(-3) / (sw + tiny) * n_eff / dof, pool)
+    s2 = _box((w * b * b).sum(-3) / (sw + tiny), pool)
+    q = 4.0 * var_z * n_eff * s2 / (sigma2 + 1e-6 * s2 + tiny)
+    return q / (q + snr_kappa)
 
 
 def lambda_from_conf(conf: torch.Tensor, lambda_low: float, lambda_high: float) -> torch.Tensor:
@@ -230,7 +281,10 @@ def solve(
         w0 = poisson_reliability(zeta, I) if weights is None else torch.broadcast_to(weights.to(I.dtype), I.shape).clamp(0.0, 1.0)
     else:
         w0 = torch.ones_like(I)
-    conf = confidence(zeta, w0, config.conf_kappa)
+    if method == "rwps" and config.lambda_map == "adaptive":
+        conf = adaptive_confidence(zeta, b, w0, config.snr_kappa, config.noise_pool)
+    else:
+        conf = confidence(zeta, w0, config.conf_kappa)
     if method == "rwps":
         lam = lambda_from_conf(conf, config.lambda_low, config.lambda_high)
     elif method == "ridge":

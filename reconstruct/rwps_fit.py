@@ -1,0 +1,103 @@
+"""Fit the adaptive RWPS constants (Conf -> lambda) on training groups.
+
+The adaptive mapping of :mod:`reconstruct.solvers` (``lambda_map = "adaptive"``) has three
+constants: ``snr_kappa`` (the conditioning SNR q at which Conf = 1/2), ``lambda_low`` (lambda
+where the modulation is strong and well conditioned, Conf -> 1) and ``lambda_high`` (the prior's
+strength where the system is near-singular, Conf -> 0).  :func:`fit_rwps` scores every point of a
+small grid on the RIR-aligned windows of *training* groups with the true zeta and keeps the one
+with the best worst-group margin over the better of its neighbours,
+
+    objective = min_g m_g + 0.1 mean_g m_g,    m_g = PSNR_rwps(g) - max(PSNR_ls(g), PSNR_ridge(g)),
+
+(PSNR of T, mean over the group's frames), i.e. RWPS should never lose to LS or ridge and win
+where it can.  ``polspike fit-rwps DATASET --split train`` runs it and writes the table.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import itertools
+from collections.abc import Callable
+
+import numpy as np
+import torch
+
+from reconstruct.evaluate import EvalConfig, group_zeta
+from reconstruct.groups import EvalGroup
+from reconstruct.metrics import psnr
+from reconstruct.rir import RirConfig, estimate_shifts, warp
+from reconstruct.solvers import SolverConfig, solve
+
+__all__ = ["GRID", "aligned_windows", "group_scores", "fit_rwps"]
+
+GRID: dict[str, tuple[float, ...]] = {
+    "snr_kappa": (0.3, 1.0, 3.0, 10.0, 30.0, 100.0),
+    "lambda_low": (0.0, 1e-3),
+    "lambda_high": (1e-2, 3e-2, 1e-1),
+}
+"""Grid searched by :func:`fit_rwps`."""
+
+
+def aligned_windows(groups: list[EvalGroup], cfg: EvalConfig, rir_cfg: RirConfig = RirConfig()) -> dict[str, list[tuple[torch.Tensor, torch.Tensor, np.ndarray]]]:
+    """Per group: list of (zeta, I, GT T) windows, RIR-aligned as in :func:`reconstruct.evaluate.evaluate_groups`."""
+    K = cfg.n_obs // 2
+    dtype = torch.float64 if cfg.dtype == "float64" else torch.float32
+    out: dict[str, list] = {}
+    for g in groups:
+        Z = group_zeta(g, cfg)
+        M = g.I.shape[0]
+        has = np.ones(M, bool) if g.has_gt is None else g.has_gt
+        centres = [i for i in range(K, M - K) if has[i] and g.T is not None]
+        if cfg.max_frames:
+            centres = centres[: cfg.max_frames]
+        items = []
+        for i in centres:
+            Iw = torch.from_numpy(np.ascontiguousarray(g.I[i - K : i + K + 1])).to(dtype)
+            Pw = torch.from_numpy(np.asarray(g.phi_nominal[i - K : i + K + 1], np.float64)).to(dtype)
+            Zw = torch.from_numpy(np.ascontiguousarray(Z[i - K : i + K + 1])).to(dtype)
+            if cfg.rir and cfg.n_obs > 1:
+                sh = estimate_shifts(Iw, Pw, config=rir_cfg).to(dtype)
+                Iw, Zw = warp(Iw[None], sh[None])[0], warp(Zw[None], sh[None])[0]
+            items.append((Zw, Iw, g.T[i]))
+        out[g.name] = items
+    return out
+
+
+def group_scores(windows: dict[str, list], method: str, solver_cfg: SolverConfig) -> dict[str, float]:
+    """Mean PSNR of T per group for one solver."""
+    res = {}
+    for name, items in windows.items():
+        if not items:
+            continue
+        Z = torch.stack([z for z, _, _ in items])
+        I = torch.stack([x for _, x, _ in items])
+        T = solve(method, Z, I, config=solver_cfg).T.numpy()
+        res[name] = float(np.mean([psnr(T[j], items[j][2]) for j in range(len(items))]))
+    return res
+
+
+def fit_rwps(windows: dict[str, list], base: SolverConfig = SolverConfig(), grid: dict = GRID, progress: Callable[[int, int], None] | None = None) -> dict:
+    """Grid search of the adaptive constants (module docstring).
+
+    Returns:
+        {"best": {constants}, "objective": float, "ls": {...}, "ridge": {...}, "table": [rows],
+        "groups": [names]}; each row: the constants, objective, min and mean margin, mean PSNR.
+    """
+    ls = group_scores(windows, "ls", base)
+    ridge = group_scores(windows, "ridge", base)
+    ref = {g: max(ls[g], ridge[g]) for g in ls}
+    keys = list(grid)
+    combos = list(itertools.product(*(grid[k] for k in keys)))
+    rows = []
+    for j, vals in enumerate(combos):
+        c = dict(zip(keys, vals))
+        if c["lambda_low"] > c["lambda_high"]:
+            continue
+        sc = dataclasses.replace(base, lambda_map="adaptive", **c)
+        rw = group_scores(windows, "rwps", sc)
+        m = np.array([rw[g] - ref[g] for g in ref])
+        rows.append({**c, "objective": float(m.min() + 0.1 * m.mean()), "min_margin": float(m.min()), "mean_margin": float(m.mean()), "mean_psnr": float(np.mean(list(rw.values())))})
+        if progress:
+            progress(j + 1, len(combos))
+    best = max(rows, key=lambda r: (r["objective"], r["mean_psnr"]))
+    return {"best": {k: best[k] for k in keys}, "objective": best["objective"], "ls": ls, "ridge": ridge, "table": rows, "groups": list(ref)}
