@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import Any
 
 from polinfra.errors import OutputError
+from polinfra.faults import fault_point
 
 __all__ = ["atomic_path", "write_bytes", "write_json", "write_text", "ensure_dir"]
 
@@ -52,6 +53,7 @@ def atomic_path(final: str | os.PathLike, suffix: str | None = None) -> Iterator
     tmp_path = Path(tmp)
     try:
         yield tmp_path
+        fault_point(f"atomic:{final.name}")  # test-only kill -9 injection (polinfra.faults)
         os.replace(tmp_path, final)
     except OSError as exc:
         tmp_path.unlink(missing_ok=True)

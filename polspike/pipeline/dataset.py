@@ -78,6 +78,7 @@ import numpy as np
 
 from polinfra.atomic import ensure_dir, write_bytes, write_json
 from polinfra.errors import ConfigError, DataFormatError, OutputError, PolspikeError
+from polinfra.faults import fault_point
 
 from polspike.pipeline.manifest import Manifest, ResolvedGroup, load_manifest
 
@@ -375,6 +376,7 @@ def build_group(spec: dict, out_dir: str, chunk_steps: int = 1000, numba_threads
         write_json(work / CHECKSUMS_FILE, cs)
         _fsync_tree(work)  # data on disk before the name appears (a crash then leaves no torn group)
         ensure_dir(final.parent)
+        fault_point("dataset.publish")  # test-only kill -9 injection (polinfra.faults)
         try:
             os.rename(work, final)  # atomic publish: the group appears complete or not at all
         except OSError as exc:
