@@ -25,7 +25,7 @@ from reconstruct.harmonic_fit import dop, harmonic_fit
 from reconstruct.rir import RirConfig, estimate_shifts, warp
 from reconstruct.solvers import solve
 
-__all__ = ["bench_reconstruct"]
+__all__ = ["bench_reconstruct", "bench_reconstruct_net", "count_flops", "net_table"]
 
 log = logging.getLogger(__name__)
 
@@ -108,3 +108,200 @@ def bench_reconstruct(width: int = 400, height: int = 250, n_obs: int = 7, batch
         out["results"][dev] = {k: {"s_per_frame": v, "fps": 1.0 / v} for k, v in res.items()}
         out["results"][dev]["ratios"] = {"rwps_over_ls_time": res["rwps"] / res["ls"], "pipeline_over_ls_time": res["pipeline"] / res["ls"]}
     return out
+
+
+# ---------------------------------------------------------------------------
+# The learned reconstructor (issue 19): v1 against v2 in one run
+
+
+def count_flops(model, height: int = 250, width: int = 400) -> float:
+    """FLOPs of one output frame (one window of N frames, padded as the stream pads it), counted by
+    :class:`torch.utils.flop_counter.FlopCounterMode` (a multiply-add = 2 FLOPs; convolutions, linear
+    layers and matrix products; elementwise work is not counted)."""
+    from torch.utils.flop_counter import FlopCounterMode
+
+    m = int(getattr(model, "pad_multiple", 4))
+    H, W = height + (-height) % m, width + (-width) % m
+    I = 0.1 + 0.3 * torch.rand(1, model.cfg.n_obs, H, W, generator=torch.Generator().manual_seed(0))
+    phi = (torch.arange(model.cfg.n_obs, dtype=torch.float32) - model.cfg.n_obs // 2)[None] * 0.55
+    fc = FlopCounterMode(display=False)
+    with torch.inference_mode(), fc:
+        model(I, phi)
+    return float(fc.get_total_flops())
+
+
+def _frame_fps(model, height: int, width: int, frames: int, tile: int, precision: str = "float32") -> float:
+    from reconstruct.video import run_model_on_windows
+
+    g = np.random.default_rng(0)
+    N = model.cfg.n_obs
+    I = (0.1 + 0.3 * g.random((1, N, height, width))).astype(np.float32)
+    phi = ((np.arange(N) - N // 2) * np.radians(31.5))[None].astype(np.float32)
+    run_model_on_windows(model, I, phi, "cpu", tile, precision=precision)  # warm-up
+    best = float("inf")
+    for _ in range(frames):
+        t0 = time.perf_counter()
+        run_model_on_windows(model, I, phi, "cpu", tile, precision=precision)
+        best = min(best, time.perf_counter() - t0)
+    return 1.0 / best
+
+
+def _stream_fps(model, height: int, width: int, frames: int, out_dir) -> dict:
+    """``polspike reconstruct`` end to end (Eq. (3) aggregation, network, video writing) on a synthetic stream."""
+    from reconstruct.video import ReconstructConfig, array_source, reconstruct_stream
+
+    N = model.cfg.n_obs
+    steps = int((frames + N + 1) * 31.5 / 360 / 30.0 * 20000) + 40
+    g = np.random.default_rng(1)
+    rate = g.uniform(0.05, 0.4, (1, height, width)).astype(np.float32)
+    spikes = np.empty((steps, height, width), np.uint8)
+    for i in range(0, steps, 64):
+        n = min(64, steps - i)
+        spikes[i : i + n] = g.random((n, height, width), dtype=np.float32) < rate
+    s = reconstruct_stream(array_source(spikes, 0.0, 30.0), model, out_dir, ReconstructConfig(max_frames=frames))
+    return {"frames": s["frames"], "seconds": s["seconds"], "frames_per_second": s["frames"] / s["seconds"], "tile": s["tile"], "feature_cache": s["feature_cache"]}
+
+
+def _train_throughput(arch_cfg, train_set, steps: int, workers: int, out_dir) -> dict:
+    """Wall time of ``steps`` optimizer steps of :func:`reconstruct.train.train` (data generation included)."""
+    import dataclasses
+
+    from reconstruct.train import train
+
+    cfg = dataclasses.replace(arch_cfg, epochs=1, steps_per_epoch=steps, ckpt_every=10**6, log_every=10**6, val_every=10**6)
+    t0 = time.perf_counter()
+    train(cfg, train_set, None, out_dir, workers=workers)
+    dt = time.perf_counter() - t0
+    px = cfg.window.crop**2 * cfg.batch_size * steps
+    return {"steps": steps, "workers": workers, "seconds": dt, "steps_per_second": steps / dt, "window_pixels_per_second": px / dt, "crop": cfg.window.crop, "batch": cfg.batch_size}
+
+
+def bench_reconstruct_net(
+    models: dict,
+    *,
+    height: int = 250,
+    width: int = 400,
+    frames: int = 2,
+    threads: tuple[int, ...] = (1, 2),
+    stream_frames: dict | None = None,
+    train_cfgs: dict | None = None,
+    train_set=None,
+    train_steps: dict | None = None,
+    variants: bool = True,
+    compile_: bool = False,
+    work_dir=None,
+) -> dict:
+    """Cost and speed of learned reconstructors measured in one process (issue 19).
+
+    Args:
+        models: name -> model (eval mode, CPU), e.g. {"v1": ..., "v2": ...}; the first is the reference of the ratios.
+        height, width: frame size (400 x 250: the sensor).
+        frames: timed single-frame passes per setting (best kept).
+        threads: torch thread counts for the frame rate.
+        stream_frames: name -> output frames of the end-to-end ``polspike reconstruct`` run (2 threads; omit to skip).
+        train_cfgs: name -> :class:`reconstruct.train.TrainConfig` for the training throughput (omit to skip).
+        train_set: on-the-fly training windows (map-style dataset) for the training throughput.
+        train_steps: name -> optimizer steps timed.
+        variants: also time channels-last and bf16 autocast (and ``torch.compile`` when ``compile_``) for every model.
+        work_dir: scratch directory (videos, run directories).
+
+    Returns:
+        {"config", "models": {name: {...}}, "ratios": {name: {...}}} (JSON-ready).
+    """
+    import tempfile
+    from pathlib import Path
+
+    from reconstruct.network import count_parameters
+
+    work = Path(work_dir or tempfile.mkdtemp(prefix="bench_net_"))
+    out: dict = {"config": {"width": width, "height": height, "frames": frames, "threads": list(threads), "torch": torch.__version__, "machine": platform.machine()}, "models": {}}
+    n0 = torch.get_num_threads()
+    trained: dict = {}
+    try:
+        # training first, on one thread, the runs with a DataLoader worker before any in-process window
+        # generation: the worker is forked, which GNU OpenMP (torch threads, spike_sim's numba kernel) forbids
+        # once a multi-threaded region ran in this process
+        torch.set_num_threads(1)
+        for w in (1, 0):
+            for name in models:
+                if train_cfgs and name in train_cfgs and train_set is not None:
+                    steps = (train_steps or {}).get(name, 10)
+                    trained.setdefault(name, {})[f"workers_{w}"] = _train_throughput(train_cfgs[name], train_set, steps, w, work / f"train_{name}_{w}")
+                    log.info("%s: training %s", name, trained[name])
+        for name, model in models.items():
+            from reconstruct.video import auto_tile
+
+            r: dict = {"arch": getattr(model.cfg, "arch", "?"), "parameters": count_parameters(model), "tile": auto_tile(model, "cpu")}
+            torch.set_num_threads(1)
+            r["gflop_per_frame"] = count_flops(model, height, width) / 1e9
+            for t in threads:
+                torch.set_num_threads(t)
+                r[f"fps_{t}thr"] = _frame_fps(model, height, width, frames, r["tile"])
+                log.info("%s: %.3f frames/s on %d threads", name, r[f"fps_{t}thr"], t)
+            if variants:
+                t = max(threads)
+                torch.set_num_threads(t)
+                v = {"float32": r[f"fps_{t}thr"]}
+                v["bfloat16_autocast"] = _frame_fps(model, height, width, frames, r["tile"], "bfloat16")
+                model.to(memory_format=torch.channels_last)
+                v["channels_last"] = _frame_fps(model, height, width, frames, r["tile"])
+                v["channels_last_bfloat16"] = _frame_fps(model, height, width, frames, r["tile"], "bfloat16")
+                model.to(memory_format=torch.contiguous_format)
+                if compile_:
+                    try:
+                        cm = torch.compile(model)
+                        cm.cfg = model.cfg
+                        cm.pad_multiple = getattr(model, "pad_multiple", 4)
+                        v["torch_compile"] = _frame_fps(cm, height, width, frames, r["tile"])
+                    except Exception as exc:  # compile needs a working C++ toolchain
+                        v["torch_compile"] = f"failed: {type(exc).__name__}: {str(exc).splitlines()[0][:100]}"
+                r[f"variants_fps_{t}thr"] = v
+            if stream_frames and name in stream_frames:
+                torch.set_num_threads(2)
+                r["reconstruct_2thr"] = _stream_fps(model, height, width, stream_frames[name], work / f"video_{name}")
+            if name in trained:
+                r["train_1thr"] = trained[name]
+            out["models"][name] = r
+    finally:
+        torch.set_num_threads(n0)
+    names = list(out["models"])
+    ref = out["models"][names[0]]
+    out["reference"] = names[0]
+    out["ratios"] = {}
+    for name in names[1:]:
+        r = out["models"][name]
+        q = {"flops_reduction": ref["gflop_per_frame"] / r["gflop_per_frame"]}
+        for t in threads:
+            q[f"fps_{t}thr_speedup"] = r[f"fps_{t}thr"] / ref[f"fps_{t}thr"]
+        if "reconstruct_2thr" in r and "reconstruct_2thr" in ref:
+            q["reconstruct_speedup"] = r["reconstruct_2thr"]["frames_per_second"] / ref["reconstruct_2thr"]["frames_per_second"]
+        if "train_1thr" in r and "train_1thr" in ref:
+            for w in (0, 1):
+                q[f"train_pixels_speedup_workers_{w}"] = r["train_1thr"][f"workers_{w}"]["window_pixels_per_second"] / ref["train_1thr"]["workers_0"]["window_pixels_per_second"]
+        out["ratios"][name] = q
+    return out
+
+
+def net_table(res: dict) -> str:
+    """Markdown table of :func:`bench_reconstruct_net` results."""
+    names = list(res["models"])
+    thr = res["config"]["threads"]
+    rows = [("parameters", lambda r: f"{r['parameters']:,}"), ("GFLOP / frame (counted)", lambda r: f"{r['gflop_per_frame']:.1f}")]
+    for t in thr:
+        rows.append((f"network frames/s, {t} thread{'s' if t > 1 else ''}", lambda r, t=t: f"{r[f'fps_{t}thr']:.3f}"))
+    rows.append(("`polspike reconstruct` frames/s, 2 threads", lambda r: f"{r['reconstruct_2thr']['frames_per_second']:.3f}" if "reconstruct_2thr" in r else "-"))
+    for w in (0, 1):
+        rows.append((f"training steps/s (1 thread, {w} data worker{'s' if w != 1 else ''})", lambda r, w=w: f"{r['train_1thr'][f'workers_{w}']['steps_per_second']:.3f}" if "train_1thr" in r else "-"))
+        rows.append((f"training window-pixels/s (1 thread, {w} data worker{'s' if w != 1 else ''})", lambda r, w=w: f"{r['train_1thr'][f'workers_{w}']['window_pixels_per_second']:,.0f}" if "train_1thr" in r else "-"))
+    lines = ["| | " + " | ".join(names) + " |", "|---|" + "---:|" * len(names)]
+    for label, f in rows:
+        lines.append(f"| {label} | " + " | ".join(f(res["models"][n]) for n in names) + " |")
+    for n, q in res.get("ratios", {}).items():
+        lines.append("")
+        lines.append(f"{n} vs {res['reference']} (same run): " + ", ".join(f"{k} {v:.2f}x" for k, v in q.items()))
+    for n in names:
+        v = next((res["models"][n][k] for k in res["models"][n] if k.startswith("variants_fps_")), None)
+        if v:
+            lines.append("")
+            lines.append(f"{n} frames/s by variant: " + ", ".join(f"{k} {x:.3f}" if isinstance(x, float) else f"{k} {x}" for k, x in v.items()))
+    return "\n".join(lines) + "\n"

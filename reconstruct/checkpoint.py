@@ -27,10 +27,12 @@ from polinfra.errors import CheckpointError, ConfigError
 from reconstruct.network import NetConfig, PolSpikeNet, count_parameters
 from reconstruct.solvers import SolverConfig
 
-__all__ = ["CKPT_FORMAT", "DEFAULT_WEIGHTS", "save_checkpoint", "read_checkpoint", "load_model", "export_weights"]
+__all__ = ["CKPT_FORMAT", "DEFAULT_WEIGHTS", "V1_WEIGHTS", "save_checkpoint", "read_checkpoint", "load_model", "export_weights"]
 
 CKPT_FORMAT = "polspike-ckpt/1"
-DEFAULT_WEIGHTS = Path(__file__).resolve().parent / "weights" / "polspike_v1.pt"
+V1_WEIGHTS = Path(__file__).resolve().parent / "weights" / "polspike_v1.pt"
+"""The first shipped checkpoint (v1 architecture), kept for comparison."""
+DEFAULT_WEIGHTS = V1_WEIGHTS
 """The shipped checkpoint (see ``docs/MODEL_CARD.md``)."""
 
 

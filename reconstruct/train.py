@@ -280,7 +280,10 @@ def train(
             optimizer (0 = in this process).  The batches are the same either way
             (items are pure functions of (seed, index), the order is this loop's), so
             the trajectory does not depend on it; on-the-fly window generation then
-            overlaps the forward/backward pass.
+            overlaps the forward/backward pass.  The worker is forked: start a run with
+            workers before this process ran multi-threaded OpenMP code (torch with more
+            than one thread, spike_sim's parallel kernel), which GNU OpenMP forbids
+            (``polspike train`` sets its threads first and forks at the start).
 
     Returns:
         dict with ``step``, ``total_steps``, ``param_count`` and the last validation metrics.

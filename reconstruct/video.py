@@ -149,7 +149,12 @@ def _autocast(device: torch.device, precision: str):
 
 
 def auto_tile(model, device: str | torch.device = "cpu") -> int:
-    """Default tile side: whole frames (0) for cacheable (v2) networks and on CUDA, 128 otherwise (v1 on CPU)."""
+    """Default tile side: the model's own ``stream_tile`` when it has one (0 = whole frames, e.g. a
+    physics model with per-frame-pixel zeta maps), else whole frames (0) for cacheable (v2)
+    networks and on CUDA, 128 otherwise (v1 on CPU)."""
+    own = getattr(model, "stream_tile", None)
+    if own is not None:
+        return int(own)
     return 0 if (getattr(model, "cacheable", False) or torch.device(device).type == "cuda") else 128
 
 

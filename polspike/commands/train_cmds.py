@@ -219,29 +219,53 @@ from polspike.cli import bench_app  # noqa: E402
 
 @bench_app.command("reconstruct-net")
 def bench_reconstruct_net_cmd(
-    weights: Optional[Path] = typer.Option(None, "--weights", help="checkpoint [default: shipped]"),
+    weights: Optional[Path] = typer.Option(None, "--weights", help="checkpoint of the network under test [default: the shipped default checkpoint]"),
+    reference: Optional[Path] = typer.Option(None, "--reference", help="reference checkpoint measured in the same run [default: reconstruct/weights/polspike_v1.pt]"),
     height: int = typer.Option(250, "--height", help="frame height H, pixels"),
     width: int = typer.Option(400, "--width", help="frame width W, pixels"),
-    frames: int = typer.Option(2, "--frames", help="timed output frames per device"),
-    json_out: Optional[Path] = typer.Option(None, "--json", help="write the results here as JSON"),
-    threads: int = typer.Option(0, "--threads", help="torch CPU threads (0 = torch default)"),
+    frames: int = typer.Option(2, "--frames", help="timed output frames per setting (best kept)"),
+    stream_frames: int = typer.Option(12, "--stream-frames", help="output frames of the end-to-end `polspike reconstruct` run of the network under test (the reference runs 2); 0 = skip"),
+    train_steps: int = typer.Option(20, "--train-steps", help="timed training steps of the network under test (the reference runs a third as many, at least 4); 0 = skip"),
+    variants: bool = typer.Option(True, "--variants/--no-variants", help="also time channels-last and bf16 autocast"),
+    compile_: bool = typer.Option(False, "--compile", help="also time torch.compile (needs a C++ compiler; minutes of compile time)"),
+    json_out: Optional[Path] = typer.Option(None, "--json", help="write the results here as JSON (and the table beside it as .md)"),
 ) -> None:
-    """Output frames per second of the full network (parameter branch, RWPS, refinement) on CPU and on CUDA when present."""
+    """Reference (v1) and new network in one run: GFLOP per frame, parameters, frames/s on 1 and 2 threads, `polspike reconstruct` frames/s, training throughput."""
+    import dataclasses
+
     import torch
 
-    if threads > 0:
-        torch.set_num_threads(threads)
+    torch.set_num_threads(1)  # before any torch work: the training part forks a DataLoader worker (GNU OpenMP forbids fork after a parallel region)
     from rich.console import Console
 
-    from polinfra.atomic import write_json
-    from reconstruct.checkpoint import DEFAULT_WEIGHTS, load_model
-    from reconstruct.video import bench_full_network
+    from polinfra.atomic import write_json, write_text
+    from polinfra.config import from_dict, load_toml
+    from reconstruct.bench import bench_reconstruct_net, net_table
+    from reconstruct.checkpoint import DEFAULT_WEIGHTS, V1_WEIGHTS, load_model
+    from reconstruct.train import TrainConfig
 
-    res = []
-    for dev in ["cpu"] + (["cuda"] if torch.cuda.is_available() else []):
-        model, _ = load_model(weights or DEFAULT_WEIGHTS, dev, use_rir=False)
-        res.append(bench_full_network(model, height, width, frames, dev, tile=128 if dev == "cpu" else 0))
-    for r in res:
-        Console().print(f"{r['device']}: {r['frames_per_second']:.3f} output frames/s at {width}x{height} ({r['seconds_per_frame']:.2f} s/frame, {r['threads']} threads)")
+    ref_path, new_path = reference or V1_WEIGHTS, weights or DEFAULT_WEIGHTS
+    models, train_cfgs = {}, {}
+    for label, path in (("reference", ref_path), ("new", new_path)):
+        model, data = load_model(path, "cpu", use_rir=False)
+        name = f"{model.cfg.arch} ({Path(path).name})"
+        models[name] = model
+        base = from_dict(TrainConfig, load_toml(Path(__file__).resolve().parents[2] / "reconstruct" / "configs" / f"cpu_{model.cfg.arch}.toml"))
+        train_cfgs[name] = dataclasses.replace(base, net=model.cfg, seed=0)
+    names = list(models)
+    train_set = None
+    if train_steps > 0:
+        train_set, _ = on_the_fly_sets(next(iter(train_cfgs.values())))
+        for j in range(len(train_set.source.scenes)):  # build every scene's maps once, before timing (workers fork with them)
+            train_set.source._scene(j)
+    res = bench_reconstruct_net(
+        models, height=height, width=width, frames=frames,
+        stream_frames=({names[0]: 2, names[1]: stream_frames} if stream_frames > 0 else None),
+        train_cfgs=train_cfgs if train_steps > 0 else None, train_set=train_set,
+        train_steps={names[0]: max(4, train_steps // 3), names[1]: train_steps}, variants=variants, compile_=compile_,
+    )
+    table = net_table(res)
+    Console().print(table)
     if json_out:
-        write_json(json_out, {"results": res})
+        write_json(json_out, res)
+        write_text(Path(json_out).with_suffix(".md"), table)
