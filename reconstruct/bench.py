@@ -130,18 +130,18 @@ def count_flops(model, height: int = 250, width: int = 400) -> float:
     return float(fc.get_total_flops())
 
 
-def _frame_fps(model, height: int, width: int, frames: int, tile: int, precision: str = "float32") -> float:
+def _frame_fps(model, height: int, width: int, frames: int, tile: int, precision: str = "float32", device: str = "cpu") -> float:
     from reconstruct.video import run_model_on_windows
 
     g = np.random.default_rng(0)
     N = model.cfg.n_obs
     I = (0.1 + 0.3 * g.random((1, N, height, width))).astype(np.float32)
     phi = ((np.arange(N) - N // 2) * np.radians(31.5))[None].astype(np.float32)
-    run_model_on_windows(model, I, phi, "cpu", tile, precision=precision)  # warm-up
+    run_model_on_windows(model, I, phi, device, tile, precision=precision)  # warm-up
     best = float("inf")
     for _ in range(frames):
         t0 = time.perf_counter()
-        run_model_on_windows(model, I, phi, "cpu", tile, precision=precision)
+        run_model_on_windows(model, I, phi, device, tile, precision=precision)  # returns numpy: synchronised
         best = min(best, time.perf_counter() - t0)
     return 1.0 / best
 
@@ -159,7 +159,7 @@ def _stream_fps(model, height: int, width: int, frames: int, out_dir) -> dict:
         n = min(64, steps - i)
         spikes[i : i + n] = g.random((n, height, width), dtype=np.float32) < rate
     s = reconstruct_stream(array_source(spikes, 0.0, 30.0), model, out_dir, ReconstructConfig(max_frames=frames))
-    return {"frames": s["frames"], "seconds": s["seconds"], "frames_per_second": s["frames"] / s["seconds"], "tile": s["tile"], "feature_cache": s["feature_cache"]}
+    return {"frames": s["frames"], "seconds": s["seconds"], "frames_per_second": s["frames"] / s["seconds"], "tile": s["tile"], "feature_cache": s["feature_cache"], "threads": torch.get_num_threads()}
 
 
 def _train_throughput(arch_cfg, train_set, steps: int, workers: int, out_dir) -> dict:
@@ -198,7 +198,7 @@ def bench_reconstruct_net(
         height, width: frame size (400 x 250: the sensor).
         frames: timed single-frame passes per setting (best kept).
         threads: torch thread counts for the frame rate.
-        stream_frames: name -> output frames of the end-to-end ``polspike reconstruct`` run (2 threads; omit to skip).
+        stream_frames: name -> output frames of the end-to-end ``polspike reconstruct`` run (on ``max(threads)`` threads; omit to skip).
         train_cfgs: name -> :class:`reconstruct.train.TrainConfig` for the training throughput (omit to skip).
         train_set: on-the-fly training windows (map-style dataset) for the training throughput.
         train_steps: name -> optimizer steps timed.
@@ -257,8 +257,15 @@ def bench_reconstruct_net(
                         v["torch_compile"] = f"failed: {type(exc).__name__}: {str(exc).splitlines()[0][:100]}"
                 r[f"variants_fps_{t}thr"] = v
             if stream_frames and name in stream_frames:
-                torch.set_num_threads(2)
-                r["reconstruct_2thr"] = _stream_fps(model, height, width, stream_frames[name], work / f"video_{name}")
+                torch.set_num_threads(max(threads))
+                r["reconstruct"] = _stream_fps(model, height, width, stream_frames[name], work / f"video_{name}")
+            if torch.cuda.is_available():
+                model.to("cuda")
+                r["fps_cuda"] = _frame_fps(model, height, width, frames, auto_tile(model, "cuda"), device="cuda")
+                r["fps_cuda_bfloat16"] = _frame_fps(model, height, width, frames, auto_tile(model, "cuda"), "bfloat16", device="cuda")
+                model.to("cpu")
+            else:
+                out.setdefault("skipped", {})["cuda"] = "no CUDA device"
             if name in trained:
                 r["train_1thr"] = trained[name]
             out["models"][name] = r
@@ -273,8 +280,8 @@ def bench_reconstruct_net(
         q = {"flops_reduction": ref["gflop_per_frame"] / r["gflop_per_frame"]}
         for t in threads:
             q[f"fps_{t}thr_speedup"] = r[f"fps_{t}thr"] / ref[f"fps_{t}thr"]
-        if "reconstruct_2thr" in r and "reconstruct_2thr" in ref:
-            q["reconstruct_speedup"] = r["reconstruct_2thr"]["frames_per_second"] / ref["reconstruct_2thr"]["frames_per_second"]
+        if "reconstruct" in r and "reconstruct" in ref:
+            q["reconstruct_speedup"] = r["reconstruct"]["frames_per_second"] / ref["reconstruct"]["frames_per_second"]
         if "train_1thr" in r and "train_1thr" in ref:
             for w in (0, 1):
                 q[f"train_pixels_speedup_workers_{w}"] = r["train_1thr"][f"workers_{w}"]["window_pixels_per_second"] / ref["train_1thr"]["workers_0"]["window_pixels_per_second"]
@@ -289,7 +296,7 @@ def net_table(res: dict) -> str:
     rows = [("parameters", lambda r: f"{r['parameters']:,}"), ("GFLOP / frame (counted)", lambda r: f"{r['gflop_per_frame']:.1f}")]
     for t in thr:
         rows.append((f"network frames/s, {t} thread{'s' if t > 1 else ''}", lambda r, t=t: f"{r[f'fps_{t}thr']:.3f}"))
-    rows.append(("`polspike reconstruct` frames/s, 2 threads", lambda r: f"{r['reconstruct_2thr']['frames_per_second']:.3f}" if "reconstruct_2thr" in r else "-"))
+    rows.append((f"`polspike reconstruct` frames/s, {max(thr)} thread{'s' if max(thr) > 1 else ''}", lambda r: f"{r['reconstruct']['frames_per_second']:.3f}" if "reconstruct" in r else "-"))
     for w in (0, 1):
         rows.append((f"training steps/s (1 thread, {w} data worker{'s' if w != 1 else ''})", lambda r, w=w: f"{r['train_1thr'][f'workers_{w}']['steps_per_second']:.3f}" if "train_1thr" in r else "-"))
         rows.append((f"training window-pixels/s (1 thread, {w} data worker{'s' if w != 1 else ''})", lambda r, w=w: f"{r['train_1thr'][f'workers_{w}']['window_pixels_per_second']:,.0f}" if "train_1thr" in r else "-"))

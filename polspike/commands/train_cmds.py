@@ -229,6 +229,7 @@ def bench_reconstruct_net_cmd(
     variants: bool = typer.Option(True, "--variants/--no-variants", help="also time channels-last and bf16 autocast"),
     compile_: bool = typer.Option(False, "--compile", help="also time torch.compile (needs a C++ compiler; minutes of compile time)"),
     json_out: Optional[Path] = typer.Option(None, "--json", help="write the results here as JSON (and the table beside it as .md)"),
+    threads: int = typer.Option(2, "--threads", help="frame rates are timed on 1 and on this many torch threads (1 = one thread only)"),
 ) -> None:
     """Reference (v1) and new network in one run: GFLOP per frame, parameters, frames/s on 1 and 2 threads, `polspike reconstruct` frames/s, training throughput."""
     import dataclasses
@@ -259,7 +260,7 @@ def bench_reconstruct_net_cmd(
         for j in range(len(train_set.source.scenes)):  # build every scene's maps once, before timing (workers fork with them)
             train_set.source._scene(j)
     res = bench_reconstruct_net(
-        models, height=height, width=width, frames=frames,
+        models, height=height, width=width, frames=frames, threads=(1,) if threads <= 1 else (1, threads),
         stream_frames=({names[0]: 2, names[1]: stream_frames} if stream_frames > 0 else None),
         train_cfgs=train_cfgs if train_steps > 0 else None, train_set=train_set,
         train_steps={names[0]: max(4, train_steps // 3), names[1]: train_steps}, variants=variants, compile_=compile_,
