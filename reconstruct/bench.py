@@ -139,10 +139,13 @@ def _frame_fps(model, height: int, width: int, frames: int, tile: int, precision
     phi = ((np.arange(N) - N // 2) * np.radians(31.5))[None].astype(np.float32)
     run_model_on_windows(model, I, phi, device, tile, precision=precision)  # warm-up
     best = float("inf")
+    cpu = float("inf")
     for _ in range(frames):
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         run_model_on_windows(model, I, phi, device, tile, precision=precision)  # returns numpy: synchronised
         best = min(best, time.perf_counter() - t0)
+        cpu = min(cpu, time.process_time() - c0)
+    _frame_fps.last_cpu_s = cpu  # CPU seconds of the best pass (all threads): robust to other processes' load
     return 1.0 / best
 
 
@@ -237,22 +240,29 @@ def bench_reconstruct_net(
             for t in threads:
                 torch.set_num_threads(t)
                 r[f"fps_{t}thr"] = _frame_fps(model, height, width, frames, r["tile"])
+                r[f"cpu_s_per_frame_{t}thr"] = _frame_fps.last_cpu_s
                 log.info("%s: %.3f frames/s on %d threads", name, r[f"fps_{t}thr"], t)
             if variants:
                 t = max(threads)
                 torch.set_num_threads(t)
                 v = {"float32": r[f"fps_{t}thr"]}
+                vc = {"float32": r[f"cpu_s_per_frame_{t}thr"]}
                 v["bfloat16_autocast"] = _frame_fps(model, height, width, frames, r["tile"], "bfloat16")
+                vc["bfloat16_autocast"] = _frame_fps.last_cpu_s
                 model.to(memory_format=torch.channels_last)
                 v["channels_last"] = _frame_fps(model, height, width, frames, r["tile"])
+                vc["channels_last"] = _frame_fps.last_cpu_s
                 v["channels_last_bfloat16"] = _frame_fps(model, height, width, frames, r["tile"], "bfloat16")
+                vc["channels_last_bfloat16"] = _frame_fps.last_cpu_s
                 model.to(memory_format=torch.contiguous_format)
+                r[f"variants_cpu_s_per_frame_{t}thr"] = vc
                 if compile_:
                     try:
                         cm = torch.compile(model)
                         cm.cfg = model.cfg
                         cm.pad_multiple = getattr(model, "pad_multiple", 4)
                         v["torch_compile"] = _frame_fps(cm, height, width, frames, r["tile"])
+                        vc["torch_compile"] = _frame_fps.last_cpu_s
                     except Exception as exc:  # compile needs a working C++ toolchain
                         v["torch_compile"] = f"failed: {type(exc).__name__}: {str(exc).splitlines()[0][:100]}"
                 r[f"variants_fps_{t}thr"] = v
@@ -280,6 +290,7 @@ def bench_reconstruct_net(
         q = {"flops_reduction": ref["gflop_per_frame"] / r["gflop_per_frame"]}
         for t in threads:
             q[f"fps_{t}thr_speedup"] = r[f"fps_{t}thr"] / ref[f"fps_{t}thr"]
+            q[f"cpu_time_{t}thr_speedup"] = ref[f"cpu_s_per_frame_{t}thr"] / r[f"cpu_s_per_frame_{t}thr"]
         if "reconstruct" in r and "reconstruct" in ref:
             q["reconstruct_speedup"] = r["reconstruct"]["frames_per_second"] / ref["reconstruct"]["frames_per_second"]
         if "train_1thr" in r and "train_1thr" in ref:
@@ -296,6 +307,7 @@ def net_table(res: dict) -> str:
     rows = [("parameters", lambda r: f"{r['parameters']:,}"), ("GFLOP / frame (counted)", lambda r: f"{r['gflop_per_frame']:.1f}")]
     for t in thr:
         rows.append((f"network frames/s, {t} thread{'s' if t > 1 else ''}", lambda r, t=t: f"{r[f'fps_{t}thr']:.3f}"))
+        rows.append((f"network CPU-s per frame, {t} thread{'s' if t > 1 else ''}", lambda r, t=t: f"{r[f'cpu_s_per_frame_{t}thr']:.3f}"))
     rows.append((f"`polspike reconstruct` frames/s, {max(thr)} thread{'s' if max(thr) > 1 else ''}", lambda r: f"{r['reconstruct']['frames_per_second']:.3f}" if "reconstruct" in r else "-"))
     for w in (0, 1):
         rows.append((f"training steps/s (1 thread, {w} data worker{'s' if w != 1 else ''})", lambda r, w=w: f"{r['train_1thr'][f'workers_{w}']['steps_per_second']:.3f}" if "train_1thr" in r else "-"))
@@ -308,7 +320,8 @@ def net_table(res: dict) -> str:
         lines.append(f"{n} vs {res['reference']} (same run): " + ", ".join(f"{k} {v:.2f}x" for k, v in q.items()))
     for n in names:
         v = next((res["models"][n][k] for k in res["models"][n] if k.startswith("variants_fps_")), None)
+        vc = next((res["models"][n][k] for k in res["models"][n] if k.startswith("variants_cpu_s_")), {})
         if v:
             lines.append("")
-            lines.append(f"{n} frames/s by variant: " + ", ".join(f"{k} {x:.3f}" if isinstance(x, float) else f"{k} {x}" for k, x in v.items()))
+            lines.append(f"{n} by variant, frames/s (CPU-s per frame): " + ", ".join(f"{k} {x:.3f} ({vc.get(k, float('nan')):.2f})" if isinstance(x, float) else f"{k} {x}" for k, x in v.items()))
     return "\n".join(lines) + "\n"
