@@ -1,0 +1,93 @@
+"""The shipped default checkpoint: its stored scores reproduce, the model card quotes them, and the
+exact parameter count of every architecture is pinned.
+
+The scores live beside the weights in ``<stem>.scores.json`` (written by ``polspike
+checkpoint-scores``, see :mod:`polspike.pipeline.checkpoint_scores`), so the model card cannot drift
+from the weights: a new checkpoint without a fresh scores file, a reduced evaluation that no longer
+reproduces, or a card quoting other numbers fails here.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+import torch
+
+from polspike.pipeline.checkpoint_scores import REPRODUCE_TOL_DB, compare_reduced, evaluate_setting, scores_path, sha256_file, summary_line
+from reconstruct.checkpoint import DEFAULT_WEIGHTS, load_model
+from reconstruct.network import NetConfig, PolSpikeNet, count_parameters
+
+REPO = Path(__file__).resolve().parents[2]
+CARD = REPO / "docs" / "MODEL_CARD.md"
+
+#: Exact trainable-parameter count per architecture (NetConfig defaults).  Changing the
+#: architecture means updating this number on purpose (and the model card).
+EXPECTED_PARAMS = {"v1": 510_454, "v2": 395_230}
+#: Exact trainable-parameter count of each shipped default checkpoint (by file name).
+EXPECTED_SHIPPED = {"polspike_v1.pt": 510_454}
+
+pytestmark = pytest.mark.skipif(not DEFAULT_WEIGHTS.is_file(), reason=f"shipped checkpoint {DEFAULT_WEIGHTS} not present")
+
+
+def _scores() -> dict:
+    sp = scores_path(DEFAULT_WEIGHTS)
+    assert sp.is_file(), f"{sp} missing: run `polspike checkpoint-scores {DEFAULT_WEIGHTS.relative_to(REPO)} --threads 1` and commit it"
+    return json.loads(sp.read_text())
+
+
+def test_scores_file_belongs_to_the_default_weights():
+    doc = _scores()
+    assert doc["format"] == "polspike-scores/1" and doc["weights"] == DEFAULT_WEIGHTS.name
+    assert doc["weights_sha256"] == sha256_file(DEFAULT_WEIGHTS), f"the scores are of other weights: rerun `{doc['command']}`"
+    assert doc["command"].startswith(f"polspike checkpoint-scores {DEFAULT_WEIGHTS.relative_to(REPO)} ")
+    assert (REPO / doc["manifest"]).is_file(), doc["manifest"]
+
+
+def test_reduced_evaluation_reproduces_the_stored_scores():
+    """8 windows of 32x32 of the test split, one thread: every PSNR within 0.05 dB of the stored one."""
+    doc = _scores()
+    stored = doc["reduced"]["metrics"]
+    assert {"psnr_T", "psnr_T_base", "psnr_T_oracle", "psnr_T_tfp", "psnr_R", "ssim_T"} <= set(stored)
+    setting = {**doc["reduced"]["setting"], "manifest": str(REPO / doc["reduced"]["setting"]["manifest"])}  # any cwd
+    fresh = evaluate_setting(DEFAULT_WEIGHTS, setting, threads=1)
+    bad = compare_reduced(stored, fresh, REPRODUCE_TOL_DB)
+    assert not bad, "the shipped checkpoint no longer reproduces its stored scores (rerun `" + doc["command"] + "` if the change is intended):\n" + "\n".join(bad)
+
+
+def test_model_card_quotes_the_stored_scores():
+    doc = _scores()
+    card = CARD.read_text()
+    assert DEFAULT_WEIGHTS.name in card.splitlines()[0], "the model card's title must name the default checkpoint"
+    assert doc["command"] in card, "the model card must show the command that regenerates its numbers"
+    line = summary_line(doc["model_card"]["metrics"])  # the line `polspike checkpoint-scores` prints
+    assert line in card, f"docs/MODEL_CARD.md must quote the stored scores verbatim: {line!r}"
+    # and the score table's final-network row carries the same numbers
+    m = doc["model_card"]["metrics"]
+    row = next((ln for ln in card.splitlines() if ln.startswith("| **final**")), "")
+    cells = [c.strip(" *") for c in row.strip("|").split("|")]
+    assert cells[1:5] == [f"{m['psnr_T']:.2f}", f"{m['ssim_T']:.3f}", f"{m['psnr_R']:.2f}", f"{m['ssim_R']:.3f}"], row
+
+
+@pytest.mark.parametrize("arch", sorted(EXPECTED_PARAMS))
+def test_exact_parameter_count(arch):
+    assert count_parameters(PolSpikeNet(NetConfig(arch=arch))) == EXPECTED_PARAMS[arch]
+
+
+def test_default_architecture_and_shipped_checkpoint_parameter_counts():
+    assert NetConfig().arch in EXPECTED_PARAMS
+    assert DEFAULT_WEIGHTS.name in EXPECTED_SHIPPED, f"pin the parameter count of the new default {DEFAULT_WEIGHTS.name} in EXPECTED_SHIPPED"
+    model, data = load_model(DEFAULT_WEIGHTS)
+    n = count_parameters(model)
+    assert n == EXPECTED_SHIPPED[DEFAULT_WEIGHTS.name] == data["param_count"]
+    assert sum(t.numel() for k, t in data["state_dict"].items() if t.dtype.is_floating_point and "running_" not in k) >= n
+    assert f"{n:,}" in CARD.read_text(), f"the model card must state the exact count {n:,}"
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _one_thread():
+    old = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(old)
