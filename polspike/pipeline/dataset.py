@@ -568,6 +568,8 @@ def build_dataset(
     lock = _lock(root)
     try:
         shutil.rmtree(root / ".tmp", ignore_errors=True)  # partial groups of a killed build
+        for stale in root.glob(".*.tmp-*"):  # temporaries of a killed atomic write (dataset.json, manifest.toml, build_log.json)
+            stale.unlink(missing_ok=True)
         ensure_dir(root / "groups")
         write_bytes(root / "manifest.toml", m.source_text)
         records: dict[str, dict] = {}
