@@ -128,7 +128,12 @@ def render(scene: SceneConfig, out_dir: str | os.PathLike, opts: RenderOptions =
     """
     if opts.tier not in TIERS:
         raise ConfigError(f"unknown tier {opts.tier!r}; choose one of {list(TIERS)}")
+    from generator.objects3d import object_sides, require_full_tier
+
+    require_full_tier(scene, opts.tier)
     check_scene_geometry(scene)
+    if scene.objects is not None:
+        object_sides(scene)  # every object and light on one side of the pane
     if opts.response not in ("cie_y", "flat") and not Path(opts.response).is_file():
         raise ConfigError(f"--response {opts.response!r} is neither cie_y, flat nor an existing CSV file (wavelength_nm,response)")
     out = ensure_dir(out_dir)
@@ -201,13 +206,23 @@ def render(scene: SceneConfig, out_dir: str | os.PathLike, opts: RenderOptions =
         from generator import tiers_mitsuba
 
         full = tiers_mitsuba.FullRenderer(scene, opts, info)
+        if full.objects:
+            # 3-D objects: keyframe 0's departure from Eq. (1)-(2) joins maps.exr (dop_T, dop_R, eq12_err, polT_model_err)
+            chans, dep = full.departure(maps)
+            write_exr(out / "maps.exr", {**{k: v.astype(np.float32) for k, v in maps.channels().items()}, **{k: v.astype(np.float32) for k, v in chans.items()}}, attrs={"scene_hash": h, "tier": opts.tier})
+            info["modelled"]["eq12_departure"] = dep
+            meta["eq12_departure"] = dep
     t1 = time.perf_counter()
     todo = [k for k in range(a, b) if not (out / names[k]).is_file()]
     done = (b - a) - len(todo)
     for k in todo:
         t = float(times[k])
-        L_T, L_R, L_G = sample_layers(maps, tc, rc, t)
-        S = full.stokes(t, k) if full is not None else frame_stokes(maps, L_T, L_R, L_G)
+        if full is not None and full.objects:
+            S = full.stokes(t, k)
+            L_T, L_R = full.layers(t)
+        else:
+            L_T, L_R, L_G = sample_layers(maps, tc, rc, t)
+            S = full.stokes(t, k) if full is not None else frame_stokes(maps, L_T, L_R, L_G)
         write_exr(
             out / names[k],
             {"S0": S[0], "S1": S[1], "S2": S[2], "T": L_T, "R": L_R},

@@ -30,6 +30,8 @@ from polphysics.fresnel import GLASSES, PANE_MODELS, glass_index
 from polphysics.geometry import PinholeCamera, Plane, normalize
 from polphysics.polarizer import PolarizerConfig
 
+from generator.objects3d import ObjectsConfig
+
 __all__ = [
     "CameraConfig",
     "PaneConfig",
@@ -170,6 +172,9 @@ class SceneConfig:
     layers: LayersConfig = opt(doc="T and R layers", factory=LayersConfig)
     polarizer: PolarizerConfig = opt(doc="rotating polarizer", factory=PolarizerConfig)
     render: RenderSettings = opt(doc="render defaults", factory=RenderSettings)
+    objects: ObjectsConfig | None = opt(
+        None, "3-D objects behind and in front of the pane instead of the layer planes (full tier only; see generator.objects3d)", omit_if_default=True
+    )
 
     # ---- derived geometry -------------------------------------------------
     def camera_model(self) -> PinholeCamera:

@@ -43,6 +43,7 @@ def opt(
     hi_open: bool = False,
     choices: typing.Sequence[Any] | None = None,
     factory: typing.Callable[[], Any] | None = None,
+    omit_if_default: bool = False,
 ) -> Any:
     """Declare a config field with documentation and validation metadata.
 
@@ -53,8 +54,11 @@ def opt(
             applied to every element of a tuple/list value.
         choices: allowed values (for strings, compared exactly).
         factory: default factory for mutable defaults or nested dataclasses.
+        omit_if_default: :func:`to_dict` leaves the field out while it holds its default
+            (an optional section added later keeps the plain data, and hashes, of
+            configs that do not use it unchanged).
     """
-    md = {"doc": doc, "lo": lo, "hi": hi, "lo_open": lo_open, "hi_open": hi_open, "choices": choices}
+    md = {"doc": doc, "lo": lo, "hi": hi, "lo_open": lo_open, "hi_open": hi_open, "choices": choices, "omit_if_default": omit_if_default}
     if factory is not None:
         return dataclasses.field(default_factory=factory, metadata=md)
     return dataclasses.field(default=default, metadata=md)
@@ -200,7 +204,11 @@ def from_dict(cls: type[T], data: dict[str, Any], *, where: str = "config", pref
 def to_dict(obj: Any) -> Any:
     """Plain-data form of a (nested) config dataclass, fit for TOML/JSON."""
     if dataclasses.is_dataclass(obj):
-        return {f.name: to_dict(getattr(obj, f.name)) for f in dataclasses.fields(obj)}
+        return {
+            f.name: to_dict(getattr(obj, f.name))
+            for f in dataclasses.fields(obj)
+            if not (f.metadata.get("omit_if_default") and f.default is not _MISSING and getattr(obj, f.name) == f.default)
+        }
     if isinstance(obj, (list, tuple)):
         return [to_dict(v) for v in obj]
     if isinstance(obj, dict):

@@ -22,6 +22,8 @@ from polphysics.polarizer import PolarizerConfig
 __all__ = ["RenderDir", "open_render"]
 
 MAP_CHANNELS = ("theta", "phi_perp", "R_perp", "R_par", "T_perp", "T_par")
+EXTRA_MAP_CHANNELS = ("dop_T", "dop_R", "eq12_err", "polT_model_err")
+"""Optional maps of 3-D object scenes (their departure from paper Eq. (1)-(2)); kept when present."""
 
 
 class RenderDir:
@@ -73,8 +75,13 @@ class RenderDir:
         return f["T"], f["R"]
 
     def maps(self) -> dict[str, np.ndarray]:
-        """Coefficient maps {theta, phi_perp, R_perp, R_par, T_perp, T_par}, each (H, W) float32."""
-        return read_exr(self.path / "maps.exr", list(MAP_CHANNELS))
+        """Coefficient maps {theta, phi_perp, R_perp, R_par, T_perp, T_par} (plus the optional
+        :data:`EXTRA_MAP_CHANNELS` of object scenes), each (H, W) float32."""
+        allc = read_exr(self.path / "maps.exr")
+        missing = [k for k in MAP_CHANNELS if k not in allc]
+        if missing:
+            raise DataFormatError(f"{self.path / 'maps.exr'}: channel(s) {missing} missing; re-render")
+        return {k: allc[k] for k in (*MAP_CHANNELS, *EXTRA_MAP_CHANNELS) if k in allc}
 
 
 def open_render(path: str | os.PathLike) -> RenderDir:

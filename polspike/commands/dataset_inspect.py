@@ -36,3 +36,15 @@ def inspect_cmd(
     c.print(f"DoP of the mixed light in [{ch['dop_min']:.3f}, {ch['dop_max']:.3f}]; Eq. (1) vs Stokes max |diff| {ch['eq1_vs_stokes_max_abs']:.2e}")
     if ch["zeta_vs_stored_max_abs"] is not None:
         c.print(f"zeta recomputed vs stored gt/zeta: max |diff| {ch['zeta_vs_stored_max_abs']:.2e}")
+    dep = s.get("eq12_departure")
+    if dep:
+        c.print(_departure_line(dep))
+
+
+def _departure_line(dep: dict) -> str:
+    """One line on how far a 3-D object scene departs from paper Eq. (1)-(2)."""
+    f = lambda k, q: "n/a" if not dep.get(k) else f"{dep[k][q]:.3g}"  # noqa: E731
+    return (
+        f"3-D scene vs Eq. (1)-(2): DoP of T alone mean {f('dop_T', 'mean')} (p99 {f('dop_T', 'p99')}); "
+        f"unpolarized-T error p99 {f('eq12_err', 'p99')} (mean {f('eq12_err', 'mean')}), polarized-T model p99 {f('polT_model_err', 'p99')}"
+    )

@@ -57,6 +57,11 @@ def _print_table(name: str, tier: str, tolerance: float, out: Path, summary: dic
         tab.add_row(k, f"{v['max']:.3g}", f"{v['mean']:.3g}", f"{v['p99']:.3g}")
     con = Console()
     con.print(tab)
+    dep = summary.get("eq12_departure")
+    if dep:  # a 3-D object scene: how far its rendered mixture departs from Eq. (1)-(2)
+        from polspike.commands.dataset_inspect import _departure_line
+
+        con.print(_departure_line(dep) + (f"; noise floor {dep['noise_floor_p99']:.3g}" if dep.get("noise_floor_p99") is not None else ""))
     colour = "green" if summary["verdict"] == "pass" else "red"
     con.print(f"noise floor (p99) {summary['noise_floor_p99']:.3g}; verdict [bold {colour}]{summary['verdict']}[/] at tolerance {tolerance:g}; maps in {out}/figures"
               + ("; exit code 1" if summary["verdict"] != "pass" else ""))

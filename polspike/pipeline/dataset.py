@@ -273,6 +273,9 @@ def _keyframe_source(scene, tier: str, duration_s: float, fps: float, work: Path
     from generator.scene import scene_hash
     from spike_sim.simulate import KeyframeSource, keyframes_from_render
 
+    from generator.objects3d import require_full_tier
+
+    require_full_tier(scene, tier)  # 3-D object scenes: full tier only
     opts = RenderOptions(tier=tier, fps=fps, duration_s=duration_s, seed=scene.render.seed)
     if tier == "analytic":
         times = frame_times(scene, opts)
