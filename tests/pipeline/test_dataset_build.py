@@ -276,3 +276,24 @@ def test_cli_build_with_progress_bars_and_verify_partial(built, tmp_path):
     assert _contents(out) == {"test_near_normal": _contents(built)["test_near_normal"]}
     r = runner.invoke(get_app(), ["dataset", "verify", str(out), "--partial"])
     assert r.exit_code == 0 and "ok: 1 groups" in " ".join(r.output.split())
+
+
+@pytest.mark.slow
+@pytest.mark.mitsuba
+def test_mitsuba_tier_groups_are_byte_identical_in_process_and_in_a_pool(tmp_path):
+    """maps, full and a 3-D object scene (full) groups: the same bytes in this process and on a spawn pool."""
+    pytest.importorskip("mitsuba")
+    man = {
+        "format": "polspike-manifest/1", "name": "mi", "description": "Mitsuba tiers, byte identity",
+        "defaults": {"duration_s": 0.01, "keyframe_fps": 100.0, "camera": {"width": 32, "height": 20}, "spike_sim": {"preset": "default"}},
+        "groups": [
+            {"name": "maps_brewster", "split": "train", "tier": "maps", "scene": "scenes/brewster.toml", "seed": 1},
+            {"name": "full_brewster", "split": "train", "tier": "full", "scene": "scenes/brewster.toml", "seed": 2, "render": {"spp": 8}},
+            {"name": "shop", "split": "test", "tier": "full", "scene": "scenes/shop_window.toml", "seed": 3, "render": {"spp": 8}},
+        ],
+    }
+    mpath = tmp_path / "mi.toml"
+    mpath.write_text(dump_manifest(man))
+    build_dataset(mpath, tmp_path / "a")
+    build_dataset(mpath, tmp_path / "b", workers=2, poll_s=0.1)
+    assert _bytes(tmp_path / "a") == _bytes(tmp_path / "b")
