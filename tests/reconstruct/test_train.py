@@ -133,6 +133,50 @@ def test_resume_continues_to_identical_weights(tmp_path, sets, tiny_run):
         assert torch.equal(a[k], b[k]), k
 
 
+def test_kill_9_during_a_checkpoint_write_resumes_to_identical_weights(tmp_path, tiny_run, caplog):
+    """A real SIGKILL while the second checkpoint (step 4) is being written (polinfra.faults point
+    ``atomic:last.pt@2``: the new file complete under its temporary name, not yet renamed): the old
+    checkpoint stays readable, and the rerun continues to the weights and log of the uninterrupted run."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    run = tmp_path / "killed"
+    script = tmp_path / "train_tiny.py"
+    script.write_text(
+        "import importlib.util, sys, torch\n"
+        "torch.set_num_threads(1)\n"
+        f"spec = importlib.util.spec_from_file_location('train_items', {str(Path(__file__))!r})\n"
+        "mod = importlib.util.module_from_spec(spec); spec.loader.exec_module(mod)\n"
+        "from reconstruct.onthefly import OnTheFlyWindows\n"
+        "from reconstruct.train import train\n"
+        "tr = OnTheFlyWindows(mod._stream_item, length=mod.CFG.train_items, seed=1)\n"
+        "va = OnTheFlyWindows(mod._stream_item, length=mod.CFG.val_items, seed=2)\n"
+        "train(mod.CFG, tr, va, sys.argv[1])\n"
+        "print('finished')\n"
+    )
+    env = {**os.environ, "POLSPIKE_FAULT_AT": "atomic:last.pt@2", "OMP_NUM_THREADS": "1"}
+    r = subprocess.run([sys.executable, str(script), str(run)], env=env, capture_output=True, text=True, timeout=300)
+    assert r.returncode == -signal.SIGKILL and "finished" not in r.stdout, (r.returncode, r.stderr[-1500:])
+    assert read_checkpoint(run / "last.pt")["step"] == CFG.ckpt_every  # the first checkpoint, intact
+    assert list(run.glob(".last.tmp-*")), "the killed write leaves its temporary file, never a torn last.pt"
+    tr, va = OnTheFlyWindows(_stream_item, length=CFG.train_items, seed=1), OnTheFlyWindows(_stream_item, length=CFG.val_items, seed=2)
+    import logging
+
+    with caplog.at_level(logging.INFO, logger="reconstruct.train"):
+        res = train(CFG, tr, va, run)
+    assert f"at step {CFG.ckpt_every}/{CFG.epochs * CFG.steps_per_epoch}" in caplog.text  # continued, not restarted
+    assert res["step"] == CFG.epochs * CFG.steps_per_epoch
+    a = read_checkpoint(tiny_run[0] / "last.pt")["state_dict"]
+    b = read_checkpoint(run / "last.pt")["state_dict"]
+    for k in a:
+        assert torch.equal(a[k], b[k]), k
+    strip = lambda rows: [{k: v for k, v in row.items() if k != "seconds"} for row in rows]  # noqa: E731
+    assert strip(csv.DictReader(open(run / "log.csv"))) == strip(csv.DictReader(open(tiny_run[0] / "log.csv")))
+
+
 def test_loader_worker_gives_the_same_trajectory(tmp_path, sets, tiny_run):
     """Batches built by a DataLoader worker process (and a resume in between) give bit-identical weights."""
     tr, va = sets
