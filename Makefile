@@ -27,12 +27,13 @@ $(STAMP): pyproject.toml .ci/system-deps.sh
 demo: install
 	$(BIN)/polspike demo --out $(OUT)
 
-test: install
+test: install  # the default suite (under 10 minutes on 2 cores); tests marked slow are left out
 	@bash .ci/system-deps.sh --test
 	$(BIN)/python -m pytest -q -m "not slow" -p no:cacheprovider $(PYTEST_ARGS)
 
-test-all: install
-	$(BIN)/python -m pytest -q $(PYTEST_ARGS)
+test-all: install  # everything, including the tests marked slow (tens of minutes on 2 cores)
+	@bash .ci/system-deps.sh --test
+	$(BIN)/python -m pytest -q -p no:cacheprovider $(PYTEST_ARGS)
 
 bench: install  # every benchmark, JSON + table each under out/bench/ (tens of minutes on 2 cores)
 	$(BIN)/polspike bench spike-sim --out out/bench/spike_sim
