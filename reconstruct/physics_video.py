@@ -34,7 +34,7 @@ from reconstruct.selfcal import SelfCalConfig, SelfCalResult, self_calibrate
 from reconstruct.solvers import SOLVERS, SolverConfig, solve
 from reconstruct.zeta_source import PaneMaps, zeta_from_maps, zeta_learned
 
-__all__ = ["PHYSICS_METHODS", "STREAM_ZETA_SOURCES", "PhysicsModel", "PhysicsOutput", "calibrate_source", "group_pane_maps", "build_physics_model"]
+__all__ = ["PHYSICS_METHODS", "STREAM_ZETA_SOURCES", "PhysicsModel", "PhysicsOutput", "calibrate_source", "span_frames", "group_pane_maps", "build_physics_model"]
 
 log = logging.getLogger(__name__)
 
@@ -134,7 +134,13 @@ def calibrate_source(source, window_steps: int = 13, exposure: float | None = No
     Every spike of the span is used: back-to-back Eq. (3) windows of ``window_steps`` steps, each at
     its mean calibrated polarizer angle (denser than the output cadence: more data, same model).
     """
-    steps_needed = max(window_steps * 3, int(round(cfg.span_s * source.rate_hz)))
+    I, phi = span_frames(source, cfg.span_s, window_steps, exposure)
+    return self_calibrate(I, phi, cfg, name=source.name)
+
+
+def span_frames(source, span_s: float, window_steps: int = 13, exposure: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """The first ``span_s`` of a spike stream as back-to-back Eq. (3) frames: I (M, H, W) float32 radiance, phi (M,) radians."""
+    steps_needed = max(window_steps * 3, int(round(span_s * source.rate_hz)))
     steps_needed = min(steps_needed, int(source.phi_step_rad.size))
     ex = exposure if exposure is not None else (source.exposure or 1.0)
     bufs, have = [], 0
@@ -150,7 +156,7 @@ def calibrate_source(source, window_steps: int = 13, exposure: float | None = No
     counts = sp[: M * window_steps].reshape(M, window_steps, source.height, source.width).sum(1, dtype=np.int32)
     I = counts.astype(np.float32) / np.float32(window_steps * ex)  # Eq. (3), radiance units
     phi = source.phi_step_rad[: M * window_steps].reshape(M, window_steps).mean(1)
-    return self_calibrate(I, phi, cfg, name=source.name)
+    return I, phi
 
 
 def group_pane_maps(group_dir, zeta: str, n: float = 1.5, model: str = "single") -> PaneMaps:
