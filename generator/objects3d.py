@@ -71,6 +71,12 @@ Vec3 = tuple[float, float, float]
 
 SHAPES = ("sphere", "cube", "rectangle")
 MATERIALS = ("diffuse", "plastic", "roughplastic", "conductor", "roughconductor", "dielectric")
+METALS = (
+    "a-C", "Ag", "Al", "AlAs", "AlSb", "Au", "Be", "Cr", "CsI", "Cu", "Cu2O", "CuO", "d-C", "Hg", "HgTe", "Ir", "K", "Li",
+    "MgO", "Mo", "Na_palik", "Nb", "Ni_palik", "Rh", "Se", "SiC", "SnTe", "Ta", "Te", "ThF4", "TiC", "TiN", "TiO2", "VC",
+    "V_palik", "VN", "W", "none",
+)
+"""Metal names of Mitsuba's conductor BSDFs (measured complex indices; "none" = an ideal mirror)."""
 DEPARTURE_CHANNELS = ("dop_T", "dop_R", "eq12_err", "polT_model_err")
 """Extra ``maps.exr`` channels of an object scene (per pixel, keyframe 0): DoP of T alone and of R
 alone, worst case over phi of |I_rendered - I_Eq(1)-(2)|, and the same error of the polarized-T model."""
@@ -93,7 +99,7 @@ class ShapeConfig:
     material: str = opt("diffuse", "diffuse | plastic | roughplastic | conductor | roughconductor | dielectric", choices=MATERIALS)
     reflectance: float = opt(0.5, "diffuse albedo (diffuse; base of plastic)", lo=0.0, hi=1.0)
     ior: float = opt(1.5, "refractive index (dielectric; plastic coat)", lo=1.0, hi=4.0, lo_open=True)
-    metal: str = opt("Al", "conductor: Mitsuba material name (Al, Ag, Au, Cu, Cr, ...)")
+    metal: str = opt("Al", "conductor: Mitsuba material name (Al, Ag, Au, Cu, Cr, ...; none = ideal mirror)", choices=METALS)
     alpha: float = opt(0.1, "roughness of the rough materials (GGX alpha)", lo=0.001, hi=1.0)
 
 
@@ -180,6 +186,8 @@ def object_sides(scene) -> tuple[list[str], list[str]]:
     t = scene.pane.thickness_m if scene.pane.model != "single" else 0.0
 
     def side(pts: np.ndarray, r: float, what: str) -> str:
+        if not np.all(np.isfinite(pts)):
+            raise SceneError(f"{what} has a non-finite position; give finite coordinates in metres")
         d = (pts - p0) @ nrm
         if np.all(d - r > 0):
             return "front"
