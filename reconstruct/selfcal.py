@@ -255,6 +255,14 @@ def orientation_field(I: np.ndarray, phi: np.ndarray, block: int) -> dict:
     return {"s4": bs4, "q": bq, "energy": ben, "psi": psi, "coherence": coh, "samples": n_chunks * block * block, "chunks": n_chunks, "windows": n_win, "chunk_frames": L, "dop": dop / n_win, "a0": a0s / n_win}
 
 
+def _phi_perp_many(camera, normals: np.ndarray, batch: int = 128):
+    """phi_perp grids for many normals (K, 3): incidence_geometry broadcast over a (k, 1, 1, 3) normal, in batches."""
+    from polphysics.geometry import Plane, incidence_geometry
+
+    for i in range(0, normals.shape[0], batch):
+        yield incidence_geometry(camera, Plane(camera.position + camera.forward, normals[i : i + batch, None, None, :]))["phi_perp"]
+
+
 def _phi_perp_grid(camera, normal: np.ndarray) -> np.ndarray:
     from polphysics.geometry import Plane, incidence_geometry
 
@@ -300,7 +308,9 @@ def fit_normal(s4: np.ndarray, q: np.ndarray, width_blocks: int, height_blocks: 
     # grid search over the hemisphere (tilt up to 88 deg, every azimuth): Hough-like, no local-minimum trap
     tilts = np.deg2rad(np.arange(2.0, 89.0, 4.0))
     azs = np.deg2rad(np.arange(0.0, 360.0, 8.0))
-    grid = np.array([[score(t, a, fov0) for a in azs] for t in tilts])
+    cam0 = camera_for(width_blocks, height_blocks, fov0)
+    normals = np.array([normal_from_angles(t, a, cam0) for t in tilts for a in azs])
+    grid = np.concatenate([np.sum(mag * np.cos(ang4 - 4.0 * pp.reshape(pp.shape[0], -1)), axis=1) for pp in _phi_perp_many(cam0, normals)]).reshape(len(tilts), len(azs))
     order = np.argsort(-grid, axis=None)
     starts: list[tuple[float, float]] = []
     for idx in order:
