@@ -81,4 +81,4 @@ def test_total_is_eq12_plus_base_term(alpha):
     tot.backward()
     assert float(T_base.grad.abs().sum()) > 0
     off, _ = total_loss(out, T, R, alpha, LossConfig(lambda_base=0.0))
-    assert math.isclose(float(off), eq12, rel_tol=1e-6)
+    assert math.isclose(float(off.detach()), eq12, rel_tol=1e-6)
