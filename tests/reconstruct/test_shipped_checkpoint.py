@@ -91,3 +91,19 @@ def _one_thread():
     torch.set_num_threads(1)
     yield
     torch.set_num_threads(old)
+
+
+@pytest.mark.slow
+def test_checkpoint_scores_check_exit_code(polspike_cli, tmp_path):
+    """`polspike checkpoint-scores --check`: exit 0 for the shipped pair, 1 when the stored numbers are off."""
+    import shutil
+
+    ok = polspike_cli("checkpoint-scores", DEFAULT_WEIGHTS, "--check", timeout=600)
+    assert ok.returncode == 0 and "reproduced" in " ".join(ok.stdout.split()), ok.stdout[-600:] + ok.stderr[-600:]
+    w = shutil.copy(DEFAULT_WEIGHTS, tmp_path / DEFAULT_WEIGHTS.name)
+    doc = _scores()
+    doc["reduced"]["metrics"]["psnr_T"] += 0.1
+    doc["reduced"]["setting"]["manifest"] = str(REPO / doc["reduced"]["setting"]["manifest"])
+    scores_path(w).write_text(json.dumps(doc))
+    bad = polspike_cli("checkpoint-scores", w, "--check", timeout=600)
+    assert bad.returncode == 1 and "psnr_T: stored" in bad.stdout, bad.stdout[-600:] + bad.stderr[-600:]
