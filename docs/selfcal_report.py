@@ -3,7 +3,7 @@
 Usage (from the repository root, venv active; one torch thread):
 
     python docs/selfcal_report.py closed-form                       # closed-form pane groups (tests/reconstruct/_pane_groups.py)
-    python docs/selfcal_report.py dataset out/datasets/selfcal_strong [--pane-model M --pane-n N]   # built groups (docs/selfcal_strong.toml)
+    python docs/selfcal_report.py dataset out/datasets/selfcal_strong [--pane-model M --pane-n N --max-frames 8]   # built groups (docs/selfcal_strong.toml)
     python docs/selfcal_report.py speed GROUP_DIR [WEIGHTS]          # frames/s: physics-only streams vs the network, same run
 
 Each prints one JSON line per row and writes nothing else.
@@ -22,6 +22,8 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 torch.set_num_threads(1)
+MAX_FRAMES = 8
+"""output frames per group scored by ``dataset`` (``--max-frames N`` overrides)"""
 
 
 def _psnr_rows(g, sources=("gt", "self"), max_frames=6, **kw) -> dict:
@@ -75,7 +77,7 @@ def dataset(path: str, pane_model: str = "single", pane_n: float = 1.5) -> None:
         row = {"group": g.name, "fov_deg": g.fov_deg, "pane_model": pane_model, "pane_n": pane_n, "ok": r.ok, "calib_s": time.perf_counter() - t0}
         if r.ok:
             row.update(_geometry(g, r, Zs, group_zeta(g, EvalConfig(zeta="gt"))))
-        row.update(_psnr_rows(g, ("gt", "self", "physics"), max_frames=8, pane_model=pane_model, pane_n=pane_n))
+        row.update(_psnr_rows(g, ("gt", "self", "physics"), max_frames=MAX_FRAMES, pane_model=pane_model, pane_n=pane_n))
         print(json.dumps(row), flush=True)
 
 
@@ -118,6 +120,8 @@ if __name__ == "__main__":
         kw = {}
         if "--pane-model" in a:
             kw["pane_model"] = a[a.index("--pane-model") + 1]
+        if "--max-frames" in a:
+            MAX_FRAMES = int(a[a.index("--max-frames") + 1])
         if "--pane-n" in a:
             kw["pane_n"] = float(a[a.index("--pane-n") + 1])
         dataset(a[1], **kw)

@@ -35,10 +35,14 @@ Estimator (:func:`self_calibrate`):
    the pane model give R_perp, R_par by :func:`reconstruct.zeta_source.pane_maps_from_geometry`,
    and zeta_k(p) by paper Eq. (2) (:func:`reconstruct.zeta_source.zeta_from_maps`).
 
-Where nothing modulates (no reflection, near-normal incidence, too few
-modulating blocks or an orientation field the planar model does not explain)
-the result carries ``ok = False`` and a reason, a warning is logged, and the
-callers fall back to the learned zeta.
+Where nothing modulates (no reflection, R = T, near-normal incidence: the
+fitted pane explains the orientation field less than ``z_min`` noise standard
+deviations above chance), or where the fit is ambiguous (the pane whose
+phi_perp field is turned by 90 deg scores within ``max_twin_ratio`` of the
+best: modulo 90 deg only the field's curvature separates the two, which
+vanishes for a narrow field of view and a glancing pane), the result carries
+``ok = False`` and a reason, a warning is logged, and the callers fall back to
+the learned zeta.
 
 T depends on zeta's *shape* (phi_perp and DoP_R = (R_perp - R_par) / (R_perp + R_par)),
 not its scale (RECONSTRUCTION_NOTES.md, section 1): the index matters little,
@@ -94,6 +98,7 @@ class SelfCalConfig:
     model: str = opt("single", "pane model", choices=("single", "thin_slab", "thick_slab"))
     z_min: float = opt(8.0, "the fitted pane must explain the orientation field this many noise standard deviations above chance, else 'nothing modulates' (ok = False)", lo=0.0, hi=1e6)
     coherence_sigmas: float = opt(4.0, "diagnostics: a block counts as modulating when its |sum z4| exceeds this many noise standard deviations", lo=0.0, hi=100.0)
+    max_twin_ratio: float = opt(0.98, "the pane turned 90 deg (phi_perp <-> p-direction) scoring above this fraction of the best: ambiguous (ok = False)", lo=0.0, hi=10.0)
     min_tilt_deg: float = opt(3.0, "a fitted tilt below this is near-normal incidence: no usable modulation (ok = False)", lo=0.0, hi=89.0)
 
 
@@ -112,8 +117,8 @@ class SelfCalResult:
         n, model: index and pane model of the maps.
         maps: full-resolution :class:`PaneMaps` (None unless ok); theta: (H, W) incidence angle, radians.
         modulating_fraction: share of blocks that modulate; residual_deg: weighted median orientation residual.
-        runner_up_cost_ratio: matched score of the best pane at least 15 deg (in N) from the optimum over the
-            optimum's (near 1 = ambiguous geometry).
+        twin_ratio: matched score of the best pane whose phi_perp field is turned by about 90 deg from the
+            optimum's, over the optimum's (near 1: the 90 deg flip cannot be resolved; see ``max_twin_ratio``).
         diagnostics: block-grid fields (psi, coherence, mask, s4), the detection ``z`` and ``alignment``, sizes.
     """
 
@@ -131,7 +136,7 @@ class SelfCalResult:
     theta: np.ndarray | None
     modulating_fraction: float
     residual_deg: float | None
-    runner_up_cost_ratio: float | None
+    twin_ratio: float | None
     diagnostics: dict
 
     def summary(self) -> dict:
@@ -149,7 +154,7 @@ class SelfCalResult:
             "model": self.model,
             "modulating_fraction": self.modulating_fraction,
             "residual_deg": self.residual_deg,
-            "runner_up_cost_ratio": self.runner_up_cost_ratio,
+            "twin_ratio": self.twin_ratio,
             "z": self.diagnostics.get("z"),
             "alignment": self.diagnostics.get("alignment"),
         }
@@ -287,7 +292,8 @@ def fit_normal(s4: np.ndarray, q: np.ndarray, width_blocks: int, height_blocks: 
     Returns:
         dict with ``tilt``, ``azimuth`` (radians), ``fov_deg``, ``score`` = C(N*), ``z`` = C(N*) / sqrt(q_total / 2)
         (its size in noise standard deviations), ``alignment`` = C(N*) / sum |s4| in [-1, 1],
-        ``runner_up_ratio`` = best C at least 15 deg (in N) away / C(N*).
+        ``twin_ratio`` = C of the best pane whose phi_perp field is rotated by about 90 deg from the optimum's
+        (weighted mean cos 2 (phi_perp - phi_perp*) < 0), over C(N*): near 1 = the 90 deg flip cannot be resolved.
     """
     from scipy.optimize import least_squares
 
@@ -295,7 +301,7 @@ def fit_normal(s4: np.ndarray, q: np.ndarray, width_blocks: int, height_blocks: 
     ang4 = np.angle(s4).ravel()
     tot = float(mag.sum())
     if tot <= 0:
-        return {"tilt": 0.0, "azimuth": 0.0, "fov_deg": float(fov_deg or fov_init_deg), "score": 0.0, "z": 0.0, "alignment": 0.0, "runner_up_ratio": float("nan")}
+        return {"tilt": 0.0, "azimuth": 0.0, "fov_deg": float(fov_deg or fov_init_deg), "score": 0.0, "z": 0.0, "alignment": 0.0, "twin_ratio": float("nan")}
     fov0 = float(fov_deg) if fov_deg else float(fov_init_deg)
 
     def phis(tilt, az, fov):
@@ -310,7 +316,8 @@ def fit_normal(s4: np.ndarray, q: np.ndarray, width_blocks: int, height_blocks: 
     azs = np.deg2rad(np.arange(0.0, 360.0, 8.0))
     cam0 = camera_for(width_blocks, height_blocks, fov0)
     normals = np.array([normal_from_angles(t, a, cam0) for t in tilts for a in azs])
-    grid = np.concatenate([np.sum(mag * np.cos(ang4 - 4.0 * pp.reshape(pp.shape[0], -1)), axis=1) for pp in _phi_perp_many(cam0, normals)]).reshape(len(tilts), len(azs))
+    pp_all = np.concatenate([pp.reshape(pp.shape[0], -1) for pp in _phi_perp_many(cam0, normals)])  # (candidates, blocks)
+    grid = np.sum(mag * np.cos(ang4 - 4.0 * pp_all), axis=1).reshape(len(tilts), len(azs))
     order = np.argsort(-grid, axis=None)
     starts: list[tuple[float, float]] = []
     for idx in order:
@@ -321,8 +328,8 @@ def fit_normal(s4: np.ndarray, q: np.ndarray, width_blocks: int, height_blocks: 
         if len(starts) >= 3:
             break
     sw = np.sqrt(2.0 * mag / tot)
-    fits = []
-    for t0, a0 in starts:
+
+    def refine(t0, a0):
         if fov_deg:
             fun = lambda x: sw * np.sin(0.5 * (ang4 - 4.0 * phis(x[0], x[1], fov0)))  # noqa: E731  (= sin 2 delta)
             x0, lb, ub = [t0, a0], [0.0, a0 - math.pi], [math.radians(89.9), a0 + math.pi]
@@ -331,14 +338,25 @@ def fit_normal(s4: np.ndarray, q: np.ndarray, width_blocks: int, height_blocks: 
             x0, lb, ub = [t0, a0, fov0], [0.0, a0 - math.pi, 5.0], [math.radians(89.9), a0 + math.pi, 150.0]
         r = least_squares(fun, x0, bounds=(lb, ub), x_scale=[0.1, 0.1] + ([10.0] if not fov_deg else []))
         f = float(r.x[2]) if not fov_deg else fov0
-        fits.append((score(r.x[0], r.x[1], f), float(r.x[0]), float(r.x[1]) % (2 * math.pi), f))
-    fits.sort(reverse=True)
+        return (score(r.x[0], r.x[1], f), float(r.x[0]), float(r.x[1]) % (2 * math.pi), f)
+
+    fits = sorted((refine(t0, a0) for t0, a0 in starts), reverse=True)
     best = fits[0]
-    far = [c for c, t, a, _ in fits[1:] if _sep(best[1], best[2], t, a) > math.radians(15)]
-    far += [grid[i, j] for i in range(len(tilts)) for j in range(len(azs)) if _sep(best[1], best[2], tilts[i], azs[j]) > math.radians(15)]
-    runner = max(far) if far else float("nan")
+    # the 90 deg twin: the best pane whose s-directions run (mostly) along the best fit's p-directions.
+    # Modulo 90 deg the two fields agree where the view is narrow and the pane glancing; only the
+    # field's curvature tells them apart, and twin_ratio near 1 says it cannot.
+    pp_best = phis(best[1], best[2], best[3])
+    wcos = np.sum(mag * np.cos(2.0 * (pp_all - pp_best)), axis=1) / tot
+    twin_ratio = float("nan")
+    cand = np.flatnonzero(wcos < 0.0)
+    if cand.size and best[0] > 0:
+        k = int(cand[np.argmax(grid.ravel()[cand])])
+        tw = refine(float(tilts[k // len(azs)]), float(azs[k % len(azs)]))
+        pp_tw = phis(tw[1], tw[2], tw[3])
+        tw_score = tw[0] if float(np.sum(mag * np.cos(2.0 * (pp_tw - pp_best)))) < 0 else float(grid.ravel()[k])
+        twin_ratio = max(tw_score, float(grid.ravel()[k])) / best[0]
     z = best[0] / math.sqrt(0.5 * max(float(q.sum()), 1e-300))
-    return {"tilt": best[1], "azimuth": best[2], "fov_deg": best[3], "score": best[0], "z": z, "alignment": best[0] / tot, "runner_up_ratio": runner / best[0] if best[0] > 0 else float("nan")}
+    return {"tilt": best[1], "azimuth": best[2], "fov_deg": best[3], "score": best[0], "z": z, "alignment": best[0] / tot, "twin_ratio": twin_ratio}
 
 
 def _sep(t1, a1, t2, a2) -> float:
@@ -390,10 +408,13 @@ def self_calibrate(I: np.ndarray, phi: np.ndarray, cfg: SelfCalConfig = SelfCalC
 
     def fail(reason):
         log.warning("self-calibrated zeta for %s: %s; falling back to the learned zeta", name, reason)
-        return SelfCalResult(False, reason, None, None, None, None, float(fit["fov_deg"]), False, cfg.n, cfg.model, None, None, frac, res_deg, fit["runner_up_ratio"], diag)
+        return SelfCalResult(False, reason, None, None, None, None, float(fit["fov_deg"]), False, cfg.n, cfg.model, None, None, frac, res_deg, fit["twin_ratio"], diag)
 
     if not fit["z"] >= cfg.z_min:
         return fail(f"nothing modulates: the best planar pane explains the polarization orientation only {fit['z']:.1f} noise sigmas above chance (need {cfg.z_min:g}); no reflection, R = T, or near-normal incidence")
+    if fit["twin_ratio"] > cfg.max_twin_ratio:
+        return fail(f"ambiguous: a pane with phi_perp turned by 90 deg explains the orientation field {100 * fit['twin_ratio']:.1f} % as well "
+                    f"(modulo 90 deg only the field's curvature separates them: narrow field of view or glancing pane)")
     tilt_deg = math.degrees(fit["tilt"])
     if tilt_deg < cfg.min_tilt_deg:
         return fail(f"near-normal incidence (fitted tilt {tilt_deg:.1f} deg): no usable modulation")
@@ -410,7 +431,7 @@ def self_calibrate(I: np.ndarray, phi: np.ndarray, cfg: SelfCalConfig = SelfCalC
         vp = (float(x), float(y))
     res = SelfCalResult(
         True, "", N, tilt_deg, math.degrees(fit["azimuth"]), vp, float(fit["fov_deg"]), fov_given is None, cfg.n, cfg.model, maps, theta, frac,
-        res_deg, fit["runner_up_ratio"], diag,
+        res_deg, fit["twin_ratio"], diag,
     )
     log.info("self-calibrated pane for %s: tilt %.1f deg, azimuth %.1f deg, fov %.1f deg%s, z %.1f, %.0f %% of blocks coherent",
              name, tilt_deg, res.azimuth_deg, res.fov_deg, " (fitted)" if res.fov_fitted else "", fit["z"], 100 * frac)

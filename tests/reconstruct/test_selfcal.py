@@ -104,3 +104,15 @@ def test_solvers_with_self_zeta_within_1db_of_true_zeta():
         psnr[src] = {r["method"]: r["psnr_T"] for r in rep.rows if r["group"] == "overall"}
     for m in ("ls", "ridge", "rwps"):
         assert psnr["self"][m] > psnr["gt"][m] - 1.0, (m, psnr)
+
+
+def test_narrow_view_glancing_pane_is_flagged_ambiguous():
+    # 18 deg field of view, pane at 74 deg: the orientation field is nearly uniform, and modulo 90 deg the pane turned
+    # by 90 deg fits as well; the estimator must say so rather than return either (measured twin ratio 0.9996)
+    g, _ = make_pane_group(74.0, 30.0, fov_deg=18.0, r_gain=4.0, seed=74, **SMALL)
+    r = self_calibrate(g.I, g.phi_nominal, SelfCalConfig(fov_deg=g.fov_deg))
+    assert not r.ok and "ambiguous" in r.reason and r.twin_ratio > 0.98
+    # the same pane in a 60 deg view is resolved
+    g, N = make_pane_group(74.0, 30.0, fov_deg=60.0, r_gain=4.0, exposure=3.0, seed=74, **SMALL)
+    r = self_calibrate(g.I, g.phi_nominal, SelfCalConfig(fov_deg=g.fov_deg))
+    assert r.ok and r.twin_ratio < 0.98 and _angle_deg(r.normal, N) < 4.0
