@@ -64,6 +64,8 @@ class EvalGroup:
     gt_zeta: np.ndarray | None = None
     fov_deg: float | None = None
     """horizontal field of view of the camera (degrees) when known (a dataset group's scene), for ``--zeta self``"""
+    source_dir: str | None = None
+    """the stored group this was aggregated from (``--zeta self`` calibrates on all of its spikes), or None"""
 
 
 
@@ -194,4 +196,5 @@ def load_store_group(
             theta=mp.get("theta"),
             has_gt=has,
             fov_deg=fov_from_group_dir(path),
+            source_dir=str(path),
         )

@@ -442,13 +442,25 @@ def group_self_zeta(group, n: float = 1.5, model: str = "single", cfg: SelfCalCo
     """The ``self`` zeta source for an evaluation group: zeta (M, H, W) at the group's nominal angles, or None.
 
     The field of view is the group's (``group.fov_deg``, from its scene) when recorded, else fitted.
+    A group loaded from a store (``group.source_dir``) is calibrated on every spike of its first
+    ``span_s`` (back-to-back Eq. (3) windows, about 4.5 times the data of the 31.5 deg-strided output
+    frames); otherwise on its frames.
     None (with a logged warning) where nothing modulates: the caller falls back to the learned zeta.
     """
     base = cfg or SelfCalConfig()
     fov = getattr(group, "fov_deg", None)
     c = dataclasses.replace(base, n=float(n), model=model, fov_deg=float(fov) if (fov and not base.fov_deg) else base.fov_deg)
-    frames = min(group.I.shape[0], MAX_FRAMES)
-    r = self_calibrate(group.I[:frames], np.asarray(group.phi_nominal)[:frames], c, name=group.name)
+    src_dir = getattr(group, "source_dir", None)
+    if src_dir and (Path(src_dir) / "spikes.h5").is_file():
+        # a stored group: every spike of the first span_s (back-to-back windows), not only the strided output frames
+        from reconstruct.physics_video import span_frames
+        from reconstruct.video import group_source
+
+        I, phi = span_frames(group_source(src_dir), c.span_s)
+    else:
+        frames = min(group.I.shape[0], MAX_FRAMES)
+        I, phi = group.I[:frames], np.asarray(group.phi_nominal)[:frames]
+    r = self_calibrate(I, phi, c, name=group.name)
     group_self_zeta.last = r  # the latest calibration, for reports
     if not r.ok:
         return None
