@@ -89,6 +89,7 @@ class SolverConfig:
     # stored SolverConfig (checkpoints) and SolverConfig() reproduce exactly.
     lambda_map: str = opt("fixed", "rwps Conf -> lambda: fixed (Conf from 4 Var_w(zeta) alone) or adaptive (noise-aware Conf, module docstring)", choices=("fixed", "adaptive"))
     snr_kappa: float = opt(1.0, "adaptive: value of the conditioning SNR q at which Conf = 1/2", lo=1e-9, hi=1e9)
+    rwps_irls_iters: int = opt(-1, "Huber reweighting iterations of rwps (-1: irls_iters, the original behaviour)", lo=-1, hi=100)
     noise_pool: int = opt(5, "adaptive: side (pixels) of the box over which the residual noise and signal power are pooled", lo=1, hi=101)
 
 
@@ -223,7 +224,7 @@ def _robust_scale(r: torch.Tensor) -> torch.Tensor:
     return 1.4826 * r.abs().median(dim=-3).values
 
 
-def poisson_reliability(zeta: torch.Tensor, I: torch.Tensor, floor: float = 0.05) -> torch.Tensor:
+def poisson_reliability(zeta: torch.Tensor, I: torch.Tensor, floor: float = 0.05, first_lambda: float = 0.0) -> torch.Tensor:
     """Classical reliability weights in (0, 1] for spike-count frames (used when no learned w is given).
 
     A spike count's variance grows with its expected rate (Poisson), so frame k
@@ -237,11 +238,14 @@ def poisson_reliability(zeta: torch.Tensor, I: torch.Tensor, floor: float = 0.05
         zeta: (..., N, H, W) mixing coefficients.
         I: (..., N, H, W) observations.
         floor: relative offset c.
+        first_lambda: ridge strength of the first pass (0: plain least squares, the original;
+            the adaptive mapping uses its ``lambda_high`` so that a near-singular, noisy window
+            does not turn its swings into weights).
 
     Returns:
         weights (..., N, H, W) in (0, 1].
     """
-    R, T = solve_weighted_ridge(zeta, 2.0 * I, torch.ones_like(I), 0.0)
+    R, T = solve_weighted_ridge(zeta, 2.0 * I, torch.ones_like(I), first_lambda)
     p = (zeta * R.unsqueeze(-3) + (1.0 - zeta) * T.unsqueeze(-3)).clamp_min(0.0)
     c = floor * p.mean(dim=-3, keepdim=True) + torch.finfo(I.dtype).tiny ** 0.5
     return (p.min(dim=-3, keepdim=True).values + c) / (p + c)
@@ -278,7 +282,8 @@ def solve(
     zeta = torch.broadcast_to(zeta.to(I.dtype), I.shape)
     b = 2.0 * I  # supp. Eq. (3)
     if method == "rwps":
-        w0 = poisson_reliability(zeta, I) if weights is None else torch.broadcast_to(weights.to(I.dtype), I.shape).clamp(0.0, 1.0)
+        first = config.lambda_high if config.lambda_map == "adaptive" else 0.0
+        w0 = poisson_reliability(zeta, I, first_lambda=first) if weights is None else torch.broadcast_to(weights.to(I.dtype), I.shape).clamp(0.0, 1.0)
     else:
         w0 = torch.ones_like(I)
     if method == "rwps" and config.lambda_map == "adaptive":
@@ -294,7 +299,8 @@ def solve(
     R, T = solve_weighted_ridge(zeta, b, w0, lam)
     w = w0
     if method in ("irls", "rwps"):
-        for _ in range(config.irls_iters):
+        iters = config.rwps_irls_iters if (method == "rwps" and config.rwps_irls_iters >= 0) else config.irls_iters
+        for _ in range(iters):
             r = b - (zeta * R.unsqueeze(-3) + (1.0 - zeta) * T.unsqueeze(-3))  # supp. Eq. (10)
             delta = (config.huber_c * _robust_scale(r)).clamp_min(config.huber_floor).unsqueeze(-3)
             w = w0 * huber_factor(r, delta)  # supp. Eq. (11): w^(j+1) = w q^(j)

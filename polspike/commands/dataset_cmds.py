@@ -21,6 +21,7 @@ def dataset_new(
     height: int = typer.Option(250, "--height", help="image height in pixels"),
     duration_s: float = typer.Option(1.0, "--duration-s", help="stream length per group, seconds"),
     tier: str = typer.Option("analytic", "--tier", help="generator tier: analytic, maps, full"),
+    ranges: str = typer.Option("paper", "--ranges", help="range profile: paper (the paper's difficulty, paper.toml) or v1 (the first, easier ranges, paper_v1.toml)"),
 ) -> None:
     """Write a manifest whose scene parameters are drawn from the documented ranges (docs/datasets.md)."""
     from rich.console import Console
@@ -31,7 +32,7 @@ def dataset_new(
 
     if tier not in ("analytic", "maps", "full"):
         raise ConfigError(f"--tier {tier!r} is unknown; choose analytic, maps or full")
-    text = sample_manifest_text(groups, seed, name=name or out.stem, test_fraction=test_fraction, width=width, height=height, duration_s=duration_s, tier=tier)
+    text = sample_manifest_text(groups, seed, name=name or out.stem, test_fraction=test_fraction, width=width, height=height, duration_s=duration_s, tier=tier, profile=ranges)
     write_text(out, text)
     Console().print(f"[green]wrote[/] {out}: {groups} groups (seed {seed})")
 

@@ -31,6 +31,10 @@ def evaluate_cmd(
     dtype: str = typer.Option("float32", "--dtype", help="solver dtype: float32 or float64"),
     device: str = typer.Option("cpu", "--device", help="torch device for the solvers and the network: cpu, cuda or auto"),
     sweep: bool = typer.Option(False, "--sweep", help="also run the window analysis (N in 5,7,9 x dt in 0.30,0.65,1.10 ms; supp. Table 1)"),
+    by_regime: bool = typer.Option(False, "--by-regime", help="stress table: every solver with each zeta of --regime-zetas, baselines and the network (unless --no-net), one row per regime level of the group names (datasets/manifests/stress.toml)"),
+    regime_zetas: str = typer.Option("gt,learned", "--regime-zetas", help="--by-regime: comma-separated zeta sources (gt, physics, learned, self)"),
+    net: bool = typer.Option(True, "--net/--no-net", help="--by-regime: include the network (full) column"),
+    lambda_map: str = typer.Option("adaptive", "--lambda-map", help="rwps Conf -> lambda: adaptive (fitted physics default) or fixed (the original mapping)"),
     synthetic_groups: int = typer.Option(4, "--synthetic-groups", help="synthetic: number of groups"),
     synthetic_frames: int = typer.Option(20, "--synthetic-frames", help="synthetic: frames per group"),
     synthetic_noise: str = typer.Option("poisson", "--synthetic-noise", help="synthetic: poisson, integrate_fire or none"),
@@ -60,14 +64,32 @@ def evaluate_cmd(
     con = Console()
     with rich_progress("load groups", enabled=not quiet) as cb:
         groups = load_groups(dataset, split, cfg, syn, progress=cb)
+    from reconstruct.solvers import PHYSICS_SOLVER_CONFIG, SolverConfig
+
+    if lambda_map not in ("adaptive", "fixed"):
+        raise ConfigError(f"--lambda-map {lambda_map!r}: choose adaptive or fixed")
+    solver_cfg = PHYSICS_SOLVER_CONFIG if lambda_map == "adaptive" else SolverConfig()
+    if by_regime:
+        from polinfra.atomic import write_json, write_text
+        from reconstruct.evaluate import evaluate_by_regime, regime_markdown
+
+        zs = [z.strip() for z in regime_zetas.split(",") if z.strip()]
+        with rich_progress("evaluate by regime", enabled=not quiet) as cb:
+            res = evaluate_by_regime(groups, cfg, zs, network=net, solver_cfg=solver_cfg, progress=cb)
+        md = regime_markdown(res)
+        write_json(out / "by_regime.json", res)
+        write_text(out / "by_regime.md", "# PSNR of T (dB) per regime level\n\n" + md)
+        Console().print(md)
+        Console().print(f"[green]wrote[/] {out / 'by_regime.md'}, {out / 'by_regime.json'}")
+        return
     with rich_progress("evaluate", enabled=not quiet) as cb:
-        report = evaluate_groups(groups, cfg, progress=cb)
+        report = evaluate_groups(groups, cfg, solver_cfg, progress=cb)
     paths = write_report(report, out)
     con.print(markdown_table(report, overall_only=True))
     if sweep:
         from polinfra.atomic import write_json, write_text
 
-        rows = window_sweep(None, dataset, split, cfg, synthetic=syn)
+        rows = window_sweep(None, dataset, split, cfg, synthetic=syn, solver_cfg=solver_cfg)
         write_json(out / "window_sweep.json", rows)
         write_text(out / "window_sweep.md", "# Window analysis (supp. Table 1)\n\n" + sweep_markdown(rows))
         con.print(sweep_markdown(rows))
@@ -123,3 +145,39 @@ def bench_reconstruct_cmd(
         con.print(f"{dev}: skipped ({why})")
     if json_out:
         print(json.dumps(res, indent=2))
+
+
+@app_typer.command("fit-rwps")
+def fit_rwps_cmd(
+    dataset: str = typer.Argument(..., help="built dataset directory whose TRAINING groups fit the constants (e.g. out/datasets/fit_paper)"),
+    split: str = typer.Option("train", "--split", help="split to fit on (train: never fit on test groups)"),
+    out: Path = typer.Option(Path("out/fit_rwps"), "--out", help="output folder (fit.json, fit.md)"),
+    max_frames: int = typer.Option(3, "--max-frames", help="output frames per group"),
+    quiet: bool = typer.Option(False, "--quiet", help="no progress bar"),
+) -> None:
+    """Fit the adaptive RWPS constants (snr_kappa, lambda_low, lambda_high) on training groups with the true zeta (reconstruct/rwps_fit.py)."""
+    from rich.console import Console
+
+    from polinfra.atomic import write_json, write_text
+    from polinfra.errors import ConfigError
+    from polinfra.progress import rich_progress
+    from reconstruct.evaluate import EvalConfig, load_groups
+    from reconstruct.rwps_fit import GRID, aligned_windows, fit_rwps
+
+    if split == "test":
+        raise ConfigError("fit-rwps fits on training groups; --split test would leak the test split into the constants")
+    cfg = EvalConfig(max_frames=max_frames, zeta="gt")
+    with rich_progress("load groups", enabled=not quiet) as cb:
+        groups = load_groups(dataset, split, cfg, progress=cb)
+    win = aligned_windows(groups, cfg)
+    with rich_progress("grid", enabled=not quiet) as cb:
+        res = fit_rwps(win, progress=cb)
+    res["dataset"], res["split"], res["max_frames"], res["grid"] = dataset, split, max_frames, GRID
+    rows = sorted(res["table"], key=lambda r: -r["objective"])
+    md = "| snr_kappa | lambda_low | lambda_high | rwps_irls_iters | objective | groups losing > 0.3 dB | min margin | mean margin | mean PSNR T |\n|---:|---:|---:|---:|---:|---:|---:|---:|---:|\n"
+    md += "\n".join(f"| {r['snr_kappa']:g} | {r['lambda_low']:g} | {r['lambda_high']:g} | {r['rwps_irls_iters']} | {r['objective']:.3f} | {r['n_lose']} | {r['min_margin']:.3f} | {r['mean_margin']:.3f} | {r['mean_psnr']:.2f} |" for r in rows[:12]) + "\n"
+    write_json(out / "fit.json", res)
+    write_text(out / "fit.md", f"# RWPS fit on {dataset} ({split}, {len(res['groups'])} groups, {max_frames} frames each)\n\nbest: {res['best']}\n\n" + md)
+    con = Console()
+    con.print(md)
+    con.print(f"best: {res['best']} (objective {res['objective']:.3f} dB)")

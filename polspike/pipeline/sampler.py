@@ -1,11 +1,47 @@
 """Sample a dataset manifest: scene parameters drawn from documented ranges.
 
-``polspike dataset new --groups N --seed S --out FILE`` calls :func:`sample_manifest`.
-One ``np.random.default_rng(seed)`` draws every group in order, so the same
-(N, seed, options) always writes the same manifest.  The last
-``round(test_fraction * N)`` groups (at least one when N >= 2) are the test split.
+``polspike dataset new --groups N --seed S [--ranges paper|v1] --out FILE`` calls
+:func:`sample_manifest`.  One ``np.random.default_rng(seed)`` draws every group in order, so the
+same (N, seed, options) always writes the same manifest.  The last ``round(test_fraction * N)``
+groups (at least one when N >= 2) are the test split.  Each group's ``description`` lists its
+draws (R/T ratio, centre incidence, pane model, haze, sprites, highlights, pan, light, sensor).
 
-Ranges (U = uniform; all drawn per group):
+Profile ``paper`` (default; ``paper.toml``): the paper's difficulty (issue 15), calibrated so
+that with the true zeta the solver-only table on its test split (``eval_paper.toml``) lands within
+1.5 dB of supp. Table 3 (README).  U = uniform, LU = log-uniform; all drawn per group:
+
+==========================  =====================================================
+pane.model                  single, thin_slab, thick_slab: 1/3 each
+pane.n                      U[1.45, 1.75]
+pane.tilt_deg               incidence at the image centre: 40 % Brewster's angle atan(n)
+                            + U[-8, 8] deg, 60 % U[20, 78] deg
+camera.fov_deg              U[25, 55] deg, narrowed above 60 deg of incidence so glancing views
+                            stay on the pane: upper bound 55 - 2.2 (tilt - 60), at least 12
+camera pose                 yaw U[-15, 15], pitch U[-10, 10], roll U[-10, 10] deg
+pane.tilt_axis_deg          U[0, 180): every plane-of-incidence orientation
+pane.distance_m, thickness  U[0.5, 1.5] m, U[2, 10] mm
+max incidence in the view   < 88 deg (the camera is redrawn up to 20 times for a centre
+                            incidence, then the incidence is redrawn)
+T layer                     distance U[2, 8] m, brightness U[0.5, 1.0]
+R / T brightness            ratio of mean radiances LU[0.2, 5] (content mean 0.25 at brightness
+                            1): R brightness up to 1, the rest as a uniform offset, R mean <= 0.85
+haze (35 %)                 R is bright and low-texture: offset U[0.5, 0.9] of its mean radiance
+highlights (30 %)           1-3 uniform discs (procedural:disk) on R, size U[0.03, 0.08] of the
+                            view height, velocity U[-0.3, 0.3] view/s per axis
+layer motion (T, R apart)   static with probability 0.2, else speed U[0, 1] view width/s in a
+                            uniform direction, rotate U[-30, 30] deg/s, zoom U[-0.3, 0.3] 1/s
+camera pan (30 %)           a translation U[-0.25, 0.25] view/s per axis added to both layers
+                            (a constant pan: the scene format has no oscillating shake)
+sprite (30 %)               one textured sprite on T or R (1/2 each), size U[0.1, 0.3], start
+                            U[0.2, 0.8]^2, velocity U[-1.5, 1.5] view/s per axis
+light                       spike_sim.exposure such that the mean T content fires ``rate`` spikes
+                            per pixel per step: 90 % dim, rate LU[0.01, 0.03]; 10 % bright,
+                            LU[0.03, 0.3] (peaks of the content, 4x the mean, near saturation)
+sensor                      spike_sim preset default or noisy (10x fewer photoelectrons), 1/2 each
+polarizer.phase_deg         U[0, 180) deg (rate fixed: ``rate_hz``, 30 rev/s)
+==========================  =====================================================
+
+Profile ``v1`` (``paper_v1.toml``, the first ``paper.toml``; kept byte for byte):
 
 ==========================  =====================================================
 camera.fov_deg              U[35, 55] deg (horizontal)
@@ -29,6 +65,10 @@ sprite                      one on the R layer with probability 0.3: size U[0.1,
 polarizer.phase_deg         U[0, 180) deg (rate fixed: ``rate_hz``, 30 rev/s)
 seed                        integer U[0, 2^31)
 ==========================  =====================================================
+
+:func:`reduced_manifest` makes the reduced builds (``eval_paper.toml``: the test split at
+200 x 125 and 0.1 s; ``fit_paper.toml``: the train split at 200 x 125 and 0.05 s), and
+:func:`stress_manifest` the stress grid (``stress.toml``).
 
 Layer content comes from split-specific pools, so no content is shared between
 train and test groups (:func:`polspike.pipeline.manifest.check_split`):
@@ -79,7 +119,7 @@ RANGES_V1: dict[str, tuple[float, float]] = {
 """Uniform ranges of the ``v1`` profile (``paper_v1.toml``; module docstring)."""
 
 RANGES: dict[str, tuple[float, float]] = {
-    "fov_deg": (25.0, 55.0),
+    "fov_deg": (12.0, 55.0),
     "yaw_deg": (-15.0, 15.0),
     "pitch_deg": (-10.0, 10.0),
     "roll_deg": (-10.0, 10.0),
@@ -105,7 +145,8 @@ RANGES: dict[str, tuple[float, float]] = {
     "sprite_velocity_per_s": (-1.5, 1.5),
     "highlight_size": (0.03, 0.08),
     "highlight_velocity_per_s": (-0.3, 0.3),
-    "log_rate": (math.log(0.02), math.log(0.35)),
+    "log_rate_dim": (math.log(0.01), math.log(0.03)),
+    "log_rate_bright": (math.log(0.03), math.log(0.3)),
     "phase_deg": (0.0, 180.0),
 }
 """Ranges of the ``paper`` profile (``paper.toml``; module docstring).  ``t_brightness``,
@@ -118,11 +159,14 @@ PROFILES = ("paper", "v1")
 """Range profiles: ``paper`` (the paper's difficulty, default) and ``v1`` (the first, easier ranges)."""
 PAPER_PANE_MODELS = (("single", 1.0 / 3.0), ("thin_slab", 1.0 / 3.0), ("thick_slab", 1.0 / 3.0))
 PAPER_MAX_INCIDENCE_DEG = 88.0
+PAPER_FOV_DEG = (25.0, 55.0)
 GLANCING_FROM_DEG = 60.0
 GLANCING_FOV_SLOPE = 2.2
 GLANCING_MIN_FOV_DEG = 12.0
 BREWSTER_PROB = 0.4
-HAZE_PROB = 0.25
+HAZE_PROB = 0.35
+DIM_PROB = 0.9
+NOISY_PROB = 0.5
 HIGHLIGHT_PROB = 0.3
 STATIC_PROB = 0.2
 PAN_PROB = 0.3
@@ -275,7 +319,7 @@ def _group_paper(rng: np.random.Generator, name: str, split: str, width: int, he
             tilt = math.degrees(math.atan(n)) + _u(rng, "brewster_window_deg")
         else:
             tilt = _u(rng, "tilt_deg")
-        fov_lo, fov_hi = RANGES["fov_deg"]
+        fov_lo, fov_hi = PAPER_FOV_DEG
         fov_hi = max(GLANCING_MIN_FOV_DEG, fov_hi - GLANCING_FOV_SLOPE * max(0.0, tilt - GLANCING_FROM_DEG))
         fov_lo = min(fov_lo, fov_hi - 3.0)
         for _ in range(20):
@@ -309,7 +353,8 @@ def _group_paper(rng: np.random.Generator, name: str, split: str, width: int, he
     haze = rng.random() < HAZE_PROB
     if haze:  # bright, low-texture R of the same mean radiance: offset + faint content
         level = _u(rng, "haze_level")
-        r_offset, r_b = r_mean * level, r_mean * (1.0 - level) / NOMINAL_CONTENT_MEAN
+        r_b = min(1.0, r_mean * (1.0 - level) / NOMINAL_CONTENT_MEAN)
+        r_offset = r_mean - r_b * NOMINAL_CONTENT_MEAN
     else:
         r_b = min(1.0, r_mean / NOMINAL_CONTENT_MEAN)
         r_offset = r_mean - r_b * NOMINAL_CONTENT_MEAN
@@ -348,9 +393,11 @@ def _group_paper(rng: np.random.Generator, name: str, split: str, width: int, he
     if pan != (0.0, 0.0):
         tags.append("camera pan")
     # light: exposure such that the mean T content fires `rate` spikes per pixel per step
-    rate = _lu(rng, "log_rate")
+    rate = _lu(rng, "log_rate_dim" if rng.random() < DIM_PROB else "log_rate_bright")
     exposure = rate / (0.5 * NOMINAL_CONTENT_MEAN * max(t_b, 1e-3))
     tags.append(f"{rate:.3f} spikes/px/step")
+    sensor = "noisy" if rng.random() < NOISY_PROB else "default"
+    tags.append(f"{sensor} sensor")
     return {
         "name": name,
         "split": split,
@@ -360,7 +407,7 @@ def _group_paper(rng: np.random.Generator, name: str, split: str, width: int, he
         "pane": pane,
         "layers": {"transmission": trans, "reflection": refl},
         "polarizer": {"phase_deg": _r(_u(rng, "phase_deg"), 3)},
-        "spike_sim": {"preset": "default", "exposure": _r(exposure, 4)},
+        "spike_sim": {"preset": sensor, "exposure": _r(exposure, 4)},
     }
 
 
@@ -465,3 +512,106 @@ def reduced_manifest(data: dict, name: str, width: int, height: int, duration_s:
     out["defaults"]["duration_s"] = float(duration_s)
     out["groups"] = groups
     return out
+
+
+STRESS_LEVELS: dict[str, dict[str, float | str]] = {
+    "refl": {"weak": 0.3, "strong": 1.5, "dominant": 5.0},  # R / T mean-radiance ratio
+    "motion": {"static": 0.0, "fast": 0.8},  # view widths per second (T; R moves at 0.6 of it the other way)
+    "light": {"dim": 0.025, "bright": 0.3},  # spikes / pixel / step of the mean T content
+    "inc": {"normal": 8.0, "brewster": -1.0, "glancing": 74.0},  # centre incidence (deg); -1 = Brewster's angle
+    "pane": {"single": "single", "slab": "thin_slab"},
+}
+"""Levels of the stress grid (:func:`stress_manifest`); factor names as in
+:data:`reconstruct.evaluate.REGIME_FACTORS`."""
+
+
+def stress_design() -> list[dict[str, str]]:
+    """The fractional stress design: all 9 (reflection x incidence) pairs twice (motion static, then
+    fast), with light and pane alternating so each level of each factor appears 9 times out of 18."""
+    refl, inc = list(STRESS_LEVELS["refl"]), list(STRESS_LEVELS["inc"])
+    out = []
+    for r, motion in enumerate(STRESS_LEVELS["motion"]):
+        for i, rl in enumerate(refl):
+            for j, il in enumerate(inc):
+                light = list(STRESS_LEVELS["light"])[(i + j + r) % 2]
+                pane = list(STRESS_LEVELS["pane"])[(i + 2 * j + r + 1) % 2]
+                out.append({"refl": rl, "motion": motion, "light": light, "inc": il, "pane": pane})
+    return out
+
+
+def stress_manifest(seed: int = 4242, width: int = 200, height: int = 125, duration_s: float = 0.05) -> dict:
+    """Plain data of ``datasets/manifests/stress.toml``: one test group per design point of
+    :func:`stress_design`, named by its regime (``refl-..._motion-..._light-..._inc-..._pane-...``).
+
+    Layer content comes from the test pool only (never seen in training); the remaining
+    parameters (tilt axis, camera pose, content, polarizer phase) are drawn from ``seed``.
+    """
+    rng = np.random.default_rng(seed)
+    groups = []
+    n = 1.52
+    for d in stress_design():
+        name = "_".join(f"{k}-{v}" for k, v in d.items())
+        tilt = math.degrees(math.atan(n)) if d["inc"] == "brewster" else float(STRESS_LEVELS["inc"][d["inc"]])
+        fov = 18.0 if d["inc"] == "glancing" else 45.0
+        camera = {"width": width, "height": height, "fov_deg": fov, "position": [0.0, 0.0, 0.0], "look_at": [0.0, 0.0, -1.0], "up": [0.0, 1.0, 0.0], "roll_deg": _r(float(rng.uniform(-5, 5)), 3)}
+        for _ in range(50):
+            pane = {"model": STRESS_LEVELS["pane"][d["pane"]], "n": n, "distance_m": 1.0, "tilt_deg": _r(tilt, 3), "tilt_axis_deg": _r(float(rng.uniform(0, 180)), 3), "thickness_mm": 5.0, "size_m": [1000.0, 1000.0]}
+            need = _pane_need({"camera": camera, "pane": pane}, PAPER_MAX_INCIDENCE_DEG)
+            if need is not None:
+                break
+        else:  # pragma: no cover - the levels are chosen to fit
+            raise SceneError(f"stress group {name}: no pane geometry fits")
+        pane["size_m"] = [math.ceil(need[0] * 1.25 * 10) / 10, math.ceil(need[1] * 1.25 * 10) / 10]
+        t_src, t_seed = _content(rng, "test")
+        r_src, r_seed = _content(rng, "test", avoid=t_src)
+        if r_src == t_src and r_seed == t_seed:
+            r_seed = t_seed + 1
+        t_b = 0.8
+        r_mean = min(float(STRESS_LEVELS["refl"][d["refl"]]) * t_b * NOMINAL_CONTENT_MEAN, R_MEAN_MAX)
+        r_b = min(1.0, r_mean / NOMINAL_CONTENT_MEAN)
+        v = float(STRESS_LEVELS["motion"][d["motion"]])
+        ang = float(rng.uniform(0, 2 * math.pi))
+        mt = {"translate_per_s": [_r(v * math.cos(ang)), _r(v * math.sin(ang))], "rotate_deg_per_s": _r(20.0 * v, 3), "zoom_per_s": 0.0}
+        mr = {"translate_per_s": [_r(-0.6 * v * math.cos(ang)), _r(-0.6 * v * math.sin(ang))], "rotate_deg_per_s": _r(-10.0 * v, 3), "zoom_per_s": 0.0}
+        refl = {"source": r_src, "seed": r_seed, "distance_m": 2.0, "brightness": _r(r_b, 3), "motion": mr}
+        if r_mean - r_b * NOMINAL_CONTENT_MEAN > 0:
+            refl["offset"] = _r(r_mean - r_b * NOMINAL_CONTENT_MEAN, 4)
+        exposure = float(STRESS_LEVELS["light"][d["light"]]) / (0.5 * NOMINAL_CONTENT_MEAN * t_b)
+        groups.append({
+            "name": name,
+            "split": "test",
+            "description": f"R/T {STRESS_LEVELS['refl'][d['refl']]}; centre incidence {tilt:.1f} deg; {pane['model']}; {STRESS_LEVELS['light'][d['light']]} spikes/px/step; T {v} view/s",
+            "seed": int(rng.integers(0, 2**31 - 1)),
+            "camera": camera,
+            "pane": pane,
+            "layers": {"transmission": {"source": t_src, "seed": t_seed, "distance_m": 5.0, "brightness": t_b, "motion": mt}, "reflection": refl},
+            "polarizer": {"phase_deg": _r(float(rng.uniform(0, 180)), 3)},
+            "spike_sim": {"preset": "default", "exposure": _r(exposure, 4)},
+        })
+    return {
+        "format": MANIFEST_FORMAT,
+        "name": "stress",
+        "description": f"stress grid: {len(groups)} test groups named by regime (sampler.stress_manifest, seed {seed})",
+        "defaults": {"tier": "analytic", "duration_s": float(duration_s), "keyframe_fps": 100.0, "polarizer": {"rate_hz": 30.0}, "spike_sim": {"preset": "default"}},
+        "groups": groups,
+    }
+
+
+def stress_manifest_text(**kw) -> str:
+    """TOML text of :func:`stress_manifest` with its header (validated)."""
+    import tomllib
+
+    head = (
+        "Stress test (test-only; layer content from the test pool, never in training): a fractional grid of\n"
+        "regimes, reflection weak / strong / dominant (R/T 0.3 / 1.5 / 5), motion static / fast (T 0.8 view/s,\n"
+        "R 0.48 view/s the other way, rotation), light dim / bright (0.025 / 0.3 spikes/pixel/step),\n"
+        "centre incidence near normal / Brewster / glancing (8 / 56.7 / 74 deg), single interface / thin slab.\n"
+        "All 9 reflection x incidence pairs once static and once fast; light and pane alternate, so every\n"
+        "level appears in 9 of the 18 groups.  Each group is named by its regime.\n"
+        "Generated by polspike.pipeline.sampler.stress_manifest_text() (tested).\n"
+        "Build:    polspike dataset build datasets/manifests/stress.toml --out out/datasets/stress\n"
+        "Evaluate: polspike evaluate out/datasets/stress --by-regime --max-frames 3"
+    )
+    text = dump_manifest(stress_manifest(**kw), header=head)
+    parse_manifest(tomllib.loads(text), where="stress manifest", source_text=text.encode())
+    return text
