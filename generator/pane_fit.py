@@ -86,24 +86,36 @@ class PaneModelAD:
             ``sub`` x ``sub`` grid per pixel (maps averaged in Stokes form, as the maps tier).
         model: ``single``, ``thin_slab`` or ``thick_slab`` (coefficient maps of thin and thick are equal;
             the thick slab's ghost displacement is not part of the maps).
+        block: > 0: one ray per ``block`` x ``block`` pixel block (through the block's centre), maps on the
+            (height // block, width // block) grid of :func:`reconstruct.selfcal.orientation_field`'s blocks.
         thickness_m, absorption_per_m: slab absorption along the internal path.
     """
 
-    def __init__(self, width: int, height: int, model: str = "single", *, sub: int = 1, thickness_m: float = 0.0, absorption_per_m: float = 0.0):
+    def __init__(self, width: int, height: int, model: str = "single", *, sub: int = 1, block: int = 0, thickness_m: float = 0.0, absorption_per_m: float = 0.0):
         if model not in ("single", "thin_slab", "thick_slab"):
             raise ConfigError(f"unknown pane model {model!r}; use single, thin_slab or thick_slab")
         self.W, self.H, self.K = int(width), int(height), int(sub)
+        self.block = int(block)
+        if self.block > 0:
+            self.K = 1
+            self.gw, self.gh = self.W // self.block, self.H // self.block
+        else:
+            self.gw, self.gh = self.W, self.H
         self.model = model
         self.thickness_m = float(thickness_m)
         self.absorption_per_m = float(absorption_per_m)
         self.variant = ad_variant()
-        n = self.W * self.H * self.K * self.K
+        n = self.gw * self.gh * self.K * self.K
         idx = np.arange(n)
         pix, sb = np.divmod(idx, self.K * self.K)
-        py, px = np.divmod(pix, self.W)
+        py, px = np.divmod(pix, self.gw)
         sy, sx = np.divmod(sb, self.K)
-        self._u = ((px + (sx + 0.5) / self.K) / self.W * 2.0 - 1.0).astype(np.float32)
-        self._v = ((py + (sy + 0.5) / self.K) / self.H * 2.0 - 1.0).astype(np.float32)
+        if self.block > 0:  # block centres in image pixel coordinates
+            xp, yp = px * self.block + 0.5 * self.block, py * self.block + 0.5 * self.block
+        else:
+            xp, yp = px + (sx + 0.5) / self.K, py + (sy + 0.5) / self.K
+        self._u = (xp / self.W * 2.0 - 1.0).astype(np.float32)
+        self._v = (yp / self.H * 2.0 - 1.0).astype(np.float32)
 
     # ------------------------------------------------------------------ kernel
     def _eval(self, x, grad_index: int | None = None):
@@ -113,7 +125,7 @@ class PaneModelAD:
 
         mi.set_variant(self.variant)
         Float = mi.Float
-        p = [Float(float(v)) for v in x]
+        p = [dr.opaque(Float, float(v)) for v in x]  # opaque: one compiled kernel for every parameter value
         if grad_index is not None:
             dr.enable_grad(p[grad_index])
         tilt, az, fov, n = p
@@ -161,7 +173,7 @@ class PaneModelAD:
     def _to_maps(self, r: dict, dr_: dict | None = None) -> dict[str, np.ndarray]:
         """Ray outputs -> per-pixel maps (Stokes-averaged over sub-pixel rays, as the maps tier);
         with ``dr_`` (the forward derivatives of the ray outputs) the derivatives of the maps."""
-        K2, H, W = self.K * self.K, self.H, self.W
+        K2, H, W = self.K * self.K, self.gh, self.gw
         c2, s2 = np.cos(2 * r["phi"]), np.sin(2 * r["phi"])
 
         def stokes(A, B, dA=None, dB=None):
@@ -212,7 +224,7 @@ class PaneModelAD:
         """Maps and their derivatives: J[field] is (len(wrt), H, W), Dr.Jit forward-mode AD, one pass per parameter."""
         r = self._eval(x)
         m = self._to_maps(r)
-        J = {k: np.zeros((len(wrt), self.H, self.W)) for k in FIELDS}
+        J = {k: np.zeros((len(wrt), self.gh, self.gw)) for k in FIELDS}
         for j, i in enumerate(wrt):
             dm = self._to_maps(r, self._eval(x, grad_index=i))
             for k in FIELDS:

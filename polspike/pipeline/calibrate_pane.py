@@ -1,0 +1,572 @@
+"""``polspike calibrate-pane``: fit the pane and the camera's field of view to a recording.
+
+Pipeline (issue 21; physics in ../shared/RECONSTRUCTION_NOTES.md):
+
+1. **Frames**: the first ``span_s`` (default 0.1 s) of the stream as back-to-back Eq. (3) windows
+   (:func:`reconstruct.physics_video.span_frames`).
+2. **Start**: the self-calibrated zeta's geometric fit (:func:`reconstruct.selfcal.self_calibrate`:
+   pane normal and, unless given, the field of view from the modulation's orientation mod 90 deg).
+3. **Geometry** (tilt, azimuth, fov): bounded Gauss-Newton on the block orientation field of
+   :func:`reconstruct.selfcal.orientation_field` (psi_b = arg(sum z^4)/4), residual
+   sqrt(w_b) sin 2(psi_b - phi_perp_b(x)) / 2 with w_b = |sum z^4|: invariant to the 90 deg flip
+   where R < T, blocks that do not modulate left out.  phi_perp_b(x) and its Jacobian come from
+   the differentiable maps tier (:class:`generator.pane_fit.PaneModelAD`, Dr.Jit forward AD).
+4. **Glass** (n, pane model): the modulated component of each chunk's harmonic fit, projected on
+   the fitted s-direction, over its mean: rho = m / a0 lies in the cone [-DoP_T(theta), DoP_R(theta)]
+   (rho = DoP_R where T is black, -DoP_T where R is black), whatever the layers are.  Per block the
+   extreme rho over chunks (minus the expected noise maximum) are compared with the maps tier's
+   DoP_R / DoP_T: violations cost their square in noise units, slack a little (the smallest cone
+   that holds the data); n is refined by Gauss-Newton on the blocks on the edge.  This constrains
+   n and the model ONLY where some part of the view shows one layer black for a moment: otherwise
+   the data give a bound, and the report says "not identified" and keeps the prior.
+5. **Maps** at full resolution (2 x 2 rays per pixel, as the maps tier) -> maps.exr; the scene
+   file of the fitted setup -> pane.toml; report.json with uncertainties (Gauss-Newton covariance
+   scaled by the residual variance) and the identifiability verdicts; figures.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import logging
+import math
+import time
+from pathlib import Path
+
+import numpy as np
+
+from polinfra.config import opt
+from polinfra.errors import ConfigError
+
+__all__ = ["CalibratePaneConfig", "calibrate_frames", "calibrate_input", "write_outputs", "fitted_scene_dict", "PANE_CHOICES"]
+
+log = logging.getLogger(__name__)
+
+PANE_CHOICES = ("auto", "single", "thin_slab", "thick_slab")
+N_GRID = np.round(np.arange(1.30, 2.2001, 0.005), 4)
+"""Index grid of the glass search (before the Gauss-Newton refinement)."""
+
+
+@dataclasses.dataclass(frozen=True)
+class CalibratePaneConfig:
+    """Options of ``polspike calibrate-pane``."""
+
+    span_s: float = opt(0.1, "length of the stream used, seconds (stationary pane)", lo=0.005, hi=100.0)
+    window_steps: int = opt(13, "Eq. (3) window in camera steps", lo=1, hi=10001)
+    fov_deg: float = opt(0.0, "known horizontal field of view, degrees (0 = fit it)", lo=0.0, hi=170.0)
+    n: float = opt(0.0, "known refractive index (0 = fit it where the data constrain it)", lo=0.0, hi=4.0)
+    glass: str | None = opt(None, "known named glass (its index at 550 nm is used and kept fixed)")
+    pane_model: str = opt("auto", "pane model: auto (fit single vs slab where the data constrain it) or single | thin_slab | thick_slab", choices=PANE_CHOICES)
+    prior_n: float = opt(1.5, "index kept when the data do not constrain it", lo=1.01, hi=4.0)
+    prior_model: str = opt("thin_slab", "pane model kept when the data do not tell single from slab", choices=("single", "thin_slab", "thick_slab"))
+    block_px: int = opt(0, "block size of the orientation field (0 = about 48 blocks across)", lo=0, hi=1024)
+    glass_block_px: int = opt(0, "block size of the glass statistics (0 = as block_px)", lo=0, hi=1024)
+    max_n_sigma: float = opt(0.03, "n counts as identified only with a 1-sigma uncertainty at most this", lo=0.0, hi=1.0)
+    min_edge_blocks: int = opt(8, "blocks on the cone's edge needed before n / the model count as identified", lo=1, hi=100000)
+    min_edge_fraction: float = opt(0.1, "share of the precisely measured block extremes that must pile up on the fitted cone (a real edge: one layer black there) before n / the model are claimed", lo=0.0, hi=1.0)
+    max_edge_noise: float = opt(0.03, "a block's extreme modulation ratio counts towards n / the model only when its noise is at most this", lo=0.0, hi=1.0)
+    model_delta_chi2: float = opt(9.0, "the better pane model must win by this much chi^2 to be claimed", lo=0.0, hi=1e6)
+    sub: int = opt(2, "rays per pixel axis of the written maps (as the maps tier)", lo=1, hi=4)
+
+
+# --------------------------------------------------------------------------- helpers
+def _block(x: np.ndarray, s: int) -> np.ndarray:
+    H, W = x.shape[-2:]
+    h, w = H // s, W // s
+    return x[..., : h * s, : w * s].reshape(*x.shape[:-2], h, s, w, s).sum(axis=(-3, -1))
+
+
+def _wrap90(d: np.ndarray) -> np.ndarray:
+    """Angle difference folded to [-45, 45) deg (radians in, radians out)."""
+    return np.mod(d + math.pi / 4, math.pi / 2) - math.pi / 4
+
+
+def _expected_max(c: int) -> float:
+    """Expected maximum of c standard normal samples (Blom's approximation)."""
+    from scipy.stats import norm
+
+    return float(norm.ppf((c - 0.375) / (c + 0.25))) if c > 1 else 0.0
+
+
+def _wmedian(v: np.ndarray, w: np.ndarray) -> float:
+    if v.size == 0:
+        return float("nan")
+    o = np.argsort(v)
+    cw = np.cumsum(w[o])
+    return float(v[o][min(len(o) - 1, int(np.searchsorted(cw, 0.5 * cw[-1])))])
+
+
+# --------------------------------------------------------------------------- geometry
+def fit_geometry(of: dict, width: int, height: int, block: int, x0: np.ndarray, fit_fov: bool, coherence_sigmas: float = 4.0) -> dict:
+    """Gauss-Newton of (tilt, azimuth[, fov]) on the block orientation field (module docstring, step 3)."""
+    from generator.pane_fit import PaneModelAD, gauss_newton
+
+    s4, q = of["s4"], of["q"]
+    coherent = np.abs(s4) > coherence_sigmas * np.sqrt(0.5 * np.maximum(q, 1e-300))
+    # every block with some signal takes part, weighted by its coherent modulation |sum z^4| (as the
+    # self-calibration's objective): noise blocks have random phases and small weights
+    mask = np.abs(s4) > 1.0 * np.sqrt(0.5 * np.maximum(q, 1e-300))
+    if mask.sum() < 4:
+        raise ConfigError(f"only {int(mask.sum())} blocks carry any modulation: too few to fit the pane geometry (need 4)")
+    w = np.abs(s4)[mask]
+    w = w / w.sum() * w.size  # mean weight 1
+    sw = np.sqrt(w)
+    psi = of["psi"][mask]
+    pm = PaneModelAD(width, height, "single", block=block)  # phi_perp depends on the geometry only
+    wrt = (0, 1, 2) if fit_fov else (0, 1)
+    x_full = np.asarray(x0, np.float64).copy()
+
+    def full(xs):
+        x = x_full.copy()
+        x[list(wrt)] = xs
+        return x
+
+    def fun(xs):
+        m, J = pm.maps_and_jacobian(full(xs), wrt)
+        d = psi - m["phi_perp"][mask]
+        r = 0.5 * sw * np.sin(2 * d)
+        Jr = -(sw * np.cos(2 * d))[:, None] * J["phi_perp"][:, mask].T
+        return r, Jr
+
+    lb = np.array([0.0, x0[1] - math.pi, math.radians(5.0)])[list(wrt)]
+    ub = np.array([math.radians(89.5), x0[1] + math.pi, math.radians(150.0)])[list(wrt)]
+    t0 = time.perf_counter()
+    res = gauss_newton(fun, x_full[list(wrt)], lb, ub, max_iter=40)
+    cov = res.cov * (res.chi2 / res.dof) / max(1.0, res.chi2 / res.dof)  # weights are relative: noise scale from the residuals
+    x = full(res.x)
+    x[1] = x[1] % (2 * math.pi)
+    m, J = pm.maps_and_jacobian(x, wrt)
+    d = np.degrees(np.abs(_wrap90(of["psi"] - m["phi_perp"])))
+    # propagate to the maps: sigma of theta and phi_perp per block
+    sig_theta = np.sqrt(np.maximum(np.einsum("ihw,ij,jhw->hw", J["theta"], cov, J["theta"]), 0.0))
+    sig_phi = np.sqrt(np.maximum(np.einsum("ihw,ij,jhw->hw", J["phi_perp"], cov, J["phi_perp"]), 0.0))
+    sig = np.sqrt(np.maximum(np.diag(cov), 0.0))
+    full_sig = np.zeros(4)
+    full_sig[list(wrt)] = sig
+    return {
+        "x": x, "sigma": full_sig, "cov": cov, "wrt": wrt, "mask": mask, "coherent": coherent, "residual_deg_blocks": d, "history": res.history,
+        "converged": res.converged, "chi2": res.chi2, "dof": res.dof, "seconds": time.perf_counter() - t0,
+        "residual_deg_median": _wmedian(d[mask], np.abs(s4)[mask]), "sigma_theta_deg_max": float(np.degrees(sig_theta[mask].max())),
+        "sigma_phi_perp_deg_max": float(np.degrees(sig_phi[mask].max())), "sigma_theta_deg_median": float(np.degrees(np.median(sig_theta[mask]))),
+        "sigma_phi_perp_deg_median": float(np.degrees(np.median(sig_phi[mask]))),
+        "corr": (cov / np.outer(sig, sig)).tolist() if np.all(sig > 0) else None,
+    }
+
+
+# --------------------------------------------------------------------------- glass
+def edge_statistics(I: np.ndarray, phi: np.ndarray, phi_perp: np.ndarray, block: int, gain: float) -> dict:
+    """Per block, the extreme modulation ratios over chunks (module docstring, step 4).
+
+    Returns block-grid arrays ``upper``, ``lower`` (rho extremes minus / plus the expected noise
+    maximum), ``s_upper``, ``s_lower`` (their noise), ``valid`` and the chunk count.
+    """
+    import torch
+
+    from reconstruct.harmonic_fit import harmonic_fit
+
+    step = float(np.median(np.abs(np.diff(phi)))) if phi.size > 1 else math.pi
+    L = max(3, int(math.ceil(math.pi / max(step, 1e-9) - 1e-6)))
+    C = I.shape[0] // L
+    if C < 2:
+        raise ConfigError(f"the glass fit needs at least {2 * L} frames (two half turns of the polarizer); got {I.shape[0]}: use a longer --span-s")
+    rot = np.exp(-2j * phi_perp)
+    A, P, O = [], [], []
+    for c in range(C):
+        sl = slice(c * L, (c + 1) * L)
+        a0, ac, as_ = (t.numpy() for t in harmonic_fit(torch.from_numpy(np.asarray(I[sl], np.float64)), torch.from_numpy(np.asarray(phi[sl], np.float64))))
+        z = (ac + 1j * as_) * rot
+        A.append(_block(a0, block))
+        P.append(_block(z.real, block) / gain)
+        O.append(_block(z.imag, block) / gain)
+    A, P, O = np.array(A), np.array(P), np.array(O)
+    sig = np.sqrt(np.mean(O**2, axis=0))  # the orthogonal component is pure noise under the model
+    Am = np.maximum(A, 1e-12)
+    rho = P / Am
+    srho = sig[None] / Am
+    iu = np.argmax(rho, axis=0)
+    il = np.argmin(rho, axis=0)
+    take = lambda a, i: np.take_along_axis(a, i[None], 0)[0]  # noqa: E731
+    b = _expected_max(C)
+    up, lo = take(rho, iu), take(rho, il)
+    su, sl_ = take(srho, iu), take(srho, il)
+    valid = (A.min(0) > 0) & np.isfinite(sig) & (sig > 0)
+    return {"upper": up - b * su, "lower": lo + b * sl_, "s_upper": su, "s_lower": sl_, "valid": valid, "chunks": C, "chunk_frames": L, "noise_max_bias": b}
+
+
+def _cone(pm, x) -> tuple[np.ndarray, np.ndarray]:
+    m = pm.maps(x)
+    dR = (m["R_perp"] - m["R_par"]) / np.maximum(m["R_perp"] + m["R_par"], 1e-12)
+    dT = (m["T_perp"] - m["T_par"]) / np.maximum(m["T_perp"] + m["T_par"], 1e-12)
+    return dR, dT
+
+
+def _edge_loss(st: dict, dR: np.ndarray, dT: np.ndarray, slack: float = 0.05) -> tuple[float, np.ndarray, np.ndarray]:
+    v = st["valid"]
+    eu = ((st["upper"] - dR) / np.maximum(st["s_upper"], 1e-6))[v]
+    el = ((dT - st["lower"]) / np.maximum(st["s_lower"], 1e-6))[v]
+    e = np.concatenate([eu, el])
+    loss = float(np.sum(np.where(e > 0, e * e, -slack * e)))
+    return loss, eu, el
+
+
+def fit_glass(st: dict, width: int, height: int, block: int, x_geo: np.ndarray, models: tuple[str, ...], fixed_n: float | None, cfg: CalibratePaneConfig) -> dict:
+    """Index and pane model from the cone's edges (module docstring, step 4)."""
+    from generator.pane_fit import PaneModelAD, gauss_newton
+
+    out: dict = {"models": {}}
+    for model in models:
+        pm = PaneModelAD(width, height, model, block=block)
+        grid = np.array([fixed_n]) if fixed_n else N_GRID
+        losses = []
+        for n in grid:
+            x = x_geo.copy()
+            x[3] = n
+            losses.append(_edge_loss(st, *_cone(pm, x))[0])
+        losses = np.array(losses)
+        n0 = float(grid[int(np.argmin(losses))])
+        x = x_geo.copy()
+        x[3] = n0
+        dR, dT = _cone(pm, x)
+        _, eu, el = _edge_loss(st, dR, dT)
+        v = st["valid"]
+        on_u = np.zeros_like(v)
+        on_l = np.zeros_like(v)
+        # on the edge: within one noise sigma of the fitted cone, and measured precisely enough to matter
+        on_u[v] = (eu > -1.0) & (st["s_upper"][v] <= cfg.max_edge_noise)
+        on_l[v] = (el > -1.0) & (st["s_lower"][v] <= cfg.max_edge_noise)
+        n_edge = int(on_u.sum() + on_l.sum())
+        precise = int((v & (st["s_upper"] <= cfg.max_edge_noise)).sum() + (v & (st["s_lower"] <= cfg.max_edge_noise)).sum())
+        sig_n = float("inf")
+        chi2 = float(np.sum(np.maximum(eu, 0) ** 2) + np.sum(np.maximum(el, 0) ** 2))
+        hist = []
+        if not fixed_n and n_edge >= 2:
+            su, sl = np.maximum(st["s_upper"][on_u], 1e-6), np.maximum(st["s_lower"][on_l], 1e-6)
+
+            def fun(xs):
+                xx = x_geo.copy()
+                xx[3] = xs[0]
+                m, J = pm.maps_and_jacobian(xx, (3,))
+                SR, DR = m["R_perp"] + m["R_par"], m["R_perp"] - m["R_par"]
+                ST, DT = m["T_perp"] + m["T_par"], m["T_perp"] - m["T_par"]
+                dRn = (J["R_perp"][0] - J["R_par"][0]) / SR - DR * (J["R_perp"][0] + J["R_par"][0]) / SR**2
+                dTn = (J["T_perp"][0] - J["T_par"][0]) / ST - DT * (J["T_perp"][0] + J["T_par"][0]) / ST**2
+                r = np.concatenate([(st["upper"][on_u] - (DR / SR)[on_u]) / su, ((DT / ST)[on_l] - st["lower"][on_l]) / sl])
+                Jr = np.concatenate([-dRn[on_u] / su, dTn[on_l] / sl])[:, None]
+                return r, Jr
+
+            res = gauss_newton(fun, [n0], [1.05], [3.0], max_iter=20)
+            n_fit = float(res.x[0])
+            sig_n = float(res.sigma[0])
+            hist = res.history
+            x = x_geo.copy()
+            x[3] = n_fit
+            dR, dT = _cone(pm, x)
+            loss, eu, el = _edge_loss(st, dR, dT)
+            chi2 = float(np.sum(np.maximum(eu, 0) ** 2) + np.sum(np.maximum(el, 0) ** 2))
+        else:
+            n_fit = n0
+            loss = float(losses.min())
+        out["models"][model] = {"n": n_fit, "sigma_n": sig_n, "loss": loss, "violation_chi2": chi2, "edge_blocks": n_edge, "precise_blocks": precise, "edge_fraction": n_edge / max(precise, 1), "edge_upper": int(on_u.sum()), "edge_lower": int(on_l.sum()),
+                                "grid_n": grid.tolist(), "grid_loss": losses.tolist(), "history": hist, "dop_R": dR, "dop_T": dT}
+    return out
+
+
+# --------------------------------------------------------------------------- top level
+def _edge_ok(m: dict, cfg: CalibratePaneConfig) -> bool:
+    """A real edge: enough precisely measured block extremes pile up on the fitted cone."""
+    return m["edge_blocks"] >= cfg.min_edge_blocks and m["edge_fraction"] >= cfg.min_edge_fraction
+
+
+def _select_glass(gl: dict, cfg: CalibratePaneConfig, fixed_n: float | None, forced_model: str | None) -> dict:
+    """Decide what the data claim about n and the model (identifiability verdicts)."""
+    ms = gl["models"]
+    if forced_model:
+        best = forced_model if forced_model in ms else ("thin_slab" if forced_model == "thick_slab" else forced_model)
+        model_verdict = {"identified": None, "value": forced_model, "why": "given (--pane-model)"}
+    else:
+        ranked = sorted(ms, key=lambda k: ms[k]["loss"])
+        best = ranked[0]
+        delta = ms[ranked[1]]["loss"] - ms[best]["loss"] if len(ranked) > 1 else 0.0
+        enough = _edge_ok(ms[best], cfg) and ms[best]["edge_lower"] >= 1
+        if enough and delta >= cfg.model_delta_chi2:
+            value = best if best == "single" else (cfg.prior_model if cfg.prior_model != "single" else "thin_slab")
+            model_verdict = {"identified": True, "value": value, "delta_loss": delta,
+                             "why": f"{best} explains the cone's edges better by {delta:.1f} (chi^2 units); thin vs thick slab differ only by the ghost's displacement, not identified: kept {value}"}
+        else:
+            value = cfg.prior_model
+            best = value if value in ms else "thin_slab"
+            model_verdict = {"identified": False, "value": value, "delta_loss": delta,
+                             "why": ("too few blocks on the cone's edge (no part of the view shows one layer black): " if not enough else f"single and slab explain the data equally well (delta {delta:.1f} < {cfg.model_delta_chi2:g}): ")
+                             + f"kept {value}"}
+    m = ms[best]
+    if fixed_n:
+        n_verdict = {"identified": None, "value": fixed_n, "sigma": 0.0, "why": "given (--n / --glass)"}
+    elif _edge_ok(m, cfg) and m["sigma_n"] <= cfg.max_n_sigma:
+        n_verdict = {"identified": True, "value": m["n"], "sigma": m["sigma_n"], "why": f"{m['edge_blocks']} blocks on the cone's edge pin DoP_R / DoP_T(theta)"}
+    else:
+        n_verdict = {"identified": False, "value": cfg.prior_n, "sigma": m["sigma_n"], "fitted_if_edges_are_pure_layers": m["n"],
+                     "why": f"{m['edge_blocks']} of {m['precise_blocks']} precise block extremes on the fitted cone's edge (need {cfg.min_edge_blocks} and {100 * cfg.min_edge_fraction:g} %), "
+                            f"sigma_n {m['sigma_n']:.3g}: without a part of the view where one layer is black the extreme polarization ratios only bound n; kept {cfg.prior_n}"}
+    return {"model_key": best, "model": model_verdict, "n": n_verdict}
+
+
+def calibrate_frames(I: np.ndarray, phi: np.ndarray, cfg: CalibratePaneConfig = CalibratePaneConfig(), *, span_rad: float = 0.0, name: str = "stream", progress=None) -> dict:
+    """Fit the pane to Eq. (3) frames I (M, H, W) at polarizer angles phi (M,); returns the result dict
+    (``ok``, ``params``, ``maps`` (full-resolution dict), ``report`` (JSON-ready), ``figures`` data)."""
+    import dataclasses as dc
+
+    from polphysics.fresnel import glass_index
+    from reconstruct.selfcal import SelfCalConfig, orientation_field, self_calibrate
+
+    from generator.pane_fit import PaneModelAD
+
+    t_all = time.perf_counter()
+    M, H, W = I.shape
+    fixed_n = float(glass_index(cfg.glass, 550.0)) if cfg.glass else (cfg.n if cfg.n > 0 else None)
+    forced_model = None if cfg.pane_model == "auto" else cfg.pane_model
+    timings: dict[str, float] = {}
+    t0 = time.perf_counter()
+    sc_cfg = SelfCalConfig(span_s=max(cfg.span_s, 0.001), block_px=cfg.block_px, fov_deg=cfg.fov_deg, n=fixed_n or cfg.prior_n, model=forced_model or cfg.prior_model)
+    init = self_calibrate(I, phi, sc_cfg, name=name)
+    timings["selfcal_s"] = time.perf_counter() - t0
+    report: dict = {"input": name, "frames": int(M), "size": [int(W), int(H)], "config": dc.asdict(cfg), "init": init.summary()}
+    if not init.ok:
+        report.update({"ok": False, "reason": init.reason})
+        return {"ok": False, "report": report}
+    block = cfg.block_px or max(int(init.diagnostics["block_px"]), W // 32, 1)  # coarser than the self-calibration's: fewer, less noisy blocks
+    if progress:
+        progress("geometry")
+    t0 = time.perf_counter()
+    of = orientation_field(I, phi, block)
+    x0 = np.array([math.radians(init.tilt_deg), math.radians(init.azimuth_deg), math.radians(init.fov_deg), fixed_n or cfg.prior_n])
+    geo = fit_geometry(of, W, H, block, x0, fit_fov=cfg.fov_deg <= 0)
+    timings["geometry_s"] = time.perf_counter() - t0
+    x = geo["x"]
+    # glass
+    if progress:
+        progress("glass")
+    t0 = time.perf_counter()
+    gblock = cfg.glass_block_px or block
+    pm_full = PaneModelAD(W, H, "single", sub=1)
+    phi_perp = pm_full.maps(x)["phi_perp"]
+    gain = math.sin(span_rad) / span_rad if span_rad > 1e-9 else 1.0
+    st = edge_statistics(I, phi, phi_perp, gblock, gain)
+    if forced_model:
+        models = ("single",) if forced_model == "single" else ("thin_slab",)
+    else:
+        models = ("single", "thin_slab")
+    gl = fit_glass(st, W, H, gblock, x, models, fixed_n, cfg)
+    sel = _select_glass(gl, cfg, fixed_n, forced_model)
+    timings["glass_s"] = time.perf_counter() - t0
+    n_final = float(sel["n"]["value"])
+    model_final = sel["model"]["value"]
+    x[3] = n_final
+    if progress:
+        progress("maps")
+    t0 = time.perf_counter()
+    maps = PaneModelAD(W, H, model_final, sub=cfg.sub).maps(x)
+    timings["maps_s"] = time.perf_counter() - t0
+    timings["total_s"] = time.perf_counter() - t_all
+    sig = geo["sigma"]
+    tilt, az, fov = (math.degrees(v) for v in x[:3])
+    params = {"tilt_deg": tilt, "azimuth_deg": az, "fov_deg": fov, "n": n_final, "model": model_final,
+              "normal_camera": [float(v) for v in _normal(x)]}
+    report.update({
+        "ok": True,
+        "params": params,
+        "uncertainty_1sigma": {"tilt_deg": math.degrees(sig[0]), "azimuth_deg": math.degrees(sig[1]), "fov_deg": math.degrees(sig[2]) if cfg.fov_deg <= 0 else 0.0,
+                               "n": sel["n"].get("sigma"), "correlation_geometry": geo["corr"],
+                               "theta_deg_median": geo["sigma_theta_deg_median"], "theta_deg_max": geo["sigma_theta_deg_max"],
+                               "phi_perp_deg_median": geo["sigma_phi_perp_deg_median"], "phi_perp_deg_max": geo["sigma_phi_perp_deg_max"],
+                               "method": "Gauss-Newton covariance (J^T J)^-1 x residual variance (geometry: relative weights |sum z^4|; n: edge residuals in noise units), Jacobians by Dr.Jit forward AD"},
+        "geometry": {"blocks": [int(v) for v in of["psi"].shape[::-1]], "block_px": block, "fitted_blocks": int(geo["mask"].sum()), "coherent_blocks": int(geo["coherent"].sum()),
+                     "orientation_residual_deg_median": geo["residual_deg_median"], "converged": geo["converged"], "iterations": len(geo["history"]) - 1,
+                     "init_tilt_deg": init.tilt_deg, "init_azimuth_deg": init.azimuth_deg, "init_fov_deg": init.fov_deg},
+        "glass": {"chunks": st["chunks"], "block_px": gblock, "valid_blocks": int(st["valid"].sum()),
+                  "models": {k: {kk: vv for kk, vv in v.items() if kk not in ("dop_R", "dop_T", "grid_n", "grid_loss", "history")} for k, v in gl["models"].items()}},
+        "identifiability": {
+            "orientation": {"identified": True, "why": "phi_perp(p) (mod 90 deg) from the modulation's orientation pins the normal's tilt and azimuth"},
+            "fov": {"identified": cfg.fov_deg <= 0 or None, "why": "given" if cfg.fov_deg > 0 else "phi_perp's variation across the image pins the focal length, hence theta(p)"},
+            "n": sel["n"],
+            "model": sel["model"],
+            "thickness": {"identified": False, "why": "the coefficient maps do not depend on the thickness (only the thick slab's ghost displacement does): kept the base scene's value"},
+            "reflectance_scale": {"identified": False, "why": "the absolute reflectance scales R, not T (RECONSTRUCTION_NOTES.md section 1): it follows from n and the model, not from the data"},
+        },
+        "timings_s": timings,
+        "variant": pm_full.variant,
+    })
+    figs = {"history": geo["history"], "psi": of["psi"], "mask": geo["mask"], "residual_deg": geo["residual_deg_blocks"], "st": st, "gl": gl,
+            "phi_fit_blocks": PaneModelAD(W, H, "single", block=block).maps(x)["phi_perp"], "theta_g": PaneModelAD(W, H, "single", block=gblock).maps(x)["theta"],
+            "model_key": sel["model_key"]}
+    return {"ok": True, "report": report, "maps": maps, "params": params, "x": x, "figs": figs}
+
+
+def _normal(x) -> np.ndarray:
+    """Unit pane normal in the reference camera frame (forward +z, up +y, right -x), N . forward > 0."""
+    t, a = x[0], x[1]
+    st = math.sin(t)
+    return np.array([-st * math.cos(a), st * math.sin(a), math.cos(t)])
+
+
+def fitted_scene_dict(params: dict, width: int, height: int, base: dict | None = None, name: str = "fitted_pane") -> dict:
+    """Scene data (``generator.scene`` schema) of the fitted setup: the base scene (a group's, or the defaults)
+    with the camera's fov and size and the pane's tilt, tilt axis, index and model replaced."""
+    from polinfra.config import to_dict
+
+    from generator.scene import SceneConfig, check_scene_geometry, scene_from_dict
+
+    d = json.loads(json.dumps(base)) if base else to_dict(SceneConfig())
+    d.pop("objects", None)
+    d["name"] = name
+    d["description"] = f"fitted by polspike calibrate-pane: tilt {params['tilt_deg']:.2f} deg, azimuth {params['azimuth_deg']:.2f} deg, fov {params['fov_deg']:.2f} deg, n {params['n']:.4f}, {params['model']}"
+    d.setdefault("camera", {})
+    d["camera"].update({"width": int(width), "height": int(height), "fov_deg": round(float(params["fov_deg"]), 4)})
+    pane = d.setdefault("pane", {})
+    pane.update({"model": params["model"], "n": round(float(params["n"]), 5), "glass": None, "normal": None})
+    # the scene's pane_plane(): -forward rotated by tilt about the in-image axis at tilt_axis;
+    # the fitted normal (away from the camera) has its image projection at `azimuth`: the axis is perpendicular
+    sc = scene_from_dict(d, where="fitted scene")
+    cam = sc.camera_model()
+    want = _normal([math.radians(params["tilt_deg"]), math.radians(params["azimuth_deg"])])
+    want_w = -(want[0] * (-cam.right) + want[1] * cam.up + want[2] * cam.forward)  # reference frame right = -x: world normal facing the camera
+    best = None
+    for ax in (params["azimuth_deg"] + 90.0, params["azimuth_deg"] - 90.0):
+        a = ((ax + 180.0) % 360.0) - 180.0
+        pane.update({"tilt_deg": round(float(params["tilt_deg"]), 4), "tilt_axis_deg": round(a, 4)})
+        got = scene_from_dict(d, where="fitted scene").pane_plane().normal
+        err = float(np.degrees(np.arccos(np.clip(abs(float(np.dot(got, want_w) / np.linalg.norm(got))), -1, 1))))
+        if best is None or err < best[0]:
+            best = (err, a)
+    pane["tilt_axis_deg"] = round(best[1], 4)
+    for _ in range(8):  # the pane must cover the view
+        try:
+            check_scene_geometry(scene_from_dict(d, where="fitted scene"))
+            break
+        except Exception:  # noqa: BLE001 - SceneError: enlarge and retry
+            pane["size_m"] = [2.0 * float(v) for v in pane.get("size_m", (4.0, 3.0))]
+    scene_from_dict(d, where="fitted scene")
+    return d
+
+
+def scene_toml_text(d: dict, header: str) -> str:
+    """TOML text of scene data (the manifest writer's table dumper)."""
+    from polspike.pipeline.manifest import _toml_table
+
+    lines = [f"# {ln}" for ln in header.splitlines()]
+    _toml_table(lines, "", d)
+    return "\n".join(lines) + "\n"
+
+
+def _figures(out: Path, res: dict) -> list[str]:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from polinfra.plotting import save_figure
+
+    f = res["figs"]
+    names = []
+    fig, ax = plt.subplots(1, 2, figsize=(9, 3.4))
+    h = f["history"]
+    ax[0].semilogy([e["iter"] for e in h], [max(e["chi2"], 1e-30) for e in h], "o-")
+    ax[0].set(xlabel="Gauss-Newton iteration", ylabel="orientation cost", title="geometry fit")
+    gm = f["gl"]["models"]
+    for k, v in gm.items():
+        if len(v["grid_n"]) > 1:
+            ax[1].plot(v["grid_n"], v["grid_loss"], label=k)
+    ax[1].set(xlabel="n", ylabel="cone-edge loss", title="glass search")
+    if any(len(v["grid_n"]) > 1 for v in gm.values()):
+        ax[1].legend()
+    save_figure(fig, out / "convergence.png")
+    plt.close(fig)
+    names.append("convergence.png")
+    fig, ax = plt.subplots(1, 3, figsize=(12, 3.4))
+    mpsi = np.where(f["mask"], np.degrees(f["psi"]), np.nan)
+    im = ax[0].imshow(mpsi, cmap="twilight", vmin=0, vmax=90)
+    ax[0].set_title("measured AoLP mod 90 (deg)")
+    plt.colorbar(im, ax=ax[0], fraction=0.046)
+    im = ax[1].imshow(np.degrees(np.mod(f["phi_fit_blocks"], np.pi / 2)), cmap="twilight", vmin=0, vmax=90)
+    ax[1].set_title("fitted phi_perp mod 90 (deg)")
+    plt.colorbar(im, ax=ax[1], fraction=0.046)
+    im = ax[2].imshow(np.where(f["mask"], f["residual_deg"], np.nan), cmap="magma", vmin=0, vmax=max(1.0, float(np.nanpercentile(np.where(f["mask"], f["residual_deg"], np.nan), 95))))
+    ax[2].set_title("|residual| (deg)")
+    plt.colorbar(im, ax=ax[2], fraction=0.046)
+    for a in ax:
+        a.axis("off")
+    save_figure(fig, out / "aolp_residual.png")
+    plt.close(fig)
+    names.append("aolp_residual.png")
+    st, th = f["st"], np.degrees(f["theta_g"])
+    v = st["valid"]
+    g = gm[f["model_key"]]
+    fig, ax = plt.subplots(figsize=(6, 4))
+    ax.scatter(th[v], st["upper"][v], s=6, label="max rho per block (R side)")
+    ax.scatter(th[v], st["lower"][v], s=6, label="min rho per block (T side)")
+    o = np.argsort(th[v])
+    ax.plot(th[v][o], g["dop_R"][v][o], "k-", label="fitted DoP_R")
+    ax.plot(th[v][o], g["dop_T"][v][o], "k--", label="fitted -DoP_T")
+    ax.set(xlabel="incidence theta (deg)", ylabel="modulation depth rho = m / a0", title=f"modulation depth vs fitted cone ({f['model_key']})")
+    ax.legend(fontsize=7)
+    save_figure(fig, out / "modulation_depth.png")
+    plt.close(fig)
+    names.append("modulation_depth.png")
+    return names
+
+
+def write_outputs(out: Path, res: dict, *, base_scene: dict | None = None, width: int, height: int) -> dict:
+    """Write DIR/pane.toml, DIR/maps.exr, DIR/report.json and the figures (each file atomically)."""
+    from polinfra.atomic import ensure_dir, write_json, write_text
+    from polinfra.exr import write_exr
+
+    ensure_dir(out)
+    rep = res["report"]
+    if not res["ok"]:
+        write_json(out / "report.json", rep)
+        return rep
+    d = fitted_scene_dict(res["params"], width, height, base_scene)
+    ident = rep["identifiability"]
+    hdr = (f"Scene of the pane fitted by polspike calibrate-pane to {rep['input']}.\n"
+           f"Fitted: tilt {res['params']['tilt_deg']:.3f} +- {rep['uncertainty_1sigma']['tilt_deg']:.3f} deg, fov {res['params']['fov_deg']:.3f} deg; "
+           f"n {'fitted' if ident['n']['identified'] else 'given' if ident['n']['identified'] is None else 'NOT identified (prior)'}; "
+           f"model {'fitted' if ident['model']['identified'] else 'given' if ident['model']['identified'] is None else 'NOT identified (prior)'}.\n"
+           "Layers, polarizer and render settings come from the input's own scene when it has one, else the defaults. See report.json.")
+    write_text(out / "pane.toml", scene_toml_text(d, hdr))
+    ch = {k: res["maps"][k].astype(np.float32) for k in ("theta", "phi_perp", "R_perp", "R_par", "T_perp", "T_par")}
+    write_exr(out / "maps.exr", ch, attrs={"source": "polspike calibrate-pane", "tier": "maps (differentiable Dr.Jit pane model)"})
+    rep["figures"] = _figures(out, res)
+    rep["files"] = ["pane.toml", "maps.exr", "report.json", *rep["figures"]]
+    write_json(out / "report.json", rep)
+    return rep
+
+
+def calibrate_input(input: Path, cfg: CalibratePaneConfig, *, height: int | None = None, width: int | None = None, phi0_deg: float | None = None,
+                    rev_per_s: float | None = None, rate_hz: float = 20000.0, progress=None) -> tuple[dict, dict | None, int, int]:
+    """Load a group store or a raw .dat and run :func:`calibrate_frames`; returns (result, base scene dict, W, H)."""
+    from reconstruct.physics_video import span_frames
+    from reconstruct.selfcal import fov_from_group_dir
+    from reconstruct.video import dat_source, group_source
+
+    base = None
+    input = Path(input)
+    if input.suffix.lower() == ".dat":
+        missing = [n for n, v in (("--height", height), ("--width", width), ("--phi0-deg", phi0_deg), ("--rev-per-s", rev_per_s)) if v is None]
+        if missing:
+            raise ConfigError(f"a .dat input needs {', '.join(missing)} (frame size and polarizer calibration)")
+        src = dat_source(input, height, width, math.radians(phi0_deg), rev_per_s, rate_hz)
+    elif input.is_dir() and (input / "spikes.h5").is_file():
+        src = group_source(input)
+        spec = input / "group_spec.json"
+        if spec.is_file():
+            try:
+                base = json.loads(spec.read_text())["scene"]
+            except (ValueError, KeyError):
+                base = None
+        if cfg.fov_deg <= 0 and fov_from_group_dir(input) is not None:
+            log.info("%s records its field of view; calibrate-pane fits it anyway (give --fov-deg to fix it)", input)
+    else:
+        raise ConfigError(f"input {input} is neither a .dat file nor a spike group directory (GROUP/spikes.h5)")
+    I, phi = span_frames(src, cfg.span_s, cfg.window_steps)
+    span = 2 * math.pi * src.polarizer_rev_s * cfg.window_steps / src.rate_hz
+    res = calibrate_frames(I, phi, cfg, span_rad=span, name=src.name, progress=progress)
+    return res, base, src.width, src.height
