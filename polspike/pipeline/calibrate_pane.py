@@ -43,7 +43,7 @@ __all__ = ["CalibratePaneConfig", "calibrate_frames", "calibrate_input", "write_
 log = logging.getLogger(__name__)
 
 PANE_CHOICES = ("auto", "single", "thin_slab", "thick_slab")
-N_GRID = np.round(np.arange(1.30, 2.2001, 0.005), 4)
+N_GRID = np.round(np.arange(1.30, 2.2001, 0.02), 4)
 """Index grid of the glass search (before the Gauss-Newton refinement)."""
 
 
@@ -121,17 +121,46 @@ def fit_geometry(of: dict, width: int, height: int, block: int, x0: np.ndarray, 
         x[list(wrt)] = xs
         return x
 
-    def fun(xs):
+    def fun_w(xs, u):
+        """Residuals with robust weights u (per block), and the angle residuals for re-weighting."""
         m, J = pm.maps_and_jacobian(full(xs), wrt)
         d = psi - m["phi_perp"][mask]
-        r = 0.5 * sw * np.sin(2 * d)
-        Jr = -(sw * np.cos(2 * d))[:, None] * J["phi_perp"][:, mask].T
-        return r, Jr
+        su = sw * np.sqrt(u)
+        r = 0.5 * su * np.sin(2 * d)
+        Jr = -(su * np.cos(2 * d))[:, None] * J["phi_perp"][:, mask].T
+        return r, Jr, _wrap90(d)
+
+    def _robust_gn(f, xs0, lb_, ub_, rounds: int = 3):
+        """Cauchy-weighted IRLS around Gauss-Newton: blocks whose orientation the planar model does not
+        explain (moving content, a second reflector) lose weight; the self-calibration is robust likewise."""
+        u = np.ones(psi.size)
+        xs = xs0
+        for _ in range(rounds):
+            res = gauss_newton(lambda z: f(z, u)[:2], xs, lb_, ub_, max_iter=40)
+            xs = res.x
+            d = np.abs(f(xs, u)[2])
+            c = max(math.radians(2.0), 2.5 * _wmedian(d, w))
+            u = 1.0 / (1.0 + (d / c) ** 2)
+        res.robust_weights = u
+        return res
 
     lb = np.array([0.0, x0[1] - math.pi, math.radians(5.0)])[list(wrt)]
     ub = np.array([math.radians(89.5), x0[1] + math.pi, math.radians(150.0)])[list(wrt)]
     t0 = time.perf_counter()
-    res = gauss_newton(fun, x_full[list(wrt)], lb, ub, max_iter=40)
+    # multi-start: the self-calibration's pane, and (fov fitted) the same normal at other fields of view,
+    # since tilt and fov trade off along a shallow valley of the orientation cost
+    starts = [x_full[list(wrt)]]
+    if fit_fov:
+        starts += [np.array([x0[0], x0[1], math.radians(f)]) for f in (25.0, 40.0, 55.0, 70.0) if abs(math.radians(f) - x0[2]) > math.radians(7.0)]
+    best, tried = None, []
+    for xs0 in starts:
+        res = _robust_gn(fun_w, np.clip(xs0, lb, ub), lb, ub)
+        d = fun_w(res.x, np.ones(psi.size))[2]
+        score = float(np.sum(w * (1.0 - np.cos(4.0 * d))))  # bounded per block: comparable across starts
+        tried.append({"start": np.degrees(xs0).tolist(), "end": np.degrees(res.x).tolist(), "cost": score})
+        if best is None or score < best[0]:
+            best = (score, res)
+    res = best[1]
     cov = res.cov * (res.chi2 / res.dof) / max(1.0, res.chi2 / res.dof)  # weights are relative: noise scale from the residuals
     x = full(res.x)
     x[1] = x[1] % (2 * math.pi)
@@ -144,7 +173,7 @@ def fit_geometry(of: dict, width: int, height: int, block: int, x0: np.ndarray, 
     full_sig = np.zeros(4)
     full_sig[list(wrt)] = sig
     return {
-        "x": x, "sigma": full_sig, "cov": cov, "wrt": wrt, "mask": mask, "coherent": coherent, "residual_deg_blocks": d, "history": res.history,
+        "x": x, "sigma": full_sig, "cov": cov, "wrt": wrt, "mask": mask, "coherent": coherent, "starts": tried, "residual_deg_blocks": d, "history": res.history,
         "converged": res.converged, "chi2": res.chi2, "dof": res.dof, "seconds": time.perf_counter() - t0,
         "residual_deg_median": _wmedian(d[mask], np.abs(s4)[mask]), "sigma_theta_deg_max": float(np.degrees(sig_theta[mask].max())),
         "sigma_phi_perp_deg_max": float(np.degrees(sig_phi[mask].max())), "sigma_theta_deg_median": float(np.degrees(np.median(sig_theta[mask]))),
@@ -381,7 +410,7 @@ def calibrate_frames(I: np.ndarray, phi: np.ndarray, cfg: CalibratePaneConfig = 
                                "method": "Gauss-Newton covariance (J^T J)^-1 x residual variance (geometry: relative weights |sum z^4|; n: edge residuals in noise units), Jacobians by Dr.Jit forward AD"},
         "geometry": {"blocks": [int(v) for v in of["psi"].shape[::-1]], "block_px": block, "fitted_blocks": int(geo["mask"].sum()), "coherent_blocks": int(geo["coherent"].sum()),
                      "orientation_residual_deg_median": geo["residual_deg_median"], "converged": geo["converged"], "iterations": len(geo["history"]) - 1,
-                     "init_tilt_deg": init.tilt_deg, "init_azimuth_deg": init.azimuth_deg, "init_fov_deg": init.fov_deg},
+                     "init_tilt_deg": init.tilt_deg, "init_azimuth_deg": init.azimuth_deg, "init_fov_deg": init.fov_deg, "starts": geo["starts"]},
         "glass": {"chunks": st["chunks"], "block_px": gblock, "valid_blocks": int(st["valid"].sum()),
                   "models": {k: {kk: vv for kk, vv in v.items() if kk not in ("dop_R", "dop_T", "grid_n", "grid_loss", "history")} for k, v in gl["models"].items()}},
         "identifiability": {
@@ -514,6 +543,21 @@ def _figures(out: Path, res: dict) -> list[str]:
     return names
 
 
+def _json_safe(o):
+    """Non-finite floats -> None (JSON has no inf / NaN); numpy scalars -> Python."""
+    if isinstance(o, dict):
+        return {k: _json_safe(v) for k, v in o.items()}
+    if isinstance(o, (list, tuple)):
+        return [_json_safe(v) for v in o]
+    if isinstance(o, (np.floating, float)):
+        return float(o) if math.isfinite(float(o)) else None
+    if isinstance(o, np.integer):
+        return int(o)
+    if isinstance(o, np.bool_):
+        return bool(o)
+    return o
+
+
 def write_outputs(out: Path, res: dict, *, base_scene: dict | None = None, width: int, height: int) -> dict:
     """Write DIR/pane.toml, DIR/maps.exr, DIR/report.json and the figures (each file atomically)."""
     from polinfra.atomic import ensure_dir, write_json, write_text
@@ -522,7 +566,7 @@ def write_outputs(out: Path, res: dict, *, base_scene: dict | None = None, width
     ensure_dir(out)
     rep = res["report"]
     if not res["ok"]:
-        write_json(out / "report.json", rep)
+        write_json(out / "report.json", _json_safe(rep))
         return rep
     d = fitted_scene_dict(res["params"], width, height, base_scene)
     ident = rep["identifiability"]
@@ -536,7 +580,7 @@ def write_outputs(out: Path, res: dict, *, base_scene: dict | None = None, width
     write_exr(out / "maps.exr", ch, attrs={"source": "polspike calibrate-pane", "tier": "maps (differentiable Dr.Jit pane model)"})
     rep["figures"] = _figures(out, res)
     rep["files"] = ["pane.toml", "maps.exr", "report.json", *rep["figures"]]
-    write_json(out / "report.json", rep)
+    write_json(out / "report.json", _json_safe(rep))
     return rep
 
 
