@@ -22,6 +22,8 @@ def dataset_new(
     duration_s: float = typer.Option(1.0, "--duration-s", help="stream length per group, seconds"),
     tier: str = typer.Option("analytic", "--tier", help="generator tier: analytic, maps, full"),
     ranges: str = typer.Option("paper", "--ranges", help="range profile: paper (the paper's difficulty, paper.toml) or v1 (the first, easier ranges, paper_v1.toml)"),
+    like: Optional[Path] = typer.Option(None, "--like", help="a scene TOML (e.g. calibrate-pane's pane.toml): every group gets its pane and camera fov and size (polspike/pipeline/like.py)"),
+    jitter: str = typer.Option("fit", "--jitter", help="with --like: fit (jitter within the 1-sigma of the report.json beside the scene, if any) or none"),
 ) -> None:
     """Write a manifest whose scene parameters are drawn from the documented ranges (docs/datasets.md)."""
     from rich.console import Console
@@ -32,7 +34,12 @@ def dataset_new(
 
     if tier not in ("analytic", "maps", "full"):
         raise ConfigError(f"--tier {tier!r} is unknown; choose analytic, maps or full")
-    text = sample_manifest_text(groups, seed, name=name or out.stem, test_fraction=test_fraction, width=width, height=height, duration_s=duration_s, tier=tier, profile=ranges)
+    if like is not None:
+        from polspike.pipeline.like import like_manifest_text
+
+        text = like_manifest_text(like, groups, seed, jitter=jitter, name=name or out.stem, test_fraction=test_fraction, duration_s=duration_s, tier=tier, profile=ranges)
+    else:
+        text = sample_manifest_text(groups, seed, name=name or out.stem, test_fraction=test_fraction, width=width, height=height, duration_s=duration_s, tier=tier, profile=ranges)
     write_text(out, text)
     Console().print(f"[green]wrote[/] {out}: {groups} groups (seed {seed})")
 

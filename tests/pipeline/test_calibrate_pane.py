@@ -191,3 +191,45 @@ def test_cli_on_a_raw_dat_and_bad_input(tmp_path):
                  ["calibrate-pane", str(dat), "--height", "48", "--width", "72", "--phi0-deg", "20", "--rev-per-s", "30", "--pane-model", "triple", "--out", str(tmp_path / "x")]):
         r = CliRunner().invoke(app, args)
         assert isinstance(r.exception, PolspikeError), (args, r.output)  # the console script prints it on one line, exit 2
+
+
+def _fitted_scene(tmp_path, report: dict | None):
+    from polspike.pipeline.calibrate_pane import fitted_scene_dict, scene_toml_text
+
+    params = {"tilt_deg": 47.0, "azimuth_deg": 110.0, "fov_deg": 52.0, "n": 1.58, "model": "single"}
+    d = fitted_scene_dict(params, 80, 50)
+    (tmp_path / "pane.toml").write_text(scene_toml_text(d, "test"))
+    if report is not None:
+        (tmp_path / "report.json").write_text(json.dumps(report))
+    return tmp_path / "pane.toml"
+
+
+def test_dataset_new_like_keeps_the_fitted_geometry_and_glass(tmp_path):
+    """--like --jitter none: every group's pane sees the scene's theta / phi_perp maps exactly (the pane is
+    relative to the sampled camera); content and pointing still vary.  --jitter fit: tilt spread within
+    2 sigma of the report, n fixed where the report says it is not identified."""
+    import tomllib
+
+    from generator.scene import load_scene, scene_from_dict
+    from polspike.pipeline.like import like_manifest_text
+    from polspike.pipeline.manifest import parse_manifest
+
+    scene = _fitted_scene(tmp_path, None)
+    ref = load_scene(scene)
+    g_ref = incidence_geometry(ref.camera_model(), ref.pane_plane())
+    m = parse_manifest(tomllib.loads(like_manifest_text(scene, 5, 3, jitter="none")))
+    looks, sources = set(), set()
+    for g in m.groups:
+        sc = scene_from_dict(g.scene)
+        geo = incidence_geometry(sc.camera_model(), sc.pane_plane())
+        assert np.max(np.abs(geo["theta"] - g_ref["theta"])) < 1e-9
+        assert sc.pane.model == "single" and sc.pane.index() == pytest.approx(1.58) and sc.camera.fov_deg == pytest.approx(52.0)
+        looks.add(tuple(sc.camera.look_at))
+        sources.add(sc.layers.transmission.source + str(sc.layers.transmission.seed))
+    assert len(looks) > 1 and len(sources) > 1
+    _fitted_scene(tmp_path, {"uncertainty_1sigma": {"tilt_deg": 0.5, "azimuth_deg": 0.3, "fov_deg": 1.0, "n": 0.02},
+                             "identifiability": {"n": {"identified": False}}})
+    m = parse_manifest(tomllib.loads(like_manifest_text(scene, 12, 4, jitter="fit")))
+    tilts = np.array([scene_from_dict(g.scene).pane.tilt_deg for g in m.groups])
+    assert np.all(np.abs(tilts - 47.0) <= 1.0 + 1e-9) and tilts.std() > 0.05
+    assert all(scene_from_dict(g.scene).pane.index() == pytest.approx(1.58) for g in m.groups)  # n not identified: fixed
