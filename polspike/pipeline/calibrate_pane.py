@@ -208,7 +208,9 @@ def edge_statistics(I: np.ndarray, phi: np.ndarray, phi_perp: np.ndarray, block:
         P.append(_block(z.real, block) / gain)
         O.append(_block(z.imag, block) / gain)
     A, P, O = np.array(A), np.array(P), np.array(O)
-    sig = np.sqrt(np.mean(O**2, axis=0))  # the orthogonal component is pure noise under the model
+    # the orthogonal component is pure noise under the model; a robust scale (median over chunks) ignores the
+    # chunks where moving content leaks into the harmonic fit
+    sig = 1.4826 * np.median(np.abs(O), axis=0)
     Am = np.maximum(A, 1e-12)
     rho = P / Am
     srho = sig[None] / Am
