@@ -43,6 +43,9 @@ __all__ = ["CalibratePaneConfig", "calibrate_frames", "calibrate_input", "write_
 log = logging.getLogger(__name__)
 
 PANE_CHOICES = ("auto", "single", "thin_slab", "thick_slab")
+_ROUNDS = 3
+_ROBUST_C = 4.0
+"""Rounds of robust re-weighting of the geometry fit."""
 N_GRID = np.round(np.arange(1.30, 2.2001, 0.02), 4)
 """Index grid of the glass search (before the Gauss-Newton refinement)."""
 
@@ -130,7 +133,8 @@ def fit_geometry(of: dict, width: int, height: int, block: int, x0: np.ndarray, 
         Jr = -(su * np.cos(2 * d))[:, None] * J["phi_perp"][:, mask].T
         return r, Jr, _wrap90(d)
 
-    def _robust_gn(f, xs0, lb_, ub_, rounds: int = 3):
+    def _robust_gn(f, xs0, lb_, ub_, rounds: int = 0):
+        rounds = rounds or _ROUNDS
         """Cauchy-weighted IRLS around Gauss-Newton: blocks whose orientation the planar model does not
         explain (moving content, a second reflector) lose weight; the self-calibration is robust likewise."""
         u = np.ones(psi.size)
@@ -139,7 +143,7 @@ def fit_geometry(of: dict, width: int, height: int, block: int, x0: np.ndarray, 
             res = gauss_newton(lambda z: f(z, u)[:2], xs, lb_, ub_, max_iter=40)
             xs = res.x
             d = np.abs(f(xs, u)[2])
-            c = max(math.radians(2.0), 2.5 * _wmedian(d, w))
+            c = max(math.radians(2.0), _ROBUST_C * _wmedian(d, w))
             u = 1.0 / (1.0 + (d / c) ** 2)
         res.robust_weights = u
         return res
@@ -368,7 +372,7 @@ def calibrate_frames(I: np.ndarray, phi: np.ndarray, cfg: CalibratePaneConfig = 
     if not init.ok:
         report.update({"ok": False, "reason": init.reason})
         return {"ok": False, "report": report}
-    block = cfg.block_px or max(int(init.diagnostics["block_px"]), W // 32, 1)  # coarser than the self-calibration's: fewer, less noisy blocks
+    block = cfg.block_px or max(int(init.diagnostics["block_px"]), min(4, W // 8, H // 8))  # the self-calibration's blocks, at least 4 px
     if progress:
         progress("geometry")
     t0 = time.perf_counter()
