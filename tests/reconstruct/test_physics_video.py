@@ -117,3 +117,28 @@ def test_physics_stream_separates_and_self_is_within_1db_of_gt(stream, tmp_path)
 def test_bad_combinations_are_one_line_exit_2(stream, polspike_main, tmp_path, args, fragment):
     r = polspike_main("reconstruct", stream["dat"], "--height", H, "--width", W, "--phi0-deg", 0, "--rev-per-s", REV, "--out", tmp_path / "o", *args)
     polspike_main.one_line_exit_2(r, fragment)
+
+
+def test_self_falls_back_to_learned_where_nothing_modulates(tmp_path):
+    from reconstruct.checkpoint import DEFAULT_WEIGHTS, load_model
+    from reconstruct.physics_video import build_physics_model
+    from reconstruct.video import array_source
+
+    if not DEFAULT_WEIGHTS.is_file():
+        pytest.skip(f"shipped checkpoint {DEFAULT_WEIGHTS} not present")
+    sp, *_ = _stream(tilt=0.0, seed=2)  # normal incidence: R_perp = R_par, nothing modulates
+    src = array_source(sp, PHI0, REV)
+    calls = []
+
+    def load():
+        calls.append(1)
+        return load_model(DEFAULT_WEIGHTS)[0]
+
+    model, info = build_physics_model("ridge", "self", src, rir=False, load_learned=load)
+    assert calls == [1] and model.learned_model is not None and model.maps is None
+    assert info["zeta"].startswith("learned") and not info["selfcal"]["ok"] and "modulat" in info["selfcal"]["reason"]  # nothing modulates / near-normal
+    # without a checkpoint loader the fallback is a clear one-line project error
+    from polinfra.errors import PolspikeError
+
+    with pytest.raises(PolspikeError, match="checkpoint"):
+        build_physics_model("ridge", "self", src, rir=False, load_learned=None)
