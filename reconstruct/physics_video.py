@@ -234,7 +234,7 @@ def build_physics_model(
     info["selfcal"] = res.summary()
     if res.ok:
         return PhysicsModel(method, n_obs, maps=res.maps, span_rad=span, rir=rir), info
-    info["zeta"] = "learned (self-calibration found nothing modulating)"
+    info["zeta"] = "learned (no self-calibration: " + res.reason.split(":")[0] + ")"
     return PhysicsModel(method, n_obs, learned_model=_need(load_learned), rir=rir), info
 
 
