@@ -104,9 +104,9 @@ def pane_maps_from_geometry(camera, plane, n: float, model: str = "single", thic
     return PaneMaps(R_perp=co["R_perp"], R_par=co["R_par"], phi_perp=geo["phi_perp"])
 
 
-def _pad4(x: torch.Tensor) -> torch.Tensor:
+def _pad4(x: torch.Tensor, m: int = 4) -> torch.Tensor:
     H, W = x.shape[-2:]
-    ph, pw = (-H) % 4, (-W) % 4
+    ph, pw = (-H) % m, (-W) % m
     return torch.nn.functional.pad(x, (0, pw, 0, ph), mode="replicate") if (ph or pw) else x
 
 
@@ -118,7 +118,8 @@ def zeta_learned(model, I: torch.Tensor, phi: torch.Tensor) -> tuple[torch.Tenso
 
     Args:
         model: :class:`reconstruct.network.PolSpikeNet` (e.g. from :func:`reconstruct.checkpoint.load_model`).
-        I: (B, N, H, W) windows, already RIR-aligned, radiance units; any H, W (padded to multiples of 4 here).
+        I: (B, N, H, W) windows, already RIR-aligned, radiance units; any H, W (replicate-padded here to
+            the network's ``pad_multiple``, 4 for v1).
         phi: (B, N) polarizer angles (window centres), radians.
 
     Returns:
@@ -130,5 +131,6 @@ def zeta_learned(model, I: torch.Tensor, phi: torch.Tensor) -> tuple[torch.Tenso
         raise ShapeError(f"zeta_learned needs I (B, N, H, W) and phi (B, N); got {tuple(I.shape)} and {tuple(phi.shape)}", actual_shape=tuple(I.shape), expected_shape="(B, N, H, W)")
     H, W = I.shape[-2:]
     dev = next(model.parameters()).device
-    z, w = predict_parameters(model, _pad4(I.to(dev, torch.float32)), phi.to(dev, torch.float32))
+    mult = int(getattr(model, "pad_multiple", 4))  # v1: 4; v2: its pixel-unshuffle factor
+    z, w = predict_parameters(model, _pad4(I.to(dev, torch.float32), mult), phi.to(dev, torch.float32))
     return z[..., :H, :W].to(I.device, I.dtype), w[..., :H, :W].to(I.device, I.dtype)
