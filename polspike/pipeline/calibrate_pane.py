@@ -323,14 +323,16 @@ def _select_glass(gl: dict, cfg: CalibratePaneConfig, fixed_n: float | None, for
         best = forced_model if forced_model in ms else ("thin_slab" if forced_model == "thick_slab" else forced_model)
         model_verdict = {"identified": None, "value": forced_model, "why": "given (--pane-model)"}
     else:
-        ranked = sorted(ms, key=lambda k: ms[k]["loss"])
+        # each model at its own best index: the one whose cone the data violate less (chi^2 of the
+        # excursions beyond the edges, noise units) explains them; the slack term only located the edges
+        ranked = sorted(ms, key=lambda k: ms[k]["violation_chi2"])
         best = ranked[0]
-        delta = ms[ranked[1]]["loss"] - ms[best]["loss"] if len(ranked) > 1 else 0.0
+        delta = ms[ranked[1]]["violation_chi2"] - ms[best]["violation_chi2"] if len(ranked) > 1 else 0.0
         enough = _edge_ok(ms[best], cfg) and ms[best]["edge_lower"] >= 1
         if enough and delta >= cfg.model_delta_chi2:
             value = best if best == "single" else (cfg.prior_model if cfg.prior_model != "single" else "thin_slab")
             model_verdict = {"identified": True, "value": value, "delta_loss": delta,
-                             "why": f"{best} explains the cone's edges better by {delta:.1f} (chi^2 units); thin vs thick slab differ only by the ghost's displacement, not identified: kept {value}"}
+                             "why": f"{best} is violated less by the modulation depths (chi^2 {delta:.1f} lower); thin vs thick slab differ only by the ghost's displacement, not identified: kept {value}"}
         else:
             value = cfg.prior_model
             best = value if value in ms else "thin_slab"
