@@ -39,6 +39,30 @@ kappa = 0.01 puts Conf = 0.5 at a zeta standard deviation of 0.05, the middle
 of what glass produces (R_perp - R_par from 0 to ~0.3).  Conf is per pixel,
 invariant to the scale of w, monotone in det(M) and smooth.
 
+Adaptive Conf (``SolverConfig.lambda_map = "adaptive"``, the physics default
+:data:`PHYSICS_SOLVER_CONFIG`).  The fixed Conf above reads the conditioning only: a pane
+with a clearly modulated zeta gets Conf ~ 1 and lambda_low = 0.01 even when the spikes are so few
+that the answer is noise, and a weak but clean modulation gets the prior even where the data could
+speak.  What supp. Eq. (7)-(15) intend (little regularisation where the modulation is strong and
+well conditioned, the prior where the system is near-singular) is a statement about the reflection
+estimate's signal-to-noise ratio, so the adaptive Conf measures exactly that per pixel
+(:func:`adaptive_confidence`): from a first weighted least-squares solve, the residual variance
+sigma^2 of one observation, the variance of the reflection estimate v_R = sigma^2 S_tt / det(M)
+(it grows without bound as det(M) of supp. Eq. (15) -> 0), the signal power
+s_R^2 = <R_ls^2> - <v_R> (pooled over a ``noise_pool`` box), q = s_R^2 / <v_R>, and
+
+    Conf = q / (q + snr_kappa),     lambda = lambda_low Conf + lambda_high (1 - Conf)   (Eq. (8))
+
+so lambda -> lambda_low where the reflection is measured well and -> lambda_high (the prior
+toward small R, T: a TFP-like answer) where it is not.  The reliability weights are the same
+Poisson inverse-variance weights, but their first-pass prediction is solved with lambda_high (a
+near-singular noisy window otherwise turns its swings into weights), and the Huber passes after
+the solve are ``rwps_irls_iters``.  The constants (``snr_kappa``, ``lambda_low``,
+``lambda_high``, ``rwps_irls_iters``) are fitted on training groups only by
+``polspike fit-rwps`` (:mod:`reconstruct.rwps_fit`; README, "RWPS that adapts").  The default
+``lambda_map = "fixed"`` keeps the original behaviour, so a checkpoint whose stored SolverConfig
+predates the field reproduces bit for bit.
+
 Numerical floor: the 2x2 system gets lambda' + eps * tr(M) + tiny on its
 diagonal, eps = 1e-12 (float64) or 1e-7 (float32).  With all zeta equal or all
 weights zero the result is finite (no NaN, no inf): the near minimum-norm
@@ -90,6 +114,7 @@ class SolverConfig:
     lambda_map: str = opt("fixed", "rwps Conf -> lambda: fixed (Conf from 4 Var_w(zeta) alone) or adaptive (noise-aware Conf, module docstring)", choices=("fixed", "adaptive"))
     snr_kappa: float = opt(1.0, "adaptive: value of the conditioning SNR q at which Conf = 1/2", lo=1e-9, hi=1e9)
     rwps_irls_iters: int = opt(-1, "Huber reweighting iterations of rwps (-1: irls_iters, the original behaviour)", lo=-1, hi=100)
+    rwps_prior: str = opt("zero", "adaptive rwps prior: zero (lambda (R^2 + T^2), as ridge) or equal (lambda (R - T)^2, toward the window mean)", choices=("zero", "equal"))
     noise_pool: int = opt(5, "adaptive: side (pixels) of the box over which the residual noise and signal power are pooled", lo=1, hi=101)
 
 
@@ -104,7 +129,7 @@ class SolverResult:
     lam: torch.Tensor
 
 
-PHYSICS_SOLVER_CONFIG = SolverConfig(lambda_map="adaptive", lambda_low=0.0, lambda_high=3e-2, snr_kappa=1.0)
+PHYSICS_SOLVER_CONFIG = SolverConfig(lambda_map="adaptive", lambda_low=0.0, lambda_high=0.3, snr_kappa=0.1, rwps_irls_iters=0, rwps_prior="equal")
 """Solver parameters of the physics-only paths (evaluation, ``polspike reconstruct --method``):
 adaptive RWPS with the constants fitted on training groups (``polspike fit-rwps``, README)."""
 
@@ -154,11 +179,14 @@ def _box(x: torch.Tensor, k: int) -> torch.Tensor:
 def adaptive_confidence(zeta: torch.Tensor, b: torch.Tensor, w: torch.Tensor, snr_kappa: float = 1.0, pool: int = 5) -> torch.Tensor:
     """Noise-aware Conf in [0, 1) (``lambda_map = "adaptive"``; module docstring, "Adaptive Conf").
 
-    q = 4 Var_w(zeta) N_eff s^2 / sigma^2 is the signal-to-noise ratio of the worst-determined
-    direction of the 2x2 system: Var_w(zeta) its eigenvalue scale, N_eff = (sum w)^2 / sum w^2,
-    sigma^2 the residual variance of a first weighted least-squares solve (N_eff / (N_eff - 2)
-    corrected) and s^2 the mean of b^2 (the signal power), both pooled over a ``pool`` x ``pool``
-    box.  Conf = q / (q + snr_kappa).
+    An empirical-Bayes signal-to-noise ratio of the reflection estimate: a first weighted
+    least-squares solve gives R_ls and the residual variance sigma^2 of one observation
+    (N_eff / (N_eff - 2) corrected, N_eff = (sum w)^2 / sum w^2); R_ls's variance is
+    v_R = sigma^2 S_tt / det(M) (the (R, R) entry of sigma^2 M^-1, supp. Eq. (14)-(15)), which blows
+    up as the system turns singular; the signal power is s_R^2 = max(<R_ls^2> - <v_R>, 0), both
+    pooled over a ``pool`` x ``pool`` box (<.>).  q = s_R^2 / <v_R> and Conf = q / (q + snr_kappa):
+    strong, well-conditioned modulation with a visible reflection -> Conf -> 1 (little
+    regularisation); near-singular or noise-dominated -> Conf -> 0 (the prior).
 
     Args:
         zeta, b, w: (..., N, H, W) mixing coefficients, right sides (2 I) and weights.
@@ -170,14 +198,16 @@ def adaptive_confidence(zeta: torch.Tensor, b: torch.Tensor, w: torch.Tensor, sn
     """
     S_rr, S_rt, S_tt, sw = moments(zeta, w)
     tiny = torch.finfo(zeta.dtype).tiny ** 0.5
-    var_z = ((S_rr * S_tt - S_rt * S_rt).clamp_min(0.0) / (sw * sw + tiny)).clamp(0.0, 0.25)  # = Var_w(zeta)
+    det = (S_rr * S_tt - S_rt * S_rt).clamp_min(0.0)
     n_eff = sw * sw / ((w * w).sum(-3) + tiny)
     R, T = solve_weighted_ridge(zeta, b, w, 0.0)
     r = b - (zeta * R.unsqueeze(-3) + (1.0 - zeta) * T.unsqueeze(-3))
     dof = (n_eff - 2.0).clamp_min(0.5)
     sigma2 = _box((w * r * r).sum(-3) / (sw + tiny) * n_eff / dof, pool)
-    s2 = _box((w * b * b).sum(-3) / (sw + tiny), pool)
-    q = 4.0 * var_z * n_eff * s2 / (sigma2 + 1e-6 * s2 + tiny)
+    v_R = (sigma2 * S_tt / (det + _eps(zeta.dtype) * S_tt * S_tt + tiny)).clamp_max(1e12)
+    v_pool = _box(v_R, pool)
+    s2 = (_box(R * R, pool) - v_pool).clamp_min(0.0)
+    q = s2 / (v_pool + tiny)
     return q / (q + snr_kappa)
 
 
@@ -187,7 +217,7 @@ def lambda_from_conf(conf: torch.Tensor, lambda_low: float, lambda_high: float) 
 
 
 def solve_weighted_ridge(
-    zeta: torch.Tensor, b: torch.Tensor, w: torch.Tensor, lam: torch.Tensor | float = 0.0
+    zeta: torch.Tensor, b: torch.Tensor, w: torch.Tensor, lam: torch.Tensor | float = 0.0, prior: str = "zero"
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Closed-form (A^T W A + lambda sum(w) I)^{-1} A^T W b per pixel, supp. Eq. (9).
 
@@ -196,6 +226,9 @@ def solve_weighted_ridge(
         b: (..., N, H, W) right sides, b_k = 2 I(i+k).
         w: (..., N, H, W) non-negative weights.
         lam: scalar or (..., H, W) dimensionless ridge strength.
+        prior: ``zero`` (lambda (R^2 + T^2), supp. Eq. (7)) or ``equal`` (lambda (R - T)^2: only
+            the difference is pulled, toward R = T, so a near-singular window returns the window
+            mean 2 <I> (TFP) instead of shrinking the well-determined mean level).
 
     Returns:
         (R, T), each (..., H, W).
@@ -205,12 +238,19 @@ def solve_weighted_ridge(
     r_T = (w * (1.0 - zeta) * b).sum(-3)
     tr = S_rr + S_tt
     tiny = torch.finfo(zeta.dtype).tiny ** 0.25  # its square (the 2x2 determinant) stays a normal number
-    diag = lam * sw + _eps(zeta.dtype) * tr + tiny
-    m11 = S_rr + diag
-    m22 = S_tt + diag
-    det = m11 * m22 - S_rt * S_rt  # >= diag * tr > 0
-    R = (m22 * r_R - S_rt * r_T) / det  # supp. Eq. (9), 2x2 adjugate
-    T = (m11 * r_T - S_rt * r_R) / det
+    floor = _eps(zeta.dtype) * tr + tiny
+    if prior == "equal":
+        m11 = S_rr + lam * sw + floor
+        m22 = S_tt + lam * sw + floor
+        m12 = S_rt - lam * sw
+    else:
+        diag = lam * sw + floor
+        m11 = S_rr + diag
+        m22 = S_tt + diag
+        m12 = S_rt
+    det = m11 * m22 - m12 * m12  # > 0
+    R = (m22 * r_R - m12 * r_T) / det  # supp. Eq. (9), 2x2 adjugate
+    T = (m11 * r_T - m12 * r_R) / det
     return R, T
 
 
@@ -296,7 +336,8 @@ def solve(
         lam = torch.full_like(conf, config.ridge_lambda)
     else:
         lam = torch.zeros_like(conf)
-    R, T = solve_weighted_ridge(zeta, b, w0, lam)
+    prior = "equal" if (method == "rwps" and config.lambda_map == "adaptive" and config.rwps_prior == "equal") else "zero"
+    R, T = solve_weighted_ridge(zeta, b, w0, lam, prior)
     w = w0
     if method in ("irls", "rwps"):
         iters = config.rwps_irls_iters if (method == "rwps" and config.rwps_irls_iters >= 0) else config.irls_iters
@@ -304,5 +345,5 @@ def solve(
             r = b - (zeta * R.unsqueeze(-3) + (1.0 - zeta) * T.unsqueeze(-3))  # supp. Eq. (10)
             delta = (config.huber_c * _robust_scale(r)).clamp_min(config.huber_floor).unsqueeze(-3)
             w = w0 * huber_factor(r, delta)  # supp. Eq. (11): w^(j+1) = w q^(j)
-            R, T = solve_weighted_ridge(zeta, b, w, lam)
+            R, T = solve_weighted_ridge(zeta, b, w, lam, prior)
     return SolverResult(R=R, T=T, conf=conf, weights=w, lam=lam)

@@ -17,7 +17,7 @@ from reconstruct.solvers import PHYSICS_SOLVER_CONFIG, SolverConfig, adaptive_co
 
 # regime -> (R_perp, R_par, R/T brightness ratio, spikes per unit radiance per window)
 REGIMES = {
-    "strong_bright": (0.40, 0.02, 1.0, 400.0),  # glancing, well-conditioned, low noise: LS territory
+    "strong_bright": (0.50, 0.02, 3.0, 4000.0),  # glancing, well-conditioned, low noise: LS territory
     "normal_dim": (0.045, 0.035, 1.0, 2.0),  # near-normal incidence, few spikes: the prior's territory
     "brewster_dim": (0.16, 0.0, 1.0, 3.0),
     "brewster_bright": (0.16, 0.0, 1.0, 200.0),
@@ -44,7 +44,7 @@ def _regime_windows(name, seed=0, B=6, N=7, H=32, W=32):
     I = 0.5 * (zeta * R + (1 - zeta) * T)  # paper Eq. (1)
     I_obs = rng.poisson(I * scale) / scale
     t = lambda a: torch.from_numpy(np.ascontiguousarray(a, dtype=np.float64))  # noqa: E731
-    return t(zeta), t(I_obs), T[:, 0]
+    return t(np.broadcast_to(zeta, I_obs.shape)), t(I_obs), T[:, 0]
 
 
 def _psnr(method, zeta, I, T, cfg):

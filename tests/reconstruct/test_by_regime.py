@@ -1,0 +1,83 @@
+"""Per-regime evaluation (``polspike evaluate --by-regime``) and the RWPS fit (``polspike fit-rwps``):
+group names parse into regimes, rows average exactly the groups of each level, every zeta source is
+taken by name, the fit picks the grid point with the best objective on known windows."""
+
+from __future__ import annotations
+
+import dataclasses
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from polinfra.errors import ConfigError
+from reconstruct.evaluate import REGIME_FACTORS, EvalConfig, evaluate_by_regime, regime_of
+from reconstruct.synthetic import SyntheticConfig, make_group
+
+REPO = Path(__file__).resolve().parents[2]
+
+
+def test_regime_of_parses_names_and_ignores_the_rest():
+    assert regime_of("refl-weak_motion-fast_light-dim_inc-brewster_pane-slab") == {"refl": "weak", "motion": "fast", "light": "dim", "inc": "brewster", "pane": "slab"}
+    assert regime_of("test_000") == {}
+    assert regime_of("refl-purple_inc-normal") == {"inc": "normal"}
+
+
+@pytest.fixture(scope="module")
+def groups():
+    cfg = SyntheticConfig(width=24, height=16, n_groups=3, n_frames=9, seed=3)
+    gs = [make_group(cfg, i) for i in range(3)]
+    names = ["refl-weak_inc-normal", "refl-strong_inc-normal", "refl-strong_inc-glancing"]
+    return [dataclasses.replace(g, name=n) for g, n in zip(gs, names)]
+
+
+def test_by_regime_rows_are_means_of_their_groups(groups):
+    cfg = EvalConfig(methods="ls,rwps", max_frames=2, rir=False)
+    res = evaluate_by_regime(groups, cfg, zetas=("gt",), network=False)
+    assert res["columns"] == ["tfp", "best_frame", "ls@gt", "rwps@gt"]
+    per = {g["group"]: g for g in res["groups"]}
+    rows = {r["regime"]: r for r in res["rows"]}
+    assert set(rows) == {"refl=weak", "refl=strong", "inc=normal", "inc=glancing"}
+    for col in res["columns"]:
+        assert rows["refl=strong"][col] == pytest.approx(np.mean([per["refl-strong_inc-normal"][col], per["refl-strong_inc-glancing"][col]]))
+        assert rows["inc=glancing"][col] == pytest.approx(per["refl-strong_inc-glancing"][col])
+    assert rows["refl=strong"]["n_groups"] == 2
+    assert set(REGIME_FACTORS) == {"refl", "motion", "light", "inc", "pane"}
+
+
+def test_by_regime_rejects_an_unknown_zeta_source(groups):
+    with pytest.raises(ConfigError, match="oracle"):
+        evaluate_by_regime(groups, EvalConfig(methods="ls"), zetas=("oracle",), network=False)
+
+
+def test_fit_picks_the_best_grid_point():
+    """On windows with known truth the fit's table is consistent: best = argmax objective, margins vs LS / ridge."""
+    import torch
+
+    from reconstruct.rwps_fit import fit_rwps, group_scores
+    from reconstruct.solvers import SolverConfig
+
+    sys.path.insert(0, str(Path(__file__).parent))
+    from test_rwps_adaptive import _regime_windows
+
+    win = {}
+    for reg in ("normal_dim", "brewster_bright"):
+        z, I, T = _regime_windows(reg, B=2, H=16, W=16)
+        win[reg] = [(z[j], I[j], T[j]) for j in range(2)]
+    grid = {"snr_kappa": (0.3, 30.0), "lambda_low": (0.0,), "lambda_high": (0.1,), "rwps_irls_iters": (0,)}
+    res = fit_rwps(win, grid=grid)
+    assert len(res["table"]) == 2
+    best = max(res["table"], key=lambda r: r["objective"])
+    assert res["best"]["snr_kappa"] == best["snr_kappa"]
+    ls, ridge = group_scores(win, "ls", SolverConfig()), group_scores(win, "ridge", SolverConfig())
+    rw = group_scores(win, "rwps", SolverConfig(lambda_map="adaptive", snr_kappa=best["snr_kappa"], lambda_low=0.0, lambda_high=0.1, rwps_irls_iters=0))
+    m = np.array([rw[g] - max(ls[g], ridge[g]) for g in win])
+    assert best["mean_margin"] == pytest.approx(m.mean()) and best["min_margin"] == pytest.approx(m.min())
+    assert torch.is_tensor(win["normal_dim"][0][0])
+
+
+def test_fit_rwps_refuses_the_test_split(tmp_path):
+    r = subprocess.run([sys.executable, "-c", "from polspike.cli import app; app()", "fit-rwps", str(tmp_path), "--split", "test", "--quiet"], capture_output=True, text=True, cwd=REPO, timeout=120)
+    assert r.returncode == 2 and "training groups" in r.stderr and "Traceback" not in r.stderr
