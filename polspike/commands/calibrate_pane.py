@@ -27,8 +27,6 @@ def calibrate_pane_cmd(
     window_steps: int = typer.Option(13, "--window-steps", help="Eq. (3) window in camera steps"),
 ) -> None:
     """Fit the pane (orientation, index, model) and the field of view to a recording by differentiating the maps tier."""
-    import dataclasses
-
     from rich.console import Console
 
     from polinfra.errors import ConfigError
@@ -43,7 +41,7 @@ def calibrate_pane_cmd(
     if glass is not None:
         from polphysics.fresnel import GLASSES
 
-        if glass not in GLASSES:
+        if glass.upper() not in {k.upper() for k in GLASSES}:
             raise ConfigError(f"--glass {glass!r} is unknown; choose one of {sorted(GLASSES)}")
     if fov_deg is not None and not (1.0 <= fov_deg <= 150.0):
         raise ConfigError(f"--fov-deg {fov_deg} is out of range (1-150)")
@@ -71,7 +69,6 @@ def calibrate_pane_cmd(
               f"orientation residual {rep['geometry']['orientation_residual_deg_median']:.2f} deg")
     con.print(f"n {p['n']:.4f} ({verdict('n')}), model {p['model']} ({verdict('model')}); thickness and reflectance scale not identified")
     con.print(f"[green]wrote[/] {out}: {', '.join(rep['files'])} in {rep['timings_s']['total_s']:.1f} s")
-    _ = dataclasses  # (kept import local)
 
 
 @bench_app.command("calibrate-pane")

@@ -410,7 +410,7 @@ def calibrate_frames(I: np.ndarray, phi: np.ndarray, cfg: CalibratePaneConfig = 
     timings["total_s"] = time.perf_counter() - t_all
     sig = geo["sigma"]
     tilt, az, fov = (math.degrees(v) for v in x[:3])
-    params = {"tilt_deg": tilt, "azimuth_deg": az, "fov_deg": fov, "n": n_final, "model": model_final,
+    params = {"tilt_deg": tilt, "azimuth_deg": az, "fov_deg": fov, "n": n_final, "model": model_final, "glass": cfg.glass,
               "normal_camera": [float(v) for v in _normal(x)]}
     report.update({
         "ok": True,
@@ -463,7 +463,7 @@ def fitted_scene_dict(params: dict, width: int, height: int, base: dict | None =
     d.setdefault("camera", {})
     d["camera"].update({"width": int(width), "height": int(height), "fov_deg": round(float(params["fov_deg"]), 4)})
     pane = d.setdefault("pane", {})
-    pane.update({"model": params["model"], "n": round(float(params["n"]), 5), "glass": None, "normal": None})
+    pane.update({"model": params["model"], "n": round(float(params["n"]), 5), "glass": params.get("glass"), "normal": None})
     # the scene's pane_plane(): -forward rotated by tilt about the in-image axis at tilt_axis;
     # the fitted normal (away from the camera) has its image projection at `azimuth`: the axis is perpendicular
     sc = scene_from_dict(d, where="fitted scene")
