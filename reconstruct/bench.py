@@ -161,8 +161,10 @@ def _stream_fps(model, height: int, width: int, frames: int, out_dir) -> dict:
     for i in range(0, steps, 64):
         n = min(64, steps - i)
         spikes[i : i + n] = g.random((n, height, width), dtype=np.float32) < rate
+    c0 = time.process_time()
     s = reconstruct_stream(array_source(spikes, 0.0, 30.0), model, out_dir, ReconstructConfig(max_frames=frames))
-    return {"frames": s["frames"], "seconds": s["seconds"], "frames_per_second": s["frames"] / s["seconds"], "tile": s["tile"], "feature_cache": s["feature_cache"], "threads": torch.get_num_threads()}
+    cpu = time.process_time() - c0  # this process's threads (the ffmpeg encoder processes are not included)
+    return {"frames": s["frames"], "seconds": s["seconds"], "frames_per_second": s["frames"] / s["seconds"], "cpu_s_per_frame": cpu / max(1, s["frames"]), "tile": s["tile"], "feature_cache": s["feature_cache"], "threads": torch.get_num_threads()}
 
 
 def _train_throughput(arch_cfg, train_set, steps: int, workers: int, out_dir) -> dict:
@@ -205,7 +207,7 @@ def bench_reconstruct_net(
         train_cfgs: name -> :class:`reconstruct.train.TrainConfig` for the training throughput (omit to skip).
         train_set: on-the-fly training windows (map-style dataset) for the training throughput.
         train_steps: name -> optimizer steps timed.
-        variants: also time channels-last and bf16 autocast (and ``torch.compile`` when ``compile_``) for every model.
+        variants: also time channels-last and bf16 autocast (and ``torch.compile`` when ``compile_``) for the models after the first.
         work_dir: scratch directory (videos, run directories).
 
     Returns:
@@ -242,7 +244,7 @@ def bench_reconstruct_net(
                 r[f"fps_{t}thr"] = _frame_fps(model, height, width, frames, r["tile"])
                 r[f"cpu_s_per_frame_{t}thr"] = _frame_fps.last_cpu_s
                 log.info("%s: %.3f frames/s on %d threads", name, r[f"fps_{t}thr"], t)
-            if variants:
+            if variants and name != next(iter(models)):  # variants of the network under test only
                 t = max(threads)
                 torch.set_num_threads(t)
                 v = {"float32": r[f"fps_{t}thr"]}
@@ -309,6 +311,7 @@ def net_table(res: dict) -> str:
         rows.append((f"network frames/s, {t} thread{'s' if t > 1 else ''}", lambda r, t=t: f"{r[f'fps_{t}thr']:.3f}"))
         rows.append((f"network CPU-s per frame, {t} thread{'s' if t > 1 else ''}", lambda r, t=t: f"{r[f'cpu_s_per_frame_{t}thr']:.3f}"))
     rows.append((f"`polspike reconstruct` frames/s, {max(thr)} thread{'s' if max(thr) > 1 else ''}", lambda r: f"{r['reconstruct']['frames_per_second']:.3f}" if "reconstruct" in r else "-"))
+    rows.append(("`polspike reconstruct` CPU-s per frame", lambda r: f"{r['reconstruct']['cpu_s_per_frame']:.3f}" if "reconstruct" in r else "-"))
     for w in (0, 1):
         rows.append((f"training steps/s (1 thread, {w} data worker{'s' if w != 1 else ''})", lambda r, w=w: f"{r['train_1thr'][f'workers_{w}']['steps_per_second']:.3f}" if "train_1thr" in r else "-"))
         rows.append((f"training window-pixels/s (1 thread, {w} data worker{'s' if w != 1 else ''})", lambda r, w=w: f"{r['train_1thr'][f'workers_{w}']['window_pixels_per_second']:,.0f}" if "train_1thr" in r else "-"))

@@ -82,13 +82,14 @@ def reconstruct_cmd(
     window_steps: int = typer.Option(13, "--window-steps", help="Eq. (3) window in steps (13 = 0.65 ms)"),
     stride_deg: float = typer.Option(31.5, "--stride-deg", help="polarizer rotation between output frames (31.5 deg -> 342.9 FPS at 30 rev/s)"),
     frames: str = typer.Option("none", "--frames", help="also write frames: none | png | exr"),
-    weights: Optional[Path] = typer.Option(None, "--weights", help="checkpoint [default: the shipped reconstruct/weights/polspike_v1.pt]"),
+    weights: Optional[Path] = typer.Option(None, "--weights", help="checkpoint [default: the shipped reconstruct/weights/polspike_v2.pt]"),
     rir: Optional[bool] = typer.Option(None, "--rir/--no-rir", help="RIR alignment [default: as trained]"),
     max_frames: int = typer.Option(0, "--max-frames", help="stop after this many output frames (0 = all)"),
     device: str = typer.Option("auto", "--device", help="auto | cpu | cuda"),
     quiet: bool = typer.Option(False, "--quiet", help="no progress bar"),
     method: str = typer.Option("net", "--method", help="net (the network) | ls | ridge | irls | rwps (a physics solver alone: no checkpoint unless --zeta learned)"),
     zeta: Optional[str] = typer.Option(None, "--zeta", help="physics methods: self (pane fitted to the stream) | learned | physics | gt (group stores only) [default: self]; the network estimates its own"),
+    precision: str = typer.Option("float32", "--precision", help="float32 | bfloat16 (autocast of the network; the solver stays float32)"),
 ) -> None:
     """Turn a spike group or a .dat into reflection-free T and R video at the output cadence (~343 FPS)."""
     import math
@@ -111,7 +112,9 @@ def reconstruct_cmd(
     if zeta in ("gt", "physics") and input.suffix.lower() == ".dat":
         raise ConfigError(f"--zeta {zeta} needs a stored group's pane maps; a raw .dat has none: use --zeta self or learned")
     dev = "cuda" if device == "auto" and torch.cuda.is_available() else ("cpu" if device == "auto" else device)
-    cfg = ReconstructConfig(window_steps=window_steps, stride_deg=stride_deg, exposure=exposure, frames=frames, max_frames=max_frames)
+    if precision not in ("float32", "bfloat16"):
+        raise ConfigError(f"--precision {precision!r}: choose float32 or bfloat16")
+    cfg = ReconstructConfig(window_steps=window_steps, stride_deg=stride_deg, exposure=exposure, frames=frames, max_frames=max_frames, precision=precision)
     if input.suffix.lower() == ".dat":
         missing = [n for n, v in (("--height", height), ("--width", width), ("--phi0-deg", phi0_deg), ("--rev-per-s", rev_per_s)) if v is None]
         if missing:
@@ -159,7 +162,7 @@ def heldout_test_set(crop: int = 64, items: int = 96, seed: int = 20_000, manife
 
 @app_typer.command("evaluate-checkpoint")
 def evaluate_checkpoint_cmd(
-    weights: Optional[Path] = typer.Argument(None, help="checkpoint [default: the shipped reconstruct/weights/polspike_v1.pt]"),
+    weights: Optional[Path] = typer.Argument(None, help="checkpoint [default: the shipped reconstruct/weights/polspike_v2.pt]"),
     out: Optional[Path] = typer.Option(None, "--out", help="write scores.json and scores.md here"),
     items: int = typer.Option(96, "--items", help="test windows"),
     crop: int = typer.Option(64, "--crop", help="test crop side (multiple of 4)"),
