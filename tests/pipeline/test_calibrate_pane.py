@@ -252,3 +252,15 @@ def test_pane_model_from_the_cone_edges_when_layers_go_black(tilt, az, model, n)
         assert abs(rep["params"]["n"] - n) <= 0.03
     else:
         assert rep["params"]["n"] == 1.5
+
+
+def test_nothing_modulates_is_reported_not_fitted(tmp_path):
+    """Near-normal incidence: no pane is claimed; report.json says why and nothing else is written."""
+    from polspike.pipeline.calibrate_pane import CalibratePaneConfig, calibrate_frames, write_outputs
+
+    I, phi, span, _ = pane_stream(1.0, 0.0, H=48, W=72)
+    res = calibrate_frames(I, phi, CalibratePaneConfig(fov_deg=55.0), span_rad=span)
+    assert res["ok"] is False and res["report"]["reason"]
+    write_outputs(tmp_path, res, width=72, height=48)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["report.json"]
+    assert json.loads((tmp_path / "report.json").read_text())["ok"] is False
