@@ -31,7 +31,7 @@ import torch
 from polinfra.errors import ConfigError
 
 from reconstruct.selfcal import SelfCalConfig, SelfCalResult, self_calibrate
-from reconstruct.solvers import SOLVERS, SolverConfig, solve
+from reconstruct.solvers import PHYSICS_SOLVER_CONFIG, SOLVERS, SolverConfig, solve
 from reconstruct.zeta_source import PaneMaps, zeta_from_maps, zeta_learned
 
 __all__ = ["PHYSICS_METHODS", "STREAM_ZETA_SOURCES", "PhysicsModel", "PhysicsOutput", "calibrate_source", "span_frames", "group_pane_maps", "build_physics_model"]
@@ -122,10 +122,8 @@ class PhysicsModel:
 
 
 def _default_solver_cfg() -> SolverConfig:
-    """The physics evaluation's solver settings when the solvers module defines them, else the defaults."""
-    import reconstruct.solvers as S
-
-    return getattr(S, "PHYSICS_SOLVER_CONFIG", SolverConfig())
+    """The physics evaluation's solver settings (adaptive RWPS, fitted on training groups)."""
+    return PHYSICS_SOLVER_CONFIG
 
 
 def calibrate_source(source, window_steps: int = 13, exposure: float | None = None, cfg: SelfCalConfig = SelfCalConfig()) -> SelfCalResult:
