@@ -32,7 +32,7 @@ __all__ = ["CKPT_FORMAT", "DEFAULT_WEIGHTS", "V1_WEIGHTS", "save_checkpoint", "r
 CKPT_FORMAT = "polspike-ckpt/1"
 V1_WEIGHTS = Path(__file__).resolve().parent / "weights" / "polspike_v1.pt"
 """The first shipped checkpoint (v1 architecture), kept for comparison."""
-DEFAULT_WEIGHTS = V1_WEIGHTS
+DEFAULT_WEIGHTS = Path(__file__).resolve().parent / "weights" / "polspike_v2.pt"
 """The shipped checkpoint (see ``docs/MODEL_CARD.md``)."""
 
 
