@@ -169,6 +169,16 @@ def fit_geometry(of: dict, width: int, height: int, block: int, x0: np.ndarray, 
     x = full(res.x)
     x[1] = x[1] % (2 * math.pi)
     m, J = pm.maps_and_jacobian(x, wrt)
+    # neighbouring blocks share content and motion: their residuals correlate, so the blocks are fewer
+    # independent samples than they look; inflate the covariance by the lag-1 factor (1 + 2 rho_x)(1 + 2 rho_y)
+    rfield = np.where(mask, _wrap90(of["psi"] - m["phi_perp"]), np.nan)
+    rho = []
+    for a, b in ((rfield[:, 1:], rfield[:, :-1]), (rfield[1:, :], rfield[:-1, :])):
+        ok = np.isfinite(a) & np.isfinite(b)
+        rho.append(float(np.corrcoef(a[ok], b[ok])[0, 1]) if ok.sum() > 10 else 0.0)
+    rho = [max(0.0, r) if np.isfinite(r) else 0.0 for r in rho]
+    inflate = (1 + 2 * rho[0]) * (1 + 2 * rho[1])
+    cov = cov * inflate
     d = np.degrees(np.abs(_wrap90(of["psi"] - m["phi_perp"])))
     # propagate to the maps: sigma of theta and phi_perp per block
     sig_theta = np.sqrt(np.maximum(np.einsum("ihw,ij,jhw->hw", J["theta"], cov, J["theta"]), 0.0))
@@ -177,7 +187,8 @@ def fit_geometry(of: dict, width: int, height: int, block: int, x0: np.ndarray, 
     full_sig = np.zeros(4)
     full_sig[list(wrt)] = sig
     return {
-        "x": x, "sigma": full_sig, "cov": cov, "wrt": wrt, "mask": mask, "coherent": coherent, "starts": tried, "residual_deg_blocks": d, "history": res.history,
+        "x": x, "sigma": full_sig, "cov": cov, "wrt": wrt, "mask": mask, "coherent": coherent, "starts": tried,
+        "residual_lag1_correlation": rho, "covariance_inflation": inflate, "residual_deg_blocks": d, "history": res.history,
         "converged": res.converged, "chi2": res.chi2, "dof": res.dof, "seconds": time.perf_counter() - t0,
         "residual_deg_median": _wmedian(d[mask], np.abs(s4)[mask]), "sigma_theta_deg_max": float(np.degrees(sig_theta[mask].max())),
         "sigma_phi_perp_deg_max": float(np.degrees(sig_phi[mask].max())), "sigma_theta_deg_median": float(np.degrees(np.median(sig_theta[mask]))),
@@ -419,10 +430,11 @@ def calibrate_frames(I: np.ndarray, phi: np.ndarray, cfg: CalibratePaneConfig = 
                                "n": sel["n"].get("sigma"), "correlation_geometry": geo["corr"],
                                "theta_deg_median": geo["sigma_theta_deg_median"], "theta_deg_max": geo["sigma_theta_deg_max"],
                                "phi_perp_deg_median": geo["sigma_phi_perp_deg_median"], "phi_perp_deg_max": geo["sigma_phi_perp_deg_max"],
-                               "method": "Gauss-Newton covariance (J^T J)^-1 x residual variance (geometry: relative weights |sum z^4|; n: edge residuals in noise units), Jacobians by Dr.Jit forward AD"},
+                               "method": "Gauss-Newton covariance (J^T J)^-1 x residual variance (geometry: relative weights |sum z^4|, x (1 + 2 rho_x)(1 + 2 rho_y) for the lag-1 correlation of neighbouring blocks' residuals; n: edge residuals in noise units, geometry errors not propagated), Jacobians by Dr.Jit forward AD"},
         "geometry": {"blocks": [int(v) for v in of["psi"].shape[::-1]], "block_px": block, "fitted_blocks": int(geo["mask"].sum()), "coherent_blocks": int(geo["coherent"].sum()),
                      "orientation_residual_deg_median": geo["residual_deg_median"], "converged": geo["converged"], "iterations": len(geo["history"]) - 1,
-                     "init_tilt_deg": init.tilt_deg, "init_azimuth_deg": init.azimuth_deg, "init_fov_deg": init.fov_deg, "starts": geo["starts"]},
+                     "init_tilt_deg": init.tilt_deg, "init_azimuth_deg": init.azimuth_deg, "init_fov_deg": init.fov_deg, "starts": geo["starts"],
+                     "residual_lag1_correlation_xy": geo["residual_lag1_correlation"], "covariance_inflation": geo["covariance_inflation"]},
         "glass": {"chunks": st["chunks"], "block_px": gblock, "valid_blocks": int(st["valid"].sum()),
                   "models": {k: {kk: vv for kk, vv in v.items() if kk not in ("dop_R", "dop_T", "grid_n", "grid_loss", "history")} for k, v in gl["models"].items()}},
         "identifiability": {
