@@ -255,14 +255,14 @@ def _edge_loss(st: dict, dR: np.ndarray, dT: np.ndarray, slack: float = 0.05) ->
     return loss, eu, el
 
 
-def fit_glass(st: dict, width: int, height: int, block: int, x_geo: np.ndarray, models: tuple[str, ...], fixed_n: float | None, cfg: CalibratePaneConfig) -> dict:
+def fit_glass(st: dict, width: int, height: int, block: int, x_geo: np.ndarray, models: tuple[str, ...], fixed_n: float | None, cfg: CalibratePaneConfig, n_grid: np.ndarray | None = None) -> dict:
     """Index and pane model from the cone's edges (module docstring, step 4)."""
     from generator.pane_fit import PaneModelAD, gauss_newton
 
     out: dict = {"models": {}}
     for model in models:
         pm = PaneModelAD(width, height, model, block=block)
-        grid = np.array([fixed_n]) if fixed_n else N_GRID
+        grid = np.array([fixed_n]) if fixed_n else (N_GRID if n_grid is None else n_grid)
         losses = []
         for n in grid:
             x = x_geo.copy()
@@ -409,6 +409,24 @@ def calibrate_frames(I: np.ndarray, phi: np.ndarray, cfg: CalibratePaneConfig = 
         models = ("single", "thin_slab")
     gl = fit_glass(st, W, H, gblock, x, models, fixed_n, cfg)
     sel = _select_glass(gl, cfg, fixed_n, forced_model)
+    if sel["n"]["identified"]:
+        # the index rides on theta: propagate the geometry's covariance (n re-fitted at the geometry moved by
+        # one standard deviation along each principal direction) and gate on the total
+        key = sel["model_key"]
+        n_hat = gl["models"][key]["n"]
+        ev, evec = np.linalg.eigh(geo["cov"])
+        shifts = []
+        for lam, v in zip(ev, evec.T):
+            xp = x.copy()
+            xp[list(geo["wrt"])] += math.sqrt(max(lam, 0.0)) * v
+            g2 = fit_glass(st, W, H, gblock, xp, (key,), None, cfg, n_grid=np.round(np.arange(n_hat - 0.1, n_hat + 0.1001, 0.02), 4))
+            shifts.append(g2["models"][key]["n"] - n_hat)
+        s_geo = float(np.sqrt(np.sum(np.square(shifts))))
+        s_tot = float(math.hypot(sel["n"]["sigma"], s_geo))
+        sel["n"].update({"sigma_statistical": sel["n"]["sigma"], "sigma_from_geometry": s_geo, "sigma": s_tot})
+        if s_tot > cfg.max_n_sigma:
+            sel["n"] = {"identified": False, "value": cfg.prior_n, "sigma": s_tot, "sigma_from_geometry": s_geo, "fitted_if_edges_are_pure_layers": n_hat,
+                        "why": f"the cone's edges give n = {n_hat:.4f}, but the geometry's uncertainty moves it by {s_geo:.3f} (total 1-sigma {s_tot:.3f} > {cfg.max_n_sigma:g}): kept {cfg.prior_n}"}
     timings["glass_s"] = time.perf_counter() - t0
     n_final = float(sel["n"]["value"])
     model_final = sel["model"]["value"]
