@@ -158,7 +158,7 @@ def auto_tile(model, device: str | torch.device = "cpu") -> int:
     return 0 if (getattr(model, "cacheable", False) or torch.device(device).type == "cuda") else 128
 
 
-def run_model_on_windows(model, I: np.ndarray, phi: np.ndarray, device: str | torch.device = "cpu", tile: int = 128, margin: int = 16, *, precision: str = "float32", max_batch: int = 16) -> dict[str, np.ndarray]:
+def run_model_on_windows(model, I: np.ndarray, phi: np.ndarray, device: str | torch.device = "cpu", tile: int = 128, margin: int = 16, *, precision: str = "float32", max_batch: int = 4) -> dict[str, np.ndarray]:
     """Network on windows I (B, N, H, W) radiance units, phi (B, N) -> dict of (B, H, W) T, R, T_base, R_base.
 
     ``model`` is any object with ``cfg.n_obs`` that maps ``(I (B, N, H, W), phi (B, N))`` float32
@@ -167,7 +167,7 @@ def run_model_on_windows(model, I: np.ndarray, phi: np.ndarray, device: str | to
     Frames larger than ``tile`` (> 0) are cut into tile x tile pieces with a ``margin``-pixel
     overlap whose border is discarded (bounded memory; the network is fully convolutional, the
     per-pixel solver is exact per tile); all tiles of all windows go through the model as one
-    batch (at most ``max_batch`` tiles per call).  ``tile <= 0``: whole frames.  RIR, when
+    batch (at most ``max_batch`` tiles or windows per call: bounded memory, ~0.2 GB per v1 activation).  ``tile <= 0``: whole frames.  RIR, when
     enabled, aligns each tile separately.  ``precision``: "float32" or "bfloat16" (autocast).
     """
     dev = torch.device(device)
