@@ -228,6 +228,13 @@ def bench_reconstruct_net(
         # once a multi-threaded region ran in this process
         torch.set_num_threads(1)
         for w in (1, 0):
+            if w == 0:  # no fork after this: cap spike_sim's numba pool too (its idle OpenMP threads spin otherwise)
+                try:
+                    import numba
+
+                    numba.set_num_threads(1)
+                except Exception:  # pragma: no cover
+                    pass
             for name in models:
                 if train_cfgs and name in train_cfgs and train_set is not None:
                     steps = (train_steps or {}).get(name, 10)

@@ -262,6 +262,7 @@ def train(
     stop_after: int | None = None,
     max_seconds: float | None = None,
     workers: int = 0,
+    mp_context: str | None = None,
 ) -> dict[str, Any]:
     """Train (or resume) a :class:`PolSpikeNet`.
 
@@ -284,6 +285,9 @@ def train(
             workers before this process ran multi-threaded OpenMP code (torch with more
             than one thread, spike_sim's parallel kernel), which GNU OpenMP forbids
             (``polspike train`` sets its threads first and forks at the start).
+        mp_context: multiprocessing start method of the workers (None = the platform's,
+            fork on Linux; "forkserver" / "spawn" need a picklable dataset but are safe
+            in a process that already ran OpenMP code).
 
     Returns:
         dict with ``step``, ``total_steps``, ``param_count`` and the last validation metrics.
@@ -324,7 +328,7 @@ def train(
     end = total if stop_after is None else min(total, stop_after)
     batches = _BatchOrder(cfg, len(train_set), spe, step, end)
     if workers > 0:
-        loader = torch.utils.data.DataLoader(train_set, batch_sampler=batches, num_workers=workers, collate_fn=collate, worker_init_fn=_worker_init, prefetch_factor=4, persistent_workers=False)
+        loader = torch.utils.data.DataLoader(train_set, batch_sampler=batches, num_workers=workers, collate_fn=collate, worker_init_fn=_worker_init, prefetch_factor=4, persistent_workers=False, multiprocessing_context=mp_context)
     else:
         loader = (collate([train_set[i] for i in idx]) for idx in batches)
     for b in loader:

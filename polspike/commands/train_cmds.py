@@ -25,7 +25,8 @@ def on_the_fly_sets(cfg):
 def _limit_numba_threads(threads: int) -> None:
     """Cap spike_sim's parallel numba kernel at ``threads`` too: with more, its idle OpenMP threads
     spin between windows and take the CPU the training step needs (measured: 0.59 -> 0.39 CPU-s per
-    in-process step on one thread)."""
+    in-process step on one thread).  This starts numba's OpenMP pool, after which GNU OpenMP forbids
+    forking: call it only when no DataLoader worker will be forked later."""
     try:
         import numba
 
@@ -52,7 +53,8 @@ def train_cmd(
 
     if threads > 0:
         torch.set_num_threads(threads)
-        _limit_numba_threads(threads)
+        if workers <= 0:  # windows generated in this process (starting numba's pool would forbid forking a worker)
+            _limit_numba_threads(threads)
 
     from rich.console import Console
 
@@ -253,7 +255,6 @@ def bench_reconstruct_net_cmd(
     import torch
 
     torch.set_num_threads(1)  # before any torch work: the training part forks a DataLoader worker (GNU OpenMP forbids fork after a parallel region)
-    _limit_numba_threads(1)
     from rich.console import Console
 
     from polinfra.atomic import write_json, write_text

@@ -180,8 +180,9 @@ def test_kill_9_during_a_checkpoint_write_resumes_to_identical_weights(tmp_path,
 def test_loader_worker_gives_the_same_trajectory(tmp_path, sets, tiny_run):
     """Batches built by a DataLoader worker process (and a resume in between) give bit-identical weights."""
     tr, va = sets
-    train(CFG, tr, va, tmp_path / "w", stop_after=3, workers=1)
-    r = train(CFG, tr, va, tmp_path / "w", workers=1)
+    # forkserver: this pytest process may already have run OpenMP code (GNU OpenMP forbids fork then)
+    train(CFG, tr, va, tmp_path / "w", stop_after=3, workers=1, mp_context="forkserver")
+    r = train(CFG, tr, va, tmp_path / "w", workers=1, mp_context="forkserver")
     assert r["step"] == CFG.epochs * CFG.steps_per_epoch
     a = read_checkpoint(tiny_run[0] / "last.pt")["state_dict"]
     b = read_checkpoint(tmp_path / "w" / "last.pt")["state_dict"]
