@@ -39,7 +39,7 @@ bench: install  # every benchmark, JSON + table each under out/bench/ (tens of m
 	$(BIN)/polspike bench spike-sim --out out/bench/spike_sim
 	$(BIN)/polspike bench render --out out/bench/render
 	$(BIN)/polspike bench reconstruct --out out/bench/reconstruct
-	$(BIN)/polspike bench reconstruct-net --threads 1 --json out/bench/reconstruct_net.json
+	$(BIN)/polspike bench reconstruct-net --threads 2 --json out/bench/reconstruct_net.json
 	$(BIN)/polspike bench dataset --out out/bench/dataset
 	$(BIN)/polspike bench tradeoff --out out/bench/tradeoff
 
