@@ -103,7 +103,9 @@ def test_manifest_scenes_and_cli_train_then_evaluate(tmp_path):
         "[net]\nfeat_ch = 8\nref_ch = [8, 8, 8]\ndec_ch = [8, 8, 8]\nuse_rir = false\n[window]\ncrop = 16\nkeyframe_hz = 1000.0\n"
     )
     app = get_app()
-    r = CliRunner().invoke(app, ["train", str(cfg), "--out", str(tmp_path / "run"), "--threads", "1", "--quiet"])
+    # in-process (CliRunner): this pytest process has run OpenMP already, so no forked data worker
+    # (the worker path is tested in tests/reconstruct/test_train.py with forkserver)
+    r = CliRunner().invoke(app, ["train", str(cfg), "--out", str(tmp_path / "run"), "--threads", "1", "--workers", "0", "--quiet"])
     assert r.exit_code == 0, r.output
     assert (tmp_path / "run" / "last.pt").is_file()
     r = CliRunner().invoke(app, ["evaluate-checkpoint", str(tmp_path / "run" / "last.pt"), "--manifest", man, "--items", "2", "--crop", "16", "--threads", "1", "--out", str(tmp_path / "ev")])
