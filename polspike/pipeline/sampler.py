@@ -205,6 +205,20 @@ def _r(x: float, nd: int = 4) -> float:
     return float(round(x, nd))
 
 
+def _pane_size(need: tuple[float, float]) -> list[float]:
+    """Pane size (m) that covers the camera's view with a 25 % margin, rounded up to 0.1 m."""
+    return [math.ceil(need[0] * 1.25 * 10) / 10, math.ceil(need[1] * 1.25 * 10) / 10]
+
+
+def _layer_contents(rng: np.random.Generator, split: str) -> tuple[str, int, str, int]:
+    """(T source, T seed, R source, R seed) of one group: two contents of the split, never the same one."""
+    t_src, t_seed = _content(rng, split)
+    r_src, r_seed = _content(rng, split, avoid=t_src)
+    if r_src == t_src and r_seed == t_seed:
+        r_seed = t_seed + 1 if r_seed + 1 < CONTENT_POOLS[split]["noise_seeds"][1] else t_seed - 1
+    return t_src, t_seed, r_src, r_seed
+
+
 def _content(rng: np.random.Generator, split: str, avoid: str | None = None) -> tuple[str, int]:
     """(source, seed): an image of the split's pool (2/3) or seeded procedural noise (1/3)."""
     pool = CONTENT_POOLS[split]
@@ -266,11 +280,8 @@ def _group_v1(rng: np.random.Generator, name: str, split: str, width: int, heigh
         need = _pane_need({"camera": camera, "pane": pane}, MAX_INCIDENCE_DEG)
         if need is not None:
             break
-    pane["size_m"] = [math.ceil(need[0] * 1.25 * 10) / 10, math.ceil(need[1] * 1.25 * 10) / 10]
-    t_src, t_seed = _content(rng, split)
-    r_src, r_seed = _content(rng, split, avoid=t_src)
-    if r_src == t_src and r_seed == t_seed:
-        r_seed = t_seed + 1 if r_seed + 1 < CONTENT_POOLS[split]["noise_seeds"][1] else t_seed - 1
+    pane["size_m"] = _pane_size(need)
+    t_src, t_seed, r_src, r_seed = _layer_contents(rng, split)
     trans = {"source": t_src, "seed": t_seed, "distance_m": _r(_u1(rng, "t_distance_m"), 3), "brightness": _r(_u1(rng, "t_brightness"), 3), "motion": _motion(rng)}
     refl = {"source": r_src, "seed": r_seed, "distance_m": _r(_u1(rng, "r_distance_m"), 3), "brightness": _r(_u1(rng, "r_brightness"), 3), "motion": _motion(rng)}
     if rng.random() < SPRITE_PROB:
@@ -340,11 +351,8 @@ def _group_paper(rng: np.random.Generator, name: str, split: str, width: int, he
             need = _pane_need({"camera": camera, "pane": pane}, PAPER_MAX_INCIDENCE_DEG)
             if need is not None:
                 break
-    pane["size_m"] = [math.ceil(need[0] * 1.25 * 10) / 10, math.ceil(need[1] * 1.25 * 10) / 10]
-    t_src, t_seed = _content(rng, split)
-    r_src, r_seed = _content(rng, split, avoid=t_src)
-    if r_src == t_src and r_seed == t_seed:
-        r_seed = t_seed + 1 if r_seed + 1 < CONTENT_POOLS[split]["noise_seeds"][1] else t_seed - 1
+    pane["size_m"] = _pane_size(need)
+    t_src, t_seed, r_src, r_seed = _layer_contents(rng, split)
     # brightness: T at t_brightness; R's mean radiance = ratio x T's (ratio log-uniform), from a
     # brighter texture plus, past brightness 1, a uniform offset (capped at R_MEAN_MAX); haze: mostly offset
     ratio = _lu(rng, "log_rt_ratio")
@@ -561,7 +569,7 @@ def stress_manifest(seed: int = 4242, width: int = 200, height: int = 125, durat
                 break
         else:  # pragma: no cover - the levels are chosen to fit
             raise SceneError(f"stress group {name}: no pane geometry fits")
-        pane["size_m"] = [math.ceil(need[0] * 1.25 * 10) / 10, math.ceil(need[1] * 1.25 * 10) / 10]
+        pane["size_m"] = _pane_size(need)
         t_src, t_seed = _content(rng, "test")
         r_src, r_seed = _content(rng, "test", avoid=t_src)
         if r_src == t_src and r_seed == t_seed:
