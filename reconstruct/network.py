@@ -241,14 +241,19 @@ class LowResParameterBranch(nn.Module):
         g = self.wenc(x)
         return f, g
 
-    def forward(self, I: torch.Tensor, phi: torch.Tensor, feats: tuple[torch.Tensor, torch.Tensor] | None = None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    def forward(
+        self, I: torch.Tensor, phi: torch.Tensor, feats: tuple[torch.Tensor, torch.Tensor] | None = None, scale: torch.Tensor | None = None
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """I (B, N, H, W), phi (B, N) -> (zeta_hat, w, (a0, ac, as) (B, 3, H, W)).
 
         ``feats``: optional precomputed :meth:`encode_obs` output for the B*N observations
-        (with ``scale = window_scale(I)``); computed here when omitted.
+        (with the same ``scale``); computed here when omitted.  ``scale``: optional (B, 1, 1, 1)
+        brightness normaliser; default ``window_scale(I)``.  A caller that cuts a frame into tiles
+        passes the whole frame's scale, so every tile is normalised alike (no seams between tiles
+        whose own means round to different powers of two).
         """
         B, N, H, W = I.shape
-        scale = window_scale(I)
+        scale = window_scale(I) if scale is None else scale.to(I.dtype).reshape(B, 1, 1, 1)
         if feats is None:
             feats = self.encode_obs(I.reshape(B * N, H, W), scale.expand(B, N, 1, 1).reshape(B * N))
         f, g = feats
@@ -362,6 +367,7 @@ class PolSpikeNet(nn.Module):
         zeta_gt: torch.Tensor | None = None,
         alpha: float = 0.0,
         feats: tuple[torch.Tensor, torch.Tensor] | None = None,
+        scale: torch.Tensor | None = None,
     ) -> NetOutput:
         """Reconstruct the centre frame of each window.
 
@@ -373,6 +379,8 @@ class PolSpikeNet(nn.Module):
             feats: v2 only: precomputed per-observation features of the B*N frames
                 (:meth:`encode_obs` with :func:`window_scale`), e.g. cached by a stream;
                 not allowed with RIR on (RIR warps the frames first).
+            scale: v2 only: (B,) or (B, 1, 1, 1) brightness normaliser of the parameter branch
+                (default :func:`window_scale` of ``I``); tiles of one frame share the frame's.
 
         Returns:
             :class:`NetOutput`.
@@ -391,7 +399,12 @@ class PolSpikeNet(nn.Module):
             raise ShapeError("teacher forcing alpha > 0 needs zeta_gt", actual_shape=None, expected_shape="(B, N, H, W)")
         if self.cfg.use_rir:
             I, zeta_gt = self.align(I, phi, zeta_gt)
-        zeta_hat, w, _ = self.param(I, phi) if feats is None else self.param(I, phi, feats)
+        if self.cfg.arch == "v1":
+            if scale is not None:
+                raise ShapeError("scale is a v2 option (v1 normalises each window by its own mean)", actual_shape=None, expected_shape="scale=None")
+            zeta_hat, w, _ = self.param(I, phi)
+        else:
+            zeta_hat, w, _ = self.param(I, phi, feats, scale)
         zeta_hat, w = zeta_hat.float(), w.float()  # the solver runs in float32 (also under bf16 autocast)
         I = I.float()
         zeta_used = zeta_hat if (alpha <= 0 or zeta_gt is None) else alpha * zeta_gt + (1 - alpha) * zeta_hat  # teacher forcing

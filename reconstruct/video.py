@@ -188,9 +188,15 @@ def run_model_on_windows(model, I: np.ndarray, phi: np.ndarray, device: str | to
         pos = [(ty * tile, tx * tile) for ty in range(ny) for tx in range(nx)]
         tiles = torch.stack([xp[..., y0 : y0 + ts, x0 : x0 + ts] for (y0, x0) in pos], 1).reshape(B * len(pos), N, ts, ts)
         pt = p.repeat_interleave(len(pos), 0)
+        # a v2 network normalises brightness by the window's scale: give every tile the whole frame's
+        kw = {}
+        if getattr(getattr(model, "cfg", None), "arch", "v1") == "v2":
+            from reconstruct.network import window_scale
+
+            kw = {"scale": window_scale(_pad4(x, mult)[0]).reshape(B).repeat_interleave(len(pos), 0)}
         res = {k: [] for k in _KEYS}
         for i in range(0, tiles.shape[0], max_batch):
-            o = model(tiles[i : i + max_batch], pt[i : i + max_batch])
+            o = model(tiles[i : i + max_batch], pt[i : i + max_batch], **{k: v[i : i + max_batch] for k, v in kw.items()})
             for k in _KEYS:
                 res[k].append(getattr(o, k)[:, margin : margin + tile, margin : margin + tile].float())
         out = {}

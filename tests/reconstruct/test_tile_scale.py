@@ -1,0 +1,67 @@
+"""Tiles of one frame share the frame's brightness scale (v2), so tiles cannot disagree at their seams."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from reconstruct.network import NetConfig, PolSpikeNet, init_weights, window_scale
+from reconstruct.video import run_model_on_windows
+
+
+class _Recorder(torch.nn.Module):
+    """Wraps a network and records the scale each call receives (None = the network's own)."""
+
+    def __init__(self, net):
+        super().__init__()
+        self.net, self.cfg, self.seen = net, net.cfg, []
+
+    @property
+    def pad_multiple(self):
+        return self.net.pad_multiple
+
+    def forward(self, I, phi, scale=None):
+        self.seen.append(None if scale is None else scale.clone())
+        return self.net(I, phi, scale=scale)
+
+
+def _frame(H=64, W=128, seed=0):
+    rng = np.random.default_rng(seed)
+    I = rng.uniform(0.5, 1.0, (1, 7, H, W)).astype(np.float32)
+    I[..., : W // 2] *= 0.08  # the left tile's own mean rounds to 1/16, the right one's to 1/2
+    I[..., W // 2 :] *= 0.6
+    return I, np.linspace(0.0, np.pi, 7, dtype=np.float32)[None]
+
+
+def test_every_tile_gets_the_whole_frames_scale():
+    net = init_weights(PolSpikeNet(NetConfig(arch="v2", use_rir=False)), torch.Generator().manual_seed(1)).eval()
+    rec = _Recorder(net)
+    I, phi = _frame()
+    run_model_on_windows(rec, I, phi, tile=64, margin=16, max_batch=1)
+    whole = float(window_scale(torch.as_tensor(I)).reshape(()))
+    own = [float(window_scale(torch.as_tensor(I[..., :64])).reshape(())), float(window_scale(torch.as_tensor(I[..., 64:])).reshape(()))]
+    assert own[0] != own[1]  # the case that made seams: each tile's own power of two differs
+    assert len(rec.seen) == 2 and all(s is not None for s in rec.seen)
+    assert [float(s.reshape(())) for s in rec.seen] == [whole, whole]
+
+
+def test_explicit_scale_equal_to_the_default_changes_nothing():
+    net = init_weights(PolSpikeNet(NetConfig(arch="v2", use_rir=False)), torch.Generator().manual_seed(2)).eval()
+    I, phi = _frame(32, 32)
+    x, p = torch.as_tensor(I), torch.as_tensor(phi)
+    with torch.inference_mode():
+        a = net(x, p)
+        b = net(x, p, scale=window_scale(x).reshape(1))
+        c = net(x, p, scale=4.0 * window_scale(x).reshape(1))
+    assert torch.equal(a.T, b.T) and torch.equal(a.R, b.R)
+    assert not torch.allclose(a.T, c.T)  # the scale really reaches the parameter branch
+
+
+def test_v1_refuses_a_scale():
+    from polinfra.errors import ShapeError
+
+    net = PolSpikeNet(NetConfig(arch="v1", use_rir=False)).eval()
+    I, phi = _frame(32, 32)
+    with pytest.raises(ShapeError, match="v2 option"):
+        net(torch.as_tensor(I), torch.as_tensor(phi), scale=torch.ones(1))
