@@ -13,7 +13,7 @@ from polspike.cli import app_typer
 @app_typer.command("checkpoint-scores")
 def checkpoint_scores_cmd(
     weights: Optional[Path] = typer.Argument(None, help="checkpoint [default: the shipped default, reconstruct.checkpoint.DEFAULT_WEIGHTS]"),
-    manifest: str = typer.Option("datasets/manifests/paper.toml", "--manifest", help="test windows from this manifest's test groups (the model card's test split)"),
+    manifest: str = typer.Option("datasets/manifests/paper_v1.toml", "--manifest", help="test windows from this manifest's test groups (the model card's test split)"),
     threads: int = typer.Option(1, "--threads", help="torch CPU threads (1 = the setting the stored scores are reproduced with)"),
     reduced_only: bool = typer.Option(False, "--reduced-only", help="recompute only the reduced evaluation (seconds); keep the stored model-card block if it belongs to these weights"),
     check: bool = typer.Option(False, "--check", help="do not write: re-run the reduced evaluation and compare with the stored file (exit 1 beyond 0.05 dB)"),

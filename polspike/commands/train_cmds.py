@@ -182,7 +182,7 @@ def evaluate_checkpoint_cmd(
     items: int = typer.Option(96, "--items", help="test windows"),
     crop: int = typer.Option(64, "--crop", help="test crop side (multiple of 4)"),
     seed: int = typer.Option(20_000, "--seed", help="test-set seed (window positions, crops, sensor noise)"),
-    manifest: str = typer.Option("datasets/manifests/paper.toml", "--manifest", help="windows of this manifest's test groups ('' = sampled test scenes)"),
+    manifest: str = typer.Option("datasets/manifests/paper_v1.toml", "--manifest", help="windows of this manifest's test groups (default: the shipped checkpoints' split; '' = sampled test scenes)"),
     rir: Optional[bool] = typer.Option(None, "--rir/--no-rir", help="RIR alignment [default: as trained]"),
     device: str = typer.Option("auto", "--device", help="auto | cpu | cuda"),
     threads: int = typer.Option(0, "--threads", help="torch CPU threads (0 = torch default)"),
