@@ -136,13 +136,17 @@ def render(scene: SceneConfig, out_dir: str | os.PathLike, opts: RenderOptions =
         object_sides(scene)  # every object and light on one side of the pane
     if opts.response not in ("cie_y", "flat") and not Path(opts.response).is_file():
         raise ConfigError(f"--response {opts.response!r} is neither cie_y, flat nor an existing CSV file (wavelength_nm,response)")
-    out = ensure_dir(out_dir)
-    ensure_dir(out / "frames")
     h = scene_hash(scene)
     times = frame_times(scene, opts)
     a, b = opts.frames or (0, len(times))
     if not (0 <= a < b <= len(times)):
         raise ConfigError(f"--frames {a}:{b} is outside 0:{len(times)} for this duration and fps")
+    if opts.tier != "analytic" and (opts.variant or "auto") != "auto":
+        from generator.mitsuba_backend import resolve_backend
+
+        resolve_backend(opts.variant, spectral=False)  # a forced variant that cannot run fails before --out is touched
+    out = ensure_dir(out_dir)
+    ensure_dir(out / "frames")
     meta_path = out / "render.json"
     prev = None
     if meta_path.is_file():

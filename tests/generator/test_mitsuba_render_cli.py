@@ -89,6 +89,19 @@ def test_render_cli_unknown_variant_exits_2(tmp_path):
     r = subprocess.run([str(exe), "render", str(scene), "--tier", "maps", "--variant", "metal", "--out", str(tmp_path / "o"), "--quiet"], capture_output=True, text=True)
     assert r.returncode == 2
     assert "unknown variant 'metal'" in r.stderr
+    assert not (tmp_path / "o").exists()  # refused before --out is touched
+
+
+def test_render_cli_forced_llvm_that_cannot_load_exits_2_and_writes_nothing(tmp_path, polspike_cli):
+    """--variant llvm with no loadable libLLVM: exit 2, no traceback, the fix named, and no --out folder left behind."""
+    scene = tmp_path / "tiny.toml"
+    scene.write_text(TINY.format(model="single"))
+    out = tmp_path / "o"
+    r = polspike_cli("render", scene, "--tier", "maps", "--variant", "llvm", "--out", out, "--quiet", env={"DRJIT_LIBLLVM_PATH": str(tmp_path / "no_libLLVM.so")})
+    assert r.returncode == 2, (r.returncode, r.stderr[-1500:])
+    assert "Traceback" not in r.stderr
+    assert "--variant llvm" in r.stderr and "--variant auto" in r.stderr
+    assert not out.exists()
 
 
 def test_bench_render_cli_json(tmp_path):
