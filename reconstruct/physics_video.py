@@ -89,7 +89,7 @@ class PhysicsModel:
         self.maps = maps
         self.span_rad = float(span_rad)
         self.learned_model = learned_model
-        self.solver_cfg = solver_cfg if solver_cfg is not None else _default_solver_cfg()
+        self.solver_cfg = solver_cfg if solver_cfg is not None else PHYSICS_SOLVER_CONFIG  # adaptive RWPS, fitted on training groups
         self.rir = bool(rir)
 
     def eval(self) -> PhysicsModel:
@@ -119,11 +119,6 @@ class PhysicsModel:
         r = solve(self.method, Z, I, weights=w, config=self.solver_cfg)
         T, R = r.T.clamp_min(0.0), r.R.clamp_min(0.0)
         return PhysicsOutput(T=T, R=R, T_base=T, R_base=R)
-
-
-def _default_solver_cfg() -> SolverConfig:
-    """The physics evaluation's solver settings (adaptive RWPS, fitted on training groups)."""
-    return PHYSICS_SOLVER_CONFIG
 
 
 def calibrate_source(source, window_steps: int = 13, exposure: float | None = None, cfg: SelfCalConfig = SelfCalConfig()) -> SelfCalResult:

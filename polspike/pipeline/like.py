@@ -94,11 +94,7 @@ def like_manifest(scene_path: str | Path, n_groups: int, seed: int, *, jitter: s
 
 def like_manifest_text(scene_path: str | Path, n_groups: int, seed: int, **kw) -> str:
     """TOML text of :func:`like_manifest`, validated as a manifest before it is returned."""
-    import tomllib
+    from polspike.pipeline.manifest import checked_manifest_text
 
-    from polspike.pipeline.manifest import dump_manifest, parse_manifest
-
-    data = like_manifest(scene_path, n_groups, seed, **kw)
-    text = dump_manifest(data, header=f"Sampled by polspike dataset new --like {Path(scene_path).name} --groups {n_groups} --seed {seed}.\nPane and camera fov from the scene; the rest: polspike/pipeline/sampler.py.")
-    parse_manifest(tomllib.loads(text), where="sampled manifest", source_text=text.encode())
-    return text
+    head = f"Sampled by polspike dataset new --like {Path(scene_path).name} --groups {n_groups} --seed {seed}.\nPane and camera fov from the scene; the rest: polspike/pipeline/sampler.py."
+    return checked_manifest_text(like_manifest(scene_path, n_groups, seed, **kw), head, "sampled manifest")

@@ -64,6 +64,7 @@ from polinfra.config import from_dict, load_toml, opt, to_dict
 from polinfra.errors import ConfigError, PolspikeError
 
 __all__ = [
+    "checked_manifest_text",
     "MANIFEST_FORMAT",
     "GroupSpec",
     "ResolvedGroup",
@@ -394,3 +395,12 @@ def dump_manifest(data: dict, header: str = "") -> str:
         lines.append("")
         _toml_table(lines, "groups", g, array_item=True)
     return "\n".join(lines) + "\n"
+
+
+def checked_manifest_text(data: dict, header: str, where: str) -> str:
+    """:func:`dump_manifest` of ``data``, parsed back as a manifest (errors name ``where``) before it is returned."""
+    import tomllib
+
+    text = dump_manifest(data, header=header)
+    parse_manifest(tomllib.loads(text), where=where, source_text=text.encode())
+    return text

@@ -90,7 +90,7 @@ import numpy as np
 
 from polinfra.errors import ConfigError, SceneError
 
-from polspike.pipeline.manifest import MANIFEST_FORMAT, dump_manifest, parse_manifest
+from polspike.pipeline.manifest import MANIFEST_FORMAT, checked_manifest_text
 
 __all__ = ["sample_manifest", "sample_manifest_text", "RANGES", "RANGES_V1", "PROFILES", "CONTENT_POOLS"]
 
@@ -489,11 +489,7 @@ def sample_manifest_text(n_groups: int, seed: int, **kw) -> str:
     data = sample_manifest(n_groups, seed, **kw)
     prof = kw.get("profile", "paper")
     flag = "" if prof == "paper" else f" --ranges {prof}"
-    text = dump_manifest(data, header=f"Sampled by polspike dataset new --groups {n_groups} --seed {seed}{flag}.\nRanges: polspike/pipeline/sampler.py (docs/datasets.md), profile {prof}.")
-    import tomllib
-
-    parse_manifest(tomllib.loads(text), where="sampled manifest", source_text=text.encode())
-    return text
+    return checked_manifest_text(data, f"Sampled by polspike dataset new --groups {n_groups} --seed {seed}{flag}.\nRanges: polspike/pipeline/sampler.py (docs/datasets.md), profile {prof}.", "sampled manifest")
 
 
 def reduced_manifest(data: dict, name: str, width: int, height: int, duration_s: float, split: str = "test", description: str = "") -> dict:
@@ -607,8 +603,6 @@ def stress_manifest(seed: int = 4242, width: int = 200, height: int = 125, durat
 
 def stress_manifest_text(**kw) -> str:
     """TOML text of :func:`stress_manifest` with its header (validated)."""
-    import tomllib
-
     head = (
         "Stress test (test-only; layer content from the test pool, never in training): a fractional grid of\n"
         "regimes, reflection weak / strong / dominant (R/T 0.3 / 1.5 / 5), motion static / fast (T 0.8 view/s,\n"
@@ -620,6 +614,4 @@ def stress_manifest_text(**kw) -> str:
         "Build:    polspike dataset build datasets/manifests/stress.toml --out out/datasets/stress\n"
         "Evaluate: polspike evaluate out/datasets/stress --by-regime --max-frames 3"
     )
-    text = dump_manifest(stress_manifest(**kw), header=head)
-    parse_manifest(tomllib.loads(text), where="stress manifest", source_text=text.encode())
-    return text
+    return checked_manifest_text(stress_manifest(**kw), head, "stress manifest")
