@@ -14,9 +14,13 @@ optional ``frames/T_NNNNNN.png`` or ``frames/NNNNNN.exr`` (linear T, R), and
 ``reconstruct.json`` (counts, fps, timing, NaN check, agreement with the plain
 TFP image).  All files are written atomically.
 
-Display mapping: linear radiance x gain, clipped to [0, 1], sRGB-like gamma
-1/2.2, 8 bit; the gain is fixed from the first output frame (99.5th percentile
-of T -> 0.95) so the video does not flicker.
+Display mapping (MP4s and PNG frames): linear radiance x gain, clipped to [0, 1],
+sRGB-like gamma 1/2.2, 8 bit.  One gain per video, chosen over all its frames so
+that at most 0.1 % of its pixels clip (:data:`DISPLAY_CLIP_FRACTION`; T and R
+each their own, the preview the smallest of T's, R's and the input's), so the
+video does not flicker and highlights keep their detail; the frames are spooled
+(float16, beside the outputs) until the gain is known.  EXR frames are linear
+and unclipped (values above 1 stay).
 """
 
 from __future__ import annotations
@@ -41,7 +45,7 @@ from polinfra.atomic import atomic_path, ensure_dir, write_json
 from polinfra.config import opt
 from polinfra.errors import ConfigError, DataFormatError
 
-__all__ = ["ReconstructConfig", "SpikeSource", "FeatureCache", "auto_tile", "dat_source", "group_source", "reconstruct_stream", "run_model_on_windows"]
+__all__ = ["DISPLAY_CLIP_FRACTION", "DisplayHistogram", "display_gain", "ReconstructConfig", "SpikeSource", "FeatureCache", "auto_tile", "dat_source", "group_source", "reconstruct_stream", "run_model_on_windows"]
 
 log = logging.getLogger(__name__)
 
@@ -271,13 +275,66 @@ def _to8(x: np.ndarray, gain: float) -> np.ndarray:
     return (np.clip(x * gain, 0, 1) ** (1 / 2.2) * 255 + 0.5).astype(np.uint8)
 
 
+DISPLAY_CLIP_FRACTION = 1e-3
+"""At most this fraction of a video's pixels (all its frames together) reach white (module docstring)."""
+
+DISPLAY_WHITE = 0.99
+"""The clip quantile is mapped to this linear value (below 0.9957, the lowest that rounds to 255 after the 1/2.2 gamma)."""
+
+_HIST_LO, _HIST_HI, _HIST_BINS = -6.0, 6.0, 12 * 1024  # log10 range and bins of the display histograms (0.23 % per bin)
+
+
+class DisplayHistogram:
+    """Streaming histogram of a video's pixel values on a log scale, for :func:`display_gain`.
+
+    Values <= 10^-6 (also zero and negative ones, which display black) fall into the first bin;
+    the upper edge of the bin holding the quantile bounds the exact quantile from above, so the
+    gain chosen from it never clips more than the requested fraction."""
+
+    def __init__(self):
+        self.counts = np.zeros(_HIST_BINS + 1, np.int64)
+        self.n = 0
+
+    def add(self, x: np.ndarray) -> None:
+        v = np.asarray(x, np.float64).ravel()
+        v = v[np.isfinite(v)]
+        lg = np.log10(np.maximum(v, 10.0**_HIST_LO))
+        idx = np.clip(np.ceil((lg - _HIST_LO) / (_HIST_HI - _HIST_LO) * _HIST_BINS).astype(np.int64), 0, _HIST_BINS)
+        self.counts += np.bincount(idx, minlength=_HIST_BINS + 1)
+        self.n += v.size
+
+    def upper_quantile(self, fraction_above: float) -> float:
+        """A value q with at most ``fraction_above`` of the values above it (the bin's upper edge)."""
+        if self.n == 0:
+            return 1.0
+        allowed = math.floor(fraction_above * self.n)
+        above = self.n - np.cumsum(self.counts)  # values in bins after bin i
+        i = int(np.argmax(above <= allowed))
+        return float(10.0 ** (_HIST_LO + (_HIST_HI - _HIST_LO) * i / _HIST_BINS))
+
+
+def display_gain(hist: DisplayHistogram, clip_fraction: float = DISPLAY_CLIP_FRACTION) -> float:
+    """Display gain of one video: at most ``clip_fraction`` of its pixels map to white (8-bit 255)."""
+    return DISPLAY_WHITE / max(hist.upper_quantile(clip_fraction), 1e-6)
+
+
 class _Writers:
-    def __init__(self, out: Path, fps: float, cfg: ReconstructConfig):
+    """Output files of a stream.  EXR frames are written as they come (linear, unclipped); MP4s and
+    PNG frames need the whole video's display gain, so their linear frames are spooled to a
+    float16 file beside the outputs (bounded memory) and encoded at the end."""
+
+    def __init__(self, out: Path, fps: float, cfg: ReconstructConfig, n_frames: int = 0, shape: tuple[int, int] = (0, 0)):
         self.out, self.fps, self.cfg = out, fps, cfg
         self.stack = contextlib.ExitStack()
         self.vw: dict[str, Any] = {}
-        self.gain: float | None = None
+        self.gain: dict[str, float] | None = None
+        self.hist = {k: DisplayHistogram() for k in ("T", "R", "input")}
         self.n = 0
+        self.display = cfg.video or cfg.frames == "png"
+        self.spool = None
+        self.spool_path = out / ".display_spool.npy"
+        if self.display and n_frames > 0:
+            self.spool = np.lib.format.open_memmap(self.spool_path, mode="w+", dtype=np.float16, shape=(n_frames, 3, *shape))
 
     def __enter__(self):
         return self
@@ -291,31 +348,56 @@ class _Writers:
         return w
 
     def write(self, Ic: np.ndarray, T: np.ndarray, R: np.ndarray) -> None:
-        if self.gain is None:
-            self.gain = 0.95 / max(float(np.percentile(T, 99.5)), 1e-6)
-        g = self.gain
-        if self.cfg.video:
-            even = lambda a: a[: a.shape[0] // 2 * 2, : a.shape[1] // 2 * 2]  # noqa: E731  (yuv420p needs even sizes)
-            for name, img in (("T", _to8(T, g)), ("R", _to8(R, g)), ("preview", np.concatenate([_to8(2 * Ic, g), _to8(T, g), _to8(R, g)], 1))):
-                if name not in self.vw:
-                    self.vw[name] = self._open(name)
-                self.vw[name].append_data(even(img))
-        if self.cfg.frames != "none":
+        if self.display:
+            if self.spool is None or self.n >= self.spool.shape[0]:
+                raise RuntimeError("display spool overflow: more frames than announced")  # pragma: no cover - internal invariant
+            lim = float(np.finfo(np.float16).max)
+            for j, a in enumerate((2 * Ic, T, R)):
+                self.spool[self.n, j] = np.clip(a, -lim, lim)
+            self.hist["input"].add(2 * Ic)
+            self.hist["T"].add(T)
+            self.hist["R"].add(R)
+        if self.cfg.frames == "exr":
+            from polinfra.exr import write_exr
+
             d = ensure_dir(self.out / "frames")
+            write_exr(d / f"{self.n:06d}.exr", {"T": T.astype(np.float32), "R": R.astype(np.float32)}, {"units": "linear radiance, 1.0 = brightest layer"})
+        self.n += 1
+
+    def finish(self) -> None:
+        """Choose the display gains over all frames and encode the MP4s / PNG frames."""
+        if not self.display or self.n == 0:
+            return
+        gT, gR, gI = (display_gain(self.hist[k]) for k in ("T", "R", "input"))
+        self.gain = {"T": gT, "R": gR, "preview": min(gT, gR, gI)}
+        even = lambda a: a[: a.shape[0] // 2 * 2, : a.shape[1] // 2 * 2]  # noqa: E731  (yuv420p needs even sizes)
+        gP = self.gain["preview"]
+        for i in range(self.n):
+            I2, T, R = (np.asarray(self.spool[i, j], np.float32) for j in range(3))
+            if self.cfg.video:
+                for name, img in (("T", _to8(T, gT)), ("R", _to8(R, gR)), ("preview", np.concatenate([_to8(I2, gP), _to8(T, gP), _to8(R, gP)], 1))):
+                    if name not in self.vw:
+                        self.vw[name] = self._open(name)
+                    self.vw[name].append_data(even(img))
             if self.cfg.frames == "png":
                 import imageio.v3 as iio3
 
-                for name, img in (("T", T), ("R", R)):
-                    with atomic_path(d / f"{name}_{self.n:06d}.png") as tmp:
-                        iio3.imwrite(tmp, _to8(img, g), extension=".png")
-            else:
-                from polinfra.exr import write_exr
-
-                write_exr(d / f"{self.n:06d}.exr", {"T": T.astype(np.float32), "R": R.astype(np.float32)}, {"units": "linear radiance, 1.0 = brightest layer"})
-        self.n += 1
+                d = ensure_dir(self.out / "frames")
+                for name, img in (("T", _to8(T, gT)), ("R", _to8(R, gR))):
+                    with atomic_path(d / f"{name}_{i:06d}.png") as tmp:
+                        iio3.imwrite(tmp, img, extension=".png")
 
     def __exit__(self, *exc):
-        self.stack.close()
+        try:
+            if exc[0] is None:
+                self.finish()
+            self.stack.__exit__(*exc)
+        finally:
+            if self.spool is not None:
+                del self.spool
+                self.spool = None
+            with contextlib.suppress(FileNotFoundError):
+                self.spool_path.unlink()
 
 
 def reconstruct_stream(
@@ -326,6 +408,7 @@ def reconstruct_stream(
     *,
     device: str | torch.device = "cpu",
     progress: ProgressFn | None = None,
+    meta: dict[str, Any] | None = None,
 ) -> dict[str, Any]:
     """Reconstruct every output frame of ``source`` with ``model``; write videos/frames.
 
@@ -340,6 +423,7 @@ def reconstruct_stream(
         cfg: options; ``exposure`` is overridden by the source's own when it has one.
         device: torch device.
         progress: optional (done, total) callback over output frames.
+        meta: extra entries for the summary (e.g. how the exposure was found).
 
     Returns:
         the summary written to ``reconstruct.json``.
@@ -398,7 +482,7 @@ def reconstruct_stream(
                 progress(done, n_out)
         pending.clear()
 
-    with _Writers(out, fps, cfg) as writers:
+    with _Writers(out, fps, cfg, n_out, (source.height, source.width)) as writers:
         for s0, chunk in source.chunks():
             buf = np.concatenate([tail, chunk]) if tail.size else chunk
             b0 = tail_start if tail.size else s0
@@ -437,6 +521,7 @@ def reconstruct_stream(
         "tile": tile,
         "precision": cfg.precision,
         "feature_cache": None if cache is None else {"encoded_frames": cache.encoded, "reused": cache.reused},
+        **(meta or {}),
     }
     write_json(out / "reconstruct.json", summary)
     return summary

@@ -93,7 +93,7 @@ def reconstruct_cmd(
     phi0_deg: Optional[float] = typer.Option(None, "--phi0-deg", help=".dat: polarizer angle at t = 0 (calibration), degrees"),
     rev_per_s: Optional[float] = typer.Option(None, "--rev-per-s", help=".dat: polarizer rotation rate (calibration), rev/s"),
     rate_hz: float = typer.Option(20000.0, "--rate-hz", help=".dat: camera steps per second"),
-    exposure: float = typer.Option(1.0, "--exposure", help="thresholds per step per unit radiance (groups store their own)"),
+    exposure: Optional[float] = typer.Option(None, "--exposure", help="thresholds per step per unit radiance [default: a group's stored exposure; a .dat's estimated from its firing rates (reconstruct/exposure.py)]"),
     window_steps: int = typer.Option(13, "--window-steps", help="Eq. (3) window in steps (13 = 0.65 ms)"),
     stride_deg: float = typer.Option(31.5, "--stride-deg", help="polarizer rotation between output frames (31.5 deg -> 342.9 FPS at 30 rev/s)"),
     frames: str = typer.Option("none", "--frames", help="also write frames: none | png | exr"),
@@ -107,6 +107,7 @@ def reconstruct_cmd(
     precision: str = typer.Option("float32", "--precision", help="float32 | bfloat16 (autocast of the network; the solver stays float32)"),
 ) -> None:
     """Turn a spike group or a .dat into reflection-free T and R video at the output cadence (~343 FPS)."""
+    import dataclasses
     import math
 
     import torch
@@ -129,7 +130,9 @@ def reconstruct_cmd(
     dev = "cuda" if device == "auto" and torch.cuda.is_available() else ("cpu" if device == "auto" else device)
     if precision not in ("float32", "bfloat16"):
         raise ConfigError(f"--precision {precision!r}: choose float32 or bfloat16")
-    cfg = ReconstructConfig(window_steps=window_steps, stride_deg=stride_deg, exposure=exposure, frames=frames, max_frames=max_frames, precision=precision)
+    if exposure is not None and not exposure > 0:
+        raise ConfigError(f"--exposure {exposure}: must be > 0 (thresholds per step per unit radiance)")
+    cfg = ReconstructConfig(window_steps=window_steps, stride_deg=stride_deg, exposure=exposure or 1.0, frames=frames, max_frames=max_frames, precision=precision)
     if input.suffix.lower() == ".dat":
         missing = [n for n, v in (("--height", height), ("--width", width), ("--phi0-deg", phi0_deg), ("--rev-per-s", rev_per_s)) if v is None]
         if missing:
@@ -139,6 +142,15 @@ def reconstruct_cmd(
         src = group_source(input, cfg.chunk_steps)
     else:
         raise ConfigError(f"input {input} is neither a .dat file nor a spike group directory")
+    exposure_info = {"exposure_source": "stored in the group" if src.exposure is not None and exposure is None else "--exposure"}
+    if exposure is not None:
+        src = dataclasses.replace(src, exposure=None)  # --exposure forces the value, also over a group's stored one
+    elif src.exposure is None:
+        from reconstruct.exposure import estimate_source_exposure
+
+        est = estimate_source_exposure(src)
+        cfg = dataclasses.replace(cfg, exposure=est.exposure)
+        exposure_info = {"exposure_source": "estimated", "exposure_estimate": est.summary()}
     load = lambda: load_model(weights or DEFAULT_WEIGHTS, dev, **({} if rir is None else {"use_rir": rir}))[0]  # noqa: E731
     info = None
     if method == "net":
@@ -147,9 +159,9 @@ def reconstruct_cmd(
         from reconstruct.physics_video import build_physics_model
 
         model, info = build_physics_model(method, zeta or "self", src, group_dir=None if input.suffix.lower() == ".dat" else input, window_steps=window_steps,
-                                          exposure=None if src.exposure is not None else exposure, rir=True if rir is None else rir, load_learned=load)
+                                          exposure=None if src.exposure is not None else cfg.exposure, rir=True if rir is None else rir, load_learned=load)
     with rich_progress("reconstruct", enabled=not quiet) as cb:
-        s = reconstruct_stream(src, model, out, cfg, device=dev, progress=cb)
+        s = reconstruct_stream(src, model, out, cfg, device=dev, progress=cb, meta=exposure_info)
     c = Console()
     if info is not None:
         from polinfra.atomic import write_json
@@ -160,6 +172,9 @@ def reconstruct_cmd(
             c.print(f"{method} on self-calibrated zeta: pane tilt {sc['tilt_deg']:.1f} deg, azimuth {sc['azimuth_deg']:.1f} deg, fov {sc['fov_deg']:.1f} deg{' (fitted)' if sc['fov_fitted'] else ''}")
         else:
             c.print(f"{method} on zeta: {info['zeta']}" + (f" ({sc['reason']})" if sc else ""))
+    if exposure_info["exposure_source"] == "estimated":
+        e = exposure_info["exposure_estimate"]
+        c.print(f"exposure estimated from the stream: {e['exposure']:.4g} thresholds per step per unit radiance ({e['quantile']:g}th percentile rate {e['rate_quantile']:.4f} spikes/step{'; saturated: a lower bound' if e['saturated'] else ''}); force one with --exposure")
     c.print(f"{s['frames']} frames at {s['fps']:.1f} FPS from {s['input']} ({s['size'][1]}x{s['size'][0]}); NaN frames: {s['nan_frames']}")
     if s["tfp_corr_mean"] is not None:
         c.print(f"correlation of T with the plain TFP image: {s['tfp_corr_mean']:.3f}")
