@@ -34,7 +34,7 @@ import torch
 from polinfra.config import opt
 from polinfra.errors import ConfigError, ShapeError
 
-__all__ = ["WindowConfig", "ITEM_KEYS", "WindowSource", "window_centres", "item_from_stream", "OnTheFlyWindows"]
+__all__ = ["WindowConfig", "ITEM_KEYS", "WindowSource", "window_centres", "item_from_stream", "OnTheFlyWindows", "flip_item"]
 
 ITEM_KEYS = ("I", "phi", "T", "R", "zeta", "R_perp", "R_par", "phi_perp", "T_perp", "T_par", "exposure")
 """Keys of a window item (module docstring)."""
@@ -50,13 +50,20 @@ class WindowConfig:
     stride_deg: float = opt(31.5, "polarizer rotation between consecutive observations, degrees", lo=0.1, hi=180.0)
     keyframe_hz: float = opt(2000.0, "on-the-fly: Stokes keyframes per second rendered inside the window (linear in between)", lo=1.0, hi=20000.0)
     exposure_range: tuple[float, float] = opt((0.8, 1.8), "on-the-fly: spike_sim exposure (thresholds per step per unit radiance), drawn per item", lo=1e-3, hi=100.0)
-    sim_preset: str = opt("default", "on-the-fly: spike_sim noise preset (ideal | default | noisy)", choices=("ideal", "default", "noisy"))
+    sim_preset: str = opt("default", "on-the-fly: spike_sim noise preset (ideal | default | noisy; group = each manifest group's own preset)", choices=("ideal", "default", "noisy", "group"))
+    exposure_source: str = opt("range", "on-the-fly: range = exposure drawn from exposure_range; group = the manifest group's own exposure (its light level) times a log-uniform factor in exposure_jitter", choices=("range", "group"))
+    exposure_jitter: tuple[float, float] = opt((1.0, 1.0), "on-the-fly, exposure_source = group: range of the log-uniform factor on the group's exposure", lo=1e-3, hi=1000.0)
+    flips: bool = opt(False, "on-the-fly: random mirror / transpose of each item (one of the 8 symmetries of the square crop; polarizer and phi_perp angles mirrored with the image, so the physics stays exact)")
 
     def __post_init__(self) -> None:
         if self.n_obs % 2 == 0:
             raise ConfigError(f"window.n_obs = {self.n_obs} must be odd (N = 2K + 1); use {self.n_obs + 1}")
         if self.window_steps % 2 == 0:
             raise ConfigError(f"window.window_steps = {self.window_steps} must be odd (centred windows); use {self.window_steps + 1}")
+        if self.exposure_jitter[0] > self.exposure_jitter[1]:
+            raise ConfigError(f"window.exposure_jitter = {list(self.exposure_jitter)} must be [low, high] with low <= high")
+        if (self.sim_preset == "group") != (self.exposure_source == "group"):
+            raise ConfigError("window.sim_preset = 'group' and window.exposure_source = 'group' go together (both take the manifest group's sensor)")
         if self.crop % 4:
             raise ConfigError(f"window.crop = {self.crop} must be a multiple of 4 (the refinement downsamples twice)")
 
@@ -121,7 +128,7 @@ def item_from_stream(
     phi = phi_nom[idx].mean(1)
     phi = phi - math.floor(phi[len(phi) // 2] / math.pi) * math.pi  # period pi: centre angle in [0, pi)
     a = float(np.mean(np.diff(phi_tr))) if phi_tr.size > 1 else 0.0
-    sinc = math.sin(a) / a if a > 0 else 1.0  # rotation inside one step
+    sinc = math.sin(a) / a if a != 0 else 1.0  # rotation inside one step (either sense: sin(a)/a is even)
     pt = phi_tr[idx]
     C = sinc * np.cos(2 * pt).mean(1)
     Sn = sinc * np.sin(2 * pt).mean(1)
@@ -135,6 +142,48 @@ def item_from_stream(
         "I": _t(I), "phi": _t(phi), "T": _t(T_), "R": _t(R_), "zeta": _t(zeta), "R_perp": _t(Rp), "R_par": _t(Rs), "phi_perp": _t(pp),
         "T_perp": _t(Tp), "T_par": _t(Ts), "exposure": torch.tensor(float(exposure), dtype=torch.float32),
     }
+
+
+_IMAGE_KEYS = ("I", "T", "R", "zeta", "R_perp", "R_par", "phi_perp", "T_perp", "T_par")
+_ANGLE_KEYS = ("phi", "phi_perp")
+
+
+def flip_item(item: dict[str, torch.Tensor], code: int) -> dict[str, torch.Tensor]:
+    """One of the 8 symmetries of a square crop applied to an item, angles carried along.
+
+    ``code`` in 0..7: bit 0 = mirror left-right, bit 1 = mirror up-down, bit 2 = transpose
+    (applied in that order).  A mirror maps every image-plane direction at angle a to -a
+    (mod pi, the period of linear polarization: both the polarizer angles ``phi`` and the
+    plane-of-incidence map ``phi_perp``); a transpose maps a to pi/2 - a.  paper Eq. (2)
+    depends on phi_k - phi_perp only through cos 2(phi_k - phi_perp), which both maps keep,
+    so zeta, T and R are the same numbers at the moved pixels (tested against Eq. (2)).
+    """
+    if not 0 <= code < 8:
+        raise ConfigError(f"flip code {code} must be in 0..7")
+    if code == 0:
+        return item
+    out = dict(item)
+    sign, offset = 1.0, 0.0
+    for bit, dims in ((1, (-1,)), (2, (-2,))):
+        if code & bit:
+            for k in _IMAGE_KEYS:
+                if k in out:
+                    out[k] = torch.flip(out[k], dims)
+            sign, offset = -sign, -offset
+    if code & 4:
+        for k in _IMAGE_KEYS:
+            if k in out:
+                out[k] = out[k].transpose(-1, -2).contiguous()
+        sign, offset = -sign, math.pi / 2 - offset
+    for k in _ANGLE_KEYS:
+        if k in out:
+            a = sign * out[k].double() + offset
+            if k == "phi":  # keep the centre angle in [0, pi) as item_from_stream does
+                a = a - math.floor(float(a[len(a) // 2]) / math.pi) * math.pi
+            else:
+                a = torch.remainder(a, math.pi)
+            out[k] = a.float()
+    return out
 
 
 class OnTheFlyWindows(torch.utils.data.Dataset):

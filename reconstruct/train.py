@@ -75,6 +75,7 @@ class TrainConfig:
     test_scenes: int = opt(10, "on-the-fly: validation / test scenes, disjoint layer content (paper: 10 test groups)", lo=1, hi=100000)
     scene_seed: int = opt(0, "on-the-fly: seed of the scene pools", lo=0, hi=2**31 - 1)
     manifest: str = opt("", "on-the-fly: take the scenes of this dataset manifest's train / test groups (e.g. datasets/manifests/paper.toml); empty = sample train_scenes / test_scenes")
+    init_from: str = opt("", "start from these weights (a checkpoint or exported .pt of the same [net] architecture; path relative to the working directory) instead of a random initialisation: fine-tuning")
 
 
 TINY = TrainConfig(
@@ -298,10 +299,18 @@ def train(
     total = cfg.epochs * spe
     model = PolSpikeNet(cfg.net, cfg.solver)
     init_weights(model, torch.Generator().manual_seed(cfg.seed))
+    if cfg.init_from:
+        src = read_checkpoint(cfg.init_from)
+        try:
+            model.load_state_dict(src["state_dict"])
+        except RuntimeError as e:
+            raise CheckpointError(f"init_from = {cfg.init_from}: its weights do not fit [net] of this config ({str(e).splitlines()[0]}); use weights of the same architecture") from None
+        log.info("initialised from %s", cfg.init_from)
     model.to(dev)
     opt_ = torch.optim.Adam(model.parameters(), lr=cfg.lr)
     step = 0
     metrics: dict[str, float] = {}
+    best: dict[str, Any] = {}  # the best validation so far: {"step", "psnr_T"}; best.pt holds its weights
     ck = run / "last.pt"
     if ck.exists():
         data = read_checkpoint(ck)
@@ -311,6 +320,10 @@ def train(
         opt_.load_state_dict(data["optimizer"])
         step = int(data["step"])
         metrics = dict(data.get("metrics", {}))
+        best = dict(data.get("best", {}))
+        if (run / "best.pt").exists():  # the file is the truth (written before last.pt)
+            bd = read_checkpoint(run / "best.pt")
+            best = {"step": int(bd.get("step", 0)), "psnr_T": float(bd.get("metrics", {}).get("psnr_T", -math.inf))}
         log.info("resumed %s at step %d/%d", ck, step, total)
     write_json(run / "config.json", to_dict(cfg))
     rows = _read_log(run, step)
@@ -318,7 +331,7 @@ def train(
     log.info("PolSpikeNet: %d trainable parameters; %d steps (%d epochs x %d)", n_par, total, cfg.epochs, spe)
 
     def checkpoint(plot: bool = False) -> None:
-        save_checkpoint(ck, model, extra={"train": to_dict(cfg), "optimizer": opt_.state_dict(), "step": step, "metrics": metrics})
+        save_checkpoint(ck, model, extra={"train": to_dict(cfg), "optimizer": opt_.state_dict(), "step": step, "metrics": metrics, "best": best})
         _write_log(run, rows)
         if plot:
             _plot(run, rows)
@@ -354,6 +367,10 @@ def train(
             row = row or {"step": step, "epoch": epoch + 1, "alpha": alpha, "seconds": f"{time.perf_counter() - t0:.1f}"}
             row.update({f"val_{k}": f"{v:.4f}" for k, v in metrics.items()})
             log.info("step %d: val PSNR T %.2f dB (solver %.2f, oracle %.2f)", step, metrics["psnr_T"], metrics["psnr_T_base"], metrics["psnr_T_oracle"])
+            if not best or metrics["psnr_T"] > best["psnr_T"]:  # best.pt before last.pt: a kill in between loses nothing
+                best = {"step": step, "psnr_T": metrics["psnr_T"]}
+                save_checkpoint(run / "best.pt", model, extra={"train": to_dict(cfg), "step": step, "metrics": metrics})
+                log.info("step %d: new best validation, written %s", step, run / "best.pt")
         if row:
             rows.append(row)
         out_of_time = max_seconds is not None and time.perf_counter() - t0 > max_seconds
@@ -366,4 +383,4 @@ def train(
             break
     if step == end and not (run / "log.csv").exists():
         checkpoint(plot=True)
-    return {"step": step, "total_steps": total, "param_count": n_par, "metrics": metrics, "run_dir": str(run)}
+    return {"step": step, "total_steps": total, "param_count": n_par, "metrics": metrics, "best": best, "run_dir": str(run)}

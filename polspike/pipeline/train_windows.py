@@ -166,14 +166,17 @@ class GeneratorWindows:
         cache_scenes: scenes whose maps and content stay in memory (about 7 MB each).
     """
 
-    def __init__(self, scenes: Sequence, window, cache_scenes: int = 64):
+    def __init__(self, scenes: Sequence, window, cache_scenes: int = 64, sims: Sequence | None = None):
         from spike_sim.config import preset
 
         if not scenes:
             raise SceneError("GeneratorWindows needs at least one scene")
+        if window.exposure_source == "group" and (sims is None or len(sims) != len(scenes)):
+            raise SceneError("window.exposure_source = 'group' needs each scene's manifest sensor (train with a manifest)")
         self.scenes = list(scenes)
+        self.sims = None if sims is None else list(sims)
         self.window = window
-        self.sim = preset(window.sim_preset)
+        self.sim = preset("default" if window.sim_preset == "group" else window.sim_preset)
         self.cache: OrderedDict[int, _SceneCache] = OrderedDict()
         self.cache_scenes = cache_scenes
         self.rate_hz = self.sim.rate_hz
@@ -208,7 +211,13 @@ class GeneratorWindows:
         t0 = float(rng.uniform(0.0, max(scene.render.duration_s - dur, 0.0)))
         y0 = int(rng.integers(0, H - S + 1))
         x0 = int(rng.integers(0, W - S + 1))
-        exposure = float(rng.uniform(*w.exposure_range))
+        if w.exposure_source == "group":  # the group's light level, jittered log-uniformly
+            base = self.sims[j]
+            lo, hi = (math.log(v) for v in w.exposure_jitter)
+            exposure = float(base.exposure * math.exp(rng.uniform(lo, hi)))
+        else:
+            base = self.sim
+            exposure = float(rng.uniform(*w.exposure_range))
         sim_seed = int(rng.integers(0, 2**31 - 1))
         sc = self._scene(j)
         maps = sc.crop(y0, x0, S)
@@ -229,7 +238,7 @@ class GeneratorWindows:
             times_s=times, stokes=lambda i: frame(i)[0], height=S, width=S, layers=lambda i: frame(i)[1:],
             maps=lambda: {k: np.asarray(v, np.float32) for k, v in chans.items()}, polarizer=pol, scene_hash=f"window-{seed}-{index}",
         )
-        sim = dataclasses.replace(self.sim, width=S, height=S, exposure=exposure, rate_hz=self.rate_hz)
+        sim = dataclasses.replace(base, width=S, height=S, exposure=exposure, rate_hz=self.rate_hz)
         return {"source": src, "duration_s": dur, "seed": sim_seed, "config": sim, "scene": j, "t0_s": t0, "crop": (y0, x0, S)}
 
     def __call__(self, seed: int, index: int):
@@ -239,7 +248,7 @@ class GeneratorWindows:
         from spike_sim.simulate import _interp_layers, simulate
 
         from polphysics.polarizer import phi_nominal, step_phi_edges
-        from reconstruct.onthefly import item_from_stream
+        from reconstruct.onthefly import flip_item, item_from_stream
 
         g = self.window_group(seed, index)
         src, cfg, w = g["source"], g["config"], self.window
@@ -262,25 +271,34 @@ class GeneratorWindows:
         m, K = len(centres) // 2, w.n_obs // 2
         ck = centres[m - K : m + K + 1]  # the N output frames around the middle one, as evaluation stacks them
         c = int(ck[K])
-        return item_from_stream(spikes, ck, phi_nom, 0.5 * (pa + pb), _interp_layers(src, (c + 0.5) * dt), src.maps(), cfg.exposure, w)
+        item = item_from_stream(spikes, ck, phi_nom, 0.5 * (pa + pb), _interp_layers(src, (c + 0.5) * dt), src.maps(), cfg.exposure, w)
+        if w.flips:  # drawn from its own stream so the unflipped item stays the same
+            item = flip_item(item, int(np.random.default_rng([int(seed), int(index), 8]).integers(8)))
+        return item
 
 
-def manifest_scenes(path: str, split: str) -> list:
-    """Scenes of the ``split`` groups of a dataset manifest (``datasets/manifests/*.toml``), clip length = group duration."""
+def manifest_scenes(path: str, split: str, with_sensor: bool = False) -> list:
+    """Scenes of the ``split`` groups of a dataset manifest (``datasets/manifests/*.toml``), clip length = group duration.
+
+    With ``with_sensor``: (scenes, sensors), the groups' resolved :class:`spike_sim.config.SpikeSimConfig` beside them.
+    """
     from generator.scene import scene_from_dict
+    from polinfra.config import from_dict
     from polinfra.errors import ConfigError
+    from spike_sim.config import SpikeSimConfig
 
     from polspike.pipeline.manifest import load_manifest
 
     m = load_manifest(path)
-    out = []
+    out, sims = [], []
     for g in m.groups:
         if g.split == split:
             sc = scene_from_dict(g.scene, where=f"{path} [{g.name}]")
             out.append(dataclasses.replace(sc, render=dataclasses.replace(sc.render, duration_s=g.duration_s)))
+            sims.append(from_dict(SpikeSimConfig, g.spike_sim, where=f"{path} [{g.name}] spike_sim"))
     if not out:
         raise ConfigError(f"manifest {path} has no {split!r} groups; splits: {sorted({g.split for g in m.groups})}")
-    return out
+    return (out, sims) if with_sensor else out
 
 
 def window_sets(window, train_items: int, val_items: int, seed: int, n_train_scenes: int = 40, n_test_scenes: int = 10, scene_seed: int = 0, manifest: str = ""):
@@ -293,8 +311,9 @@ def window_sets(window, train_items: int, val_items: int, seed: int, n_train_sce
     from reconstruct.onthefly import OnTheFlyWindows
 
     if manifest:
-        tr = GeneratorWindows(manifest_scenes(manifest, "train"), window)
-        te = GeneratorWindows(manifest_scenes(manifest, "test"), window)
+        (sc_tr, si_tr), (sc_te, si_te) = (manifest_scenes(manifest, s, with_sensor=True) for s in ("train", "test"))
+        tr = GeneratorWindows(sc_tr, window, sims=si_tr)
+        te = GeneratorWindows(sc_te, window, sims=si_te)
     else:
         tr = GeneratorWindows(scene_pool(n_train_scenes, scene_seed, "train"), window)
         te = GeneratorWindows(scene_pool(n_test_scenes, scene_seed, "test"), window)

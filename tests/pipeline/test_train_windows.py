@@ -113,3 +113,29 @@ def test_manifest_scenes_and_cli_train_then_evaluate(tmp_path):
     m = json.loads((tmp_path / "ev" / "scores.json").read_text())["metrics"]
     assert {"psnr_T", "psnr_T_base", "psnr_R", "ssim_T", "ssim_T_base"} <= set(m)
     assert all(np.isfinite(v) for v in m.values())
+
+
+def test_group_sensor_light_level_and_flips():
+    """exposure_source = "group": each item's exposure is its manifest group's (the group's light level)
+    times a factor inside exposure_jitter; the group's sensor preset is used; flips keep items pure."""
+    from polinfra.errors import SceneError
+    from polspike.pipeline.train_windows import manifest_scenes
+
+    man = str(Path(__file__).resolve().parents[2] / "datasets" / "manifests" / "small.toml")
+    scenes, sims = manifest_scenes(man, "train", with_sensor=True)
+    sims = [dataclasses.replace(s, exposure=e) for s, e in zip(sims, (0.05, 3.0))]  # two very different light levels
+    w = WindowConfig(crop=16, keyframe_hz=1000.0, sim_preset="group", exposure_source="group", exposure_jitter=(0.8, 1.25), flips=True)
+    src = GeneratorWindows(scenes, w, sims=sims)
+    seen = set()
+    for i in range(6):
+        g = src.window_group(0, i)
+        base = sims[g["scene"]].exposure
+        assert base * 0.8 - 1e-9 <= g["config"].exposure <= base * 1.25 + 1e-9
+        assert dataclasses.replace(g["config"], width=0, height=0, exposure=0.0) == dataclasses.replace(sims[g["scene"]], width=0, height=0, exposure=0.0)  # the group's sensor
+        seen.add(g["scene"])
+    assert seen == {0, 1}
+    a, b = src(0, 2), src(0, 2)
+    assert all(torch.equal(a[k], b[k]) for k in ITEM_KEYS)
+    assert float(a["exposure"]) == pytest.approx(src.window_group(0, 2)["config"].exposure)
+    with pytest.raises(SceneError, match="manifest sensor"):
+        GeneratorWindows(scenes, w)
