@@ -56,7 +56,7 @@ from reconstruct.rir import RirConfig, estimate_shifts, warp
 from reconstruct.solvers import PHYSICS_SOLVER_CONFIG, SOLVERS, SolverConfig, solve
 from reconstruct.zeta_source import ZETA_SOURCES, PaneMaps, zeta_from_maps, zeta_learned
 
-__all__ = ["REGIME_FACTORS", "regime_of", "evaluate_by_regime", "regime_markdown", "EvalConfig", "EvalReport", "BASELINES", "NET_METHOD", "load_network", "group_zeta", "evaluate_groups", "write_report", "parse_methods", "load_groups", "window_sweep", "markdown_table", "sweep_markdown"]
+__all__ = ["net_zeta_of", "REGIME_FACTORS", "regime_of", "evaluate_by_regime", "regime_markdown", "regime_report", "REGIME_TABLES", "EvalConfig", "EvalReport", "BASELINES", "NET_METHOD", "load_network", "group_zeta", "evaluate_groups", "write_report", "parse_methods", "load_groups", "window_sweep", "markdown_table", "sweep_markdown"]
 
 log = logging.getLogger(__name__)
 
@@ -85,6 +85,12 @@ class EvalConfig:
     no_attention: bool = opt(False, "method full: the checkpoint must be trained without angle attention (paper Table 1 ablation)")
     no_conf: bool = opt(False, "method full: evaluate without Conf (checkpoint trained without it, else a test-time ablation)")
     net_tile: int = opt(256, "method full: network tile size in pixels (bounded memory; 0 = whole frame)", lo=0, hi=100000)
+    net_zeta: str = opt("", "method full: zeta of the network's solver and refinement: learned (its parameter branch), self, gt or physics (instead of its own); empty = self when zeta is self, else learned", choices=("", "learned", "self", "gt", "physics"))
+
+
+def net_zeta_of(cfg: EvalConfig) -> str:
+    """The network's zeta source under ``cfg`` (``net_zeta``, or self when ``zeta`` is self, else learned)."""
+    return cfg.net_zeta or ("self" if cfg.zeta == "self" else "learned")
 
 
 NET_METHOD = "full"
@@ -190,7 +196,7 @@ def group_zeta(group: EvalGroup, cfg: EvalConfig) -> np.ndarray | None:
     if cfg.zeta == "self":  # pane fitted to the stream (reconstruct.selfcal); None where nothing modulates -> learned
         from reconstruct.selfcal import group_self_zeta
 
-        return group_self_zeta(group, cfg.pane_n, cfg.pane_model)
+        return group_self_zeta(group)  # index and pane model fitted where the data constrain them (--pane-n / --pane-model are for physics)
     if cfg.zeta == "gt":
         if group.maps is not None:
             return zeta_from_maps(group.maps, group.phi_true, group.span_rad, dtype=torch.float64).numpy()
@@ -249,7 +255,11 @@ def evaluate_groups(
         from reconstruct.video import run_model_on_windows
 
         model, net_info = load_network(cfg)
-    net_rows = [net_info["label"], net_info["label"] + ":solver"] if NET_METHOD in methods else []
+    nz = net_zeta_of(cfg)
+    net_label = None if net_info is None else net_info["label"] + ("" if nz == "learned" else f"@{nz}")
+    net_rows = [net_label, net_label + ":solver"] if NET_METHOD in methods else []
+    if net_info is not None:
+        net_info["zeta"] = nz
     groups = list(groups)
     frames: list[dict] = []
     fig = {"frames": [], "columns": ["input 2I", "tfp", *solvers, *net_rows[:1], "GT T"], "images": []}
@@ -259,6 +269,9 @@ def evaluate_groups(
         Z = group_zeta(g, cfg)
         if Z is None and model is None:  # --zeta self found nothing modulating: the learned zeta instead
             model, net_info = load_network(cfg)
+        Znet = None  # the network's zeta when not its own (None: learned, also where self finds nothing modulating)
+        if net_rows and nz != "learned":
+            Znet = Z if nz == cfg.zeta else group_zeta(g, dataclasses.replace(cfg, zeta=nz))
         t["zeta"] += time.perf_counter() - t0
         M = g.I.shape[0]
         has = np.ones(M, bool) if g.has_gt is None else g.has_gt
@@ -295,7 +308,8 @@ def evaluate_groups(
             t["solve"] += time.perf_counter() - t0
             if net_rows:
                 t0 = time.perf_counter()
-                o = run_model_on_windows(model, raw.float().cpu().numpy(), Pw.float().cpu().numpy(), device=next(model.parameters()).device, tile=cfg.net_tile)
+                zn = None if Znet is None else np.stack([np.ascontiguousarray(Znet[i - K : i + K + 1], np.float32) for i in cb])
+                o = run_model_on_windows(model, raw.float().cpu().numpy(), Pw.float().cpu().numpy(), device=next(model.parameters()).device, tile=cfg.net_tile, zeta=zn)
                 est[net_rows[0]] = (o["T"], o["R"])
                 est[net_rows[1]] = (o["T_base"], o["R_base"])
                 t["network"] += time.perf_counter() - t0
@@ -495,25 +509,31 @@ def evaluate_by_regime(
     solver_cfg: SolverConfig = PHYSICS_SOLVER_CONFIG,
     rir_cfg: RirConfig = RirConfig(),
     progress: Callable[[int, int], None] | None = None,
+    net_zetas: Iterable[str] = ("learned",),
 ) -> dict:
     """Every solver with every zeta source (by name, :data:`reconstruct.zeta_source.ZETA_SOURCES`),
-    the baselines and the network on each group, then one row per regime level.
+    the baselines and the network (``cfg.checkpoint``; once per zeta of ``net_zetas``: ``learned``
+    = its own, columns ``net`` / ``net:solver``; others, e.g. ``self``, columns ``net@self`` /
+    ``net:solver@self``) on each group, then one row per regime level.
 
     Returns:
         {"columns": [...], "groups": [{"group", "regime", column: PSNR T}], "rows": [{"regime",
-        "n_groups", column: mean PSNR T over the level's groups}], "ssim": same for SSIM T}.
+        "n_groups", column: mean PSNR T over the level's groups}], "ssim": same for SSIM T,
+        "rows_R" / "ssim_R": same for R (None where a column has no R, e.g. the baselines),
+        "groups_R": per-group {column: [PSNR R, SSIM R]}}.
     """
     zetas = list(dict.fromkeys(zetas))
-    bad = [z for z in zetas if z not in ZETA_SOURCES]
+    net_zetas = list(dict.fromkeys(net_zetas)) if network else []
+    bad = [z for z in [*zetas, *net_zetas] if z not in ZETA_SOURCES]
     if bad:
         raise ConfigError(f"unknown zeta source(s) {bad}; choose from {list(ZETA_SOURCES)}")
     solvers = [m for m in parse_methods(cfg.methods) if m in SOLVERS] or list(SOLVERS)
-    per: dict[str, dict[str, float]] = defaultdict(dict)
-    per_ssim: dict[str, dict[str, float]] = defaultdict(dict)
+    keys = ("psnr_T", "ssim_T", "psnr_R", "ssim_R")
+    per: dict[str, dict[str, dict[str, float]]] = {k: defaultdict(dict) for k in keys}
     columns: list[str] = list(BASELINES)
-    runs = [(z, solvers) for z in zetas] + ([(None, [NET_METHOD])] if network else [])
-    for j, (z, methods) in enumerate(runs):
-        c = dataclasses.replace(cfg, zeta=z or "gt", methods=",".join(methods), figure_frames=0)
+    runs = [(z, solvers, None) for z in zetas] + [(None, [NET_METHOD], nz) for nz in net_zetas]
+    for j, (z, methods, nz) in enumerate(runs):
+        c = dataclasses.replace(cfg, zeta=z or "gt", methods=",".join(methods), figure_frames=0, **({} if nz is None else {"net_zeta": nz}))
         rep = evaluate_groups(groups, c, solver_cfg, rir_cfg)
         for r in rep.rows:
             if r["group"] == "overall":
@@ -524,25 +544,26 @@ def evaluate_by_regime(
                     continue
                 col = m
             elif z is None:
-                col = "net:solver" if m.endswith(":solver") else "net"
+                col = ("net:solver" if m.endswith(":solver") else "net") + ("" if nz == "learned" else f"@{nz}")
             else:
                 col = f"{m}@{z}"
-            per[r["group"]][col] = r["psnr_T"]
-            per_ssim[r["group"]][col] = r["ssim_T"]
+            for k in keys:
+                per[k][r["group"]][col] = r[k]
             if col not in columns:
                 columns.append(col)
         if progress:
             progress(j + 1, len(runs))
-    grows = [{"group": g, "regime": regime_of(g), **v} for g, v in per.items()]
-    rows, srows = [], []
+    grows = [{"group": g, "regime": regime_of(g), **v} for g, v in per["psnr_T"].items()]
+    out_rows: dict[str, list] = {k: [] for k in keys}
     for f, levels in REGIME_FACTORS.items():
         for lv in levels:
             names = [g["group"] for g in grows if g["regime"].get(f) == lv]
             if not names:
                 continue
-            for src, dst in ((per, rows), (per_ssim, srows)):
-                dst.append({"regime": f"{f}={lv}", "n_groups": len(names), **{c: _mean_or_none([src[n].get(c) for n in names]) for c in columns}})
-    return {"columns": columns, "groups": grows, "rows": rows, "ssim": srows}
+            for k in keys:
+                out_rows[k].append({"regime": f"{f}={lv}", "n_groups": len(names), **{c: _mean_or_none([per[k][n].get(c) for n in names]) for c in columns}})
+    groups_R = {g["group"]: {c: [per["psnr_R"][g["group"]].get(c), per["ssim_R"][g["group"]].get(c)] for c in columns} for g in grows}
+    return {"columns": columns, "groups": grows, "rows": out_rows["psnr_T"], "ssim": out_rows["ssim_T"], "rows_R": out_rows["psnr_R"], "ssim_R": out_rows["ssim_R"], "groups_R": groups_R}
 
 
 def _mean_or_none(v: list) -> float | None:
@@ -550,8 +571,24 @@ def _mean_or_none(v: list) -> float | None:
     return float(np.mean(v)) if v else None
 
 
-def regime_markdown(res: dict) -> str:
-    """Markdown table of :func:`evaluate_by_regime` rows (PSNR of T, dB)."""
+def regime_markdown(res: dict, metric: str = "rows") -> str:
+    """Markdown table of :func:`evaluate_by_regime` rows: ``metric`` = "rows" (PSNR of T, dB, the default),
+    "ssim" (SSIM of T), "rows_R" (PSNR of R, dB) or "ssim_R" (SSIM of R); n/a where a column has no value."""
     cols = res["columns"]
+    rows = res.get(metric)
+    if rows is None:
+        raise ConfigError(f"no {metric!r} table in this result; choose rows, ssim, rows_R or ssim_R")
+    nd = 3 if metric.startswith("ssim") else 2
+    if metric.endswith("_R"):  # the baselines estimate no R
+        cols = [c for c in cols if any(r.get(c) is not None for r in rows)]
     head = "| regime | groups | " + " | ".join(cols) + " |\n|---|---:|" + "---:|" * len(cols) + "\n"
-    return head + "\n".join(f"| {r['regime']} | {r['n_groups']} | " + " | ".join(_fmt(r[c], 2) for c in cols) + " |" for r in res["rows"]) + "\n"
+    return head + "\n".join(f"| {r['regime']} | {r['n_groups']} | " + " | ".join(_fmt(r[c], nd) for c in cols) + " |" for r in rows) + "\n"
+
+
+REGIME_TABLES = (("rows", "PSNR of T (dB)"), ("ssim", "SSIM of T"), ("rows_R", "PSNR of R (dB)"), ("ssim_R", "SSIM of R"))
+"""The tables of ``by_regime.md``: (key of :func:`evaluate_by_regime`'s result, title)."""
+
+
+def regime_report(res: dict) -> str:
+    """``by_regime.md``: the four per-regime tables (PSNR / SSIM of T and of R)."""
+    return "\n".join(f"## {title} per regime level\n\n" + regime_markdown(res, key) for key, title in REGIME_TABLES if res.get(key) is not None)

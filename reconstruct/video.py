@@ -162,7 +162,8 @@ def auto_tile(model, device: str | torch.device = "cpu") -> int:
     return 0 if (getattr(model, "cacheable", False) or torch.device(device).type == "cuda") else 128
 
 
-def run_model_on_windows(model, I: np.ndarray, phi: np.ndarray, device: str | torch.device = "cpu", tile: int = 128, margin: int = 16, *, precision: str = "float32", max_batch: int = 4) -> dict[str, np.ndarray]:
+def run_model_on_windows(model, I: np.ndarray, phi: np.ndarray, device: str | torch.device = "cpu", tile: int = 128, margin: int = 16, *, precision: str = "float32", max_batch: int = 4,
+                         zeta: np.ndarray | None = None) -> dict[str, np.ndarray]:
     """Network on windows I (B, N, H, W) radiance units, phi (B, N) -> dict of (B, H, W) T, R, T_base, R_base.
 
     ``model`` is any object with ``cfg.n_obs`` that maps ``(I (B, N, H, W), phi (B, N))`` float32
@@ -173,24 +174,40 @@ def run_model_on_windows(model, I: np.ndarray, phi: np.ndarray, device: str | to
     per-pixel solver is exact per tile); all tiles of all windows go through the model as one
     batch (at most ``max_batch`` tiles or windows per call: bounded memory, ~0.2 GB per v1 activation).  ``tile <= 0``: whole frames.  RIR, when
     enabled, aligns each tile separately.  ``precision``: "float32" or "bfloat16" (autocast).
+    ``zeta``: optional (B, N, H, W) mixing coefficients used instead of the network's own
+    (``--zeta self``: the pane fitted to the stream); the network's solver and refinement then run
+    on them (``model(I, phi, zeta_gt=zeta, alpha=1)``; its reliability weights stay learned).
     """
     dev = torch.device(device)
     x = torch.as_tensor(I, dtype=torch.float32, device=dev)
     p = torch.as_tensor(phi, dtype=torch.float32, device=dev)
     B, N, H, W = x.shape
+    z = None if zeta is None else torch.as_tensor(zeta, dtype=torch.float32, device=dev)
+    if z is not None and z.shape != x.shape:
+        raise ConfigError(f"zeta must have the windows' shape {tuple(x.shape)}; got {tuple(z.shape)}")
     mult = _multiple(model)
+
+    def zkw(zz, i):
+        return {} if zz is None else {"zeta_gt": zz[i : i + max_batch], "alpha": 1.0}
+
     with torch.inference_mode(), _autocast(dev, precision):
         if tile <= 0 or (H <= tile and W <= tile):
             xp, _ = _pad4(x, mult)
-            outs = [model(xp[i : i + max_batch], p[i : i + max_batch]) for i in range(0, B, max_batch)]
+            zp = None if z is None else _pad4(z, mult)[0]
+            outs = [model(xp[i : i + max_batch], p[i : i + max_batch], **zkw(zp, i)) for i in range(0, B, max_batch)]
             return {k: torch.cat([getattr(o, k) for o in outs])[..., :H, :W].float().cpu().numpy() for k in _KEYS}
         ts = tile + 2 * margin
         ts += (-ts) % mult
         ny, nx = -(-H // tile), -(-W // tile)
         # replicate-pad the frame so every tile with its margin has the same size ts x ts
-        xp = F.pad(x, (margin, nx * tile - W + ts - tile - margin, margin, ny * tile - H + ts - tile - margin), mode="replicate")
+        padding = (margin, nx * tile - W + ts - tile - margin, margin, ny * tile - H + ts - tile - margin)
+        xp = F.pad(x, padding, mode="replicate")
         pos = [(ty * tile, tx * tile) for ty in range(ny) for tx in range(nx)]
         tiles = torch.stack([xp[..., y0 : y0 + ts, x0 : x0 + ts] for (y0, x0) in pos], 1).reshape(B * len(pos), N, ts, ts)
+        ztiles = None
+        if z is not None:
+            zp = F.pad(z, padding, mode="replicate")
+            ztiles = torch.stack([zp[..., y0 : y0 + ts, x0 : x0 + ts] for (y0, x0) in pos], 1).reshape(B * len(pos), N, ts, ts)
         pt = p.repeat_interleave(len(pos), 0)
         # a v2 network normalises brightness by the window's scale: give every tile the whole frame's
         kw = {}
@@ -200,7 +217,7 @@ def run_model_on_windows(model, I: np.ndarray, phi: np.ndarray, device: str | to
             kw = {"scale": window_scale(_pad4(x, mult)[0]).reshape(B).repeat_interleave(len(pos), 0)}
         res = {k: [] for k in _KEYS}
         for i in range(0, tiles.shape[0], max_batch):
-            o = model(tiles[i : i + max_batch], pt[i : i + max_batch], **{k: v[i : i + max_batch] for k, v in kw.items()})
+            o = model(tiles[i : i + max_batch], pt[i : i + max_batch], **{k: v[i : i + max_batch] for k, v in kw.items()}, **zkw(ztiles, i))
             for k in _KEYS:
                 res[k].append(getattr(o, k)[:, margin : margin + tile, margin : margin + tile].float())
         out = {}

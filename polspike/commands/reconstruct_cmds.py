@@ -15,7 +15,7 @@ def evaluate_cmd(
     dataset: str = typer.Argument(..., help="dataset directory (dataset.json + group stores), one group directory, or 'synthetic[:SEED]' (closed-form set made in-process)"),
     split: str = typer.Option("test", "--split", help="split listed in dataset.json"),
     method: str = typer.Option("ls,ridge,irls,rwps", "--method", help="comma-separated methods: ls, ridge, irls, rwps (physics solvers), full (the network of --checkpoint)"),
-    zeta: str = typer.Option("gt", "--zeta", help="zeta source of the solvers: gt (group pane maps), physics (Fresnel from the calibrated pane), learned (network parameter branch)"),
+    zeta: str = typer.Option("gt", "--zeta", help="zeta source of the solvers: gt (group pane maps), physics (Fresnel from the calibrated pane), learned (network parameter branch), self (pane fitted to the stream; also the network's unless --net-zeta)"),
     out: Path = typer.Option(Path("out/evaluate"), "--out", help="output folder (results.csv/.md/.json, figure.png, config.json)"),
     n_obs: int = typer.Option(7, "--n-obs", help="observations per output frame N = 2K + 1"),
     dt_ms: float = typer.Option(0.65, "--dt-ms", help="aggregation window, milliseconds (odd number of steps)"),
@@ -34,6 +34,8 @@ def evaluate_cmd(
     by_regime: bool = typer.Option(False, "--by-regime", help="stress table: every solver with each zeta of --regime-zetas, baselines and the network (unless --no-net), one row per regime level of the group names (datasets/manifests/stress.toml)"),
     regime_zetas: str = typer.Option("gt,learned", "--regime-zetas", help="--by-regime: comma-separated zeta sources (gt, physics, learned, self)"),
     net: bool = typer.Option(True, "--net/--no-net", help="--by-regime: include the network (full) column"),
+    net_zeta: str = typer.Option("", "--net-zeta", help="full: zeta of the network's solver and refinement: learned (its own), self, gt or physics [default: self with --zeta self, else learned]"),
+    net_zetas: str = typer.Option("learned", "--net-zetas", help="--by-regime: comma-separated zeta sources of the network columns (learned -> net, self -> net@self)"),
     lambda_map: str = typer.Option("adaptive", "--lambda-map", help="rwps Conf -> lambda: adaptive (fitted physics default) or fixed (the original mapping)"),
     synthetic_groups: int = typer.Option(4, "--synthetic-groups", help="synthetic: number of groups"),
     synthetic_frames: int = typer.Option(20, "--synthetic-frames", help="synthetic: frames per group"),
@@ -53,7 +55,7 @@ def evaluate_cmd(
     cfg = from_dict(
         EvalConfig,
         {"n_obs": n_obs, "dt_ms": dt_ms, "stride_deg": stride_deg, "methods": method, "zeta": zeta, "rir": rir, "max_frames": max_frames, "pane_n": pane_n, "pane_model": pane_model, "dtype": dtype, "device": device,
-         "checkpoint": str(checkpoint or ""), "no_attention": no_attention, "no_conf": no_conf, "net_tile": net_tile},
+         "checkpoint": str(checkpoint or ""), "no_attention": no_attention, "no_conf": no_conf, "net_tile": net_tile, "net_zeta": net_zeta},
         where="command line",
     )
     try:
@@ -71,15 +73,16 @@ def evaluate_cmd(
     solver_cfg = PHYSICS_SOLVER_CONFIG if lambda_map == "adaptive" else SolverConfig()
     if by_regime:
         from polinfra.atomic import write_json, write_text
-        from reconstruct.evaluate import evaluate_by_regime, regime_markdown
+        from reconstruct.evaluate import evaluate_by_regime, regime_markdown, regime_report
 
         zs = [z.strip() for z in regime_zetas.split(",") if z.strip()]
+        nzs = [z.strip() for z in net_zetas.split(",") if z.strip()]
         with rich_progress("evaluate by regime", enabled=not quiet) as cb:
-            res = evaluate_by_regime(groups, cfg, zs, network=net, solver_cfg=solver_cfg, progress=cb)
-        md = regime_markdown(res)
+            res = evaluate_by_regime(groups, cfg, zs, network=net, solver_cfg=solver_cfg, progress=cb, net_zetas=nzs)
+        res["checkpoint"] = str(checkpoint) if checkpoint else "shipped default"
         write_json(out / "by_regime.json", res)
-        write_text(out / "by_regime.md", "# PSNR of T (dB) per regime level\n\n" + md)
-        Console().print(md)
+        write_text(out / "by_regime.md", f"# Stress set per regime level ({dataset}, split {split}; network: {res['checkpoint']})\n\n" + regime_report(res))
+        Console().print("PSNR of T (dB)\n" + regime_markdown(res) + "\nPSNR of R (dB)\n" + regime_markdown(res, "rows_R"))
         Console().print(f"[green]wrote[/] {out / 'by_regime.md'}, {out / 'by_regime.json'}")
         return
     with rich_progress("evaluate", enabled=not quiet) as cb:

@@ -103,7 +103,7 @@ def reconstruct_cmd(
     device: str = typer.Option("auto", "--device", help="auto | cpu | cuda"),
     quiet: bool = typer.Option(False, "--quiet", help="no progress bar"),
     method: str = typer.Option("net", "--method", help="net (the network) | ls | ridge | irls | rwps (a physics solver alone: no checkpoint unless --zeta learned)"),
-    zeta: Optional[str] = typer.Option(None, "--zeta", help="physics methods: self (pane fitted to the stream) | learned | physics | gt (group stores only) [default: self]; the network estimates its own"),
+    zeta: Optional[str] = typer.Option(None, "--zeta", help="self (pane fitted to the stream) | learned (the network's parameter branch) | physics | gt (physics methods, group stores only) [default: net: learned; physics methods: self]"),
     precision: str = typer.Option("float32", "--precision", help="float32 | bfloat16 (autocast of the network; the solver stays float32)"),
 ) -> None:
     """Turn a spike group or a .dat into reflection-free T and R video at the output cadence (~343 FPS)."""
@@ -123,8 +123,8 @@ def reconstruct_cmd(
         raise ConfigError(f"--method {method!r}: choose net or one of {', '.join(PHYSICS_METHODS)}")
     if zeta is not None and zeta not in STREAM_ZETA_SOURCES:
         raise ConfigError(f"--zeta {zeta!r}: choose one of {', '.join(STREAM_ZETA_SOURCES)}")
-    if method == "net" and zeta not in (None, "learned"):
-        raise ConfigError(f"--zeta {zeta} needs a physics --method (ls, ridge, irls, rwps); the network estimates its own zeta")
+    if method == "net" and zeta not in (None, "learned", "self"):
+        raise ConfigError(f"--zeta {zeta} needs a physics --method (ls, ridge, irls, rwps); the network takes --zeta learned or self")
     if zeta in ("gt", "physics") and input.suffix.lower() == ".dat":
         raise ConfigError(f"--zeta {zeta} needs a stored group's pane maps; a raw .dat has none: use --zeta self or learned")
     dev = "cuda" if device == "auto" and torch.cuda.is_available() else ("cpu" if device == "auto" else device)
@@ -155,18 +155,23 @@ def reconstruct_cmd(
     info = None
     if method == "net":
         model = load()
+        if zeta == "self":
+            from reconstruct.net_zeta import build_net_zeta_model
+
+            model, info = build_net_zeta_model(model, "self", src, group_dir=None if input.suffix.lower() == ".dat" else input, window_steps=window_steps,
+                                               exposure=None if src.exposure is not None else cfg.exposure)
     else:
         from reconstruct.physics_video import build_physics_model
 
         model, info = build_physics_model(method, zeta or "self", src, group_dir=None if input.suffix.lower() == ".dat" else input, window_steps=window_steps,
                                           exposure=None if src.exposure is not None else cfg.exposure, rir=True if rir is None else rir, load_learned=load)
     with rich_progress("reconstruct", enabled=not quiet) as cb:
-        s = reconstruct_stream(src, model, out, cfg, device=dev, progress=cb, meta=exposure_info)
+        s = reconstruct_stream(src, model, out, cfg, device=dev, progress=cb, meta={**exposure_info, "method": method, "zeta": info["zeta"] if info is not None else "learned"})
     c = Console()
     if info is not None:
         from polinfra.atomic import write_json
 
-        write_json(out / "physics.json", {"method": method, **info})
+        write_json(out / ("zeta.json" if method == "net" else "physics.json"), {"method": method, **info})
         sc = info["selfcal"]
         if sc and sc["ok"]:
             c.print(f"{method} on self-calibrated zeta: pane tilt {sc['tilt_deg']:.1f} deg, azimuth {sc['azimuth_deg']:.1f} deg, fov {sc['fov_deg']:.1f} deg{' (fitted)' if sc['fov_fitted'] else ''}")

@@ -107,7 +107,7 @@ def test_physics_stream_separates_and_self_is_within_1db_of_gt(stream, tmp_path)
 @pytest.mark.parametrize(
     "args, fragment",
     [
-        (["--method", "net", "--zeta", "self"], "physics --method"),
+        (["--method", "net", "--zeta", "gt"], "physics --method"),
         (["--method", "ls", "--zeta", "gt"], "raw .dat"),
         (["--method", "ls", "--zeta", "physics"], "raw .dat"),
         (["--method", "magic"], "--method"),

@@ -1,0 +1,106 @@
+"""The network on a zeta it did not estimate itself: ``polspike reconstruct --method net --zeta self``.
+
+The network's parameter branch estimates zeta (and the reliability weights w) per window.  With
+``--zeta self`` the pane is instead fitted to the stream itself (:mod:`reconstruct.selfcal`, the
+same fit the physics methods use) and that zeta (paper Eq. (2), window-averaged) replaces the
+learned one in the network's solver and refinement: ``model(I, phi, zeta_gt=zeta, alpha=1)``
+(the teacher-forcing path of :class:`reconstruct.network.PolSpikeNet`); w stays learned.  Where
+nothing modulates (no pane can be fitted) the network runs on its own zeta, and the info says so.
+
+:class:`MapsZetaNet` follows the model protocol of :func:`reconstruct.video.run_model_on_windows`
+and of the stream's feature cache, so :func:`reconstruct.video.reconstruct_stream` runs it as it
+runs the network.  Its zeta maps are per full-frame pixel: whole frames only (``stream_tile = 0``).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from polinfra.errors import ConfigError
+
+from reconstruct.zeta_source import PaneMaps, zeta_from_maps
+
+__all__ = ["MapsZetaNet", "NET_ZETA_SOURCES", "build_net_zeta_model"]
+
+NET_ZETA_SOURCES = ("learned", "self")
+"""zeta sources of the network in ``polspike reconstruct`` (``learned``: its own parameter branch)."""
+
+
+class MapsZetaNet:
+    """A :class:`reconstruct.network.PolSpikeNet` whose solver and refinement run on zeta from pane maps.
+
+    Args:
+        net: the network (eval mode).
+        maps: per-pixel pane maps (H, W) of the stream's frames.
+        span_rad: polarizer rotation during one Eq. (3) window (zeta is window-averaged).
+    """
+
+    stream_tile = 0
+
+    def __init__(self, net, maps: PaneMaps, span_rad: float):
+        self.net, self.maps, self.span_rad = net, maps, float(span_rad)
+        self.cfg = net.cfg
+
+    @property
+    def pad_multiple(self) -> int:
+        return int(getattr(self.net, "pad_multiple", 4))
+
+    @property
+    def cacheable(self) -> bool:
+        return bool(getattr(self.net, "cacheable", False))
+
+    def encode_obs(self, I, scale):
+        return self.net.encode_obs(I, scale)
+
+    def eval(self) -> MapsZetaNet:
+        self.net.eval()
+        return self
+
+    def parameters(self):
+        return self.net.parameters()
+
+    def __call__(self, I: torch.Tensor, phi: torch.Tensor, **kw):
+        H0, W0 = self.maps.phi_perp.shape
+        H, W = I.shape[-2:]
+        if H < H0 or W < W0 or H - H0 >= self.pad_multiple or W - W0 >= self.pad_multiple:
+            raise ConfigError(f"--zeta self runs on whole frames: the pane maps are {W0}x{H0}, the network got {W}x{H} (set tile = 0)")
+        Z = zeta_from_maps(self.maps, phi.detach().cpu().numpy().astype(np.float64), self.span_rad, dtype=torch.float32, device=I.device)  # paper Eq. (2)
+        if (H, W) != (H0, W0):
+            Z = F.pad(Z, (0, W - W0, 0, H - H0), mode="replicate")
+        return self.net(I, phi, zeta_gt=Z, alpha=1.0, **kw)
+
+
+def build_net_zeta_model(net, zeta: str, source, *, group_dir=None, window_steps: int = 13, exposure: float | None = None, pane_n: float = 1.5, pane_model: str = "single"):
+    """The network on zeta source ``zeta`` (:data:`NET_ZETA_SOURCES`) for this stream -> (model, info).
+
+    info = {"zeta": source used, "selfcal": summary or None}; ``self`` falls back to the learned
+    zeta (the network itself) when the pane cannot be fitted (info["zeta"] says why).
+    """
+    if zeta not in NET_ZETA_SOURCES:
+        raise ConfigError(f"--zeta {zeta!r} for the network: choose one of {', '.join(NET_ZETA_SOURCES)}")
+    info: dict = {"zeta": zeta, "selfcal": None}
+    if zeta == "learned":
+        return net, info
+    from reconstruct.physics_video import calibrate_source
+    from reconstruct.selfcal import SelfCalConfig
+
+    sc = SelfCalConfig()
+    if group_dir is not None:
+        from reconstruct.selfcal import fov_from_group_dir
+
+        fov = fov_from_group_dir(group_dir)
+        if fov:
+            sc = dataclasses.replace(sc, fov_deg=fov)
+    sc = dataclasses.replace(sc, n=pane_n, model=pane_model)
+    res = calibrate_source(source, window_steps, exposure, sc)
+    info["selfcal"] = res.summary()
+    if not res.ok:
+        info["zeta"] = "learned (no self-calibration: " + res.reason.split(":")[0] + ")"
+        return net, info
+    span = 2 * math.pi * source.polarizer_rev_s * window_steps / source.rate_hz
+    return MapsZetaNet(net, res.maps, span), info
