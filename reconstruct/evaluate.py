@@ -85,6 +85,7 @@ class EvalConfig:
     no_attention: bool = opt(False, "method full: the checkpoint must be trained without angle attention (paper Table 1 ablation)")
     no_conf: bool = opt(False, "method full: evaluate without Conf (checkpoint trained without it, else a test-time ablation)")
     net_tile: int = opt(256, "method full: network tile size in pixels (bounded memory; 0 = whole frame)", lo=0, hi=100000)
+    net_solver: str = opt("", "method full: physics solver before the network's refinement instead of the trained one (supp. Table 3); empty = as trained", choices=("", "ls", "ridge", "irls", "rwps"))
     net_zeta: str = opt("", "method full: zeta of the network's solver and refinement: learned (its parameter branch), self, gt or physics (instead of its own); empty = self when zeta is self, else learned", choices=("", "learned", "self", "gt", "physics"))
 
 
@@ -152,11 +153,15 @@ def load_network(cfg: EvalConfig) -> tuple[torch.nn.Module, dict]:
         log.warning("%s was trained with Conf; evaluating it without Conf (test-time ablation; the paper retrains)", path)
     if not cfg.no_conf and not trained["use_conf"]:
         raise CheckpointError(f"{path} was trained without Conf; add --no-conf to evaluate it as that ablation")
+    if cfg.net_solver and cfg.net_solver != net.get("solver_method", "rwps"):
+        overrides["solver_method"] = cfg.net_solver
     model, data = load_model(path, _device(cfg.device), **overrides)
     if model.cfg.n_obs != cfg.n_obs:
         raise ConfigError(f"the network in {path} takes N = {model.cfg.n_obs} observations; set --n-obs {model.cfg.n_obs} (got {cfg.n_obs})")
     used = {"use_rir": model.cfg.use_rir, "use_attention": model.cfg.use_attention, "use_conf": model.cfg.use_conf}
     label = NET_METHOD + "".join(f"-no{n}" for n, k in (("rir", "use_rir"), ("att", "use_attention"), ("conf", "use_conf")) if not used[k])
+    if "solver_method" in overrides:
+        label += f"-{overrides['solver_method']}"
     info = {"path": str(path), "label": label, "trained": trained, "overrides": overrides, "step": data.get("step")}
     return model, info
 

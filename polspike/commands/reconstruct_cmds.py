@@ -99,6 +99,74 @@ def evaluate_cmd(
     con.print(f"[green]wrote[/] {', '.join(str(p) for p in paths.values())}")
 
 
+@app_typer.command("evaluate-paper")
+def evaluate_paper_cmd(
+    dataset: str = typer.Argument(..., help="dataset directory with a test split (e.g. out/datasets/eval_paper), one group directory, or 'synthetic[:SEED]'"),
+    full: list[Path] = typer.Option([], "--full", help="checkpoint of the full network (repeat for seeds: the column is their mean) [default: the shipped default]"),
+    no_rir: list[Path] = typer.Option([], "--no-rir", help="checkpoint(s) trained without RIR [default: --full with RIR off at test time]"),
+    no_attention: list[Path] = typer.Option([], "--no-attention", help="checkpoint(s) trained without angle attention [default: column omitted]"),
+    no_conf: list[Path] = typer.Option([], "--no-conf", help="checkpoint(s) trained without Conf [default: --full with Conf zeroed at test time]"),
+    solvers: str = typer.Option("ls,ridge,irls,rwps", "--solvers", help="supp. Table 3 solvers, comma-separated ('' = skip the table)"),
+    zeta: str = typer.Option("self", "--zeta", help="zeta of the physics RWPS column: self (fitted to each group's stream), gt, physics or learned"),
+    split: str = typer.Option("test", "--split", help="split listed in dataset.json"),
+    out: Path = typer.Option(Path("out/evaluate_paper"), "--out", help="output folder (paper_table.md/.csv/.json)"),
+    n_obs: int = typer.Option(7, "--n-obs", help="observations per output frame N"),
+    dt_ms: float = typer.Option(0.65, "--dt-ms", help="aggregation window, milliseconds"),
+    max_frames: int = typer.Option(0, "--max-frames", help="at most this many output frames per group (0 = all)"),
+    net_tile: int = typer.Option(256, "--net-tile", help="network tile size in pixels (0 = whole frame)"),
+    device: str = typer.Option("cpu", "--device", help="cpu, cuda or auto"),
+    threads: int = typer.Option(0, "--threads", help="torch CPU threads (0 = torch default)"),
+    synthetic_groups: int = typer.Option(4, "--synthetic-groups", help="synthetic: number of groups"),
+    synthetic_size: str = typer.Option("200x125", "--synthetic-size", help="synthetic: WxH"),
+    quiet: bool = typer.Option(False, "--quiet", help="no progress bar"),
+) -> None:
+    """The test split in the paper's layout: Table 1 (Ours and the three ablations, mean over the given seeds, with TFP and physics RWPS) and supp. Table 3 (solver-only / final per solver)."""
+    import csv
+    import io
+
+    import torch
+    from rich.console import Console
+
+    from polinfra.atomic import write_json, write_text
+    from polinfra.config import from_dict
+    from polinfra.errors import CheckpointError
+    from polinfra.progress import rich_progress
+    from reconstruct.checkpoint import DEFAULT_WEIGHTS
+    from reconstruct.evaluate import EvalConfig, load_groups
+    from reconstruct.paper_table import paper_csv, paper_markdown, paper_tables
+
+    if threads > 0:
+        torch.set_num_threads(threads)
+    for p in [*full, *no_rir, *no_attention, *no_conf]:
+        if not p.is_file():
+            raise CheckpointError(f"checkpoint not found: {p}")
+    from polinfra.errors import ConfigError
+    from reconstruct.synthetic import SyntheticConfig
+
+    cfg = from_dict(EvalConfig, {"n_obs": n_obs, "dt_ms": dt_ms, "zeta": zeta, "max_frames": max_frames, "net_tile": net_tile, "device": device}, where="command line")
+    try:
+        w, h = (int(x) for x in synthetic_size.lower().split("x"))
+    except ValueError:
+        raise ConfigError(f"--synthetic-size {synthetic_size!r} is not WxH; write e.g. 200x125") from None
+    syn = from_dict(SyntheticConfig, {"n_groups": synthetic_groups, "width": w, "height": h}, where="command line")
+    with rich_progress("load groups", enabled=not quiet) as cb:
+        groups = load_groups(dataset, split, cfg, syn, progress=cb)
+    cks = {"full": [str(p) for p in (full or [DEFAULT_WEIGHTS])], "no_rir": [str(p) for p in no_rir], "no_attention": [str(p) for p in no_attention], "no_conf": [str(p) for p in no_conf]}
+    sv = [s.strip() for s in solvers.split(",") if s.strip()]
+    with rich_progress("paper tables", enabled=not quiet) as cb:
+        res = paper_tables(groups, cks, cfg, solvers=sv, progress=cb)
+    res["config"]["dataset"], res["config"]["split"] = dataset, split
+    md = paper_markdown(res)
+    buf = io.StringIO()
+    csv.writer(buf).writerows([["n/a" if v is None else v for v in row] for row in paper_csv(res)])
+    write_text(out / "paper_table.md", md)
+    write_text(out / "paper_table.csv", buf.getvalue())
+    write_json(out / "paper_table.json", res)
+    con = Console()
+    con.print(md)
+    con.print(f"[green]wrote[/] {out / 'paper_table.md'}, {out / 'paper_table.csv'}, {out / 'paper_table.json'}")
+
+
 @bench_app.command("reconstruct")
 def bench_reconstruct_cmd(
     out: Path = typer.Option(Path("out/bench/reconstruct"), "--out", help="output folder for reconstruct.json and reconstruct.md"),
