@@ -60,8 +60,8 @@ QUANTILE = 99.9
 SATURATION_RATE = 0.9
 """Spikes per step above which the quantile is treated as saturated (a pixel fires at most once per step)."""
 
-MIN_SPIKES = 20
-"""Fewest spikes the quantile pixel must have fired for an estimate (below: ConfigError, pass --exposure)."""
+MIN_SPIKES = 8
+"""Fewest spikes the quantile pixel must have fired for an estimate (below: ConfigError, pass --exposure); 8 spikes quantise the estimate to within 1/8, well inside its scene-brightness ambiguity."""
 
 
 @dataclasses.dataclass(frozen=True)
