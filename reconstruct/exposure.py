@@ -47,7 +47,7 @@ import numpy as np
 
 from polinfra.errors import ConfigError
 
-__all__ = ["REFERENCE_RADIANCE", "QUANTILE", "SATURATION_RATE", "ExposureEstimate", "estimate_exposure", "estimate_source_exposure"]
+__all__ = ["REFERENCE_RADIANCE", "QUANTILE", "SATURATION_RATE", "ExposureEstimate", "estimate_exposure", "estimate_source_exposure", "exposure_errors"]
 
 log = logging.getLogger(__name__)
 
@@ -121,3 +121,23 @@ def estimate_source_exposure(source, max_steps: int = 4000, reference_radiance: 
     if have == 0:
         raise ConfigError(f"{source.name}: the stream has no steps to estimate the exposure from")
     return _from_counts(counts, have, reference_radiance, quantile)
+
+
+def exposure_errors(group_dirs, max_steps: int = 4000) -> list[dict[str, Any]]:
+    """Estimated vs stored exposure of spike groups (``polspike bench exposure``): one row per group with
+    ``exposure``, ``estimate``, ``log_error`` = ln(estimate / exposure), ``quantile_radiance`` (the
+    group's 99.9th percentile of I at its true exposure: what :data:`REFERENCE_RADIANCE` is the mean of)."""
+    from spike_sim.store import open_group
+
+    rows = []
+    for gd in group_dirs:
+        with open_group(gd) as g:
+            e = (g.json_attr("config_json") or {}).get("exposure")
+            n = min(int(max_steps), int(g.n_steps))
+            sp = g.read(0, n)
+        if e is None:
+            continue
+        est = estimate_exposure(sp)
+        rows.append({"group": str(gd), "exposure": float(e), "estimate": est.exposure, "log_error": float(np.log(est.exposure / float(e))),
+                     "quantile_radiance": est.rate_quantile / float(e), "saturated": est.saturated, "steps": n})
+    return rows

@@ -224,6 +224,40 @@ def evaluate_real_cmd(
         raise typer.Exit(1)
 
 
+@bench_app.command("exposure")
+def bench_exposure_cmd(
+    datasets: list[Path] = typer.Argument(..., help="built dataset directories (groups/ with stored exposures), e.g. out/datasets/fit_paper out/datasets/eval_paper out/datasets/stress"),
+    out: Path = typer.Option(Path("out/bench/exposure"), "--out", help="output folder (exposure.json, exposure.md)"),
+    max_steps: int = typer.Option(4000, "--max-steps", help="steps of each group the estimate reads (as polspike reconstruct: 4000)"),
+) -> None:
+    """Exposure estimated from the spikes (reconstruct/exposure.py) vs the exposure each group was simulated with: log error per dataset."""
+    import numpy as np
+    from rich.console import Console
+
+    from polinfra.atomic import write_json, write_text
+    from polinfra.errors import ConfigError
+    from reconstruct.exposure import REFERENCE_RADIANCE, exposure_errors
+
+    res, md = {}, ["| dataset | groups | mean ln(est / true) | std | max abs | worst factor | within x1.5 | geometric mean of the 99.9th pct radiance |", "|---|---:|---:|---:|---:|---:|---:|---:|"]
+    for d in datasets:
+        gdir = d / "groups"
+        if not gdir.is_dir():
+            raise ConfigError(f"{d}: no groups/ folder (a built dataset directory is expected)")
+        rows = exposure_errors(sorted(p for p in gdir.iterdir() if p.is_dir()), max_steps)
+        if not rows:
+            raise ConfigError(f"{d}: no group with a stored exposure")
+        le = np.array([r["log_error"] for r in rows])
+        q = np.exp(np.mean(np.log([r["quantile_radiance"] for r in rows])))
+        res[str(d)] = {"rows": rows, "mean_log_error": float(le.mean()), "std_log_error": float(le.std()), "max_abs_log_error": float(np.abs(le).max()),
+                       "within_1_5": float(np.mean(np.abs(le) <= np.log(1.5))), "geomean_quantile_radiance": float(q)}
+        r = res[str(d)]
+        md.append(f"| {d} | {len(rows)} | {r['mean_log_error']:+.3f} | {r['std_log_error']:.3f} | {r['max_abs_log_error']:.3f} | {np.exp(r['max_abs_log_error']):.2f} | {100 * r['within_1_5']:.0f} % | {q:.4f} |")
+    text = "\n".join(md) + f"\n\nREFERENCE_RADIANCE = {REFERENCE_RADIANCE} (the geometric mean of the 99.9th percentile radiance of the paper.toml train groups, out/datasets/fit_paper).\n"
+    write_json(out / "exposure.json", res)
+    write_text(out / "exposure.md", text)
+    Console().print(text)
+
+
 @bench_app.command("reconstruct")
 def bench_reconstruct_cmd(
     out: Path = typer.Option(Path("out/bench/reconstruct"), "--out", help="output folder for reconstruct.json and reconstruct.md"),

@@ -164,3 +164,18 @@ def test_exr_frames_stay_linear_and_unclipped(tmp_path):
         T = read_exr(tmp_path / "frames" / f"{i:06d}.exr", ["T"])["T"]
         np.testing.assert_allclose(T, 2 * I.mean(0), rtol=1e-5, atol=1e-6)
         assert T.max() > 1.0  # linear radiance: the highlight (about 2 x 0.9 / 0.3 = 6) is kept above 1
+
+
+def test_bench_exposure_on_stored_groups(tmp_path, polspike_main):
+    """`polspike bench exposure`: a noise-free group's log error is ln of the closed-form ratio."""
+    from spike_sim.config import IDEAL
+    from spike_sim.simulate import keyframes_from_arrays, simulate
+
+    _, _, st = _scene()
+    src = keyframes_from_arrays([0.0, 1.0], np.stack([st, st]))
+    simulate(src, 0.2, seed=1, config=dataclasses.replace(IDEAL, width=W, height=H, exposure=0.25), out=tmp_path / "ds" / "groups" / "g0")
+    r = polspike_main("bench", "exposure", tmp_path / "ds", "--out", tmp_path / "o")
+    assert r.returncode == 0, r.stderr
+    row = json.loads((tmp_path / "o" / "exposure.json").read_text())[str(tmp_path / "ds")]["rows"][0]
+    assert row["exposure"] == 0.25
+    assert row["log_error"] == pytest.approx(np.log(_oracle(st)), abs=0.02)
