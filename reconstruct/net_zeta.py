@@ -25,10 +25,15 @@ from polinfra.errors import ConfigError
 
 from reconstruct.zeta_source import PaneMaps, zeta_from_maps
 
-__all__ = ["MapsZetaNet", "NET_ZETA_SOURCES", "build_net_zeta_model"]
+__all__ = ["MapsZetaNet", "NET_ZETA_SOURCES", "NET_DEFAULT_ZETA", "build_net_zeta_model"]
 
 NET_ZETA_SOURCES = ("learned", "self")
 """zeta sources of the network in ``polspike reconstruct`` (``learned``: its own parameter branch)."""
+
+NET_DEFAULT_ZETA = "learned"
+"""The network's zeta when ``--zeta`` is not given (``polspike reconstruct``, ``polspike evaluate-real``);
+to be set to the better of the two once measured on the test split and the stress set
+(``polspike evaluate ... --method full --net-zeta self|learned``, ``--by-regime --net-zetas learned,self``)."""
 
 
 class MapsZetaNet:

@@ -174,7 +174,7 @@ def evaluate_real_cmd(
     checkpoint: Optional[Path] = typer.Option(None, "--checkpoint", help="network checkpoint [default: the shipped reconstruct/weights default]"),
     max_frames: int = typer.Option(3, "--max-frames", help="output frames per recording (bounded run)"),
     crop: int = typer.Option(0, "--crop", help="centre crop side in pixels (0 = whole frames)"),
-    zeta: str = typer.Option("learned", "--zeta", help="the network's zeta: learned or self"),
+    zeta: Optional[str] = typer.Option(None, "--zeta", help="the network's zeta: learned or self [default: reconstruct.net_zeta.NET_DEFAULT_ZETA (learned)]"),
     device: str = typer.Option("cpu", "--device", help="cpu or cuda"),
     threads: int = typer.Option(0, "--threads", help="torch CPU threads (0 = torch default)"),
     quiet: bool = typer.Option(False, "--quiet", help="no progress bar"),
@@ -193,8 +193,11 @@ def evaluate_real_cmd(
     from polinfra.progress import rich_progress
     from polspike.pipeline.real_eval import default_real_dir, evaluate_real, real_markdown
 
+    from reconstruct.net_zeta import NET_DEFAULT_ZETA
+
     if threads > 0:
         torch.set_num_threads(threads)
+    zeta = zeta or NET_DEFAULT_ZETA
     if zeta not in ("learned", "self"):
         raise ConfigError(f"--zeta {zeta!r}: choose learned or self")
     if max_frames < 1:

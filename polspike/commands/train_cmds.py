@@ -103,7 +103,7 @@ def reconstruct_cmd(
     device: str = typer.Option("auto", "--device", help="auto | cpu | cuda"),
     quiet: bool = typer.Option(False, "--quiet", help="no progress bar"),
     method: str = typer.Option("net", "--method", help="net (the network) | ls | ridge | irls | rwps (a physics solver alone: no checkpoint unless --zeta learned)"),
-    zeta: Optional[str] = typer.Option(None, "--zeta", help="self (pane fitted to the stream) | learned (the network's parameter branch) | physics | gt (physics methods, group stores only) [default: net: learned; physics methods: self]"),
+    zeta: Optional[str] = typer.Option(None, "--zeta", help="self (pane fitted to the stream) | learned (the network's parameter branch) | physics | gt (physics methods, group stores only) [default: net: reconstruct.net_zeta.NET_DEFAULT_ZETA (learned); physics methods: self]"),
     precision: str = typer.Option("float32", "--precision", help="float32 | bfloat16 (autocast of the network; the solver stays float32)"),
 ) -> None:
     """Turn a spike group or a .dat into reflection-free T and R video at the output cadence (~343 FPS)."""
@@ -154,7 +154,10 @@ def reconstruct_cmd(
     load = lambda: load_model(weights or DEFAULT_WEIGHTS, dev, **({} if rir is None else {"use_rir": rir}))[0]  # noqa: E731
     info = None
     if method == "net":
+        from reconstruct.net_zeta import NET_DEFAULT_ZETA
+
         model = load()
+        zeta = zeta or NET_DEFAULT_ZETA
         if zeta == "self":
             from reconstruct.net_zeta import build_net_zeta_model
 
