@@ -179,3 +179,10 @@ def test_bench_exposure_on_stored_groups(tmp_path, polspike_main):
     row = json.loads((tmp_path / "o" / "exposure.json").read_text())[str(tmp_path / "ds")]["rows"][0]
     assert row["exposure"] == 0.25
     assert row["log_error"] == pytest.approx(np.log(_oracle(st)), abs=0.02)
+
+
+def test_nonpositive_exposure_is_one_line_exit_2(tmp_path, polspike_main):
+    f = tmp_path / "x.dat"
+    f.write_bytes(bytes(12500 * 4))
+    r = polspike_main("reconstruct", f, "--height", 250, "--width", 400, "--phi0-deg", 0, "--rev-per-s", 30, "--exposure", 0, "--out", tmp_path / "o")
+    polspike_main.one_line_exit_2(r, "--exposure")
