@@ -103,7 +103,7 @@ def test_cli_estimated_and_true_exposure_agree(tmp_path):
     for i in range(2):
         a = read_exr(tmp_path / "est" / "frames" / f"{i:06d}.exr", ["T"])["T"]
         b = read_exr(tmp_path / "true" / "frames" / f"{i:06d}.exr", ["T"])["T"]
-        assert psnr(a * ratio, b) > 35.0, psnr(a * ratio, b)
+        assert psnr(a * ratio, b) > 45.0, psnr(a * ratio, b)  # measured 53.1: the network is equivariant to the brightness scale
         assert psnr(a, b) > 25.0  # measured 29.9 without the scale correction
 
 
