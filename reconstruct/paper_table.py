@@ -77,6 +77,7 @@ def paper_tables(
     solvers: Sequence[str] = SOLVERS,
     solver_cfg: SolverConfig = PHYSICS_SOLVER_CONFIG,
     progress: Callable[[int, int], None] | None = None,
+    net_zeta: str = "learned",
 ) -> dict[str, Any]:
     """Table 1 and supp. Table 3 on ``groups`` (module docstring).
 
@@ -86,6 +87,8 @@ def paper_tables(
         cfg: window, frames, device, tile; ``zeta`` is the physics baseline's zeta source.
         solvers: the solvers of supp. Table 3 (empty: skip it).
         solver_cfg: the physics baseline's solver parameters.
+        net_zeta: zeta of every network run: ``learned`` (its own) or ``self`` / ``gt`` / ``physics``
+            (:data:`reconstruct.evaluate.EvalConfig.net_zeta`).
 
     Returns:
         {"table1": {column: {"mean": metrics, "runs": [{"checkpoint", **metrics}], "note"}},
@@ -100,18 +103,21 @@ def paper_tables(
     bad = [s for s in solvers if s not in SOLVERS]
     if bad:
         raise ConfigError(f"unknown solver(s) {bad}; choose from {list(SOLVERS)}")
+    if net_zeta not in ("learned", "self", "gt", "physics"):
+        raise ConfigError(f"net_zeta {net_zeta!r}: choose learned, self, gt or physics")
     base = dataclasses.replace(cfg, figure_frames=0, net_zeta="learned", net_solver="", no_attention=False, no_conf=False, rir=True)
+    nz = {"zeta": net_zeta, "net_zeta": net_zeta}  # the network runs: learned needs no per-group zeta
     jobs: list[tuple[str, str, str, EvalConfig]] = []  # (table, column, checkpoint, cfg)
     jobs.append(("table1", "physics", "", dataclasses.replace(base, methods="rwps")))
     for col, key in ABLATIONS:
         ck = list(checkpoints.get(key) or [])
         test_time = not ck and key in ("no_rir", "no_conf")
         for path in ck or (full if test_time else []):
-            c = dataclasses.replace(base, methods="full", zeta="learned", checkpoint=str(path), rir=key != "no_rir", no_attention=key == "no_attention", no_conf=key == "no_conf")
+            c = dataclasses.replace(base, methods="full", **nz, checkpoint=str(path), rir=key != "no_rir", no_attention=key == "no_attention", no_conf=key == "no_conf")
             jobs.append(("table1", col + (" (test-time)" if test_time else ""), str(path), c))
     for s in solvers:
         for path in full:
-            jobs.append(("table3", s, str(path), dataclasses.replace(base, methods="full", zeta="learned", checkpoint=str(path), net_solver=s)))
+            jobs.append(("table3", s, str(path), dataclasses.replace(base, methods="full", **nz, checkpoint=str(path), net_solver=s)))
     t1: dict[str, dict] = {}
     t3: dict[str, dict] = {}
     tfp = None
@@ -123,7 +129,7 @@ def paper_tables(
             ph = _overall(rep, "rwps")
             t1[f"RWPS (zeta {c.zeta})"] = {"mean": _mean([ph]), "runs": [{"checkpoint": "", **ph}], "note": "physics solver alone"}
         else:
-            label = rep.config["network"]["label"]
+            label = rep.config["network"]["label"] + ("" if net_zeta == "learned" else f"@{net_zeta}")
             final, solver_only = _overall(rep, label), _overall(rep, label + ":solver")
             if table == "table1":
                 e = t1.setdefault(col, {"runs": [], "note": "checkpoint switched at test time, not retrained" if "test-time" in col else ""})
@@ -139,7 +145,7 @@ def paper_tables(
                     e[st]["mean"] = _mean(e[st]["runs"])
         if progress:
             progress(j + 1, len(jobs))
-    conf = {"n_obs": cfg.n_obs, "dt_ms": cfg.dt_ms, "stride_deg": cfg.stride_deg, "max_frames": cfg.max_frames, "physics_zeta": cfg.zeta,
+    conf = {"n_obs": cfg.n_obs, "dt_ms": cfg.dt_ms, "stride_deg": cfg.stride_deg, "max_frames": cfg.max_frames, "physics_zeta": cfg.zeta, "net_zeta": net_zeta,
             "groups": [g.name for g in groups], "checkpoints": {k: list(v) for k, v in checkpoints.items()}, "n_seeds": len(full)}
     return {"table1": t1, "table3": t3, "config": conf}
 
@@ -153,7 +159,7 @@ def paper_markdown(res: dict) -> str:
     c = res["config"]
     t1, t3 = res["table1"], res["table3"]
     cols = list(t1)
-    out = [f"# Test split in the paper's layout (N = {c['n_obs']}, dt = {c['dt_ms']} ms; {len(c['groups'])} groups"
+    out = [f"# Test split in the paper's layout (N = {c['n_obs']}, dt = {c['dt_ms']} ms; {len(c['groups'])} groups; network zeta {c.get('net_zeta', 'learned')}"
            + (f", at most {c['max_frames']} frames each" if c["max_frames"] else "") + f"; network columns: mean of {c['n_seeds']} checkpoint(s))", "",
            "## Table 1", "", "| Metric | " + " | ".join(cols) + " |", "|---|" + "---:|" * len(cols)]
     for k, name, nd in (("psnr_T", "PSNR T (dB)", 2), ("ssim_T", "SSIM T", 3), ("psnr_R", "PSNR R (dB)", 2), ("ssim_R", "SSIM R", 3)):

@@ -108,6 +108,7 @@ def evaluate_paper_cmd(
     no_conf: list[Path] = typer.Option([], "--no-conf", help="checkpoint(s) trained without Conf [default: --full with Conf zeroed at test time]"),
     solvers: str = typer.Option("ls,ridge,irls,rwps", "--solvers", help="supp. Table 3 solvers, comma-separated ('' = skip the table)"),
     zeta: str = typer.Option("self", "--zeta", help="zeta of the physics RWPS column: self (fitted to each group's stream), gt, physics or learned"),
+    net_zeta: str = typer.Option("learned", "--net-zeta", help="zeta of every network column: learned (its own) or self (the pane fitted to each group's stream), gt, physics"),
     split: str = typer.Option("test", "--split", help="split listed in dataset.json"),
     out: Path = typer.Option(Path("out/evaluate_paper"), "--out", help="output folder (paper_table.md/.csv/.json)"),
     n_obs: int = typer.Option(7, "--n-obs", help="observations per output frame N"),
@@ -154,7 +155,7 @@ def evaluate_paper_cmd(
     cks = {"full": [str(p) for p in (full or [DEFAULT_WEIGHTS])], "no_rir": [str(p) for p in no_rir], "no_attention": [str(p) for p in no_attention], "no_conf": [str(p) for p in no_conf]}
     sv = [s.strip() for s in solvers.split(",") if s.strip()]
     with rich_progress("paper tables", enabled=not quiet) as cb:
-        res = paper_tables(groups, cks, cfg, solvers=sv, progress=cb)
+        res = paper_tables(groups, cks, cfg, solvers=sv, progress=cb, net_zeta=net_zeta)
     res["config"]["dataset"], res["config"]["split"] = dataset, split
     md = paper_markdown(res)
     buf = io.StringIO()

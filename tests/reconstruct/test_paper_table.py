@@ -55,6 +55,19 @@ def test_columns_are_means_of_their_checkpoints(groups):
     assert rows[0][:4] == ["table", "column", "stage", "checkpoint"] and sum(r[3] == "mean" for r in rows[1:]) == len(res["table1"]) + 2
 
 
+def test_network_on_another_zeta(groups):
+    """--net-zeta gt: the Ours column is the network's full@gt row of evaluate_groups."""
+    from reconstruct.evaluate import EvalConfig, evaluate_groups
+    from reconstruct.paper_table import paper_tables
+
+    cfg = EvalConfig(zeta="gt", max_frames=1)
+    res = paper_tables(groups, {"full": [str(DEFAULT_WEIGHTS)]}, cfg, solvers=(), net_zeta="gt")
+    rep = evaluate_groups(groups, dataclasses.replace(cfg, methods="full", net_zeta="gt", figure_frames=0))
+    lab = rep.config["network"]["label"] + "@gt"
+    own = {r["method"]: r for r in rep.rows if r["group"] == "overall"}[lab]
+    assert res["table1"]["Ours"]["mean"]["psnr_T"] == pytest.approx(own["psnr_T"]) and res["config"]["net_zeta"] == "gt"
+
+
 def test_cli_writes_md_csv_json(tmp_path, polspike_main):
     r = polspike_main("evaluate-paper", "synthetic:3", "--synthetic-size", "24x16", "--max-frames", "1", "--solvers", "", "--out", tmp_path, "--quiet", "--zeta", "gt")
     assert r.returncode == 0, r.stderr
