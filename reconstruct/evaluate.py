@@ -12,6 +12,9 @@ Baselines, in the same table:
 * ``best_frame``: the best single observation 2 I(i+k), chosen per output frame
   by PSNR against the GT (an oracle pick: an upper bound for any rule that
   selects one frame).
+* ``spike_mean``: the plain spike mean, 2 x spikes per step / exposure over
+  17.5 ms centred on the frame (``EvalGroup.I_mean``; stored groups only): the
+  "doing nothing" reference of issue 16.
 
 The learned reconstructor (issue 9) from a checkpoint (:func:`load_network`):
 
@@ -60,7 +63,7 @@ __all__ = ["net_zeta_of", "REGIME_FACTORS", "regime_of", "evaluate_by_regime", "
 
 log = logging.getLogger(__name__)
 
-BASELINES = ("tfp", "best_frame")
+BASELINES = ("tfp", "best_frame", "spike_mean")
 """Reference rows in every table (module docstring)."""
 
 
@@ -327,6 +330,8 @@ def evaluate_groups(
                 rows = {"tfp": (tfp[j], None)}
                 best = max(range(cfg.n_obs), key=lambda k: psnr(raw_np[j, k], gtT))
                 rows["best_frame"] = (raw_np[j, best], None)
+                if g.I_mean is not None:
+                    rows["spike_mean"] = (2.0 * g.I_mean[i], None)
                 rows.update(est_j := {m: (v[0][j], v[1][j]) for m, v in est.items()})
                 for name, (Th, Rh) in rows.items():
                     sT = score(Th, gtT)
@@ -535,7 +540,7 @@ def evaluate_by_regime(
     solvers = [m for m in parse_methods(cfg.methods) if m in SOLVERS] or list(SOLVERS)
     keys = ("psnr_T", "ssim_T", "psnr_R", "ssim_R")
     per: dict[str, dict[str, dict[str, float]]] = {k: defaultdict(dict) for k in keys}
-    columns: list[str] = list(BASELINES)
+    columns: list[str] = []  # baselines first, in BASELINES order, where the groups have them (spike_mean: stored groups)
     runs = [(z, solvers, None) for z in zetas] + [(None, [NET_METHOD], nz) for nz in net_zetas]
     for j, (z, methods, nz) in enumerate(runs):
         c = dataclasses.replace(cfg, zeta=z or "gt", methods=",".join(methods), figure_frames=0, **({} if nz is None else {"net_zeta": nz}))
@@ -556,6 +561,7 @@ def evaluate_by_regime(
                 per[k][r["group"]][col] = r[k]
             if col not in columns:
                 columns.append(col)
+        columns.sort(key=lambda c: BASELINES.index(c) if c in BASELINES else len(BASELINES))  # stable: the rest keep their order
         if progress:
             progress(j + 1, len(runs))
     grows = [{"group": g, "regime": regime_of(g), **v} for g, v in per["psnr_T"].items()]

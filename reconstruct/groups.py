@@ -32,7 +32,7 @@ from polinfra.errors import DataFormatError
 
 from reconstruct.zeta_source import PaneMaps
 
-__all__ = ["EvalGroup", "list_groups", "load_store_group", "window_steps_from_ms"]
+__all__ = ["EvalGroup", "list_groups", "load_store_group", "window_steps_from_ms", "spike_mean_frames", "SPIKE_MEAN_MS"]
 
 log = logging.getLogger(__name__)
 
@@ -66,6 +66,34 @@ class EvalGroup:
     """horizontal field of view of the camera (degrees) when known (a dataset group's scene), for ``--zeta self``"""
     source_dir: str | None = None
     """the stored group this was aggregated from (``--zeta self`` calibrates on all of its spikes), or None"""
+    I_mean: np.ndarray | None = None
+    """(M, H, W) the plain spike mean: spikes per step / exposure over :data:`SPIKE_MEAN_MS` centred on each
+    frame (clipped to the stream), the "doing nothing" baseline of issue 16 (2 x it estimates T + zbar (R - T))"""
+
+
+SPIKE_MEAN_MS = 17.5
+"""Span of the plain spike-mean baseline (about half a polarizer turn at 30 rev/s: the modulation averages out)."""
+
+
+def spike_mean_frames(g, centres: np.ndarray, span_steps: int, exposure: float) -> np.ndarray:
+    """Spikes per step / exposure over ``span_steps`` steps centred on each of ``centres`` (ascending), clipped to
+    the stream; a running sum, so every step of an open ``spike_sim.store`` group is read at most twice."""
+    out = np.zeros((len(centres), g.height, g.width), np.float32)
+    acc = np.zeros((g.height, g.width), np.int64)
+    lo = hi = 0  # acc = spikes of steps [lo, hi)
+    for m, c in enumerate(np.asarray(centres, np.int64)):
+        a, b = max(0, int(c) - span_steps // 2), min(g.n_steps, int(c) + span_steps // 2 + 1)
+        if a >= hi:
+            acc[:] = 0
+            lo = hi = a
+        if b > hi:
+            acc += g.read(hi, b).sum(0, dtype=np.int64)
+            hi = b
+        if a > lo:
+            acc -= g.read(lo, a).sum(0, dtype=np.int64)
+            lo = a
+        out[m] = acc / np.float32((hi - lo) * exposure)
+    return out
 
 
 
@@ -179,6 +207,8 @@ def load_store_group(
                         R[m] = g.gt_frame("R", j)
             if not has.any():
                 log.warning("%s: no frame centre matches a stored GT output step; choose the group's own stride/window", path)
+        span_mean = max(1, int(round(SPIKE_MEAN_MS * 1e-3 * g.rate_hz)))
+        I_mean = spike_mean_frames(g, c, span_mean, exposure)
         mp = g.maps()
         maps = None
         if {"R_perp", "R_par", "phi_perp"} <= set(mp):
@@ -197,4 +227,5 @@ def load_store_group(
             has_gt=has,
             fov_deg=fov_from_group_dir(path),
             source_dir=str(path),
+            I_mean=I_mean,
         )

@@ -110,3 +110,33 @@ def test_store_group_and_dataset_json(tmp_path):
     rep = evaluate_groups(gs, EvalConfig(rir=False, methods="ls,ridge,rwps"))
     ov = {r["method"]: r for r in rep.rows if r["group"] == "overall"}
     assert ov["ridge"]["psnr_T"] > 18.0 and ov["ls"]["n_frames"] == M - 6
+
+
+def test_spike_mean_baseline_sums_the_raw_spikes(tmp_path):
+    """EvalGroup.I_mean = raw spikes over 17.5 ms (350 steps at 20 kHz) around each frame centre, clipped to the
+    stream, / (steps x exposure), recomputed here from the whole stream; and ~ Eq. (1)'s half-turn average."""
+    from spike_sim.aggregate import AggregateConfig, frame_centres
+    from spike_sim.store import open_group
+
+    from reconstruct.groups import SPIKE_MEAN_MS
+
+    Tl, M = _write_store(tmp_path / "g0", n_frames=14)
+    g = load_store_group(tmp_path / "g0")
+    with open_group(tmp_path / "g0") as st:
+        allsp = st.read().astype(np.int64)
+        c, _ = frame_centres(st.phi_nominal_rad, AggregateConfig())
+    L = int(round(SPIKE_MEAN_MS * 20))
+    assert L == 350
+    for m, cc in enumerate(c):
+        a, b = max(0, cc - L // 2), min(allsp.shape[0], cc + L // 2 + 1)
+        np.testing.assert_allclose(g.I_mean[m], allsp[a:b].sum(0) / ((b - a) * 0.5), rtol=1e-6)
+    rep = evaluate_groups([g], EvalConfig(rir=False, methods="ls"))
+    ov = {r["method"]: r for r in rep.rows if r["group"] == "overall"}
+    assert ov["spike_mean"]["n_frames"] == ov["tfp"]["n_frames"]
+    # the spike mean keeps the half-turn-averaged reflection: 2 I_mean ~ T + zbar (R - T), zbar = (0.02 + 0.3) / 2
+    full = [m for m, cc in enumerate(c) if cc - L // 2 >= 0 and cc + L // 2 < allsp.shape[0]]
+    assert full
+    with open_group(tmp_path / "g0") as st:
+        Rl = st.gt_frame("R", 0)
+    pred = Tl + 0.16 * (Rl - Tl)
+    assert float(np.abs(2 * g.I_mean[full].mean(0) - pred).mean()) < 0.05
