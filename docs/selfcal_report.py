@@ -5,8 +5,11 @@ Usage (from the repository root, venv active; one torch thread):
     python docs/selfcal_report.py closed-form                       # closed-form pane groups (tests/reconstruct/_pane_groups.py)
     python docs/selfcal_report.py dataset out/datasets/selfcal_strong [--pane-model M --pane-n N --max-frames 8]   # built groups (docs/selfcal_strong.toml)
     python docs/selfcal_report.py speed GROUP_DIR [WEIGHTS]          # frames/s: physics-only streams vs the network, same run
+    python docs/selfcal_report.py stress out/datasets/stress BY_REGIME_JSON [FIGURE.png]   # per-group table: calibration
+        # (modulating share, cone, glass, geometry and zeta error) beside the PSNRs of
+        # `polspike evaluate out/datasets/stress --by-regime --regime-zetas gt,self --no-net --max-frames 3` (its by_regime.json)
 
-Each prints one JSON line per row and writes nothing else.
+Each prints one JSON line per row (stress: then a markdown table) and writes nothing else (stress: the figure, when named).
 """
 
 from __future__ import annotations
@@ -110,10 +113,99 @@ def speed(group_dir: str, weights: str | None = None) -> None:
     print(json.dumps(res), flush=True)
 
 
+def _calibration_row(g) -> dict:
+    from reconstruct.evaluate import EvalConfig, group_zeta
+    from reconstruct.selfcal import group_self_zeta
+
+    t0 = time.perf_counter()
+    Zs = group_self_zeta(g)
+    r = group_self_zeta.last
+    sm = r.summary()
+    row = {"group": g.name, "ok": r.ok, "calib_s": time.perf_counter() - t0, "z": sm["z"], "twin_ratio": sm["twin_ratio"],
+           "modulating_px": sm["modulating_px"], "modulating_blocks": sm["modulating_blocks"], "reason": r.reason}
+    if sm["cone"]:
+        row["cone"] = {k: sm["cone"][k] for k in ("resolved", "v_family", "chosen_family", "tilt_range_deg")}
+    if r.ok:
+        Zg = group_zeta(g, EvalConfig(zeta="gt"))
+        row.update({"tilt_fit_deg": r.tilt_deg, "model": r.model, "n": r.n, "glass_why": (sm["glass"] or {}).get("why"),
+                    "theta_err_deg": float(np.degrees(np.abs(r.theta - g.theta)).mean()),
+                    "phi_perp_err_deg_median": float(np.median(np.degrees(np.abs(np.mod(r.maps.phi_perp - g.maps.phi_perp + np.pi / 2, np.pi) - np.pi / 2)))),
+                    "zeta_mae_rel": float(np.abs(Zs - Zg).mean() / Zg.mean())})
+    return row
+
+
+MODULATES_PX = 0.05
+"""A group "modulates" when at least this share of its pixels modulates above 3 noise sigmas (SelfCalResult.diagnostics['modulating_px'])."""
+
+
+def _short_reason(row) -> str:
+    if row["ok"]:
+        return "calibrated" + (" (cone)" if "cone" in row else "")
+    r = row["reason"]
+    return "refused: nothing modulates" if r.startswith("nothing") else "refused: 90 deg ambiguous" if r.startswith("ambiguous") else "refused: " + r[:40]
+
+
+def stress(path: str, by_regime_json: str, figure: str | None = None) -> None:
+    from reconstruct.evaluate import EvalConfig, load_groups
+
+    psnr = {g["group"]: g for g in json.loads(Path(by_regime_json).read_text())["groups"]}
+    rows = []
+    for g in load_groups(path, "test", EvalConfig()):
+        row = _calibration_row(g)
+        row["psnr"] = {k: v for k, v in psnr.get(g.name, {}).items() if "@" in k}
+        print(json.dumps(row), flush=True)
+        rows.append(row)
+    sol = ("ls", "ridge", "irls", "rwps")
+    print("\n| group | modulating px (%) | self zeta | theta err (deg) | zeta err (rel) | model, n | " + " | ".join(f"{m} gt / self" for m in sol) + " |")
+    print("|---|---:|---|---:|---:|---|" + "---|" * len(sol))
+    for r in rows:
+        p = r["psnr"]
+        print(f"| {r['group']} | {100 * r['modulating_px']:.1f} | {_short_reason(r)} | "
+              + (f"{r['theta_err_deg']:.2f} | {r['zeta_mae_rel']:.3f} | {r['model']} {r['n']:g} | " if r["ok"] else "- | - | - | ")
+              + " | ".join(f"{p.get(m + '@gt', float('nan')):.2f} / {p.get(m + '@self', float('nan')):.2f}" for m in sol) + " |")
+    mod = [r for r in rows if r["modulating_px"] >= MODULATES_PX]
+    cal = [r for r in mod if r["ok"]]
+    d = {m: [r["psnr"][m + "@self"] - r["psnr"][m + "@gt"] for r in cal] for m in sol}
+    print(f"\nmodulating groups (>= {100 * MODULATES_PX:g} % of pixels): {len(mod)} of {len(rows)}; calibrated: {len(cal)} of them "
+          f"(and {sum(r['ok'] for r in rows) - len(cal)} of the others); self - gt (dB) over the calibrated modulating groups: "
+          + ", ".join(f"{m} min {min(v):+.2f} mean {np.mean(v):+.2f}" for m, v in d.items() if v))
+    if figure:
+        _stress_figure(rows, figure)
+
+
+def _stress_figure(rows, figure: str) -> None:
+    import matplotlib.pyplot as plt
+
+    from polinfra.plotting import save_figure
+
+    sol = ("ls", "ridge", "irls", "rwps")
+    fig, ax = plt.subplots(1, 2, figsize=(11, 4.2))
+    names = [r["group"].replace("refl-", "").replace("_motion-", " ").replace("_light-", " ").replace("_inc-", " ").replace("_pane-", " ") for r in rows]
+    y = np.arange(len(rows))
+    for k, m in enumerate(sol):
+        d = [r["psnr"].get(m + "@self", np.nan) - r["psnr"].get(m + "@gt", np.nan) for r in rows]
+        ax[0].scatter(d, y + 0.18 * (k - 1.5), s=14, label=m)
+    ax[0].axvline(-1.0, color="k", lw=0.8, ls="--")
+    ax[0].axvline(0.0, color="k", lw=0.5)
+    ax[0].set_yticks(y, [f"{n} [{_short_reason(r).replace('refused: ', 'x ')}]" for n, r in zip(names, rows)], fontsize=6)
+    ax[0].set_xlabel("PSNR T, self - true zeta (dB); dashed: the 1 dB goal")
+    ax[0].set_xlim(-12, 4)
+    ax[0].legend(fontsize=7)
+    ax[1].barh(y, [100 * r["modulating_px"] for r in rows], color=["tab:green" if r["ok"] else "tab:red" for r in rows])
+    ax[1].axvline(100 * MODULATES_PX, color="k", lw=0.8, ls="--")
+    ax[1].set_yticks(y, [""] * len(rows))
+    ax[1].set_xlabel("pixels modulating above 3 sigma (%); green: calibrated, red: refused")
+    fig.tight_layout()
+    save_figure(fig, figure, dpi=130)
+
+
 if __name__ == "__main__":
     a = sys.argv[1:]
-    if not a or a[0] not in ("closed-form", "dataset", "speed"):
+    if not a or a[0] not in ("closed-form", "dataset", "speed", "stress"):
         sys.exit(__doc__)
+    if a[0] == "stress":
+        stress(a[1], a[2], a[3] if len(a) > 3 else None)
+        sys.exit(0)
     if a[0] == "closed-form":
         closed_form()
     elif a[0] == "dataset":

@@ -95,10 +95,14 @@ class SelfCalConfig:
     fov_deg: float = opt(0.0, "horizontal field of view in degrees (0 = fit it from the orientation field)", lo=0.0, hi=170.0)
     fov_init_deg: float = opt(60.0, "start value when the field of view is fitted", lo=5.0, hi=170.0)
     n: float = opt(1.5, "refractive index of the pane", lo=1.0, hi=4.0)
-    model: str = opt("single", "pane model", choices=("single", "thin_slab", "thick_slab"))
+    model: str = opt("auto", "pane model: auto (single or slab and the index fitted from the DoP's cone where the data constrain them, else prior_model and n) or a given model", choices=("auto", "single", "thin_slab", "thick_slab"))
+    prior_model: str = opt("thin_slab", "model: auto keeps this pane model where the data do not tell single from slab (the safer guess for ridge / RWPS, docs/selfcal.md)", choices=("single", "thin_slab", "thick_slab"))
+    cone_margin: float = opt(9.0, "cone test: a pane family (or glass) is rejected when its DoP-cone violation (chi^2, noise units) exceeds the best by this", lo=0.0, hi=1e9)
+    cone_ratio: float = opt(10.0, "cone test: the rejected pane family's DoP-cone violation must also be at least this many times the chosen one's (else neither fits)", lo=1.0, hi=1e9)
+    valley_ratio: float = opt(0.97, "cone test: panes scoring at least this fraction of the orientation optimum are candidates", lo=0.0, hi=1.0)
     z_min: float = opt(8.0, "the fitted pane must explain the orientation field this many noise standard deviations above chance, else 'nothing modulates' (ok = False)", lo=0.0, hi=1e6)
     coherence_sigmas: float = opt(4.0, "diagnostics: a block counts as modulating when its |sum z4| exceeds this many noise standard deviations", lo=0.0, hi=100.0)
-    max_twin_ratio: float = opt(0.98, "the pane turned 90 deg (phi_perp <-> p-direction) scoring above this fraction of the best: ambiguous (ok = False)", lo=0.0, hi=10.0)
+    max_twin_ratio: float = opt(0.98, "the pane turned 90 deg (phi_perp <-> p-direction) scoring above this fraction of the best: the DoP cone decides, else ambiguous (ok = False)", lo=0.0, hi=10.0)
     min_tilt_deg: float = opt(3.0, "a fitted tilt below this is near-normal incidence: no usable modulation (ok = False)", lo=0.0, hi=89.0)
 
 
@@ -157,7 +161,22 @@ class SelfCalResult:
             "twin_ratio": self.twin_ratio,
             "z": self.diagnostics.get("z"),
             "alignment": self.diagnostics.get("alignment"),
+            "modulating_px": self.diagnostics.get("modulating_px"),
+            "modulating_blocks": self.diagnostics.get("modulating_blocks"),
+            "cone": _plain(self.diagnostics.get("cone")),
+            "glass": _plain(self.diagnostics.get("glass")),
         }
+
+
+def _plain(x):
+    """JSON-ready copy (numpy scalars to floats, tuple keys to strings)."""
+    if isinstance(x, dict):
+        return {(k if isinstance(k, str) else ":".join(map(str, k)) if isinstance(k, tuple) else str(k)): _plain(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_plain(v) for v in x]
+    if isinstance(x, (np.floating, np.integer, np.bool_)):
+        return x.item()
+    return x
 
 
 def camera_for(width: int, height: int, fov_deg: float):
@@ -216,8 +235,8 @@ def orientation_field(I: np.ndarray, phi: np.ndarray, block: int) -> dict:
         dict with block-grid (h, w) fields ``s4`` (complex sum of z4), ``q`` (sum |z4|^2, the
         noise scale: Var Re(s4 e^{-i t}) = q / 2 under pure noise), ``energy`` (sum |z4|),
         ``psi`` = arg(s4) / 4 in [0, pi/2), ``coherence`` = |s4| / energy in [0, 1]; and
-        ``samples`` (chunks x s^2), ``chunks``, ``chunk_frames``, full-grid ``dop`` (mean per-chunk DoP)
-        and ``a0`` (mean intensity).
+        ``samples`` (chunks x s^2), ``chunks``, ``chunk_frames``, full-grid ``dop`` (mean per-chunk DoP),
+        ``a0`` (mean intensity), ``s4_px`` and ``q_px`` (the per-pixel sums before blocking).
     """
     I = np.asarray(I, np.float64)
     phi = np.asarray(phi, np.float64)
@@ -257,7 +276,8 @@ def orientation_field(I: np.ndarray, phi: np.ndarray, block: int) -> dict:
     ben, bq = _block(en, block), _block(q, block)
     coh = np.where(ben > 0, np.abs(bs4) / np.maximum(ben, 1e-300), 0.0)
     psi = np.mod(0.25 * np.angle(bs4), 0.5 * math.pi)
-    return {"s4": bs4, "q": bq, "energy": ben, "psi": psi, "coherence": coh, "samples": n_chunks * block * block, "chunks": n_chunks, "windows": n_win, "chunk_frames": L, "dop": dop / n_win, "a0": a0s / n_win}
+    return {"s4": bs4, "q": bq, "energy": ben, "psi": psi, "coherence": coh, "samples": n_chunks * block * block, "chunks": n_chunks, "windows": n_win, "chunk_frames": L, "dop": dop / n_win, "a0": a0s / n_win,
+            "s4_px": s4, "q_px": q}
 
 
 def _phi_perp_many(camera, normals: np.ndarray, batch: int = 128):
@@ -353,10 +373,17 @@ def fit_normal(s4: np.ndarray, q: np.ndarray, width_blocks: int, height_blocks: 
         k = int(cand[np.argmax(grid.ravel()[cand])])
         tw = refine(float(tilts[k // len(azs)]), float(azs[k % len(azs)]))
         pp_tw = phis(tw[1], tw[2], tw[3])
-        tw_score = tw[0] if float(np.sum(mag * np.cos(2.0 * (pp_tw - pp_best)))) < 0 else float(grid.ravel()[k])
+        is_twin = float(np.sum(mag * np.cos(2.0 * (pp_tw - pp_best)))) < 0
+        tw_score = tw[0] if is_twin else float(grid.ravel()[k])
         twin_ratio = max(tw_score, float(grid.ravel()[k])) / best[0]
+        twin = tw if (is_twin and tw[0] >= float(grid.ravel()[k])) else (float(grid.ravel()[k]), float(tilts[k // len(azs)]), float(azs[k % len(azs)]), fov0)
+    else:
+        twin = None
     z = best[0] / math.sqrt(0.5 * max(float(q.sum()), 1e-300))
-    return {"tilt": best[1], "azimuth": best[2], "fov_deg": best[3], "score": best[0], "z": z, "alignment": best[0] / tot, "twin_ratio": twin_ratio}
+    out = {"tilt": best[1], "azimuth": best[2], "fov_deg": best[3], "score": best[0], "z": z, "alignment": best[0] / tot, "twin_ratio": twin_ratio}
+    if twin is not None:
+        out.update({"twin_tilt": twin[1], "twin_azimuth": twin[2], "twin_fov_deg": twin[3], "twin_score": twin[0]})
+    return out
 
 
 def _sep(t1, a1, t2, a2) -> float:
@@ -366,8 +393,263 @@ def _sep(t1, a1, t2, a2) -> float:
     return math.acos(max(-1.0, min(1.0, float(v1 @ v2))))
 
 
+# --------------------------------------------------------------------------- the polarization cone
+CONE_N_GRID = (1.4, 1.45, 1.5, 1.55, 1.6, 1.65, 1.7)
+"""Indices tried by the cone test (common glasses); the index that explains the data best is reported."""
+
+CONE_MODELS = ("single", "thin_slab")
+"""Pane models told apart by the cone (``thick_slab`` has the same reflectances as ``thin_slab`` without absorption)."""
+
+GLASS_SLACK = 3.0
+"""Noise standard deviations of slack per aggregate in the glass (index / model) fit (:func:`cone_violation`)."""
+
+CONE_SCALES = (2, 4, 8)
+"""Block sizes (pixels) of the cone statistics; each also summed over the whole span."""
+
+
+def chunk_harmonics(I: np.ndarray, phi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Harmonic fit (supp. Eq. (1)) on back-to-back chunks of about half a polarizer turn.
+
+    Returns (a0, c), each (C, H, W): the chunk's mean and its complex modulation c = ac + i as.  The
+    modulation along an orientation psi is m = Re(c exp(-2 i psi)); with the pane's phi_perp and
+    paper Eq. (1)-(2), m = B sinc (R - T) / 2 and a0 = ((1 - A) T + A R) / 2 (A, B the mean and half
+    difference of R_perp, R_par), so m / a0 lies in the cone [-DoP_T, DoP_R] x sinc whatever R, T >= 0
+    (:func:`cone_bounds`).  Chunks do not overlap: their noise is independent.
+    """
+    I = np.asarray(I, np.float64)
+    phi = np.asarray(phi, np.float64)
+    step = float(np.median(np.abs(np.diff(phi)))) if phi.size > 1 else math.pi
+    L = max(3, int(math.ceil(math.pi / max(step, 1e-9) - 1e-6)))
+    C = I.shape[0] // L
+    if C < 1:
+        raise ConfigError(f"the cone test needs at least {L} frames (half a polarizer turn); got {I.shape[0]}")
+    Ic = torch.from_numpy(I[: C * L].reshape(C, L, *I.shape[1:]))
+    Pc = torch.from_numpy(phi[: C * L].reshape(C, L))
+    a0, ac, as_ = (t.numpy() for t in harmonic_fit(Ic, Pc))  # supp. Eq. (1)
+    return a0, ac + 1j * as_
+
+
+def cone_bounds(theta: np.ndarray, n: float, model: str, span_factor: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+    """(lo, hi) = (-DoP_T, DoP_R) x span_factor at incidence theta: the range of m / a0 for any R, T >= 0.
+
+    DoP_R = (R_perp - R_par) / (R_perp + R_par) (T black), DoP_T = (R_perp - R_par) / (2 - R_perp - R_par)
+    (R black; paper Eq. (1) transmits 1 - zeta).
+    """
+    from polphysics.fresnel import pane_coefficients
+
+    co = pane_coefficients(theta, n, model=model)
+    A = 0.5 * (co["R_perp"] + co["R_par"])
+    B = 0.5 * (co["R_perp"] - co["R_par"])
+    return -span_factor * B / np.maximum(1.0 - A, 1e-9), span_factor * B / np.maximum(A, 1e-12)
+
+
+CONE_SYSTEMATIC = 0.03
+"""Model error of the cone statistics, as a fraction of the aggregate's mean (layers moving within a chunk,
+saturation, the Eq. (1) simplification): added in quadrature to the spike noise."""
+
+
+def cone_aggregates(a0: np.ndarray, c: np.ndarray, phi_perp: np.ndarray, theta: np.ndarray, scales=CONE_SCALES, systematic: float = CONE_SYSTEMATIC) -> list[dict]:
+    """Cone statistics of one pane hypothesis (its phi_perp, theta on the full grid).
+
+    For each block size s: per chunk and over all chunks, the block sums a (of a0), m (modulation along
+    phi_perp) and o (along phi_perp + 45 deg: no signal for the right orientation, the noise probe), and
+    the block-mean theta.  Sums of points of a convex cone stay in the cone, so every aggregate obeys it.
+    The noise variance of m is modelled as kappa * a (spike counts are Poisson), kappa fitted to o per set,
+    plus (systematic * a)^2.
+    """
+    rot = np.exp(-2j * phi_perp)[None]
+    p = c * rot
+    m_px, o_px = p.real, p.imag
+    out = []
+    for s in scales:
+        h, w = a0.shape[-2] // s, a0.shape[-1] // s
+        if h < 1 or w < 1:
+            continue
+        th = _block(theta, s) / (s * s)
+        A, Mm, O = _block(a0, s), _block(m_px, s), _block(o_px, s)
+        for a, m, o, t in ((A, Mm, O, np.broadcast_to(th, A.shape)), (A.sum(0), Mm.sum(0), O.sum(0), th)):
+            a, m, o, t = (np.asarray(x, np.float64).ravel() for x in (a, m, o, t))
+            keep = a > 0
+            a, m, o, t = a[keep], m[keep], o[keep], t[keep]
+            if a.size < 4:
+                continue
+            kappa = float(np.median(o * o / a)) / 0.4549  # median of chi^2_1
+            out.append({"scale": s, "a": a, "m": m, "theta": t, "sigma": np.sqrt(max(kappa, 1e-30) * a + (systematic * a) ** 2)})
+    return out
+
+
+_THETA_TABLE = np.linspace(0.0, 0.5 * math.pi, 1801)
+
+
+def _bounds_table(n: float, model: str, span_factor: float) -> tuple[np.ndarray, np.ndarray]:
+    key = (float(n), model, float(span_factor))
+    tab = _bounds_table.cache.get(key)
+    if tab is None:
+        tab = _bounds_table.cache[key] = cone_bounds(_THETA_TABLE, n, model, span_factor)
+    return tab
+
+
+_bounds_table.cache = {}
+
+
+def cone_violation(aggs: list[dict], n: float, model: str, span_factor: float = 1.0, cap: float = 8.0, slack: float = 0.0) -> float:
+    """Sum over aggregates of the squared cone violation beyond ``slack`` noise standard deviations (each capped at
+    ``cap``), mean over sets.  A slack keeps data sitting on the edge (a layer black there) from adding half-normal
+    noise terms that grow with their number (the glass fit uses 3: the true glass then scores about 0 however much
+    of the view is on the edge; the family test uses 0, measured on the stress groups, docs/selfcal.md)."""
+    tlo, thi = _bounds_table(n, model, span_factor)
+    tot = []
+    for g in aggs:
+        lo, hi = np.interp(g["theta"], _THETA_TABLE, tlo), np.interp(g["theta"], _THETA_TABLE, thi)
+        v = np.maximum(np.maximum(g["m"] - hi * g["a"], lo * g["a"] - g["m"]) / g["sigma"] - slack, 0.0)
+        tot.append(float(np.sum(np.minimum(v, cap) ** 2)))
+    return float(np.mean(tot)) if tot else 0.0
+
+
+def glass_scores(aggs: list[dict], span_factor: float = 1.0, models=CONE_MODELS, n_grid=CONE_N_GRID, slack: float = 0.0) -> dict:
+    """{(model, n): cone violation} over the glass grid."""
+    return {(mo, float(n)): cone_violation(aggs, n, mo, span_factor, slack=slack) for mo in models for n in n_grid}
+
+
+def _hypothesis_maps(W: int, H: int, tilt: float, az: float, fov: float) -> tuple[np.ndarray, np.ndarray]:
+    from polphysics.geometry import Plane, incidence_geometry
+
+    cam = camera_for(W, H, fov)
+    g = incidence_geometry(cam, Plane(cam.position + cam.forward, normal_from_angles(tilt, az, cam)))
+    return g["phi_perp"], g["theta"]
+
+
+def fit_glass(scores: dict, prior_n: float, prior_model: str, margin: float) -> dict:
+    """Pane model and index from the cone scores (:func:`glass_scores`) of the chosen geometry.
+
+    The model is claimed when its best index beats every other model's best by ``margin``; else
+    ``prior_model``.  The index is claimed when the indices within ``margin`` of the model's best form a
+    range inside the grid (reaching neither end: the data bound it from both sides); else ``prior_n``
+    (moved into that range when outside it).
+    """
+    models = sorted({k[0] for k in scores})
+    best_by_model = {mo: min(v for k, v in scores.items() if k[0] == mo) for mo in models}
+    order = sorted(models, key=best_by_model.get)
+    model_ok = len(order) > 1 and best_by_model[order[1]] - best_by_model[order[0]] > margin
+    model = order[0] if model_ok else prior_model
+    if model not in models:
+        model = order[0]
+    ns = sorted(k[1] for k in scores if k[0] == model)
+    vm = min(scores[(model, x)] for x in ns)
+    ok_ns = [x for x in ns if scores[(model, x)] <= vm + margin]
+    lo_n, hi_n = min(ok_ns), max(ok_ns)
+    n_ok = lo_n > ns[0] and hi_n < ns[-1]  # an interval inside the grid: the data reach the cone's edge from both sides
+    n = float(min(ok_ns, key=lambda x: scores[(model, x)])) if n_ok else float(prior_n)
+    if not n_ok and not (lo_n <= n <= hi_n):
+        n = lo_n if n < lo_n else hi_n
+    return {
+        "model": model, "model_identified": bool(model_ok), "n": n, "n_identified": bool(n_ok), "n_range": [lo_n, hi_n],
+        "scores_by_model": best_by_model,
+    }
+
+
+def valley_candidates(s4: np.ndarray, width_blocks: int, height_blocks: int, seeds: list[tuple[float, float, float]], fov_deg: float | None,
+                      tilt_step_deg: float = 2.0, keep_ratio: float = 0.97) -> list[dict]:
+    """Panes the orientation field cannot tell apart: for each seed (tilt, azimuth, fov) and every tilt on a
+    ``tilt_step_deg`` grid, the azimuth (and the field of view when not given) that best explain the field
+    (matched statistic of :func:`fit_normal`), kept when they score at least ``keep_ratio`` of the best.
+
+    Narrow views of glancing panes leave a valley of near-equal scores along the tilt and a 90 deg twin
+    family; the cone test (:func:`cone_violation`) chooses among them.
+    """
+    from scipy.optimize import least_squares
+
+    mag = np.abs(s4).ravel()
+    ang4 = np.angle(s4).ravel()
+    tot = float(mag.sum())
+    if tot <= 0:
+        return []
+    sw = np.sqrt(2.0 * mag / tot)
+
+    def phis(tilt, az, fov):
+        cam = camera_for(width_blocks, height_blocks, fov)
+        return _phi_perp_grid(cam, normal_from_angles(tilt, az, cam)).ravel()
+
+    out = []
+    for fam, (t_seed, a_seed, f_seed) in enumerate(seeds):
+        for t in np.deg2rad(np.arange(tilt_step_deg, 89.9, tilt_step_deg)):
+            if fov_deg:
+                fun = lambda x: sw * np.sin(0.5 * (ang4 - 4.0 * phis(t, x[0], fov_deg)))  # noqa: E731
+                r = least_squares(fun, [a_seed], bounds=([a_seed - math.pi / 2], [a_seed + math.pi / 2]), x_scale=[0.1])
+                az, fv = float(r.x[0]), float(fov_deg)
+            else:
+                fun = lambda x: sw * np.sin(0.5 * (ang4 - 4.0 * phis(t, x[0], x[1])))  # noqa: E731
+                r = least_squares(fun, [a_seed, f_seed], bounds=([a_seed - math.pi / 2, 5.0], [a_seed + math.pi / 2, 150.0]), x_scale=[0.1, 10.0])
+                az, fv = float(r.x[0]), float(r.x[1])
+            sc = float(np.sum(mag * np.cos(ang4 - 4.0 * phis(t, az, fv))))
+            out.append({"tilt": float(t), "azimuth": az % (2 * math.pi), "fov_deg": fv, "score": sc, "family": fam})
+    best = max([c["score"] for c in out], default=0.0)
+    return [c for c in out if c["score"] >= keep_ratio * best]
+
+
+def modulating_fraction(s4_px: np.ndarray, q_px: np.ndarray, phi_perp: np.ndarray, block: int = 1, sigmas: float = 3.0) -> float:
+    """Share of pixels (or ``block`` x ``block`` blocks) whose modulation is above the spike noise.
+
+    The coherent sum of z^4 (:func:`orientation_field`) projected on the pane's 4 phi_perp, in noise standard
+    deviations (variance kappa q, kappa calibrated on the projection at 4 phi_perp + 90 deg, which carries no
+    pane signal), is compared with +-``sigmas``: pure noise is symmetric, so the share above +sigmas minus the
+    share below -sigmas estimates the modulating share.
+    """
+    r = s4_px * np.exp(-4j * phi_perp)
+    p, o, q = r.real, r.imag, q_px
+    if block > 1:
+        p, o, q = _block(p, block), _block(o, block), _block(q, block)
+    q = np.maximum(q, 1e-300)
+    kappa = float(np.median(o * o / q)) / 0.4549  # the orthogonal part carries no pane signal: it calibrates the noise scale
+    z = p / np.sqrt(max(kappa, 1e-300) * q)
+    return float(max(0.0, np.mean(z > sigmas) - np.mean(z < -sigmas)))
+
+
+def _resolve_by_cone(I, phi, f, fit, W, H, fov_given, cfg) -> dict:
+    """Choose among the panes the orientation field cannot tell apart (the tilt valley and the 90 deg twin
+    family of a narrow view) by the polarization cone: the one whose DoP bounds hold the data.
+
+    Returns a dict with ``resolved`` (bool), the chosen ``tilt``, ``azimuth``, ``fov_deg``, the best cone
+    violation of each family (``v_family``), ``chosen_family`` (0 = the orientation optimum's) and the
+    aggregates of the chosen pane (``aggs``) for the glass fit.
+    """
+    h, w = f["psi"].shape
+    seeds = [(fit["tilt"], fit["azimuth"], fit["fov_deg"])]
+    if "twin_tilt" in fit:
+        seeds.append((fit["twin_tilt"], fit["twin_azimuth"], fit["twin_fov_deg"]))
+    cands = valley_candidates(f["s4"], w, h, seeds, fov_given, keep_ratio=cfg.valley_ratio)
+    cands += [{"tilt": t, "azimuth": a, "fov_deg": fv, "score": sc, "family": k}
+              for k, (t, a, fv, sc) in enumerate([(fit["tilt"], fit["azimuth"], fit["fov_deg"], fit["score"])]
+                                                 + ([(fit["twin_tilt"], fit["twin_azimuth"], fit["twin_fov_deg"], fit["twin_score"])] if "twin_tilt" in fit else []))]
+    a0, c = chunk_harmonics(I, phi)
+    sf = _span_factor_of(phi)
+    pp_best = _hypothesis_maps(W, H, fit["tilt"], fit["azimuth"], fit["fov_deg"])[0]
+    for cd in cands:
+        pp, th = _hypothesis_maps(W, H, cd["tilt"], cd["azimuth"], cd["fov_deg"])
+        cd["family"] = 0 if float(np.mean(np.cos(2.0 * (pp - pp_best)))) > 0 else 1  # by the field, not by the seed
+        cd["aggs"] = cone_aggregates(a0, c, pp, th)
+        cd["V"] = min(glass_scores(cd["aggs"], sf).values())
+    v_fam = {k: min((cd["V"] for cd in cands if cd["family"] == k), default=float("inf")) for k in (0, 1)}
+    fam = 0 if v_fam[0] <= v_fam[1] else 1
+    other = v_fam[1 - fam]
+    resolved = other - v_fam[fam] > cfg.cone_margin and other >= cfg.cone_ratio * v_fam[fam]
+    ok = [cd for cd in cands if cd["family"] == fam and cd["V"] <= v_fam[fam] + cfg.cone_margin]
+    pick = max(ok, key=lambda cd: cd["score"])  # within the family: the cone-consistent pane the orientation field prefers
+    return {"resolved": bool(resolved), "tilt": pick["tilt"], "azimuth": pick["azimuth"], "fov_deg": pick["fov_deg"], "score": pick["score"],
+            "v_family": [v_fam[0], v_fam[1]], "chosen_family": fam, "candidates": len(cands), "aggs": pick["aggs"],
+            "tilt_range_deg": [math.degrees(min(cd["tilt"] for cd in ok)), math.degrees(max(cd["tilt"] for cd in ok))]}
+
+
+def _span_factor_of(phi: np.ndarray) -> float:
+    """Modulation kept by a window's own sweep: sinc of the polarizer step between frames when they are back-to-back
+    windows (step under 0.25 rad, about 14 deg); 1 otherwise (strided frames: the sweep is unknown, 1 is the wider cone)."""
+    step = float(np.median(np.abs(np.diff(np.asarray(phi, np.float64))))) if np.size(phi) > 1 else 0.0
+    return 1.0 if step <= 0 or step > 0.25 else math.sin(step) / step
+
+
 def self_calibrate(I: np.ndarray, phi: np.ndarray, cfg: SelfCalConfig = SelfCalConfig(), *, frames_per_s: float | None = None, name: str = "stream") -> SelfCalResult:
-    """Estimate the pane (normal, field of view) from a stream's frames and build its pane maps.
+    """Estimate the pane (normal, field of view, and where the data constrain them index and pane model)
+    from a stream's frames and build its pane maps.
 
     Args:
         I: (M, H, W) Eq. (3) frames in radiance units, consecutive (the first ``cfg.span_s`` are used).
@@ -377,7 +659,10 @@ def self_calibrate(I: np.ndarray, phi: np.ndarray, cfg: SelfCalConfig = SelfCalC
         name: for the log.
 
     Returns:
-        :class:`SelfCalResult`; ``ok = False`` (with a logged warning) where nothing modulates.
+        :class:`SelfCalResult`; ``ok = False`` (with a logged warning) where nothing modulates or the
+        geometry stays ambiguous.  ``diagnostics`` carries ``modulating_px`` / ``modulating_blocks``
+        (share of pixels / 4 x 4 blocks modulating above noise, :func:`modulating_fraction`), ``cone``
+        (the 90 deg / tilt-valley resolution, when needed) and ``glass`` (the index / model fit).
     """
     I = np.asarray(I)
     if I.ndim != 3:
@@ -395,26 +680,51 @@ def self_calibrate(I: np.ndarray, phi: np.ndarray, cfg: SelfCalConfig = SelfCalC
     fov_given = cfg.fov_deg if cfg.fov_deg > 0 else None
     fit = fit_normal(f["s4"], f["q"], w, h, fov_given, cfg.fov_init_deg)
     diag.update({"z": fit["z"], "alignment": fit["alignment"]})
-    # weighted median orientation residual over the coherent blocks (a report, not a gate)
-    res_deg = None
-    if mask.any():
+
+    def modulation(tilt, az, fov):
+        pp = _hypothesis_maps(W, H, tilt, az, fov)[0]
+        diag["modulating_px"] = modulating_fraction(f["s4_px"], f["q_px"], pp, 1)
+        diag["modulating_blocks"] = modulating_fraction(f["s4_px"], f["q_px"], pp, 4)
+
+    modulation(fit["tilt"], fit["azimuth"], fit["fov_deg"])
+
+    def residual():
+        # weighted median orientation residual over the coherent blocks (a report, not a gate)
+        if not mask.any():
+            return None
         cam_b = camera_for(w, h, fit["fov_deg"])
         d = f["psi"] - _phi_perp_grid(cam_b, normal_from_angles(fit["tilt"], fit["azimuth"], cam_b))
         d = np.abs(np.mod(d + math.pi / 4, math.pi / 2) - math.pi / 4)[mask]
         wv = np.abs(f["s4"])[mask]
         o = np.argsort(d)
         cw = np.cumsum(wv[o])
-        res_deg = float(np.degrees(d[o][min(len(o) - 1, int(np.searchsorted(cw, 0.5 * cw[-1])))]))
+        return float(np.degrees(d[o][min(len(o) - 1, int(np.searchsorted(cw, 0.5 * cw[-1])))]))
+
+    res_deg = residual()
+    auto = cfg.model == "auto"
 
     def fail(reason):
         log.warning("self-calibrated zeta for %s: %s; falling back to the learned zeta", name, reason)
-        return SelfCalResult(False, reason, None, None, None, None, float(fit["fov_deg"]), False, cfg.n, cfg.model, None, None, frac, res_deg, fit["twin_ratio"], diag)
+        return SelfCalResult(False, reason, None, None, None, None, float(fit["fov_deg"]), False, cfg.n, cfg.prior_model if auto else cfg.model, None, None, frac, res_deg, fit["twin_ratio"], diag)
 
     if not fit["z"] >= cfg.z_min:
-        return fail(f"nothing modulates: the best planar pane explains the polarization orientation only {fit['z']:.1f} noise sigmas above chance (need {cfg.z_min:g}); no reflection, R = T, or near-normal incidence")
+        return fail(f"nothing modulates: the best planar pane explains the polarization orientation only {fit['z']:.1f} noise sigmas above chance (need {cfg.z_min:g}; "
+                    f"{100 * diag['modulating_px']:.1f} % of pixels modulate above noise); no reflection, R = T, or near-normal incidence")
+    aggs = None
     if fit["twin_ratio"] > cfg.max_twin_ratio:
-        return fail(f"ambiguous: a pane with phi_perp turned by 90 deg explains the orientation field {100 * fit['twin_ratio']:.1f} % as well "
-                    f"(modulo 90 deg only the field's curvature separates them: narrow field of view or glancing pane)")
+        # the orientation field cannot separate the pane from its 90 deg twin (nor pin the tilt of a narrow view):
+        # the DoP must stay inside the cone [-DoP_T(theta), DoP_R(theta)] (R, T >= 0), which the wrong family breaks
+        cone = _resolve_by_cone(I[:m], np.asarray(phi)[:m], f, fit, W, H, fov_given, cfg)
+        aggs = cone.pop("aggs")
+        diag["cone"] = cone
+        if not cone["resolved"]:
+            return fail(f"ambiguous: a pane with phi_perp turned by 90 deg explains the orientation field {100 * fit['twin_ratio']:.1f} % as well "
+                        f"(narrow field of view or glancing pane), and both keep the DoP inside the Fresnel cone (violations {cone['v_family'][0]:.1f} / "
+                        f"{cone['v_family'][1]:.1f}, need the other family {cfg.cone_margin:g} above and {cfg.cone_ratio:g} times the chosen one): "
+                        f"no part of the view shows the reflection dominating beyond DoP_T, or neither family fits")
+        fit = {**fit, "tilt": cone["tilt"], "azimuth": cone["azimuth"], "fov_deg": cone["fov_deg"]}
+        modulation(fit["tilt"], fit["azimuth"], fit["fov_deg"])
+        res_deg = residual()
     tilt_deg = math.degrees(fit["tilt"])
     if tilt_deg < cfg.min_tilt_deg:
         return fail(f"near-normal incidence (fitted tilt {tilt_deg:.1f} deg): no usable modulation")
@@ -423,23 +733,40 @@ def self_calibrate(I: np.ndarray, phi: np.ndarray, cfg: SelfCalConfig = SelfCalC
     cam = camera_for(W, H, fit["fov_deg"])
     N = normal_from_angles(fit["tilt"], fit["azimuth"], cam)
     plane = Plane(cam.position + cam.forward, N)
-    maps = pane_maps_from_geometry(cam, plane, cfg.n, model=cfg.model)
-    theta = incidence_geometry(cam, plane)["theta"]
+    geo = incidence_geometry(cam, plane)
+    theta = geo["theta"]
+    n_used, model_used = cfg.n, cfg.model
+    if auto:
+        if aggs is None:
+            a0, c = chunk_harmonics(I[:m], np.asarray(phi)[:m])
+            aggs = cone_aggregates(a0, c, geo["phi_perp"], theta)
+        gl = fit_glass(glass_scores(aggs, _span_factor_of(np.asarray(phi)[:m]), slack=GLASS_SLACK), cfg.n, cfg.prior_model, cfg.cone_margin)
+        n_used, model_used = gl["n"], gl["model"]
+        gl["scores_by_model"] = {k: float(v) for k, v in gl["scores_by_model"].items()}
+        gl["why"] = (("model from the cone" if gl["model_identified"] else f"model not identified (no cone edge separates single from slab): assumed {cfg.prior_model}")
+                     + "; " + (f"index from the cone (range {gl['n_range'][0]:g}-{gl['n_range'][1]:g})" if gl["n_identified"]
+                               else f"index not identified (the data fit {gl['n_range'][0]:g}-{gl['n_range'][1]:g}): {n_used:g}"))
+        diag["glass"] = gl
+    maps = pane_maps_from_geometry(cam, plane, n_used, model=model_used)
     vp = None
     if float(N @ cam.forward) > 1e-6:
         x, y = cam.project(cam.position + N)
         vp = (float(x), float(y))
     res = SelfCalResult(
-        True, "", N, tilt_deg, math.degrees(fit["azimuth"]), vp, float(fit["fov_deg"]), fov_given is None, cfg.n, cfg.model, maps, theta, frac,
+        True, "", N, tilt_deg, math.degrees(fit["azimuth"]) % 360.0, vp, float(fit["fov_deg"]), fov_given is None, n_used, model_used, maps, theta, frac,
         res_deg, fit["twin_ratio"], diag,
     )
-    log.info("self-calibrated pane for %s: tilt %.1f deg, azimuth %.1f deg, fov %.1f deg%s, z %.1f, %.0f %% of blocks coherent",
-             name, tilt_deg, res.azimuth_deg, res.fov_deg, " (fitted)" if res.fov_fitted else "", fit["z"], 100 * frac)
+    log.info("self-calibrated pane for %s: tilt %.1f deg, azimuth %.1f deg, fov %.1f deg%s, z %.1f, %.0f %% of pixels modulating, %s n %.2f%s",
+             name, tilt_deg, res.azimuth_deg, res.fov_deg, " (fitted)" if res.fov_fitted else "", fit["z"], 100 * diag["modulating_px"], model_used, n_used,
+             " (90 deg twin resolved by the cone)" if "cone" in diag else "")
     return res
 
 
-def group_self_zeta(group, n: float = 1.5, model: str = "single", cfg: SelfCalConfig | None = None) -> np.ndarray | None:
+def group_self_zeta(group, n: float | None = None, model: str | None = None, cfg: SelfCalConfig | None = None) -> np.ndarray | None:
     """The ``self`` zeta source for an evaluation group: zeta (M, H, W) at the group's nominal angles, or None.
+
+    ``n`` / ``model`` given: that index and pane model; None: ``cfg``'s (default: fitted from the DoP's cone
+    where the data constrain them, else thin slab, n = 1.5).
 
     The field of view is the group's (``group.fov_deg``, from its scene) when recorded, else fitted.
     A group loaded from a store (``group.source_dir``) is calibrated on every spike of its first
@@ -449,7 +776,7 @@ def group_self_zeta(group, n: float = 1.5, model: str = "single", cfg: SelfCalCo
     """
     base = cfg or SelfCalConfig()
     fov = getattr(group, "fov_deg", None)
-    c = dataclasses.replace(base, n=float(n), model=model, fov_deg=float(fov) if (fov and not base.fov_deg) else base.fov_deg)
+    c = dataclasses.replace(base, n=float(n) if n is not None else base.n, model=model or base.model, fov_deg=float(fov) if (fov and not base.fov_deg) else base.fov_deg)
     src_dir = getattr(group, "source_dir", None)
     if src_dir and (Path(src_dir) / "spikes.h5").is_file():
         # a stored group: every spike of the first span_s (back-to-back windows), not only the strided output frames
