@@ -70,6 +70,9 @@ class CalibratePaneConfig:
     max_edge_noise: float = opt(0.03, "a block's extreme modulation ratio counts towards n / the model only when its noise is at most this", lo=0.0, hi=1.0)
     model_delta_chi2: float = opt(9.0, "the better pane model must win by this much chi^2 to be claimed", lo=0.0, hi=1e6)
     sub: int = opt(2, "rays per pixel axis of the written maps (as the maps tier)", lo=1, hi=4)
+    dop_fov: bool = opt(False, "experimental (off: on eval_paper it moved test_004 0.4 deg off, see docs/calibrate_pane.md): where the modulation depths reach the cone's edge, profile the fov-tilt valley of the orientation fit with the cone's theta dependence")
+    dop_fov_delta_chi2: float = opt(25.0, "the modulation depth pins the fov only when the cone violations at both ends of the profiled valley exceed its minimum by this much", lo=0.0, hi=1e9)
+    twin_delta_chi2: float = opt(25.0, "an orientation field that cannot tell the pane from its 90 deg twin is resolved by the modulation depth only when one candidate's cone is violated by this much chi^2 less", lo=0.0, hi=1e9)
 
 
 # --------------------------------------------------------------------------- helpers
@@ -100,8 +103,16 @@ def _wmedian(v: np.ndarray, w: np.ndarray) -> float:
 
 
 # --------------------------------------------------------------------------- geometry
-def fit_geometry(of: dict, width: int, height: int, block: int, x0: np.ndarray, fit_fov: bool, coherence_sigmas: float = 4.0) -> dict:
-    """Gauss-Newton of (tilt, azimuth[, fov]) on the block orientation field (module docstring, step 3)."""
+def fit_geometry(of: dict, width: int, height: int, block: int, x0: np.ndarray, fit_fov: bool, coherence_sigmas: float = 4.0, weighting: str = "snr2",
+                 fov_starts: tuple[float, ...] = (25.0, 40.0, 55.0, 70.0), rounds: int = 0) -> dict:
+    """Gauss-Newton of (tilt, azimuth[, fov]) on the block orientation field (module docstring, step 3).
+
+    ``weighting``: ``snr2`` (default) weighs each block by its information about the angle,
+    |sum z4|^2 / q (the inverse variance of psi_b: 1 / Var psi_b is proportional to the squared
+    signal-to-noise ratio of s4), so that the weak second-order curvature of the field, the only thing
+    in it that separates the field of view from the tilt, is read where it is measured precisely;
+    ``s4`` weighs by |sum z4| (the matched-filter weight of the self-calibration).
+    ``fov_starts``: extra starts (degrees) of a fitted field of view; ``rounds``: robust re-weighting rounds."""
     from generator.pane_fit import PaneModelAD, gauss_newton
 
     s4, q = of["s4"], of["q"]
@@ -112,6 +123,10 @@ def fit_geometry(of: dict, width: int, height: int, block: int, x0: np.ndarray, 
     if mask.sum() < 4:
         raise ConfigError(f"only {int(mask.sum())} blocks carry any modulation: too few to fit the pane geometry (need 4)")
     w = np.abs(s4)[mask]
+    if weighting not in ("snr2", "s4"):
+        raise ConfigError(f"unknown geometry weighting {weighting!r}; use snr2 or s4")
+    if weighting == "snr2":
+        w = (np.abs(s4) ** 2 / np.maximum(q, 1e-300))[mask]
     w = w / w.sum() * w.size  # mean weight 1
     sw = np.sqrt(w)
     psi = of["psi"][mask]
@@ -133,13 +148,12 @@ def fit_geometry(of: dict, width: int, height: int, block: int, x0: np.ndarray, 
         Jr = -(su * np.cos(2 * d))[:, None] * J["phi_perp"][:, mask].T
         return r, Jr, _wrap90(d)
 
-    def _robust_gn(f, xs0, lb_, ub_, rounds: int = 0):
-        rounds = rounds or _ROUNDS
+    def _robust_gn(f, xs0, lb_, ub_):
         """Cauchy-weighted IRLS around Gauss-Newton: blocks whose orientation the planar model does not
         explain (moving content, a second reflector) lose weight; the self-calibration is robust likewise."""
         u = np.ones(psi.size)
         xs = xs0
-        for _ in range(rounds):
+        for _ in range(rounds or _ROUNDS):
             res = gauss_newton(lambda z: f(z, u)[:2], xs, lb_, ub_, max_iter=40)
             xs = res.x
             d = np.abs(f(xs, u)[2])
@@ -155,7 +169,7 @@ def fit_geometry(of: dict, width: int, height: int, block: int, x0: np.ndarray, 
     # since tilt and fov trade off along a shallow valley of the orientation cost
     starts = [x_full[list(wrt)]]
     if fit_fov:
-        starts += [np.array([x0[0], x0[1], math.radians(f)]) for f in (25.0, 40.0, 55.0, 70.0) if abs(math.radians(f) - x0[2]) > math.radians(7.0)]
+        starts += [np.array([x0[0], x0[1], math.radians(f)]) for f in fov_starts if abs(math.radians(f) - x0[2]) > math.radians(7.0)]
     best, tried = None, []
     for xs0 in starts:
         res = _robust_gn(fun_w, np.clip(xs0, lb, ub), lb, ub)
@@ -189,7 +203,7 @@ def fit_geometry(of: dict, width: int, height: int, block: int, x0: np.ndarray, 
     return {
         "x": x, "sigma": full_sig, "cov": cov, "wrt": wrt, "mask": mask, "coherent": coherent, "starts": tried,
         "residual_lag1_correlation": rho, "covariance_inflation": inflate, "residual_deg_blocks": d, "history": res.history,
-        "converged": res.converged, "chi2": res.chi2, "dof": res.dof, "seconds": time.perf_counter() - t0,
+        "converged": res.converged, "chi2": res.chi2, "dof": res.dof, "seconds": time.perf_counter() - t0, "score": float(best[0]),
         "residual_deg_median": _wmedian(d[mask], np.abs(s4)[mask]), "sigma_theta_deg_max": float(np.degrees(sig_theta[mask].max())),
         "sigma_phi_perp_deg_max": float(np.degrees(sig_phi[mask].max())), "sigma_theta_deg_median": float(np.degrees(np.median(sig_theta[mask]))),
         "sigma_phi_perp_deg_median": float(np.degrees(np.median(sig_phi[mask]))),
@@ -317,6 +331,122 @@ def fit_glass(st: dict, width: int, height: int, block: int, x_geo: np.ndarray, 
     return out
 
 
+# --------------------------------------------------------------------------- fov from the modulation depth
+def _sigma_maps(geo: dict, pm, cov: np.ndarray, wrt: tuple[int, ...]) -> dict:
+    """theta / phi_perp 1-sigma on the block grid for covariance ``cov`` of the parameters ``wrt``."""
+    _, J = pm.maps_and_jacobian(geo["x"], wrt)
+    mask = geo["mask"]
+    st_ = np.sqrt(np.maximum(np.einsum("ihw,ij,jhw->hw", J["theta"], cov, J["theta"]), 0.0))[mask]
+    sp_ = np.sqrt(np.maximum(np.einsum("ihw,ij,jhw->hw", J["phi_perp"], cov, J["phi_perp"]), 0.0))[mask]
+    return {"sigma_theta_deg_max": float(np.degrees(st_.max())), "sigma_theta_deg_median": float(np.degrees(np.median(st_))),
+            "sigma_phi_perp_deg_max": float(np.degrees(sp_.max())), "sigma_phi_perp_deg_median": float(np.degrees(np.median(sp_)))}
+
+
+def dop_fov_profile(of: dict, st: dict, width: int, height: int, block: int, gblock: int, geo: dict, model: str, fixed_n: float | None,
+                    cfg: CalibratePaneConfig, rel: tuple[float, float] = (0.85, 1.15), points: int = 9) -> dict:
+    """Profile the fov-tilt valley of the orientation fit with the modulation depth's theta dependence.
+
+    The orientation field pins the vanishing point of the normal, f tan(tilt), well and the focal length f
+    only through the field's weak curvature, so (fov, tilt) slide along a shallow valley.  theta(p) moves
+    along it, and with it the cone [-DoP_T(theta), DoP_R(theta)] that the modulation depths must stay in.
+    At each fov of a grid the orientation is refitted (tilt, azimuth) and the cone's violation chi^2 taken
+    at its best index; the sum of the orientation's chi^2 (scaled to a reduced chi^2 of 1 and deflated for
+    the blocks' correlation) and the violation chi^2 is minimised.  Used only where it is informative: the
+    minimum inside the grid and the violations at both ends at least ``dop_fov_delta_chi2`` above it.
+    Returns the profile and, when used, the geometry at the minimum with a 3 x 3 covariance (the fov's
+    variance from the profile's curvature, carried along the valley)."""
+    from generator.pane_fit import PaneModelAD
+
+    f0 = float(geo["x"][2])
+    fovs = f0 * np.linspace(rel[0], rel[1], points)
+    fovs = fovs[(fovs > math.radians(5.5)) & (fovs < math.radians(149.0))]
+    rows = []
+    for f in fovs:
+        xs = geo["x"].copy()
+        xs[2] = f
+        g = fit_geometry(of, width, height, block, xs, fit_fov=False, fov_starts=(), rounds=1)
+        gg = fit_glass(st, width, height, gblock, g["x"], (model,), fixed_n, cfg)
+        rows.append((float(f), float(g["chi2"]), float(gg["models"][model]["violation_chi2"]), float(gg["models"][model]["n"]), g))
+    o = np.array([r[1] for r in rows])
+    dof = max(1, int(geo["mask"].sum()) - 2)
+    o_chi2 = (o - o.min()) / max(o.min() / dof, 1e-300) / max(float(geo["covariance_inflation"]), 1.0)
+    v = np.array([r[2] for r in rows])
+    tot = o_chi2 + v
+    i = int(np.argmin(tot))
+    prof = {"fov_deg": [math.degrees(r[0]) for r in rows], "tilt_deg": [math.degrees(r[4]["x"][0]) for r in rows], "orientation_chi2": o_chi2.tolist(),
+            "violation_chi2": v.tolist(), "n": [r[3] for r in rows], "used": False}
+    if not (0 < i < len(rows) - 1 and min(v[0], v[-1]) - v[i] >= cfg.dop_fov_delta_chi2):
+        prof["why"] = "the modulation depths do not pin the fov along the orientation's valley (no interior minimum of the cone's violations)"
+        return prof
+    # the violations are a one-sided (hinge) loss, not a parabola: refine the minimum between the neighbours
+    # by a bounded scalar search; its 1-sigma: the delta-chi^2 = 1 half-width of the profile's local
+    # curvature, never below half a grid step (the cone edge is read from block extremes, not a likelihood)
+    from scipy.optimize import minimize_scalar
+
+    F = np.array([rows[j][0] for j in (i - 1, i, i + 1)])
+
+    def total(f):
+        xs_ = rows[i][4]["x"].copy()
+        xs_[2] = f
+        g_ = fit_geometry(of, width, height, block, xs_, fit_fov=False, fov_starts=(), rounds=1)
+        v_ = fit_glass(st, width, height, gblock, g_["x"], (model,), fixed_n, cfg)["models"][model]["violation_chi2"]
+        return (g_["chi2"] - o.min()) / max(o.min() / dof, 1e-300) / max(float(geo["covariance_inflation"]), 1.0) + v_
+
+    opt_ = minimize_scalar(total, bounds=(float(F[0]), float(F[2])), method="bounded", options={"xatol": math.radians(0.05), "maxiter": 12})
+    f_hat = float(opt_.x)
+    a = np.polyfit(F, tot[i - 1:i + 2], 2)[0]
+    s_f = max(float(math.sqrt(1.0 / a)) if a > 0 else float(F[2] - F[0]), 0.5 * float(F[1] - F[0]))
+    xs = rows[i][4]["x"].copy()
+    xs[2] = f_hat
+    g = fit_geometry(of, width, height, block, xs, fit_fov=False, fov_starts=(), rounds=0)
+    # slope of (tilt, azimuth) along the valley: the fov's uncertainty carried into them
+    T = np.array([r[4]["x"][0] for r in rows[i - 1:i + 2]])
+    A = np.array([r[4]["x"][1] for r in rows[i - 1:i + 2]])
+    dv = np.array([np.polyfit(F, T, 1)[0], np.polyfit(F, A, 1)[0], 1.0])
+    cov3 = np.zeros((3, 3))
+    cov3[:2, :2] = g["cov"]
+    cov3 += s_f**2 * np.outer(dv, dv)
+    sig = np.sqrt(np.maximum(np.diag(cov3), 0.0))
+    g.update({"cov": cov3, "wrt": (0, 1, 2), "sigma": np.concatenate([sig, [0.0]]), "corr": (cov3 / np.outer(sig, sig)).tolist() if np.all(sig > 0) else None})
+    g.update(_sigma_maps(g, PaneModelAD(width, height, "single", block=block), cov3, (0, 1, 2)))
+    prof.update({"used": True, "fov_fitted_deg": math.degrees(f_hat), "fov_sigma_deg": math.degrees(s_f),
+                 "why": f"the cone's violations and the orientation together are least at fov {math.degrees(f_hat):.2f} +- {math.degrees(s_f):.2f} deg "
+                        f"(violation chi^2 {v[i]:.1f} there, {v[0]:.1f} / {v[-1]:.1f} at the ends of the profile)"})
+    return {**prof, "geo": g}
+
+
+# --------------------------------------------------------------------------- the 90 deg twin
+def find_twin(of: dict, width: int, height: int, block: int, x_best: np.ndarray, fit_fov: bool) -> dict | None:
+    """The best pane whose phi_perp field runs along ``x_best``'s p-directions (its 90 deg twin: modulo 90 deg
+    the two fields agree up to the field's curvature), as a :func:`fit_geometry` result, or None."""
+    from generator.pane_fit import PaneModelAD
+
+    pm = PaneModelAD(width, height, "single", block=block)
+    p1 = pm.maps(x_best)["phi_perp"]
+    w = np.abs(of["s4"])
+    found = None
+    for tl in sorted({float(x_best[0]), math.radians(30.0), math.radians(55.0), math.radians(75.0)}):
+        for da in (0.5 * math.pi, -0.5 * math.pi):
+            xs = np.asarray(x_best, np.float64).copy()
+            xs[0], xs[1] = tl, x_best[1] + da
+            g = fit_geometry(of, width, height, block, xs, fit_fov, fov_starts=(), rounds=1)
+            p = pm.maps(g["x"])["phi_perp"]
+            if float(np.sum(w * np.cos(2.0 * (p - p1)))) < 0 and (found is None or g["score"] < found["score"]):
+                found = g
+    if found is None:
+        return None
+    return fit_geometry(of, width, height, block, found["x"], fit_fov)
+
+
+def _cone_violation(I, phi, x, width, height, gblock, gain, models, fixed_n, cfg) -> tuple[float, dict, dict]:
+    """Least chi^2 of the modulation depths' excursions beyond the cone of pane ``x`` (over the models and n)."""
+    from generator.pane_fit import PaneModelAD
+
+    st = edge_statistics(I, phi, PaneModelAD(width, height, "single", sub=1).maps(x)["phi_perp"], gblock, gain)
+    gl = fit_glass(st, width, height, gblock, x, models, fixed_n, cfg)
+    return min(v["violation_chi2"] for v in gl["models"].values()), st, gl
+
+
 # --------------------------------------------------------------------------- top level
 def _edge_ok(m: dict, cfg: CalibratePaneConfig) -> bool:
     """A real edge: enough precisely measured block extremes pile up on the fitted cone, on both of its
@@ -380,6 +510,13 @@ def calibrate_frames(I: np.ndarray, phi: np.ndarray, cfg: CalibratePaneConfig = 
     t0 = time.perf_counter()
     sc_cfg = SelfCalConfig(span_s=max(cfg.span_s, 0.001), block_px=cfg.block_px, fov_deg=cfg.fov_deg, n=fixed_n or cfg.prior_n, model=forced_model or cfg.prior_model)
     init = self_calibrate(I, phi, sc_cfg, name=name)
+    ambiguous = False
+    if not init.ok and init.reason.startswith("ambiguous") and cfg.twin_delta_chi2 > 0:
+        # the orientation field (mod 90 deg) cannot tell the pane from its 90 deg twin; the modulation depth
+        # can (R and T swap sides of the cone, and DoP_R > DoP_T): take the best, find its twin, let the cone decide
+        init2 = self_calibrate(I, phi, dc.replace(sc_cfg, max_twin_ratio=10.0), name=name)
+        if init2.ok:
+            init, ambiguous = init2, True
     timings["selfcal_s"] = time.perf_counter() - t0
     report: dict = {"input": name, "frames": int(M), "size": [int(W), int(H)], "config": dc.asdict(cfg), "init": init.summary()}
     if not init.ok:
@@ -391,24 +528,81 @@ def calibrate_frames(I: np.ndarray, phi: np.ndarray, cfg: CalibratePaneConfig = 
     t0 = time.perf_counter()
     of = orientation_field(I, phi, block)
     x0 = np.array([math.radians(init.tilt_deg), math.radians(init.azimuth_deg), math.radians(init.fov_deg), fixed_n or cfg.prior_n])
-    geo = fit_geometry(of, W, H, block, x0, fit_fov=cfg.fov_deg <= 0)
+    fit_fov = cfg.fov_deg <= 0
+    geo = fit_geometry(of, W, H, block, x0, fit_fov=fit_fov)
     timings["geometry_s"] = time.perf_counter() - t0
-    x = geo["x"]
-    # glass
-    if progress:
-        progress("glass")
-    t0 = time.perf_counter()
     gblock = cfg.glass_block_px or block
-    pm_full = PaneModelAD(W, H, "single", sub=1)
-    phi_perp = pm_full.maps(x)["phi_perp"]
     gain = math.sin(span_rad) / span_rad if span_rad > 1e-9 else 1.0
-    st = edge_statistics(I, phi, phi_perp, gblock, gain)
     if forced_model:
         models = ("single",) if forced_model == "single" else ("thin_slab",)
     else:
         models = ("single", "thin_slab")
-    gl = fit_glass(st, W, H, gblock, x, models, fixed_n, cfg)
+    pre = None
+    if ambiguous:
+        if progress:
+            progress("90 deg twin")
+        t0 = time.perf_counter()
+        tw = find_twin(of, W, H, block, geo["x"], fit_fov)
+        v_best, st_b, gl_b = _cone_violation(I, phi, geo["x"], W, H, gblock, gain, models, fixed_n, cfg)
+        twin = {"orientation_twin_ratio": init.twin_ratio, "best": {"tilt_deg": math.degrees(geo["x"][0]), "azimuth_deg": math.degrees(geo["x"][1]), "fov_deg": math.degrees(geo["x"][2]), "cone_violation_chi2": v_best}}
+        if tw is not None:
+            v_tw, st_t, gl_t = _cone_violation(I, phi, tw["x"], W, H, gblock, gain, models, fixed_n, cfg)
+            twin["twin"] = {"tilt_deg": math.degrees(tw["x"][0]), "azimuth_deg": math.degrees(tw["x"][1]), "fov_deg": math.degrees(tw["x"][2]), "cone_violation_chi2": v_tw}
+        else:
+            v_tw = float("inf")
+        timings["twin_s"] = time.perf_counter() - t0
+        report["twin"] = twin
+        # a candidate pushed against the bounds (tilt 89.5 deg, fov 5 or 150 deg) is a degenerate view in which
+        # theta hardly varies and any index fits any modulation depth: it cannot win
+        def _at_bound(g):
+            return g["x"][0] >= math.radians(89.0) or (fit_fov and not math.radians(5.5) < g["x"][2] < math.radians(149.0))
+
+        if _at_bound(geo):
+            v_best = float("inf")
+        if tw is not None and _at_bound(tw):
+            v_tw = float("inf")
+        twin["best"]["eligible"] = bool(np.isfinite(v_best))
+        if "twin" in twin:
+            twin["twin"]["eligible"] = bool(np.isfinite(v_tw))
+        if not (abs(v_tw - v_best) >= cfg.twin_delta_chi2):  # also both ineligible (inf - inf = nan)
+            report.update({"ok": False, "reason": f"{init.reason}; the modulation depth does not tell them apart either (cone violation chi^2 {v_best:.1f} vs {v_tw:.1f}, "
+                                                  f"need a difference of {cfg.twin_delta_chi2:g})"})
+            return {"ok": False, "report": report}
+        if v_tw < v_best:
+            geo, pre = tw, (st_t, gl_t)
+            twin["chosen"] = "twin"
+        else:
+            pre = (st_b, gl_b)
+            twin["chosen"] = "best"
+        twin["why"] = (f"modulo 90 deg the orientation field could not tell the two panes apart ({100 * init.twin_ratio:.1f} %); the modulation depths violate "
+                       f"the {twin['chosen']}'s cone [-DoP_T, DoP_R] by chi^2 {min(v_best, v_tw):.1f}, the other's by {max(v_best, v_tw):.1f}")
+    x = geo["x"]
+    if x[0] >= math.radians(89.0) or (fit_fov and not math.radians(5.5) < x[2] < math.radians(149.0)):
+        report.update({"ok": False, "reason": f"the orientation fit ran into its bounds (tilt {math.degrees(x[0]):.1f} deg, fov {math.degrees(x[2]):.1f} deg): "
+                                              "a degenerate view in which theta is not identified (give --fov-deg if it is known)"})
+        return {"ok": False, "report": report}
+    # glass
+    if progress:
+        progress("glass")
+    t0 = time.perf_counter()
+    pm_full = PaneModelAD(W, H, "single", sub=1)
+    if pre is not None:
+        st, gl = pre
+    else:
+        st = edge_statistics(I, phi, pm_full.maps(x)["phi_perp"], gblock, gain)
+        gl = fit_glass(st, W, H, gblock, x, models, fixed_n, cfg)
     sel = _select_glass(gl, cfg, fixed_n, forced_model)
+    prof = None
+    if fit_fov and cfg.dop_fov and gl["models"][sel["model_key"]]["edge_blocks"] >= cfg.min_edge_blocks:
+        # the modulation depths reach the cone's edge somewhere: its theta dependence may pin the fov-tilt valley
+        t1 = time.perf_counter()
+        prof = dop_fov_profile(of, st, W, H, block, gblock, geo, sel["model_key"], fixed_n, cfg)
+        timings["dop_fov_s"] = time.perf_counter() - t1
+        if prof["used"]:
+            geo = prof.pop("geo")
+            x = geo["x"]
+            gl = fit_glass(st, W, H, gblock, x, models, fixed_n, cfg)
+            sel = _select_glass(gl, cfg, fixed_n, forced_model)
     if sel["n"]["identified"]:
         # the index rides on theta: propagate the geometry's covariance (n re-fitted at the geometry moved by
         # one standard deviation along each principal direction) and gate on the total
@@ -452,12 +646,15 @@ def calibrate_frames(I: np.ndarray, phi: np.ndarray, cfg: CalibratePaneConfig = 
         "geometry": {"blocks": [int(v) for v in of["psi"].shape[::-1]], "block_px": block, "fitted_blocks": int(geo["mask"].sum()), "coherent_blocks": int(geo["coherent"].sum()),
                      "orientation_residual_deg_median": geo["residual_deg_median"], "converged": geo["converged"], "iterations": len(geo["history"]) - 1,
                      "init_tilt_deg": init.tilt_deg, "init_azimuth_deg": init.azimuth_deg, "init_fov_deg": init.fov_deg, "starts": geo["starts"],
-                     "residual_lag1_correlation_xy": geo["residual_lag1_correlation"], "covariance_inflation": geo["covariance_inflation"]},
+                     "residual_lag1_correlation_xy": geo["residual_lag1_correlation"], "covariance_inflation": geo["covariance_inflation"],
+                     "dop_fov_profile": prof},
         "glass": {"chunks": st["chunks"], "block_px": gblock, "valid_blocks": int(st["valid"].sum()),
                   "models": {k: {kk: vv for kk, vv in v.items() if kk not in ("dop_R", "dop_T", "grid_n", "grid_loss", "history")} for k, v in gl["models"].items()}},
         "identifiability": {
             "orientation": {"identified": True, "why": "phi_perp(p) (mod 90 deg) from the modulation's orientation pins the normal's tilt and azimuth"},
-            "fov": {"identified": cfg.fov_deg <= 0 or None, "why": "given" if cfg.fov_deg > 0 else "phi_perp's variation across the image pins the focal length, hence theta(p)"},
+            "fov": {"identified": cfg.fov_deg <= 0 or None, "why": "given" if cfg.fov_deg > 0 else (prof["why"] if prof and prof["used"] else
+                     "phi_perp's curvature across the image (a second-order effect: fov and tilt slide along a shallow valley, see the 1-sigma and its correlation)"
+                     + (f"; {prof['why']}" if prof else ""))},
             "n": sel["n"],
             "model": sel["model"],
             "thickness": {"identified": False, "why": "the coefficient maps do not depend on the thickness (only the thick slab's ghost displacement does): kept the base scene's value"},
@@ -715,7 +912,7 @@ def run_bench(out: Path, width: int = 400, height: int = 250, span_s: float = 0.
     rep = res["report"]
     tm = rep.get("timings_s", {})
     rows = [{"stage": "self-calibration alone (reference)", "s": ref, "ratio": 1.0}]
-    for k in ("selfcal_s", "geometry_s", "glass_s", "maps_s"):
+    for k in ("selfcal_s", "geometry_s", "twin_s", "glass_s", "dop_fov_s", "maps_s"):
         if k in tm:
             rows.append({"stage": k[:-2], "s": tm[k], "ratio": tm[k] / ref})
     rows.append({"stage": "calibrate-pane total", "s": total, "ratio": total / ref})

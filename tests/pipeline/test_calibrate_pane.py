@@ -264,3 +264,40 @@ def test_nothing_modulates_is_reported_not_fitted(tmp_path):
     write_outputs(tmp_path, res, width=72, height=48)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["report.json"]
     assert json.loads((tmp_path / "report.json").read_text())["ok"] is False
+
+
+def test_the_90_deg_twin_is_told_apart_by_the_modulation_depth():
+    """Glancing pane, narrow view (tilt 72, fov 20 deg): modulo 90 deg the orientation field is explained
+    almost as well by a second pane whose s-directions run along the true one's p-directions.  find_twin
+    finds that pane (its phi_perp field is turned: weighted mean cos 2 delta < 0, and it explains the
+    orientation field nearly as well), and the modulation depths, which reach the true cone's edges
+    (layers go black), violate the twin's cone [-DoP_T, DoP_R] by far more chi^2 than the true pane's."""
+    from generator.pane_fit import PaneModelAD
+    from polspike.pipeline.calibrate_pane import CalibratePaneConfig, _cone_violation, find_twin, fit_geometry
+    from reconstruct.selfcal import orientation_field
+
+    tilt, az, fov, H, W = 72.0, 30.0, 20.0, 48, 72
+    I, phi, span, geo = pane_stream(tilt, az, fov_deg=fov, H=H, W=W, M=120, stride_deg=360 * 30 * 13 / 20000, exposure=4.0, motion=0.2)
+    block = 4
+    of = orientation_field(I, phi, block)
+    x_true = np.array([math.radians(tilt), math.radians(az), math.radians(fov), 1.5])
+    g_true = fit_geometry(of, W, H, block, x_true, fit_fov=False)
+    tw = find_twin(of, W, H, block, g_true["x"], fit_fov=False)
+    assert tw is not None
+    pm = PaneModelAD(W, H, "single", block=block)
+    w = np.abs(of["s4"])
+    assert np.sum(w * np.cos(2 * (pm.maps(tw["x"])["phi_perp"] - pm.maps(g_true["x"])["phi_perp"]))) < 0
+    assert tw["score"] < 1.5 * g_true["score"] + 1.0  # nearly as good an explanation of the orientation field
+    gain = math.sin(span) / span
+    v_true = _cone_violation(I, phi, g_true["x"], W, H, block, gain, ("single", "thin_slab"), None, CalibratePaneConfig())[0]
+    v_twin = _cone_violation(I, phi, tw["x"], W, H, block, gain, ("single", "thin_slab"), None, CalibratePaneConfig())[0]
+    assert v_twin - v_true >= CalibratePaneConfig().twin_delta_chi2, (v_true, v_twin)
+
+
+def test_unknown_geometry_weighting_is_refused():
+    from polinfra.errors import ConfigError
+    from polspike.pipeline.calibrate_pane import fit_geometry
+
+    of = {"s4": np.ones((4, 4), complex), "q": np.ones((4, 4)), "psi": np.zeros((4, 4))}
+    with pytest.raises(ConfigError, match="weighting"):
+        fit_geometry(of, 16, 16, 4, np.array([0.5, 0.0, 1.0, 1.5]), fit_fov=False, weighting="bogus")
