@@ -84,10 +84,10 @@ def test_net_on_self_zeta_matches_net_on_true_zeta(stream, tmp_path):  # noqa: F
 
 
 @needs_ckpt
-def test_cli_dat_net_with_self_zeta(stream, polspike_cli, tmp_path):  # noqa: F811
+def test_cli_dat_net_with_self_zeta(stream, polspike_main, tmp_path):  # noqa: F811
     out = tmp_path / "o"
-    r = polspike_cli("reconstruct", stream["dat"], "--height", H, "--width", W, "--phi0-deg", math.degrees(PHI0), "--rev-per-s", REV,
-                     "--out", out, "--zeta", "self", "--max-frames", 1, "--quiet", "--device", "cpu", "--exposure", 1.0)
+    r = polspike_main("reconstruct", stream["dat"], "--height", H, "--width", W, "--phi0-deg", math.degrees(PHI0), "--rev-per-s", REV,
+                      "--out", out, "--zeta", "self", "--max-frames", 1, "--quiet", "--device", "cpu", "--exposure", 1.0)
     assert r.returncode == 0, r.stderr[-2000:]
     info = json.loads((out / "zeta.json").read_text())
     assert info["method"] == "net" and info["zeta"] == "self" and info["selfcal"]["ok"]
