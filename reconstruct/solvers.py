@@ -82,6 +82,7 @@ __all__ = [
     "SOLVERS",
     "PHYSICS_SOLVER_CONFIG",
     "adaptive_confidence",
+    "pooled_difference_prior",
     "SolverConfig",
     "SolverResult",
     "moments",
@@ -114,8 +115,10 @@ class SolverConfig:
     lambda_map: str = opt("fixed", "rwps Conf -> lambda: fixed (Conf from 4 Var_w(zeta) alone) or adaptive (noise-aware Conf, module docstring)", choices=("fixed", "adaptive"))
     snr_kappa: float = opt(1.0, "adaptive: value of the conditioning SNR q at which Conf = 1/2", lo=1e-9, hi=1e9)
     rwps_irls_iters: int = opt(-1, "Huber reweighting iterations of rwps (-1: irls_iters, the original behaviour)", lo=-1, hi=100)
-    rwps_prior: str = opt("zero", "adaptive rwps prior: zero (lambda (R^2 + T^2), as ridge) or equal (lambda (R - T)^2, toward the window mean)", choices=("zero", "equal"))
+    rwps_prior: str = opt("zero", "adaptive rwps prior: zero (lambda (R^2 + T^2), as ridge), equal (lambda (R - T)^2, toward the window mean) or pooled (lambda (R - T - D0)^2, D0 the locally pooled R - T; module docstring)", choices=("zero", "equal", "pooled"))
     noise_pool: int = opt(5, "adaptive: side (pixels) of the box over which the residual noise and signal power are pooled", lo=1, hi=101)
+    prior_pool: int = opt(31, "pooled prior: side (pixels) of the box over which R - T is pooled into the prior mean D0", lo=1, hi=1001)
+    prior_kappa: float = opt(0.003, "pooled prior: box mean of 4 Var_w(zeta) at which D0 keeps half its value (toward R = T below)", lo=0.0, hi=1.0)
 
 
 @dataclasses.dataclass
@@ -211,13 +214,56 @@ def adaptive_confidence(zeta: torch.Tensor, b: torch.Tensor, w: torch.Tensor, sn
     return q / (q + snr_kappa)
 
 
+def pooled_difference_prior(
+    zeta: torch.Tensor, b: torch.Tensor, w: torch.Tensor, pool: int = 31, kappa0: float = 0.003, noise_pool: int = 5
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Prior mean D0 of R - T and the SNR q of the difference (``rwps_prior = "pooled"``; module docstring).
+
+    A first weighted least-squares solve gives D = R_ls - T_ls per pixel and its variance
+    v_D = sigma^2 [1, -1] M^-1 [1, -1]^T = sigma^2 sum(w) / det(M) (since S_rr + 2 S_rt + S_tt = sum w;
+    sigma^2 as in :func:`adaptive_confidence`).  Over a ``pool`` x ``pool`` box (<.>), each pixel
+    weighted by its conditioning u = det(M) / sum(w) (the precision of D up to sigma^2, supp. Eq. (15)):
+
+        D0 = <u D> / <u>                                         the pooled difference
+        s_D^2 = max(<u (D - D0)^2> - <u v_D>, 0) / <u>            its spread around D0 (noise removed)
+        D0 <- D0 d / (d + kappa0),   d = <4 det(M) / sum(w)^2>    toward R = T where the box itself is near-singular
+        q = s_D^2 / v_D                                           how well this pixel's data measure D
+
+    Args:
+        zeta, b, w: (..., N, H, W) mixing coefficients, right sides (2 I) and weights.
+        pool: box side in pixels of the pooled prior.
+        kappa0: box-mean conditioning 4 Var_w(zeta) at which D0 keeps half its value.
+        noise_pool: box side of the residual-noise estimate.
+
+    Returns:
+        (D0, q), each (..., H, W).
+    """
+    S_rr, S_rt, S_tt, sw = moments(zeta, w)
+    tiny = torch.finfo(zeta.dtype).tiny ** 0.5
+    det = (S_rr * S_tt - S_rt * S_rt).clamp_min(0.0)
+    n_eff = sw * sw / ((w * w).sum(-3) + tiny)
+    R, T = solve_weighted_ridge(zeta, b, w, 0.0)
+    r = b - (zeta * R.unsqueeze(-3) + (1.0 - zeta) * T.unsqueeze(-3))
+    dof = (n_eff - 2.0).clamp_min(0.5)
+    sigma2 = _box((w * r * r).sum(-3) / (sw + tiny) * n_eff / dof, noise_pool)
+    v_D = (sigma2 * sw / (det + _eps(zeta.dtype) * sw * sw + tiny)).clamp_max(1e12)
+    D = R - T
+    u = det / (sw + tiny)
+    bu = _box(u, pool) + tiny
+    D0 = _box(u * D, pool) / bu
+    s2 = ((_box(u * (D - D0) ** 2, pool) - _box(u * v_D, pool)) / bu).clamp_min(0.0)
+    d = _box(4.0 * det / (sw * sw + tiny), pool)
+    D0 = D0 * d / (d + kappa0 + tiny)
+    return D0, s2 / (v_D + tiny)
+
+
 def lambda_from_conf(conf: torch.Tensor, lambda_low: float, lambda_high: float) -> torch.Tensor:
     """Per-pixel ridge strength, supp. Eq. (8): lambda_low Conf + lambda_high (1 - Conf)."""
     return lambda_low * conf + lambda_high * (1.0 - conf)  # supp. Eq. (8)
 
 
 def solve_weighted_ridge(
-    zeta: torch.Tensor, b: torch.Tensor, w: torch.Tensor, lam: torch.Tensor | float = 0.0, prior: str = "zero"
+    zeta: torch.Tensor, b: torch.Tensor, w: torch.Tensor, lam: torch.Tensor | float = 0.0, prior: str = "zero", prior_mean: torch.Tensor | None = None
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Closed-form (A^T W A + lambda sum(w) I)^{-1} A^T W b per pixel, supp. Eq. (9).
 
@@ -229,6 +275,8 @@ def solve_weighted_ridge(
         prior: ``zero`` (lambda (R^2 + T^2), supp. Eq. (7)) or ``equal`` (lambda (R - T)^2: only
             the difference is pulled, toward R = T, so a near-singular window returns the window
             mean 2 <I> (TFP) instead of shrinking the well-determined mean level).
+        prior_mean: with ``prior = "equal"``, the prior pulls R - T toward this (..., H, W) value
+            instead of 0: lambda (R - T - D0)^2 (``rwps_prior = "pooled"``).
 
     Returns:
         (R, T), each (..., H, W).
@@ -236,6 +284,9 @@ def solve_weighted_ridge(
     S_rr, S_rt, S_tt, sw = moments(zeta, w)
     r_R = (w * zeta * b).sum(-3)
     r_T = (w * (1.0 - zeta) * b).sum(-3)
+    if prior_mean is not None and prior == "equal":
+        r_R = r_R + lam * sw * prior_mean
+        r_T = r_T - lam * sw * prior_mean
     tr = S_rr + S_tt
     tiny = torch.finfo(zeta.dtype).tiny ** 0.25  # its square (the 2x2 determinant) stays a normal number
     floor = _eps(zeta.dtype) * tr + tiny
@@ -326,7 +377,11 @@ def solve(
         w0 = poisson_reliability(zeta, I, first_lambda=first) if weights is None else torch.broadcast_to(weights.to(I.dtype), I.shape).clamp(0.0, 1.0)
     else:
         w0 = torch.ones_like(I)
-    if method == "rwps" and config.lambda_map == "adaptive":
+    D0 = None
+    if method == "rwps" and config.lambda_map == "adaptive" and config.rwps_prior == "pooled":
+        D0, q = pooled_difference_prior(zeta, b, w0, config.prior_pool, config.prior_kappa, config.noise_pool)
+        conf = q / (q + config.snr_kappa)
+    elif method == "rwps" and config.lambda_map == "adaptive":
         conf = adaptive_confidence(zeta, b, w0, config.snr_kappa, config.noise_pool)
     else:
         conf = confidence(zeta, w0, config.conf_kappa)
@@ -336,8 +391,8 @@ def solve(
         lam = torch.full_like(conf, config.ridge_lambda)
     else:
         lam = torch.zeros_like(conf)
-    prior = "equal" if (method == "rwps" and config.lambda_map == "adaptive" and config.rwps_prior == "equal") else "zero"
-    R, T = solve_weighted_ridge(zeta, b, w0, lam, prior)
+    prior = "equal" if (method == "rwps" and config.lambda_map == "adaptive" and config.rwps_prior in ("equal", "pooled")) else "zero"
+    R, T = solve_weighted_ridge(zeta, b, w0, lam, prior, D0)
     w = w0
     if method in ("irls", "rwps"):
         iters = config.rwps_irls_iters if (method == "rwps" and config.rwps_irls_iters >= 0) else config.irls_iters
@@ -345,5 +400,5 @@ def solve(
             r = b - (zeta * R.unsqueeze(-3) + (1.0 - zeta) * T.unsqueeze(-3))  # supp. Eq. (10)
             delta = (config.huber_c * _robust_scale(r)).clamp_min(config.huber_floor).unsqueeze(-3)
             w = w0 * huber_factor(r, delta)  # supp. Eq. (11): w^(j+1) = w q^(j)
-            R, T = solve_weighted_ridge(zeta, b, w, lam, prior)
+            R, T = solve_weighted_ridge(zeta, b, w, lam, prior, D0)
     return SolverResult(R=R, T=T, conf=conf, weights=w, lam=lam)
