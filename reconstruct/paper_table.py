@@ -10,6 +10,8 @@ for it (e.g. two training seeds); the per-checkpoint numbers are listed too.
 Columns of Table 1:
 
 * ``TFP``: 2 x the window mean (what the stream shows, reflection included);
+* ``Spike mean`` (stored groups): 2 x the spikes per step / exposure over 17.5 ms (issue 16's
+  "doing nothing" reference);
 * ``RWPS (zeta Z)``: the physics solver alone on the zeta source of ``--zeta`` (default ``self``,
   the pane fitted to each group's stream: no oracle);
 * ``Ours``: the final output of the ``--full`` checkpoints;
@@ -126,6 +128,9 @@ def paper_tables(
         if table == "table1" and col == "physics":
             tfp = _overall(rep, "tfp")
             t1["TFP"] = {"mean": _mean([tfp]), "runs": [{"checkpoint": "", **tfp}], "note": "2 x window mean"}
+            if any(r["method"] == "spike_mean" for r in rep.rows):  # stored groups: the 17.5 ms spike mean ("doing nothing")
+                sm = _overall(rep, "spike_mean")
+                t1["Spike mean"] = {"mean": _mean([sm]), "runs": [{"checkpoint": "", **sm}], "note": "2 x spikes / step / exposure over 17.5 ms"}
             ph = _overall(rep, "rwps")
             t1[f"RWPS (zeta {c.zeta})"] = {"mean": _mean([ph]), "runs": [{"checkpoint": "", **ph}], "note": "physics solver alone"}
         else:
