@@ -31,16 +31,21 @@ from reconstruct.metrics import psnr
 from reconstruct.rir import RirConfig, estimate_shifts, warp
 from reconstruct.solvers import SolverConfig, solve
 
-__all__ = ["GRID", "aligned_windows", "group_scores", "fit_rwps"]
+__all__ = ["GRID", "POOLED_ONLY", "aligned_windows", "group_scores", "fit_rwps", "fit_markdown"]
 
 GRID: dict[str, tuple] = {
-    "snr_kappa": (0.1, 0.3, 1.0, 3.0),
+    "snr_kappa": (0.3, 1.0, 3.0),
     "lambda_low": (0.0,),
-    "lambda_high": (3e-2, 1e-1, 3e-1),
+    "lambda_high": (0.3, 1.0),
     "rwps_irls_iters": (0,),
-    "rwps_prior": ("zero", "equal"),
+    "rwps_prior": ("equal", "pooled"),
+    "prior_pool": (15, 31, 61),
+    "prior_kappa": (0.001, 0.003, 0.01),
 }
 """Grid searched by :func:`fit_rwps`."""
+
+POOLED_ONLY = ("prior_pool", "prior_kappa")
+"""Grid keys that only act with ``rwps_prior = "pooled"``."""
 
 
 def aligned_windows(groups: list[EvalGroup], cfg: EvalConfig, rir_cfg: RirConfig = RirConfig()) -> dict[str, list[tuple[torch.Tensor, torch.Tensor, np.ndarray]]]:
@@ -98,7 +103,12 @@ def fit_rwps(windows: dict[str, list], base: SolverConfig = SolverConfig(), grid
         c = dict(zip(keys, vals))
         if c["lambda_low"] > c["lambda_high"]:
             continue
+        if c.get("rwps_prior", "pooled") != "pooled" and any(c[k] != grid[k][0] for k in POOLED_ONLY if k in c):
+            continue  # prior_pool / prior_kappa do nothing without the pooled prior: one row per other prior
         c["rwps_irls_iters"] = int(c["rwps_irls_iters"])
+        for k in POOLED_ONLY:
+            if k in c:
+                c[k] = type(getattr(base, k))(c[k])
         sc = dataclasses.replace(base, lambda_map="adaptive", **c)
         rw = group_scores(windows, "rwps", sc)
         m = np.array([rw[g] - ref[g] for g in ref])
@@ -107,3 +117,13 @@ def fit_rwps(windows: dict[str, list], base: SolverConfig = SolverConfig(), grid
             progress(j + 1, len(combos))
     best = max(rows, key=lambda r: (r["objective"], r["mean_psnr"]))
     return {"best": {k: best[k] for k in keys}, "objective": best["objective"], "ls": ls, "ridge": ridge, "table": rows, "groups": list(ref)}
+
+
+def fit_markdown(res: dict, top: int = 12) -> str:
+    """The ``top`` rows of a :func:`fit_rwps` result by objective, as a markdown table (every grid key a column)."""
+    keys = list(res["best"])
+    rows = sorted(res["table"], key=lambda r: -r["objective"])[:top]
+    head = "| " + " | ".join(keys) + " | objective | groups losing > 0.3 dB | min margin | mean margin | mean PSNR T |\n"
+    head += "|" + "---:|" * len(keys) + "---:|---:|---:|---:|---:|\n"
+    fmt = lambda v: f"{v:g}" if isinstance(v, (int, float)) else str(v)  # noqa: E731
+    return head + "\n".join("| " + " | ".join(fmt(r[k]) for k in keys) + f" | {r['objective']:.3f} | {r['n_lose']} | {r['min_margin']:.3f} | {r['mean_margin']:.3f} | {r['mean_psnr']:.2f} |" for r in rows) + "\n"

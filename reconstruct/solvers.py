@@ -179,6 +179,17 @@ def _box(x: torch.Tensor, k: int) -> torch.Tensor:
     return y[..., : shp[-2], : shp[-1]].reshape(shp)
 
 
+def _box_sep(x: torch.Tensor, k: int) -> torch.Tensor:
+    """:func:`_box` as two 1-D passes (rows, then columns): the same edge-aware mean, O(k) per pixel."""
+    if k <= 1:
+        return x
+    shp = x.shape
+    y = x.reshape(-1, 1, *shp[-2:])
+    y = torch.nn.functional.avg_pool2d(y, (k, 1), stride=1, padding=(k // 2, 0), count_include_pad=False)[..., : shp[-2], :]
+    y = torch.nn.functional.avg_pool2d(y, (1, k), stride=1, padding=(0, k // 2), count_include_pad=False)[..., : shp[-1]]
+    return y.reshape(shp)
+
+
 def adaptive_confidence(zeta: torch.Tensor, b: torch.Tensor, w: torch.Tensor, snr_kappa: float = 1.0, pool: int = 5) -> torch.Tensor:
     """Noise-aware Conf in [0, 1) (``lambda_map = "adaptive"``; module docstring, "Adaptive Conf").
 
@@ -249,10 +260,10 @@ def pooled_difference_prior(
     v_D = (sigma2 * sw / (det + _eps(zeta.dtype) * sw * sw + tiny)).clamp_max(1e12)
     D = R - T
     u = det / (sw + tiny)
-    bu = _box(u, pool) + tiny
-    D0 = _box(u * D, pool) / bu
-    s2 = ((_box(u * (D - D0) ** 2, pool) - _box(u * v_D, pool)) / bu).clamp_min(0.0)
-    d = _box(4.0 * det / (sw * sw + tiny), pool)
+    bu = _box_sep(u, pool) + tiny
+    D0 = _box_sep(u * D, pool) / bu
+    s2 = ((_box_sep(u * (D - D0) ** 2, pool) - _box_sep(u * v_D, pool)) / bu).clamp_min(0.0)
+    d = _box_sep(4.0 * det / (sw * sw + tiny), pool)
     D0 = D0 * d / (d + kappa0 + tiny)
     return D0, s2 / (v_D + tiny)
 

@@ -328,7 +328,7 @@ def fit_rwps_cmd(
     from polinfra.errors import ConfigError
     from polinfra.progress import rich_progress
     from reconstruct.evaluate import EvalConfig, load_groups
-    from reconstruct.rwps_fit import GRID, aligned_windows, fit_rwps
+    from reconstruct.rwps_fit import GRID, aligned_windows, fit_markdown, fit_rwps
 
     if split == "test":
         raise ConfigError("fit-rwps fits on training groups; --split test would leak the test split into the constants")
@@ -339,9 +339,7 @@ def fit_rwps_cmd(
     with rich_progress("grid", enabled=not quiet) as cb:
         res = fit_rwps(win, progress=cb)
     res["dataset"], res["split"], res["max_frames"], res["grid"] = dataset, split, max_frames, GRID
-    rows = sorted(res["table"], key=lambda r: -r["objective"])
-    md = "| snr_kappa | lambda_low | lambda_high | rwps_irls_iters | rwps_prior | objective | groups losing > 0.3 dB | min margin | mean margin | mean PSNR T |\n|---:|---:|---:|---:|---|---:|---:|---:|---:|---:|\n"
-    md += "\n".join(f"| {r['snr_kappa']:g} | {r['lambda_low']:g} | {r['lambda_high']:g} | {r['rwps_irls_iters']} | {r['rwps_prior']} | {r['objective']:.3f} | {r['n_lose']} | {r['min_margin']:.3f} | {r['mean_margin']:.3f} | {r['mean_psnr']:.2f} |" for r in rows[:12]) + "\n"
+    md = fit_markdown(res)
     write_json(out / "fit.json", res)
     write_text(out / "fit.md", f"# RWPS fit on {dataset} ({split}, {len(res['groups'])} groups, {max_frames} frames each)\n\nbest: {res['best']}\n\n" + md)
     con = Console()
