@@ -59,7 +59,7 @@ from reconstruct.rir import RirConfig, estimate_shifts, warp
 from reconstruct.solvers import PHYSICS_SOLVER_CONFIG, SOLVERS, SolverConfig, solve
 from reconstruct.zeta_source import ZETA_SOURCES, PaneMaps, zeta_from_maps, zeta_learned
 
-__all__ = ["net_zeta_of", "REGIME_FACTORS", "regime_of", "evaluate_by_regime", "regime_markdown", "regime_report", "REGIME_TABLES", "EvalConfig", "EvalReport", "BASELINES", "NET_METHOD", "load_network", "group_zeta", "evaluate_groups", "write_report", "parse_methods", "load_groups", "window_sweep", "markdown_table", "sweep_markdown"]
+__all__ = ["net_zeta_of", "REGIME_FACTORS", "regime_of", "evaluate_by_regime", "regime_markdown", "regime_report", "REGIME_TABLES", "EvalConfig", "EvalReport", "BASELINES", "ANCHOR_SUFFIX", "anchor_to_mean", "NET_METHOD", "load_network", "group_zeta", "evaluate_groups", "write_report", "parse_methods", "load_groups", "window_sweep", "markdown_table", "sweep_markdown"]
 
 log = logging.getLogger(__name__)
 
@@ -91,6 +91,7 @@ class EvalConfig:
     net_tile: int = opt(256, "method full: network tile size in pixels (bounded memory; 0 = whole frame)", lo=0, hi=100000)
     net_solver: str = opt("", "method full: physics solver before the network's refinement instead of the trained one (supp. Table 3); empty = as trained", choices=("", "ls", "ridge", "irls", "rwps"))
     net_zeta: str = opt("", "method full: zeta of the network's solver and refinement: learned (its parameter branch), self, gt or physics (instead of its own); empty = self when zeta is self, else learned", choices=("", "learned", "self", "gt", "physics"))
+    anchor: str = opt("none", "mean: also score each method anchored to the 17.5 ms spike mean, T = 2 I_mean - zbar (R^ - T^), R = T + (R^ - T^) (rows '<method>+mean'; stored groups only)", choices=("none", "mean"))
 
 
 def net_zeta_of(cfg: EvalConfig) -> str:
@@ -324,6 +325,16 @@ def evaluate_groups(
                 est[net_rows[0]] = (o["T"], o["R"])
                 est[net_rows[1]] = (o["T_base"], o["R_base"])
                 t["network"] += time.perf_counter() - t0
+            if cfg.anchor == "mean" and g.I_mean is not None:
+                zbars = {m: (Zw if Zw is not None else None) for m in solvers}
+                if net_rows:
+                    zn_t = None if Znet is None else torch.as_tensor(zn, dtype=dtype, device=dev)
+                    zl = zn_t if zn_t is not None else zeta_learned(model, raw, Pw)[0]
+                    zbars.update({net_rows[0]: zl, net_rows[1]: zl})
+                Im = np.stack([g.I_mean[i] for i in cb])
+                for m, zz in zbars.items():
+                    if zz is not None:
+                        est[m + ANCHOR_SUFFIX] = anchor_to_mean(*est[m], Im, zz.mean(1).float().cpu().numpy())
             t0 = time.perf_counter()
             tfp = (2.0 * raw.mean(1)).cpu().numpy()
             raw_np = (2.0 * raw).cpu().numpy()
@@ -347,7 +358,7 @@ def evaluate_groups(
         if progress is not None:
             progress(gi + 1, len(groups))
     keys = ("psnr_T", "ssim_T", "psnr_R", "ssim_R")
-    order = [*BASELINES, *solvers, *net_rows]
+    order = [*BASELINES, *[x for m in [*solvers, *net_rows] for x in (m, m + ANCHOR_SUFFIX)]]
     rows = []
     by = defaultdict(list)
     for f in frames:
@@ -365,6 +376,23 @@ def evaluate_groups(
     if net_info is not None:
         conf["network"] = net_info
     return EvalReport(frames=frames, rows=rows, figure=fig, timings=dict(t), config=conf)
+
+
+ANCHOR_SUFFIX = "+mean"
+"""Row-name suffix of a method anchored to the spike mean (:func:`anchor_to_mean`)."""
+
+
+def anchor_to_mean(T: np.ndarray, R: np.ndarray, I_mean: np.ndarray, zbar: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Anchor a separation to the long spike mean: keep its difference D = R^ - T^, take the level from I_mean.
+
+    Averaged over a half polarizer turn, paper Eq. (1) gives 2 I_mean = T + zbar (R - T) exactly for a static
+    scene (zbar = the turn's mean zeta), so T = 2 I_mean - zbar D: the short windows supply only D, whose noise
+    enters scaled by zbar (small for glass), and the level comes from ~27x more spikes than the 7 windows.
+    Motion over the span blurs I_mean (the cost of the anchor).  Returns (T, R = T + D).
+    """
+    D = R - T
+    Ta = 2.0 * I_mean - zbar * D
+    return Ta, Ta + D
 
 
 def _fmt(v, nd=3) -> str:
@@ -557,7 +585,8 @@ def evaluate_by_regime(
                     continue
                 col = m
             elif z is None:
-                col = ("net:solver" if m.endswith(":solver") else "net") + ("" if nz == "learned" else f"@{nz}")
+                anch = m.endswith(ANCHOR_SUFFIX)
+                col = ("net:solver" if ":solver" in m else "net") + ("" if nz == "learned" else f"@{nz}") + (ANCHOR_SUFFIX if anch else "")
             else:
                 col = f"{m}@{z}"
             for k in keys:

@@ -37,6 +37,7 @@ def evaluate_cmd(
     net_zeta: str = typer.Option("", "--net-zeta", help="full: zeta of the network's solver and refinement: learned (its own), self, gt or physics [default: self with --zeta self, else learned]"),
     net_zetas: str = typer.Option("learned", "--net-zetas", help="--by-regime: comma-separated zeta sources of the network columns (learned -> net, self -> net@self)"),
     lambda_map: str = typer.Option("adaptive", "--lambda-map", help="rwps Conf -> lambda: adaptive (fitted physics default) or fixed (the original mapping)"),
+    anchor: str = typer.Option("none", "--anchor", help="mean: also score every method anchored to the 17.5 ms spike mean (rows and columns '+mean'; T = 2 I_mean - zbar (R^ - T^)); none: off"),
     synthetic_groups: int = typer.Option(4, "--synthetic-groups", help="synthetic: number of groups"),
     synthetic_frames: int = typer.Option(20, "--synthetic-frames", help="synthetic: frames per group"),
     synthetic_noise: str = typer.Option("poisson", "--synthetic-noise", help="synthetic: poisson, integrate_fire or none"),
@@ -55,7 +56,7 @@ def evaluate_cmd(
     cfg = from_dict(
         EvalConfig,
         {"n_obs": n_obs, "dt_ms": dt_ms, "stride_deg": stride_deg, "methods": method, "zeta": zeta, "rir": rir, "max_frames": max_frames, "pane_n": pane_n, "pane_model": pane_model, "dtype": dtype, "device": device,
-         "checkpoint": str(checkpoint or ""), "no_attention": no_attention, "no_conf": no_conf, "net_tile": net_tile, "net_zeta": net_zeta},
+         "checkpoint": str(checkpoint or ""), "no_attention": no_attention, "no_conf": no_conf, "net_tile": net_tile, "net_zeta": net_zeta, "anchor": anchor},
         where="command line",
     )
     try:
