@@ -142,6 +142,8 @@ def reconstruct_cmd(
         src = group_source(input, cfg.chunk_steps)
     else:
         raise ConfigError(f"input {input} is neither a .dat file nor a spike group directory")
+    load = lambda: load_model(weights or DEFAULT_WEIGHTS, dev, **({} if rir is None else {"use_rir": rir}))[0]  # noqa: E731
+    net_model = load() if method == "net" else None  # a bad checkpoint is reported before the stream is read
     exposure_info = {"exposure_source": "stored in the group" if src.exposure is not None and exposure is None else "--exposure"}
     if exposure is not None:
         src = dataclasses.replace(src, exposure=None)  # --exposure forces the value, also over a group's stored one
@@ -151,12 +153,11 @@ def reconstruct_cmd(
         est = estimate_source_exposure(src)
         cfg = dataclasses.replace(cfg, exposure=est.exposure)
         exposure_info = {"exposure_source": "estimated", "exposure_estimate": est.summary()}
-    load = lambda: load_model(weights or DEFAULT_WEIGHTS, dev, **({} if rir is None else {"use_rir": rir}))[0]  # noqa: E731
     info = None
     if method == "net":
         from reconstruct.net_zeta import NET_DEFAULT_ZETA
 
-        model = load()
+        model = net_model
         zeta = zeta or NET_DEFAULT_ZETA
         if zeta == "self":
             from reconstruct.net_zeta import build_net_zeta_model
