@@ -64,7 +64,7 @@ def calibrate_pane_cmd(
         return "given" if v is None else ("fitted" if v else "NOT identified, prior kept")
 
     con.print(f"tilt {p['tilt_deg']:.2f} +- {u['tilt_deg']:.2f} deg, azimuth {p['azimuth_deg']:.2f} +- {u['azimuth_deg']:.2f} deg, "
-              f"fov {p['fov_deg']:.2f} +- {u['fov_deg']:.2f} deg ({verdict('fov')})")
+              f"fov {p['fov_deg']:.2f} +- {u['fov_deg']:.2f} deg ({'given' if ident['fov']['identified'] is None else 'fitted' if ident['fov']['identified'] else 'NOT identified: give --fov-deg if known'})")
     con.print(f"theta +- {u['theta_deg_median']:.2f} deg, phi_perp +- {u['phi_perp_deg_median']:.2f} deg (median 1 sigma); "
               f"orientation residual {rep['geometry']['orientation_residual_deg_median']:.2f} deg")
     con.print(f"n {p['n']:.4f} ({verdict('n')}), model {p['model']} ({verdict('model')}); thickness and reflectance scale not identified")

@@ -72,6 +72,7 @@ class CalibratePaneConfig:
     sub: int = opt(2, "rays per pixel axis of the written maps (as the maps tier)", lo=1, hi=4)
     dop_fov: bool = opt(False, "experimental (off: on eval_paper it moved test_004 0.4 deg off, see docs/calibrate_pane.md): where the modulation depths reach the cone's edge, profile the fov-tilt valley of the orientation fit with the cone's theta dependence")
     dop_fov_delta_chi2: float = opt(25.0, "the modulation depth pins the fov only when the cone violations at both ends of the profiled valley exceed its minimum by this much", lo=0.0, hi=1e9)
+    max_theta_sigma_deg: float = opt(0.5, "a fitted fov (hence theta) counts as identified only when theta's median 1-sigma is at most this, degrees", lo=0.0, hi=90.0)
     twin_delta_chi2: float = opt(25.0, "an orientation field that cannot tell the pane from its 90 deg twin is resolved by the modulation depth only when one candidate's cone is violated by this much chi^2 less", lo=0.0, hi=1e9)
 
 
@@ -103,7 +104,7 @@ def _wmedian(v: np.ndarray, w: np.ndarray) -> float:
 
 
 # --------------------------------------------------------------------------- geometry
-def fit_geometry(of: dict, width: int, height: int, block: int, x0: np.ndarray, fit_fov: bool, coherence_sigmas: float = 4.0, weighting: str = "snr2",
+def fit_geometry(of: dict, width: int, height: int, block: int, x0: np.ndarray, fit_fov: bool, coherence_sigmas: float = 4.0, weighting: str = "floor",
                  fov_starts: tuple[float, ...] = (25.0, 40.0, 55.0, 70.0), rounds: int = 0) -> dict:
     """Gauss-Newton of (tilt, azimuth[, fov]) on the block orientation field (module docstring, step 3).
 
@@ -122,12 +123,23 @@ def fit_geometry(of: dict, width: int, height: int, block: int, x0: np.ndarray, 
     mask = np.abs(s4) > 1.0 * np.sqrt(0.5 * np.maximum(q, 1e-300))
     if mask.sum() < 4:
         raise ConfigError(f"only {int(mask.sum())} blocks carry any modulation: too few to fit the pane geometry (need 4)")
-    w = np.abs(s4)[mask]
-    if weighting not in ("snr2", "s4"):
-        raise ConfigError(f"unknown geometry weighting {weighting!r}; use snr2 or s4")
-    if weighting == "snr2":
-        w = (np.abs(s4) ** 2 / np.maximum(q, 1e-300))[mask]
-    w = w / w.sum() * w.size  # mean weight 1
+    if weighting not in ("floor", "snr2", "s4"):
+        raise ConfigError(f"unknown geometry weighting {weighting!r}; use floor, snr2 or s4")
+    # noise variance of psi_b (rad^2): Im(s4 e^{-4i phi}) has variance q / 2, and 4 |s4| dpsi = that
+    v_noise = (np.maximum(q, 1e-300) / (32.0 * np.maximum(np.abs(s4), 1e-300) ** 2))[mask]
+    snr_top = v_noise <= np.quantile(v_noise, 0.25)  # the best-measured quarter of the blocks
+
+    def _weights(sys2: float) -> np.ndarray:
+        if weighting == "s4":
+            w_ = np.abs(s4)[mask]
+        elif weighting == "snr2":
+            w_ = 1.0 / v_noise
+        else:
+            w_ = 1.0 / (v_noise + sys2)
+        return w_ / w_.sum() * w_.size  # mean weight 1
+
+    sys2 = math.radians(1.0) ** 2
+    w = _weights(sys2)
     sw = np.sqrt(w)
     psi = of["psi"][mask]
     pm = PaneModelAD(width, height, "single", block=block)  # phi_perp depends on the geometry only
@@ -151,14 +163,23 @@ def fit_geometry(of: dict, width: int, height: int, block: int, x0: np.ndarray, 
     def _robust_gn(f, xs0, lb_, ub_):
         """Cauchy-weighted IRLS around Gauss-Newton: blocks whose orientation the planar model does not
         explain (moving content, a second reflector) lose weight; the self-calibration is robust likewise."""
+        nonlocal w, sw, sys2
         u = np.ones(psi.size)
         xs = xs0
         for _ in range(rounds or _ROUNDS):
             res = gauss_newton(lambda z: f(z, u)[:2], xs, lb_, ub_, max_iter=40)
             xs = res.x
             d = np.abs(f(xs, u)[2])
-            c = max(math.radians(2.0), _ROBUST_C * _wmedian(d, w))
-            u = 1.0 / (1.0 + (d / c) ** 2)
+            if weighting == "floor":
+                # misfit floor: the best-measured blocks scatter by more than their noise (content moving through
+                # the harmonic fit); every block's variance is its noise plus that floor (median of chi^2_1: 0.455)
+                sys2 = max(math.radians(0.1) ** 2, float(np.median(d[snr_top] ** 2)) / 0.455 - float(np.median(v_noise[snr_top])))
+                w = _weights(sys2)
+                sw = np.sqrt(w)
+                u = 1.0 / (1.0 + (d / (_ROBUST_C * np.sqrt(v_noise + sys2))) ** 2)  # Cauchy on standardised residuals
+            else:
+                c = max(math.radians(2.0), _ROBUST_C * _wmedian(d, w))
+                u = 1.0 / (1.0 + (d / c) ** 2)
         res.robust_weights = u
         return res
 
@@ -633,6 +654,19 @@ def calibrate_frames(I: np.ndarray, phi: np.ndarray, cfg: CalibratePaneConfig = 
     timings["total_s"] = time.perf_counter() - t_all
     sig = geo["sigma"]
     tilt, az, fov = (math.degrees(v) for v in x[:3])
+    if not fit_fov:
+        fov_verdict = {"identified": None, "why": "given (--fov-deg)"}
+    else:
+        # the field of view is read from phi_perp's weak curvature: fov and tilt slide along a shallow valley of
+        # the orientation fit, and theta(p) with them; claim it only where the propagated theta 1-sigma is small
+        s_th = float(geo["sigma_theta_deg_median"])
+        ok_fov = s_th <= cfg.max_theta_sigma_deg
+        fov_verdict = {"identified": bool(ok_fov), "value": fov, "sigma_deg": math.degrees(sig[2]), "theta_sigma_deg_median": s_th,
+                       "why": (prof["why"] if prof and prof["used"] else
+                               f"phi_perp's curvature across the image pins the focal length, hence theta(p), to {s_th:.2f} deg (median 1-sigma)" if ok_fov else
+                               f"NOT identified to {cfg.max_theta_sigma_deg:g} deg: fov and tilt trade off along a shallow valley of the orientation fit "
+                               f"(the field's curvature is weak: narrow view or glancing pane); theta(p) is uncertain by {s_th:.2f} deg (median 1-sigma), "
+                               f"fov {fov:.2f} +- {math.degrees(sig[2]):.2f} deg; the maps are the best estimate: give --fov-deg if the lens is known")}
     params = {"tilt_deg": tilt, "azimuth_deg": az, "fov_deg": fov, "n": n_final, "model": model_final, "glass": cfg.glass,
               "normal_camera": [float(v) for v in _normal(x)]}
     report.update({
@@ -652,9 +686,7 @@ def calibrate_frames(I: np.ndarray, phi: np.ndarray, cfg: CalibratePaneConfig = 
                   "models": {k: {kk: vv for kk, vv in v.items() if kk not in ("dop_R", "dop_T", "grid_n", "grid_loss", "history")} for k, v in gl["models"].items()}},
         "identifiability": {
             "orientation": {"identified": True, "why": "phi_perp(p) (mod 90 deg) from the modulation's orientation pins the normal's tilt and azimuth"},
-            "fov": {"identified": cfg.fov_deg <= 0 or None, "why": "given" if cfg.fov_deg > 0 else (prof["why"] if prof and prof["used"] else
-                     "phi_perp's curvature across the image (a second-order effect: fov and tilt slide along a shallow valley, see the 1-sigma and its correlation)"
-                     + (f"; {prof['why']}" if prof else ""))},
+            "fov": fov_verdict,
             "n": sel["n"],
             "model": sel["model"],
             "thickness": {"identified": False, "why": "the coefficient maps do not depend on the thickness (only the thick slab's ghost displacement does): kept the base scene's value"},

@@ -86,6 +86,27 @@ def test_geometry_recovered_with_fitted_fov(tilt, az, model, n):
     assert abs(p["tilt_deg"] - tilt) <= 4 * u["tilt_deg"] + 0.05
     assert abs(p["fov_deg"] - 55.0) <= 4 * u["fov_deg"] + 0.05
     assert abs((p["azimuth_deg"] - az + 180) % 360 - 180) <= 4 * u["azimuth_deg"] + 0.05
+    fv = res["report"]["identifiability"]["fov"]
+    assert fv["identified"] is True and fv["theta_sigma_deg_median"] <= 0.5  # a wide view: the field's curvature pins the fov
+
+
+def test_a_narrow_view_reports_the_fov_tilt_trade_off_instead_of_claiming_theta():
+    """Narrow view (fov 15 deg), fov fitted: phi_perp's curvature barely changes along the fov-tilt valley,
+    so the fit must not claim theta: the fov is reported NOT identified, theta's 1-sigma exceeds the 0.5 deg
+    gate, and the truth lies within 4 reported sigmas (honest error bars)."""
+    from polspike.pipeline.calibrate_pane import CalibratePaneConfig, calibrate_frames
+
+    tilt, az = 50.0, 60.0
+    I, phi, span, geo = pane_stream(tilt, az, fov_deg=15.0, n=1.5, model="single", H=48, W=72)
+    res = calibrate_frames(I, phi, CalibratePaneConfig(), span_rad=span)
+    assert res["ok"]
+    rep = res["report"]
+    fv = rep["identifiability"]["fov"]
+    assert fv["identified"] is False and fv["theta_sigma_deg_median"] > 0.5 and "fov-deg" in fv["why"]
+    u = rep["uncertainty_1sigma"]
+    assert abs(rep["params"]["tilt_deg"] - tilt) <= 4 * u["tilt_deg"] and abs(rep["params"]["fov_deg"] - 15.0) <= 4 * u["fov_deg"]
+    th, ph = _errors(res, geo)
+    assert ph <= 0.5  # the orientation itself is pinned
 
 
 def test_geometry_with_known_fov():
