@@ -321,7 +321,12 @@ def evaluate_groups(
             if net_rows:
                 t0 = time.perf_counter()
                 zn = None if Znet is None else np.stack([np.ascontiguousarray(Znet[i - K : i + K + 1], np.float32) for i in cb])
-                o = run_model_on_windows(model, raw.float().cpu().numpy(), Pw.float().cpu().numpy(), device=next(model.parameters()).device, tile=cfg.net_tile, zeta=zn)
+                im = None
+                if getattr(model.cfg, "use_mean", False):
+                    if g.I_mean is None:
+                        raise ConfigError(f"group {g.name}: the network takes the long spike mean, which only stored groups (spikes.h5) give; evaluate it on a built dataset")
+                    im = np.stack([g.I_mean[i] for i in cb])
+                o = run_model_on_windows(model, raw.float().cpu().numpy(), Pw.float().cpu().numpy(), device=next(model.parameters()).device, tile=cfg.net_tile, zeta=zn, I_mean=im)
                 est[net_rows[0]] = (o["T"], o["R"])
                 est[net_rows[1]] = (o["T_base"], o["R_base"])
                 t["network"] += time.perf_counter() - t0

@@ -82,6 +82,7 @@ class NetConfig:
     use_rir: bool = opt(True, "align the window with RIR before the network (ablation: without RIR)")
     use_attention: bool = opt(True, "angle attention block (ablation: without angle attention)")
     use_conf: bool = opt(True, "Conf-driven lambda in RWPS and Conf input to the refinement (ablation: without Conf)")
+    use_mean: bool = opt(False, "the refinement also sees the long spike mean I_mean (window.mean_steps) and T anchored to it, 2 I_mean - zbar (R^ - T^) (paper Eq. (1) over a half turn): the level from ~27x more spikes")
     solver_method: str = opt("rwps", "physics solver run on the predicted zeta and w", choices=("ls", "ridge", "irls", "rwps"))
     span_rad: float = opt(math.radians(7.02), "polarizer rotation inside one aggregation window (0.65 ms at 30 rev/s), rad; recorded with the weights, not used by the layers", lo=0.0, hi=math.pi)
 
@@ -284,7 +285,7 @@ class Refinement(nn.Module):
     def __init__(self, cfg: NetConfig):
         super().__init__()
         c1, c2, c3 = cfg.ref_ch
-        self.e1 = nn.Sequential(ConvBlock(self.IN_CH, c1), ConvBlock(c1, c1))
+        self.e1 = nn.Sequential(ConvBlock(self.IN_CH + (2 if cfg.use_mean else 0), c1), ConvBlock(c1, c1))
         self.e2 = nn.Sequential(ConvBlock(c1, c2, stride=2), ConvBlock(c2, c2))
         self.e3 = nn.Sequential(ConvBlock(c2, c3, stride=2), ConvBlock(c3, c3))
         self.dec_t = _Decoder(cfg.ref_ch, cfg.dec_ch)
@@ -368,6 +369,7 @@ class PolSpikeNet(nn.Module):
         alpha: float = 0.0,
         feats: tuple[torch.Tensor, torch.Tensor] | None = None,
         scale: torch.Tensor | None = None,
+        I_mean: torch.Tensor | None = None,
     ) -> NetOutput:
         """Reconstruct the centre frame of each window.
 
@@ -381,6 +383,8 @@ class PolSpikeNet(nn.Module):
                 not allowed with RIR on (RIR warps the frames first).
             scale: v2 only: (B,) or (B, 1, 1, 1) brightness normaliser of the parameter branch
                 (default :func:`window_scale` of ``I``); tiles of one frame share the frame's.
+            I_mean: (B, H, W) the long spike mean around the centre frame, radiance units; required by a
+                ``use_mean`` network, ignored otherwise.
 
         Returns:
             :class:`NetOutput`.
@@ -415,7 +419,13 @@ class PolSpikeNet(nn.Module):
         I_hat = 0.5 * (zeta_used[:, c] * R0 + (1 - zeta_used[:, c]) * T0)  # paper Eq. (7)
         resid = I_c - I_hat
         conf = res.conf if self.cfg.use_conf else torch.zeros_like(res.conf)
-        x = torch.stack([T0, R0, 2 * I_c, 2 * I.min(1).values, conf, 2 * resid], 1)
+        ch = [T0, R0, 2 * I_c, 2 * I.min(1).values, conf, 2 * resid]
+        if self.cfg.use_mean:
+            if I_mean is None or I_mean.shape != I_c.shape:
+                raise ShapeError(f"a use_mean network needs I_mean {tuple(I_c.shape)} (the long spike mean around the centre frame)", actual_shape=None if I_mean is None else tuple(I_mean.shape), expected_shape=tuple(I_c.shape))
+            I_mean = I_mean.float()
+            ch += [2 * I_mean, 2 * I_mean - zeta_used.mean(1) * (R0 - T0)]  # the spike mean and T anchored to it
+        x = torch.stack(ch, 1)
         dT, dR = self.refine(x)
         return NetOutput(T=T0 + dT, R=R0 + dR, T_base=T0, R_base=R0, zeta_hat=zeta_hat, zeta_used=zeta_used, weights=w, conf=res.conf, res=resid, I=I, zeta_gt=zeta_gt)
 

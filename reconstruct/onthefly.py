@@ -13,6 +13,8 @@ reads a stored group:
                                  the polarizer sweep of one window (sinc factor, :func:`reconstruct.zeta_source.zeta_eq2`)
 ``R_perp``, ``R_par``, ``phi_perp`` (H, W) float32  pane maps
 ``exposure``  ()        float32  thresholds per step per unit radiance of the stream
+``I_mean``    (H, W)    float32  only with ``WindowConfig.mean_steps``: spikes per step / exposure over that many
+                                 steps centred on the output frame (the long spike mean, a use_mean network's input)
 
 On-the-fly items come from a :data:`WindowSource` callable ``(seed, index) ->
 item``.  ``reconstruct`` never imports ``generator``: the CLI
@@ -53,6 +55,7 @@ class WindowConfig:
     sim_preset: str = opt("default", "on-the-fly: spike_sim noise preset (ideal | default | noisy; group = each manifest group's own preset)", choices=("ideal", "default", "noisy", "group"))
     exposure_source: str = opt("range", "on-the-fly: range = exposure drawn from exposure_range; group = the manifest group's own exposure (its light level) times a log-uniform factor in exposure_jitter", choices=("range", "group"))
     exposure_jitter: tuple[float, float] = opt((1.0, 1.0), "on-the-fly, exposure_source = group: range of the log-uniform factor on the group's exposure", lo=1e-3, hi=1000.0)
+    mean_steps: int = opt(0, "steps of the long spike mean I_mean given to a use_mean network, centred on the output frame (350 = 17.5 ms at 20 kHz, about half a polarizer turn); 0 = none", lo=0, hi=100001)
     flips: bool = opt(False, "on-the-fly: random mirror / transpose of each item (one of the 8 symmetries of the square crop; polarizer and phi_perp angles mirrored with the image, so the physics stays exact)")
 
     def __post_init__(self) -> None:
@@ -138,13 +141,18 @@ def item_from_stream(
     Tp = np.asarray(maps["T_perp"], np.float32) if "T_perp" in maps else (1.0 - Rp).astype(np.float32)
     Ts = np.asarray(maps["T_par"], np.float32) if "T_par" in maps else (1.0 - Rs).astype(np.float32)
     T_, R_ = (np.asarray(x, np.float16).astype(np.float64) for x in gt)
-    return {
+    item = {
         "I": _t(I), "phi": _t(phi), "T": _t(T_), "R": _t(R_), "zeta": _t(zeta), "R_perp": _t(Rp), "R_par": _t(Rs), "phi_perp": _t(pp),
         "T_perp": _t(Tp), "T_par": _t(Ts), "exposure": torch.tensor(float(exposure), dtype=torch.float32),
     }
+    if cfg.mean_steps:  # the long spike mean around the centre frame, clipped to the stream
+        c = int(ck[len(ck) // 2])
+        a, b = max(0, c - cfg.mean_steps // 2), min(spikes.shape[0], c + cfg.mean_steps // 2 + 1)
+        item["I_mean"] = _t(spikes[a:b].sum(0, dtype=np.int64) / ((b - a) * exposure))
+    return item
 
 
-_IMAGE_KEYS = ("I", "T", "R", "zeta", "R_perp", "R_par", "phi_perp", "T_perp", "T_par")
+_IMAGE_KEYS = ("I", "T", "R", "zeta", "R_perp", "R_par", "phi_perp", "T_perp", "T_par", "I_mean")
 _ANGLE_KEYS = ("phi", "phi_perp")
 
 

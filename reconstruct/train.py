@@ -145,7 +145,7 @@ def evaluate_model(model: PolSpikeNet, dataset, batch_size: int = 8, device: tor
     for s in range(0, len(dataset), batch_size):
         b = collate([dataset[i] for i in range(s, min(len(dataset), s + batch_size))])
         I, phi, T, R, z = (b[k].to(device) for k in ("I", "phi", "T", "R", "zeta"))
-        out = model(I, phi)
+        out = model(I, phi, I_mean=b["I_mean"].to(device) if "I_mean" in b else None)
         orc = solve("rwps", z, I, None, model.solver_cfg_in)
         ests = {"T": out.T, "T_base": out.T_base, "T_oracle": orc.T, "T_tfp": 2.0 * I.mean(1), "R": out.R, "R_base": out.R_base, "R_oracle": orc.R}
         zc = z[:, z.shape[1] // 2]
@@ -249,6 +249,20 @@ class _BatchOrder:
             yield [int(perm[(pos * self.cfg.batch_size + j) % self.n]) for j in range(self.cfg.batch_size)]
 
 
+def _widened(src: dict[str, torch.Tensor], dst: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+    """``src`` weights for a model whose convolutions may take more input channels (e.g. ``net.use_mean``'s two
+    refinement inputs): a conv kernel (O, I, kh, kw) going into (O, I', kh, kw) with I' > I keeps its I channels
+    and gets zeros for the new ones, so the widened network starts as exactly the given one."""
+    out = dict(src)
+    for k, v in src.items():
+        t = dst.get(k)
+        if t is not None and v.dim() == 4 and t.dim() == 4 and t.shape[1] > v.shape[1] and (t.shape[0], *t.shape[2:]) == (v.shape[0], *v.shape[2:]):
+            w = torch.zeros_like(t)
+            w[:, : v.shape[1]] = v
+            out[k] = w
+    return out
+
+
 def _worker_init(_: int) -> None:
     torch.set_num_threads(1)
 
@@ -302,7 +316,7 @@ def train(
     if cfg.init_from:
         src = read_checkpoint(cfg.init_from)
         try:
-            model.load_state_dict(src["state_dict"])
+            model.load_state_dict(_widened(src["state_dict"], model.state_dict()))
         except RuntimeError as e:
             raise CheckpointError(f"init_from = {cfg.init_from}: its weights do not fit [net] of this config ({str(e).splitlines()[0]}); use weights of the same architecture") from None
         log.info("initialised from %s", cfg.init_from)
@@ -348,7 +362,7 @@ def train(
         epoch = step // spe
         alpha = alpha_at(epoch, cfg)
         I, phi, T, R, z = (b[k].to(dev) for k in ("I", "phi", "T", "R", "zeta"))
-        out = model(I, phi, zeta_gt=z, alpha=alpha)
+        out = model(I, phi, zeta_gt=z, alpha=alpha, I_mean=b["I_mean"].to(dev) if "I_mean" in b else None)
         loss, parts = total_loss(out, T, R, alpha, cfg.loss)
         if not math.isfinite(parts["loss"]):
             raise FloatingPointError(f"non-finite loss at step {step}: {parts}")

@@ -45,6 +45,8 @@ from polinfra.atomic import atomic_path, ensure_dir, write_json
 from polinfra.config import opt
 from polinfra.errors import ConfigError, DataFormatError
 
+from reconstruct.groups import SPIKE_MEAN_MS
+
 __all__ = ["DISPLAY_CLIP_FRACTION", "DisplayHistogram", "display_gain", "ReconstructConfig", "SpikeSource", "FeatureCache", "auto_tile", "dat_source", "group_source", "reconstruct_stream", "run_model_on_windows"]
 
 log = logging.getLogger(__name__)
@@ -163,7 +165,7 @@ def auto_tile(model, device: str | torch.device = "cpu") -> int:
 
 
 def run_model_on_windows(model, I: np.ndarray, phi: np.ndarray, device: str | torch.device = "cpu", tile: int = 128, margin: int = 16, *, precision: str = "float32", max_batch: int = 4,
-                         zeta: np.ndarray | None = None) -> dict[str, np.ndarray]:
+                         zeta: np.ndarray | None = None, I_mean: np.ndarray | None = None) -> dict[str, np.ndarray]:
     """Network on windows I (B, N, H, W) radiance units, phi (B, N) -> dict of (B, H, W) T, R, T_base, R_base.
 
     ``model`` is any object with ``cfg.n_obs`` that maps ``(I (B, N, H, W), phi (B, N))`` float32
@@ -177,6 +179,8 @@ def run_model_on_windows(model, I: np.ndarray, phi: np.ndarray, device: str | to
     ``zeta``: optional (B, N, H, W) mixing coefficients used instead of the network's own
     (``--zeta self``: the pane fitted to the stream); the network's solver and refinement then run
     on them (``model(I, phi, zeta_gt=zeta, alpha=1)``; its reliability weights stay learned).
+    ``I_mean``: optional (B, H, W) long spike mean around each window's centre frame, passed on as
+    ``model(..., I_mean=...)`` (required by a ``use_mean`` network), tiled like the frames.
     """
     dev = torch.device(device)
     x = torch.as_tensor(I, dtype=torch.float32, device=dev)
@@ -187,14 +191,22 @@ def run_model_on_windows(model, I: np.ndarray, phi: np.ndarray, device: str | to
         raise ConfigError(f"zeta must have the windows' shape {tuple(x.shape)}; got {tuple(z.shape)}")
     mult = _multiple(model)
 
-    def zkw(zz, i):
-        return {} if zz is None else {"zeta_gt": zz[i : i + max_batch], "alpha": 1.0}
+    m_ = None if I_mean is None else torch.as_tensor(I_mean, dtype=torch.float32, device=dev)[:, None]
+    if m_ is not None and m_.shape != (B, 1, H, W):
+        raise ConfigError(f"I_mean must be (B, H, W) = {(B, H, W)}; got {tuple(I_mean.shape)}")
+
+    def zkw(zz, i, mm=None):
+        kw = {} if zz is None else {"zeta_gt": zz[i : i + max_batch], "alpha": 1.0}
+        if mm is not None:
+            kw["I_mean"] = mm[i : i + max_batch, 0]
+        return kw
 
     with torch.inference_mode(), _autocast(dev, precision):
         if tile <= 0 or (H <= tile and W <= tile):
             xp, _ = _pad4(x, mult)
             zp = None if z is None else _pad4(z, mult)[0]
-            outs = [model(xp[i : i + max_batch], p[i : i + max_batch], **zkw(zp, i)) for i in range(0, B, max_batch)]
+            mp = None if m_ is None else _pad4(m_, mult)[0]
+            outs = [model(xp[i : i + max_batch], p[i : i + max_batch], **zkw(zp, i, mp)) for i in range(0, B, max_batch)]
             return {k: torch.cat([getattr(o, k) for o in outs])[..., :H, :W].float().cpu().numpy() for k in _KEYS}
         ts = tile + 2 * margin
         ts += (-ts) % mult
@@ -208,6 +220,10 @@ def run_model_on_windows(model, I: np.ndarray, phi: np.ndarray, device: str | to
         if z is not None:
             zp = F.pad(z, padding, mode="replicate")
             ztiles = torch.stack([zp[..., y0 : y0 + ts, x0 : x0 + ts] for (y0, x0) in pos], 1).reshape(B * len(pos), N, ts, ts)
+        mtiles = None
+        if m_ is not None:
+            mpad = F.pad(m_, padding, mode="replicate")
+            mtiles = torch.stack([mpad[..., y0 : y0 + ts, x0 : x0 + ts] for (y0, x0) in pos], 1).reshape(B * len(pos), 1, ts, ts)
         pt = p.repeat_interleave(len(pos), 0)
         # a v2 network normalises brightness by the window's scale: give every tile the whole frame's
         kw = {}
@@ -217,7 +233,7 @@ def run_model_on_windows(model, I: np.ndarray, phi: np.ndarray, device: str | to
             kw = {"scale": window_scale(_pad4(x, mult)[0]).reshape(B).repeat_interleave(len(pos), 0)}
         res = {k: [] for k in _KEYS}
         for i in range(0, tiles.shape[0], max_batch):
-            o = model(tiles[i : i + max_batch], pt[i : i + max_batch], **{k: v[i : i + max_batch] for k, v in kw.items()}, **zkw(ztiles, i))
+            o = model(tiles[i : i + max_batch], pt[i : i + max_batch], **{k: v[i : i + max_batch] for k, v in kw.items()}, **zkw(ztiles, i, mtiles))
             for k in _KEYS:
                 res[k].append(getattr(o, k)[:, margin : margin + tile, margin : margin + tile].float())
         out = {}
@@ -243,8 +259,9 @@ class FeatureCache:
         self.encoded = 0
         self.reused = 0
 
-    def run(self, I: np.ndarray, phi: np.ndarray, idx: np.ndarray) -> dict[str, np.ndarray]:
-        """Windows I (B, N, H, W), phi (B, N), frame indices idx (B, N) -> dict of (B, H, W) maps."""
+    def run(self, I: np.ndarray, phi: np.ndarray, idx: np.ndarray, I_mean: np.ndarray | None = None) -> dict[str, np.ndarray]:
+        """Windows I (B, N, H, W), phi (B, N), frame indices idx (B, N) -> dict of (B, H, W) maps (``I_mean``: as
+        :func:`run_model_on_windows`)."""
         from reconstruct.network import window_scale
 
         dev = self.device
@@ -280,7 +297,8 @@ class FeatureCache:
                     fs.append(f_)
                     gs.append(g_)
             self.reused += B * N - len(need)
-            out = self.model(xp, p, feats=(torch.stack(fs), torch.stack(gs)))
+            mk = {} if I_mean is None else {"I_mean": _pad4(torch.as_tensor(I_mean, dtype=torch.float32, device=dev)[:, None], _multiple(self.model))[0][:, 0]}
+            out = self.model(xp, p, feats=(torch.stack(fs), torch.stack(gs)), **mk)
             res = {k: getattr(out, k)[..., :H, :W].float().cpu().numpy() for k in _KEYS}
         lo = int(idx[:, 0].max()) + 1  # windows advance: the next one starts after this batch's last first frame
         for key in [k for k in self.store if k < lo]:  # the next window starts one frame later
@@ -417,6 +435,51 @@ class _Writers:
                 self.spool_path.unlink()
 
 
+class _PrefixSums:
+    """Spike counts of the stream up to the boundaries the long spike means need, kept only until used.
+
+    The mean of output frame j covers steps [centre_j - L // 2, centre_j + L // 2 + 1) clipped to the stream
+    (as :func:`reconstruct.groups.spike_mean_frames` on a store); the chunks are fed in order and each
+    boundary's running count is snapshotted once (two (H, W) arrays per frame in flight).
+    """
+
+    def __init__(self, centres: np.ndarray, steps: int, n_steps: int, shape: tuple[int, int]):
+        self.lo = np.clip(np.asarray(centres, np.int64) - steps // 2, 0, n_steps)
+        self.hi = np.clip(np.asarray(centres, np.int64) + steps // 2 + 1, 0, n_steps)
+        self.want = sorted(set(self.lo.tolist()) | set(self.hi.tolist()))
+        self.snap: dict[int, np.ndarray] = {}
+        self.acc = np.zeros(shape, np.int64)
+        self.pos = 0  # acc = spikes of steps [0, pos)
+        self.wi = 0
+
+    def feed(self, s0: int, chunk: np.ndarray) -> None:
+        """The next chunk of spikes (steps s0 .. s0 + len); chunks arrive in order without gaps."""
+        if s0 + chunk.shape[0] <= self.pos:
+            return
+        chunk = chunk[self.pos - s0 :] if s0 < self.pos else chunk
+        s0 = self.pos
+        end = s0 + chunk.shape[0]
+        while self.wi < len(self.want) and self.want[self.wi] <= end:
+            b = self.want[self.wi]
+            self.acc += chunk[self.pos - s0 : b - s0].sum(0, dtype=np.int64)
+            self.pos = b
+            self.snap[b] = self.acc.copy()
+            self.wi += 1
+        self.acc += chunk[self.pos - s0 :].sum(0, dtype=np.int64)
+        self.pos = end
+
+    def mean(self, j: int) -> np.ndarray:
+        """Spikes per step around output frame j (divide by the exposure for radiance units); frees older snapshots."""
+        lo, hi = int(self.lo[j]), int(self.hi[j])
+        if hi not in self.snap:  # the stream ended early or is not fed that far yet: up to where it is
+            hi = self.pos
+            self.snap[hi] = self.acc.copy()
+        m = (self.snap[hi] - self.snap[lo]) / np.float32(max(hi - lo, 1))
+        for k in [k for k in self.snap if k < lo]:
+            del self.snap[k]
+        return m.astype(np.float32)
+
+
 def reconstruct_stream(
     source: SpikeSource,
     model,
@@ -472,6 +535,8 @@ def reconstruct_stream(
     tail = np.zeros((0, source.height, source.width), np.uint8)
     tail_start = 0
 
+    mean_steps = int(round(SPIKE_MEAN_MS * 1e-3 * source.rate_hz)) if getattr(model.cfg, "use_mean", False) else 0
+    prefix = _PrefixSums(centres, mean_steps, source.phi_step_rad.size, (source.height, source.width)) if mean_steps else None
     tile = auto_tile(model, device) if cfg.tile < 0 else cfg.tile
     cache = FeatureCache(model, device, cfg.precision) if (cfg.cache and tile == 0 and getattr(model, "cacheable", False)) else None
 
@@ -481,10 +546,11 @@ def reconstruct_stream(
             return
         I = np.stack([p[0] for p in pending])
         ph = np.stack([p[1] for p in pending])
+        im = np.stack([p[3] for p in pending]) / np.float32(exposure) if prefix is not None else None
         if cache is not None:
-            res = cache.run(I, ph, np.stack([p[2] for p in pending]))
+            res = cache.run(I, ph, np.stack([p[2] for p in pending]), I_mean=im)
         else:
-            res = run_model_on_windows(model, I, ph, device, tile, precision=cfg.precision)
+            res = run_model_on_windows(model, I, ph, device, tile, precision=cfg.precision, I_mean=im)
         for b in range(I.shape[0]):
             T, R = res["T"][b], res["R"][b]
             if not (np.isfinite(T).all() and np.isfinite(R).all()):
@@ -504,12 +570,14 @@ def reconstruct_stream(
             buf = np.concatenate([tail, chunk]) if tail.size else chunk
             b0 = tail_start if tail.size else s0
             b1 = b0 + buf.shape[0]
+            if prefix is not None:
+                prefix.feed(s0, chunk)
             while next_c < centres.size and centres[next_c] + half < b1 and done + len(pending) < n_out:
                 c = int(centres[next_c]) - b0
                 frames_I.append(buf[c - half : c + half + 1].sum(0, dtype=np.int32).astype(np.float32) / (cfg.window_steps * exposure))  # Eq. (3), radiance units
                 next_c += 1
                 if len(frames_I) == N:
-                    pending.append((np.stack(frames_I), phi_i[next_c - N : next_c], np.arange(next_c - N, next_c)))
+                    pending.append((np.stack(frames_I), phi_i[next_c - N : next_c], np.arange(next_c - N, next_c), prefix.mean(next_c - 1 - K) if prefix is not None else None))
                     if len(pending) >= cfg.batch:
                         flush(writers)
             if done + len(pending) >= n_out:

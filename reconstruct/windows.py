@@ -193,6 +193,8 @@ class StoreWindows(torch.utils.data.Dataset):
         crop: str = "random",
         cache_mb: float = 64.0,
     ):
+        if cfg.mean_steps:
+            raise ConfigError("window.mean_steps (the long spike mean of a use_mean network) needs on-the-fly windows; stored windows read only the Eq. (3) steps; drop --data")
         if centres not in ("dense", "output"):
             raise ConfigError(f"centres = {centres!r}; choose 'dense' or 'output'")
         if crop not in ("random", "centre"):

@@ -182,6 +182,7 @@ class GeneratorWindows:
         self.rate_hz = self.sim.rate_hz
         stride_steps = window.stride_deg / 360.0 / 30.0 * self.rate_hz
         self.n_steps = int(math.ceil((window.n_obs + 1) * stride_steps + window.window_steps // 2 + 2))
+        self.n_steps += window.mean_steps  # room for the long spike mean around the centre frame
 
     def _scene(self, j: int) -> _SceneCache:
         if j in self.cache:

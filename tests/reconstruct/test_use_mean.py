@@ -1,0 +1,121 @@
+"""A network that also sees the long spike mean (net.use_mean, issue 16): its input in training items, in
+evaluation and in the streaming reconstructor equals the raw-spike mean of the store; widening a trained
+network's refinement for it starts from exactly the same outputs."""
+
+from __future__ import annotations
+
+import dataclasses
+import types
+
+import numpy as np
+import pytest
+import torch
+
+from polinfra.errors import ConfigError, ShapeError
+from reconstruct.network import NetConfig, PolSpikeNet, init_weights
+from reconstruct.train import _widened
+
+from tests.reconstruct.test_windows import make_group
+
+SMALL = NetConfig(arch="v2", feat_ch=8, lr_ch=8, w_ch=4, ref_ch=(8, 8, 8), dec_ch=(8, 8, 8), use_rir=False)
+
+
+def _window(seed=0, B=2, H=16, W=16):
+    g = torch.Generator().manual_seed(seed)
+    I = torch.rand(B, 7, H, W, generator=g) * 0.5
+    phi = torch.arange(7, dtype=torch.float32)[None].repeat(B, 1) * 0.55
+    return I, phi, 0.5 * I.mean(1) + 0.01 * torch.rand(B, H, W, generator=g)
+
+
+def test_widened_network_starts_as_the_given_one_and_needs_the_mean():
+    torch.manual_seed(0)
+    base = init_weights(PolSpikeNet(SMALL), torch.Generator().manual_seed(1)).eval()
+    for p in base.refine.parameters():  # non-zero decoders, so the refinement's input matters
+        torch.nn.init.normal_(p, 0, 0.05)
+    wide = PolSpikeNet(dataclasses.replace(SMALL, use_mean=True)).eval()
+    wide.load_state_dict(_widened(base.state_dict(), wide.state_dict()))
+    I, phi, Im = _window()
+    with torch.no_grad():
+        a, b = base(I, phi), wide(I, phi, I_mean=Im)
+    torch.testing.assert_close(a.T, b.T, rtol=0, atol=1e-6)
+    torch.testing.assert_close(a.R, b.R, rtol=0, atol=1e-6)
+    w = wide.refine.e1[0]
+    k = next(v for n, v in wide.state_dict().items() if n.startswith("refine.e1.0") and v.dim() == 4)
+    assert k.shape[1] == 8 and float(k[:, 6:].abs().max()) == 0.0  # the two new inputs start at zero weight
+    with torch.no_grad():  # once the new weights move, the mean changes the output
+        for n, v in wide.named_parameters():
+            if n.startswith("refine.e1.0") and v.dim() == 4:
+                v[:, 6:] = 0.1
+        c = wide(I, phi, I_mean=Im)
+        d = wide(I, phi, I_mean=Im * 2)
+    assert float((c.T - d.T).abs().max()) > 1e-4
+    with pytest.raises(ShapeError, match="I_mean"):
+        wide(I, phi)
+    assert w is not None
+
+
+def test_onthefly_item_mean_is_the_raw_spike_mean():
+    from reconstruct.onthefly import WindowConfig, item_from_stream
+
+    rng = np.random.default_rng(0)
+    spikes = (rng.random((900, 8, 8)) < 0.2).astype(np.uint8)
+    cfg = WindowConfig(crop=8, mean_steps=350)
+    ck = 300 + np.arange(7) * 58
+    phi = np.linspace(0, 5, 900)
+    maps = {"R_perp": np.full((8, 8), 0.1), "R_par": np.full((8, 8), 0.01), "phi_perp": np.zeros((8, 8))}
+    it = item_from_stream(spikes, ck, phi, phi, (np.zeros((8, 8)),) * 2, maps, 0.7, cfg)
+    c = ck[3]
+    np.testing.assert_allclose(it["I_mean"].numpy(), spikes[c - 175 : c + 176].sum(0) / (351 * 0.7), rtol=1e-6)
+    assert "I_mean" not in item_from_stream(spikes, ck, phi, phi, (np.zeros((8, 8)),) * 2, maps, 0.7, WindowConfig(crop=8))
+
+
+class _Recorder(torch.nn.Module):
+    """Stands in for a use_mean network: records the I_mean it is given, returns T = 2 I_mean."""
+
+    def __init__(self):
+        super().__init__()
+        self.cfg = types.SimpleNamespace(n_obs=7, use_mean=True, arch="v1")
+        self.seen: list[np.ndarray] = []
+
+    def forward(self, I, phi, I_mean=None, **kw):
+        self.seen.append(I_mean.numpy().copy())
+        z = torch.zeros_like(I_mean)
+        return types.SimpleNamespace(T=2 * I_mean, R=z, T_base=z, R_base=z)
+
+
+@pytest.mark.parametrize("chunk", [37, 2000])
+def test_stream_gives_the_network_the_store_spike_mean(tmp_path, chunk):
+    from spike_sim.aggregate import AggregateConfig, frame_centres
+    from spike_sim.store import open_group
+
+    from reconstruct.groups import spike_mean_frames
+    from reconstruct.video import ReconstructConfig, group_source, reconstruct_stream
+
+    make_group(tmp_path / "g", seed=3, duration=0.04)
+    rec = _Recorder()
+    src = group_source(tmp_path / "g", chunk_steps=chunk)
+    s = reconstruct_stream(src, rec, tmp_path / "out", ReconstructConfig(video=False, chunk_steps=chunk, batch=2, tile=0, cache=False))
+    got = np.concatenate(rec.seen)
+    assert got.shape[0] == s["frames"] >= 3
+    with open_group(tmp_path / "g") as g:
+        c, _ = frame_centres(g.phi_nominal_rad, AggregateConfig())
+        ref = spike_mean_frames(g, c[3 : 3 + got.shape[0]], 350, src.exposure)
+    np.testing.assert_allclose(got, ref, rtol=1e-5, atol=1e-6)
+
+
+def test_a_mean_network_refuses_groups_without_spikes():
+    from reconstruct.evaluate import EvalConfig, evaluate_groups
+    from reconstruct.synthetic import SyntheticConfig, make_group as synth
+
+    g = synth(SyntheticConfig(width=16, height=16, n_groups=1, n_frames=9), 0)
+    assert g.I_mean is None
+    rec = _Recorder()
+    import reconstruct.evaluate as ev
+
+    orig = ev.load_network
+    ev.load_network = lambda cfg: (rec, {"label": "full"})
+    try:
+        with pytest.raises(ConfigError, match="long spike mean"):
+            evaluate_groups([g], EvalConfig(methods="full", rir=False, max_frames=1))
+    finally:
+        ev.load_network = orig
