@@ -34,7 +34,7 @@ from reconstruct.solvers import SolverConfig, solve
 __all__ = ["GRID", "POOLED_ONLY", "aligned_windows", "group_scores", "fit_rwps", "fit_markdown"]
 
 GRID: dict[str, tuple] = {
-    "snr_kappa": (0.3, 1.0, 3.0),
+    "snr_kappa": (0.03, 0.1, 0.3, 1.0),
     "lambda_low": (0.0,),
     "lambda_high": (0.3, 1.0),
     "rwps_irls_iters": (0,),

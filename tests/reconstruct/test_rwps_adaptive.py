@@ -23,6 +23,11 @@ REGIMES = {
     "brewster_bright": (0.16, 0.0, 1.0, 200.0),
     "dominant_reflection": (0.16, 0.0, 4.0, 20.0),
     "weak_reflection": (0.16, 0.0, 0.25, 20.0),
+    # R << T: the prior toward R = T is wrong there (stress.toml's "reflection weak" level)
+    "weak_reflection_glancing": (0.50, 0.10, 0.1, 400.0),  # strong modulation, bright: LS territory
+    "weak_reflection_glancing_dim": (0.50, 0.10, 0.1, 20.0),
+    "weak_reflection_normal": (0.045, 0.035, 0.1, 20.0),  # near-singular: ridge territory
+    "weak_reflection_brewster_bright": (0.16, 0.0, 0.1, 400.0),
 }
 
 
@@ -87,7 +92,7 @@ def test_adaptive_conf_follows_conditioning_and_noise():
 
 def test_fixed_mapping_is_the_default_and_old_configs_reproduce():
     """A stored SolverConfig without the new keys loads as the fixed (original) mapping, bit for bit."""
-    old = {k: v for k, v in to_dict(SolverConfig()).items() if k not in ("lambda_map", "snr_kappa", "noise_pool", "rwps_irls_iters")}
+    old = {k: v for k, v in to_dict(SolverConfig()).items() if k not in ("lambda_map", "snr_kappa", "noise_pool", "rwps_irls_iters", "rwps_prior", "prior_pool", "prior_kappa")}
     cfg = from_dict(SolverConfig, old, where="old checkpoint")
     assert cfg.lambda_map == "fixed" and cfg == SolverConfig()
     zeta, I, _ = _regime_windows("brewster_dim", B=2, H=8, W=8)
