@@ -16,6 +16,7 @@ def checkpoint_scores_cmd(
     manifest: str = typer.Option("datasets/manifests/paper_v1.toml", "--manifest", help="test windows from this manifest's test groups (the model card's test split)"),
     threads: int = typer.Option(1, "--threads", help="torch CPU threads (1 = the setting the stored scores are reproduced with)"),
     reduced_only: bool = typer.Option(False, "--reduced-only", help="recompute only the reduced evaluation (seconds); keep the stored model-card block if it belongs to these weights"),
+    light: str = typer.Option("range", "--light", help="range: exposures from the default range (the v1/v2 scores); group: each manifest group's own sensor and light level (paper.toml-trained checkpoints)"),
     check: bool = typer.Option(False, "--check", help="do not write: re-run the reduced evaluation and compare with the stored file (exit 1 beyond 0.05 dB)"),
 ) -> None:
     """Evaluate a checkpoint on the held-out test set of `polspike evaluate-checkpoint` and write NAME.scores.json beside it.
@@ -57,7 +58,9 @@ def checkpoint_scores_cmd(
         return
     if not Path(manifest).is_file():
         raise ConfigError(f"--manifest {manifest}: file not found")
-    out = write_scores(w, manifest=manifest, threads=threads, model_card=not reduced_only, progress=lambda s: con.print(f"evaluating {w.name}: {s} setting ..."))
+    if light not in ("range", "group"):
+        raise ConfigError(f"--light {light!r}: choose range or group")
+    out = write_scores(w, manifest=manifest, threads=threads, model_card=not reduced_only, progress=lambda s: con.print(f"evaluating {w.name}: {s} setting ..."), light=light)
     doc = json.loads(out.read_text())
     for block in ("reduced", "model_card"):
         if block in doc:

@@ -164,8 +164,9 @@ def reconstruct_and_score(group_dir: Path, figs: Path, n_frames: int, crop: int)
     sl = (slice(y0, y0 + c), slice(x0, x0 + c))
     I = np.stack([g.I[i - K : i + K + 1][:, sl[0], sl[1]] for i in idx])
     phi = np.stack([g.phi_nominal[i - K : i + K + 1] for i in idx])
+    im = np.stack([g.I_mean[i][sl] for i in idx]) if model.cfg.use_mean else None  # the long spike mean, when the net takes it
     with torch.no_grad():
-        res = run_model_on_windows(model, I, phi)
+        res = run_model_on_windows(model, I, phi, I_mean=im)
     est = {"TFP (window mean)": (2 * I.mean(1), None), "RWPS only": (res["T_base"], res["R_base"]), "full network": (res["T"], res["R"])}
     rows = []
     for name, (T, R) in est.items():

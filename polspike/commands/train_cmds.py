@@ -190,13 +190,31 @@ def reconstruct_cmd(
     c.print(f"wrote {', '.join(s['outputs']) or 'no video'} to {out} ({s['seconds']:.1f} s)")
 
 
-def heldout_test_set(crop: int = 64, items: int = 96, seed: int = 20_000, manifest: str = "", scenes: int = 10, scene_seed: int = 0):
-    """The model card's test set: on-the-fly windows of the test groups of ``manifest`` (else of ``scenes`` sampled test scenes)."""
+MEAN_STEPS = 350
+"""Steps of the long spike mean a ``use_mean`` network is given in the held-out windows (17.5 ms at 20 kHz, as trained)."""
+
+
+def heldout_test_set(crop: int = 64, items: int = 96, seed: int = 20_000, manifest: str = "", scenes: int = 10, scene_seed: int = 0, light: str = "range", mean_steps: int = 0):
+    """The model card's test set: on-the-fly windows of the test groups of ``manifest`` (else of ``scenes`` sampled test scenes).
+
+    ``light``: "range" = the exposure drawn from the default range (the shipped v1/v2 scores), "group" = each manifest
+    group's own sensor and light level (paper.toml's dim-to-bright range).  ``mean_steps``: also the long spike mean
+    (a ``use_mean`` network's input).
+    """
+    from polinfra.errors import ConfigError
     from polspike.pipeline.train_windows import GeneratorWindows, manifest_scenes, scene_pool
     from reconstruct.onthefly import OnTheFlyWindows, WindowConfig
 
+    if light not in ("range", "group"):
+        raise ConfigError(f"light = {light!r}: choose range or group")
+    if light == "group":
+        if not manifest:
+            raise ConfigError("light = group takes each manifest group's sensor: give a manifest")
+        sc, sims = manifest_scenes(manifest, "test", with_sensor=True)
+        w = WindowConfig(crop=crop, sim_preset="group", exposure_source="group", mean_steps=mean_steps)
+        return OnTheFlyWindows(GeneratorWindows(sc, w, sims=sims), length=items, seed=seed)
     sc = manifest_scenes(manifest, "test") if manifest else scene_pool(scenes, scene_seed, "test")
-    return OnTheFlyWindows(GeneratorWindows(sc, WindowConfig(crop=crop)), length=items, seed=seed)
+    return OnTheFlyWindows(GeneratorWindows(sc, WindowConfig(crop=crop, mean_steps=mean_steps)), length=items, seed=seed)
 
 
 @app_typer.command("evaluate-checkpoint")
@@ -211,6 +229,7 @@ def evaluate_checkpoint_cmd(
     device: str = typer.Option("auto", "--device", help="auto | cpu | cuda"),
     threads: int = typer.Option(0, "--threads", help="torch CPU threads (0 = torch default)"),
     solver: Optional[str] = typer.Option(None, "--solver", help="ls | ridge | irls | rwps: physics solver before the same refinement (supp. Table 3) [default: as trained]"),
+    light: str = typer.Option("range", "--light", help="range: exposures from the default range (the shipped v1/v2 scores); group: each manifest group's own sensor and light level"),
 ) -> None:
     """PSNR / SSIM of T on the held-out synthetic test set: full network, RWPS-only (learned zeta, w), RWPS with GT zeta, TFP."""
     import torch
@@ -226,7 +245,7 @@ def evaluate_checkpoint_cmd(
     dev = "cuda" if device == "auto" and torch.cuda.is_available() else ("cpu" if device == "auto" else device)
     over = ({} if rir is None else {"use_rir": rir}) | ({} if solver is None else {"solver_method": solver})
     model, data = load_model(weights or DEFAULT_WEIGHTS, dev, **over)
-    ds = heldout_test_set(crop, items, seed, manifest)
+    ds = heldout_test_set(crop, items, seed, manifest, light=light, mean_steps=MEAN_STEPS if model.cfg.use_mean else 0)
     m = evaluate_model(model, ds, batch_size=8, device=dev, ssim=True)
     rows = [
         ("T: full network", "T"), ("T: RWPS-only, learned zeta and w (T^)", "T_base"), ("T: RWPS, ground-truth zeta (oracle)", "T_oracle"), ("T: TFP, 2 x window mean", "T_tfp"),

@@ -51,7 +51,7 @@ def evaluate_setting(weights: str | os.PathLike, setting: dict[str, Any], thread
     """PSNR / SSIM of ``weights`` on the held-out test set of ``setting`` (CPU, ``threads`` torch threads, as trained)."""
     import torch
 
-    from polspike.commands.train_cmds import heldout_test_set
+    from polspike.commands.train_cmds import MEAN_STEPS, heldout_test_set
     from reconstruct.checkpoint import load_model
     from reconstruct.train import evaluate_model
 
@@ -59,22 +59,22 @@ def evaluate_setting(weights: str | os.PathLike, setting: dict[str, Any], thread
     torch.set_num_threads(max(1, int(threads)))
     try:
         model, _ = load_model(weights, "cpu")
-        ds = heldout_test_set(setting["crop"], setting["items"], setting["seed"], setting["manifest"])
+        ds = heldout_test_set(setting["crop"], setting["items"], setting["seed"], setting["manifest"], light=setting.get("light", "range"), mean_steps=MEAN_STEPS if model.cfg.use_mean else 0)
         with torch.no_grad():
             return evaluate_model(model, ds, batch_size=8, device="cpu", ssim=True)
     finally:
         torch.set_num_threads(old)
 
 
-def _command(weights: Path, manifest: str) -> str:
+def _command(weights: Path, manifest: str, light: str = "range") -> str:
     try:
         shown = weights.resolve().relative_to(Path.cwd().resolve())
     except ValueError:
         shown = weights
-    return f"polspike checkpoint-scores {shown} --manifest {manifest} --threads 1"
+    return f"polspike checkpoint-scores {shown} --manifest {manifest} --threads 1" + ("" if light == "range" else f" --light {light}")
 
 
-def write_scores(weights: str | os.PathLike, manifest: str = DEFAULT_MANIFEST, threads: int = 1, model_card: bool = True, progress=None) -> Path:
+def write_scores(weights: str | os.PathLike, manifest: str = DEFAULT_MANIFEST, threads: int = 1, model_card: bool = True, progress=None, light: str = "range") -> Path:
     """Evaluate ``weights`` in both settings and write ``scores_path(weights)`` atomically.
 
     ``model_card=False`` keeps the stored model-card block (when its sha256 matches) and
@@ -99,19 +99,20 @@ def write_scores(weights: str | os.PathLike, manifest: str = DEFAULT_MANIFEST, t
         "arch": (data.get("net") or {}).get("arch", "v1"),  # checkpoints without the key are v1
         "step": data.get("step"),
         "manifest": manifest,
-        "command": _command(w, manifest),
+        "command": _command(w, manifest, light),
         "torch": torch.__version__,
         "threads": threads,
         "reproduce_tol_db": REPRODUCE_TOL_DB,
     }
     if progress:
         progress("reduced")
-    reduced = {**REDUCED_SETTING, "manifest": manifest}
+    extra = {} if light == "range" else {"light": light}  # range: the settings of the first scores files, unchanged
+    reduced = {**REDUCED_SETTING, "manifest": manifest, **extra}
     doc["reduced"] = {"setting": reduced, "metrics": evaluate_setting(w, reduced, threads)}
     if model_card:
         if progress:
             progress("model_card")
-        card = {**MODEL_CARD_SETTING, "manifest": manifest}
+        card = {**MODEL_CARD_SETTING, "manifest": manifest, **extra}
         doc["model_card"] = {"setting": card, "metrics": evaluate_setting(w, card, threads)}
     elif prev.get("weights_sha256") == sha and prev.get("manifest") == manifest and "model_card" in prev:
         doc["model_card"] = prev["model_card"]
