@@ -99,6 +99,7 @@ class SelfCalConfig:
     prior_model: str = opt("thin_slab", "model: auto keeps this pane model where the data do not tell single from slab (the safer guess for ridge / RWPS, docs/selfcal.md)", choices=("single", "thin_slab", "thick_slab"))
     cone_margin: float = opt(9.0, "cone test: a pane family (or glass) is rejected when its DoP-cone violation (chi^2, noise units) exceeds the best by this", lo=0.0, hi=1e9)
     cone_ratio: float = opt(10.0, "cone test: the rejected pane family's DoP-cone violation must also be at least this many times the chosen one's (else neither fits)", lo=1.0, hi=1e9)
+    valley_step_deg: float = opt(2.0, "cone test: tilt step of the candidate panes, degrees", lo=0.5, hi=20.0)
     valley_ratio: float = opt(0.97, "cone test: panes scoring at least this fraction of the orientation optimum are candidates", lo=0.0, hi=1.0)
     z_min: float = opt(8.0, "the fitted pane must explain the orientation field this many noise standard deviations above chance, else 'nothing modulates' (ok = False)", lo=0.0, hi=1e6)
     coherence_sigmas: float = opt(4.0, "diagnostics: a block counts as modulating when its |sum z4| exceeds this many noise standard deviations", lo=0.0, hi=100.0)
@@ -570,18 +571,23 @@ def valley_candidates(s4: np.ndarray, width_blocks: int, height_blocks: int, see
         cam = camera_for(width_blocks, height_blocks, fov)
         return _phi_perp_grid(cam, normal_from_angles(tilt, az, cam)).ravel()
 
+    def at_tilt(t, a_seed, f_seed):
+        if fov_deg:
+            fun = lambda x: sw * np.sin(0.5 * (ang4 - 4.0 * phis(t, x[0], fov_deg)))  # noqa: E731
+            r = least_squares(fun, [a_seed], bounds=([a_seed - math.pi / 2], [a_seed + math.pi / 2]), x_scale=[0.1])
+            az, fv = float(r.x[0]), float(fov_deg)
+        else:
+            fun = lambda x: sw * np.sin(0.5 * (ang4 - 4.0 * phis(t, x[0], x[1])))  # noqa: E731
+            r = least_squares(fun, [a_seed, f_seed], bounds=([a_seed - math.pi / 2, 5.0], [a_seed + math.pi / 2, 150.0]), x_scale=[0.1, 10.0])
+            az, fv = float(r.x[0]), float(r.x[1])
+        return float(np.sum(mag * np.cos(ang4 - 4.0 * phis(t, az, fv)))), az, fv
+
     out = []
     for fam, (t_seed, a_seed, f_seed) in enumerate(seeds):
         for t in np.deg2rad(np.arange(tilt_step_deg, 89.9, tilt_step_deg)):
-            if fov_deg:
-                fun = lambda x: sw * np.sin(0.5 * (ang4 - 4.0 * phis(t, x[0], fov_deg)))  # noqa: E731
-                r = least_squares(fun, [a_seed], bounds=([a_seed - math.pi / 2], [a_seed + math.pi / 2]), x_scale=[0.1])
-                az, fv = float(r.x[0]), float(fov_deg)
-            else:
-                fun = lambda x: sw * np.sin(0.5 * (ang4 - 4.0 * phis(t, x[0], x[1])))  # noqa: E731
-                r = least_squares(fun, [a_seed, f_seed], bounds=([a_seed - math.pi / 2, 5.0], [a_seed + math.pi / 2, 150.0]), x_scale=[0.1, 10.0])
-                az, fv = float(r.x[0]), float(r.x[1])
-            sc = float(np.sum(mag * np.cos(ang4 - 4.0 * phis(t, az, fv))))
+            # the seed's azimuth and the opposite one: near 90 deg of tilt the two describe nearly the same plane,
+            # so an optimum found at the edge of the hemisphere may continue on the other side at lower tilts
+            sc, az, fv = max(at_tilt(t, a, f_seed) for a in (a_seed, a_seed + math.pi))
             out.append({"tilt": float(t), "azimuth": az % (2 * math.pi), "fov_deg": fv, "score": sc, "family": fam})
     best = max([c["score"] for c in out], default=0.0)
     return [c for c in out if c["score"] >= keep_ratio * best]
@@ -617,7 +623,7 @@ def _resolve_by_cone(I, phi, f, fit, W, H, fov_given, cfg) -> dict:
     seeds = [(fit["tilt"], fit["azimuth"], fit["fov_deg"])]
     if "twin_tilt" in fit:
         seeds.append((fit["twin_tilt"], fit["twin_azimuth"], fit["twin_fov_deg"]))
-    cands = valley_candidates(f["s4"], w, h, seeds, fov_given, keep_ratio=cfg.valley_ratio)
+    cands = valley_candidates(f["s4"], w, h, seeds, fov_given, tilt_step_deg=cfg.valley_step_deg, keep_ratio=cfg.valley_ratio)
     cands += [{"tilt": t, "azimuth": a, "fov_deg": fv, "score": sc, "family": k}
               for k, (t, a, fv, sc) in enumerate([(fit["tilt"], fit["azimuth"], fit["fov_deg"], fit["score"])]
                                                  + ([(fit["twin_tilt"], fit["twin_azimuth"], fit["twin_fov_deg"], fit["twin_score"])] if "twin_tilt" in fit else []))]
