@@ -58,6 +58,7 @@ class PhysicsOutput:
 @dataclasses.dataclass(frozen=True)
 class _Cfg:
     n_obs: int
+    use_mean: bool = False  # True: the stream passes the long spike mean (anchor = "mean")
 
 
 class PhysicsModel:
@@ -71,20 +72,25 @@ class PhysicsModel:
         learned_model: a network whose parameter branch gives zeta and w (``learned``), or None.
         solver_cfg: solver parameters.
         rir: align each window (reflection-invariant registration) before solving.
+        anchor: "mean" = anchor each output to the 17.5 ms spike mean the stream passes
+            (:func:`reconstruct.evaluate.anchor_to_mean`: the level from the long mean, the difference
+            R - T from the solver); "none" = the solver output as is.
     """
 
     stream_tile = 0  # zeta maps are per full-frame pixel: whole frames, never tiles
     pad_multiple = 1
 
     def __init__(self, method: str, n_obs: int = 7, maps: PaneMaps | None = None, span_rad: float = 0.0, learned_model=None,
-                 solver_cfg: SolverConfig | None = None, rir: bool = True):
+                 solver_cfg: SolverConfig | None = None, rir: bool = True, anchor: str = "none"):
         if method not in PHYSICS_METHODS:
             raise ConfigError(f"unknown physics method {method!r}; choose one of {list(PHYSICS_METHODS)}")
         if n_obs < 1 or n_obs % 2 == 0:
             raise ConfigError(f"n_obs = {n_obs} must be odd (N = 2K + 1)")
         if (maps is None) == (learned_model is None):
             raise ConfigError("a physics model needs exactly one zeta source: pane maps or a learned model")
-        self.cfg = _Cfg(int(n_obs))
+        if anchor not in ("none", "mean"):
+            raise ConfigError(f"anchor {anchor!r}: choose none or mean")
+        self.cfg = _Cfg(int(n_obs), anchor == "mean")
         self.method = method
         self.maps = maps
         self.span_rad = float(span_rad)
@@ -95,7 +101,7 @@ class PhysicsModel:
     def eval(self) -> PhysicsModel:
         return self
 
-    def __call__(self, I: torch.Tensor, phi: torch.Tensor) -> PhysicsOutput:
+    def __call__(self, I: torch.Tensor, phi: torch.Tensor, I_mean: torch.Tensor | None = None) -> PhysicsOutput:
         I = I.float()
         phi = phi.float()
         B, N, H, W = I.shape
@@ -117,7 +123,14 @@ class PhysicsModel:
             Z, w_learned = zeta_learned(self.learned_model, I, phi)
             w = w_learned if self.method == "rwps" else None
         r = solve(self.method, Z, I, weights=w, config=self.solver_cfg)
-        T, R = r.T.clamp_min(0.0), r.R.clamp_min(0.0)
+        T, R = r.T, r.R
+        if self.cfg.use_mean:
+            if I_mean is None:
+                raise ConfigError("anchor = mean needs the stream's long spike mean (reconstruct_stream passes it)")
+            D = R - T  # paper Eq. (1) over a half turn: 2 I_mean = T + zbar (R - T)
+            T = 2.0 * I_mean.to(T.dtype) - Z.mean(1).to(T.dtype) * D
+            R = T + D
+        T, R = T.clamp_min(0.0), R.clamp_min(0.0)
         return PhysicsOutput(T=T, R=R, T_base=T, R_base=R)
 
 
@@ -185,8 +198,9 @@ def build_physics_model(
     selfcal: SelfCalConfig | None = None,
     pane_n: float = 1.5,
     pane_model: str = "single",
+    anchor: str = "none",
 ) -> tuple[PhysicsModel, dict]:
-    """A :class:`PhysicsModel` for ``method`` on zeta source ``zeta`` for this stream.
+    """A :class:`PhysicsModel` for ``method`` on zeta source ``zeta`` for this stream (``anchor``: as the model's).
 
     Args:
         method: solver name.
@@ -212,9 +226,9 @@ def build_physics_model(
     span = 2 * math.pi * source.polarizer_rev_s * window_steps / source.rate_hz
     info: dict = {"zeta": zeta, "selfcal": None}
     if zeta == "learned":
-        return PhysicsModel(method, n_obs, learned_model=_need(load_learned), rir=rir), info
+        return PhysicsModel(method, n_obs, learned_model=_need(load_learned), rir=rir, anchor=anchor), info
     if zeta in ("gt", "physics"):
-        return PhysicsModel(method, n_obs, maps=group_pane_maps(group_dir, zeta, pane_n, pane_model), span_rad=span, rir=rir), info
+        return PhysicsModel(method, n_obs, maps=group_pane_maps(group_dir, zeta, pane_n, pane_model), span_rad=span, rir=rir, anchor=anchor), info
     sc = selfcal or SelfCalConfig()
     if not sc.fov_deg and group_dir is not None:
         from reconstruct.selfcal import fov_from_group_dir
@@ -226,9 +240,9 @@ def build_physics_model(
     res = calibrate_source(source, window_steps, exposure, sc)
     info["selfcal"] = res.summary()
     if res.ok:
-        return PhysicsModel(method, n_obs, maps=res.maps, span_rad=span, rir=rir), info
+        return PhysicsModel(method, n_obs, maps=res.maps, span_rad=span, rir=rir, anchor=anchor), info
     info["zeta"] = "learned (no self-calibration: " + res.reason.split(":")[0] + ")"
-    return PhysicsModel(method, n_obs, learned_model=_need(load_learned), rir=rir), info
+    return PhysicsModel(method, n_obs, learned_model=_need(load_learned), rir=rir, anchor=anchor), info
 
 
 def _need(load_learned):

@@ -103,6 +103,7 @@ def reconstruct_cmd(
     device: str = typer.Option("auto", "--device", help="auto | cpu | cuda"),
     quiet: bool = typer.Option(False, "--quiet", help="no progress bar"),
     method: str = typer.Option("net", "--method", help="net (the network) | ls | ridge | irls | rwps (a physics solver alone: no checkpoint unless --zeta learned)"),
+    anchor: str = typer.Option("none", "--anchor", help="physics methods: mean = anchor each frame to the 17.5 ms spike mean (T = 2 I_mean - zbar (R - T): the level from ~27x more spikes, only R - T from the 7 windows; motion blurs the mean) | none"),
     zeta: Optional[str] = typer.Option(None, "--zeta", help="self (pane fitted to the stream) | learned (the network's parameter branch) | physics | gt (physics methods, group stores only) [default: net: reconstruct.net_zeta.NET_DEFAULT_ZETA (learned); physics methods: self]"),
     precision: str = typer.Option("float32", "--precision", help="float32 | bfloat16 (autocast of the network; the solver stays float32)"),
 ) -> None:
@@ -127,6 +128,10 @@ def reconstruct_cmd(
         raise ConfigError(f"--zeta {zeta} needs a physics --method (ls, ridge, irls, rwps); the network takes --zeta learned or self")
     if zeta in ("gt", "physics") and input.suffix.lower() == ".dat":
         raise ConfigError(f"--zeta {zeta} needs a stored group's pane maps; a raw .dat has none: use --zeta self or learned")
+    if anchor not in ("none", "mean"):
+        raise ConfigError(f"--anchor {anchor!r}: choose none or mean")
+    if anchor == "mean" and method == "net":
+        raise ConfigError("--anchor mean is for the physics methods (ls, ridge, irls, rwps); a use_mean network anchors itself")
     dev = "cuda" if device == "auto" and torch.cuda.is_available() else ("cpu" if device == "auto" else device)
     if precision not in ("float32", "bfloat16"):
         raise ConfigError(f"--precision {precision!r}: choose float32 or bfloat16")
@@ -168,9 +173,9 @@ def reconstruct_cmd(
         from reconstruct.physics_video import build_physics_model
 
         model, info = build_physics_model(method, zeta or "self", src, group_dir=None if input.suffix.lower() == ".dat" else input, window_steps=window_steps,
-                                          exposure=None if src.exposure is not None else cfg.exposure, rir=True if rir is None else rir, load_learned=load)
+                                          exposure=None if src.exposure is not None else cfg.exposure, rir=True if rir is None else rir, load_learned=load, anchor=anchor)
     with rich_progress("reconstruct", enabled=not quiet) as cb:
-        s = reconstruct_stream(src, model, out, cfg, device=dev, progress=cb, meta={**exposure_info, "method": method, "zeta": info["zeta"] if info is not None else "learned"})
+        s = reconstruct_stream(src, model, out, cfg, device=dev, progress=cb, meta={**exposure_info, "method": method, "anchor": anchor, "zeta": info["zeta"] if info is not None else "learned"})
     c = Console()
     if info is not None:
         from polinfra.atomic import write_json
