@@ -35,14 +35,23 @@ Estimator (:func:`self_calibrate`):
    the pane model give R_perp, R_par by :func:`reconstruct.zeta_source.pane_maps_from_geometry`,
    and zeta_k(p) by paper Eq. (2) (:func:`reconstruct.zeta_source.zeta_from_maps`).
 
+Where the pane whose phi_perp field is turned by 90 deg scores within
+``max_twin_ratio`` of the best (modulo 90 deg only the field's curvature
+separates the two, which vanishes for a narrow field of view and a glancing
+pane; the tilt is loose there too), the polarization cone decides: with the
+right phi_perp, m / a0 (modulation along phi_perp over the mean) lies in
+[-DoP_T(theta), DoP_R(theta)] for any R, T >= 0 (:func:`cone_bounds`), and the
+wrong family breaks it wherever one layer dominates beyond DoP_T
+(:func:`valley_candidates`, :func:`cone_violation`).  The same cone scores the
+index and the pane model (:func:`fit_glass`; claimed only with a margin, else
+``prior_model`` and ``n``, with the reason in ``diagnostics["glass"]``).
+
 Where nothing modulates (no reflection, R = T, near-normal incidence: the
 fitted pane explains the orientation field less than ``z_min`` noise standard
-deviations above chance), or where the fit is ambiguous (the pane whose
-phi_perp field is turned by 90 deg scores within ``max_twin_ratio`` of the
-best: modulo 90 deg only the field's curvature separates the two, which
-vanishes for a narrow field of view and a glancing pane), the result carries
-``ok = False`` and a reason, a warning is logged, and the callers fall back to
-the learned zeta.
+deviations above chance), or where the cone cannot refute the twin either, the
+result carries ``ok = False`` and a reason, a warning is logged, and the
+callers fall back to the learned zeta.  ``diagnostics["modulating_px"]`` reports
+the share of pixels modulating above noise (:func:`modulating_fraction`).
 
 T depends on zeta's *shape* (phi_perp and DoP_R = (R_perp - R_par) / (R_perp + R_par)),
 not its scale (RECONSTRUCTION_NOTES.md, section 1): the index matters little,

@@ -6,8 +6,10 @@
   model) -> theta(p), phi_perp(p) by :mod:`polphysics.geometry`, Fresnel
   reflectances by :mod:`polphysics.fresnel`, then paper Eq. (2).
 * ``learned``: the parameter branch of the network of issue 9 (:func:`zeta_learned`).
-* ``self``: the pane geometry estimated from the stream itself (:mod:`reconstruct.selfcal`),
-  then as ``physics``; falls back to ``learned`` where nothing modulates.
+* ``self``: the pane geometry estimated from the stream itself (:mod:`reconstruct.selfcal`;
+  the 90 deg twin of narrow glancing views resolved by the DoP cone, the index and pane model
+  fitted where the cone constrains them, else a thin slab with n = 1.5), then as ``physics``;
+  falls back to ``learned`` where nothing modulates or the twin stays ambiguous.
 
 A spike frame integrates over an aggregation window during which the polarizer
 turns by ``span`` radians (0.65 ms at 30 rev/s = 7 deg).  The frame's zeta is the
