@@ -59,7 +59,19 @@ Poisson inverse-variance weights, but their first-pass prediction is solved with
 near-singular noisy window otherwise turns its swings into weights), and the Huber passes after
 the solve are ``rwps_irls_iters``.  The constants (``snr_kappa``, ``lambda_low``,
 ``lambda_high``, ``rwps_irls_iters``) are fitted on training groups only by
-``polspike fit-rwps`` (:mod:`reconstruct.rwps_fit`; README, "RWPS that adapts").  The default
+``polspike fit-rwps`` (:mod:`reconstruct.rwps_fit`; README, "RWPS that adapts").
+
+Pooled prior (``rwps_prior = "pooled"``, the physics default).  A prior toward R = T is wrong
+where R << T (stress.toml's weak-reflection level) and toward R = T = 0 (ridge) where R ~ T.  The
+pooled prior pulls R - T toward D0, the neighbourhood's own estimate of it
+(:func:`pooled_difference_prior`): the per-pixel LS differences R_ls - T_ls averaged over a
+``prior_pool`` box, each pixel weighted by its conditioning det(M) / sum(w) (the precision of the
+difference, supp. Eq. (15)), and shrunk toward 0 (R = T) by d / (d + ``prior_kappa``) where the box
+itself is near-singular (d = the box mean of 4 Var_w(zeta): near-singular differences are biased,
+not just noisy, and pooling does not remove a bias).  Conf then measures how well the pixel's own
+data fix R - T against the prior's error: q = s_D^2 / v_D, s_D^2 the spread of R - T around D0
+(noise removed), v_D = sigma^2 sum(w) / det(M) the variance of R_ls - T_ls; Conf = q / (q +
+``snr_kappa``), lambda by Eq. (8), prior term lambda (R - T - D0)^2.  The default
 ``lambda_map = "fixed"`` keeps the original behaviour, so a checkpoint whose stored SolverConfig
 predates the field reproduces bit for bit.
 
@@ -132,7 +144,7 @@ class SolverResult:
     lam: torch.Tensor
 
 
-PHYSICS_SOLVER_CONFIG = SolverConfig(lambda_map="adaptive", lambda_low=0.0, lambda_high=0.3, snr_kappa=0.1, rwps_irls_iters=0, rwps_prior="equal")
+PHYSICS_SOLVER_CONFIG = SolverConfig(lambda_map="adaptive", lambda_low=0.0, lambda_high=0.3, snr_kappa=0.03, rwps_irls_iters=0, rwps_prior="pooled", prior_pool=31, prior_kappa=0.001)
 """Solver parameters of the physics-only paths (evaluation, ``polspike reconstruct --method``):
 adaptive RWPS with the constants fitted on training groups (``polspike fit-rwps``, README)."""
 
