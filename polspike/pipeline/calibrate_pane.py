@@ -8,8 +8,10 @@ Pipeline (issue 21; physics in ../shared/RECONSTRUCTION_NOTES.md):
    pane normal and, unless given, the field of view from the modulation's orientation mod 90 deg).
 3. **Geometry** (tilt, azimuth, fov): bounded Gauss-Newton on the block orientation field of
    :func:`reconstruct.selfcal.orientation_field` (psi_b = arg(sum z^4)/4), residual
-   sqrt(w_b) sin 2(psi_b - phi_perp_b(x)) / 2 with w_b = |sum z^4|: invariant to the 90 deg flip
-   where R < T, blocks that do not modulate left out.  phi_perp_b(x) and its Jacobian come from
+   sqrt(w_b) sin 2(psi_b - phi_perp_b(x)) / 2 with w_b = 1 / (Var_noise psi_b + a misfit floor estimated
+   from the best-measured blocks): invariant to the 90 deg flip where R < T, blocks that do not modulate
+   left out.  Where the self-calibration cannot tell the pane from its 90 deg twin, both are fitted and
+   the cone of step 4 decides (:func:`find_twin`); a fitted fov is claimed only where theta's 1-sigma is small.  phi_perp_b(x) and its Jacobian come from
    the differentiable maps tier (:class:`generator.pane_fit.PaneModelAD`, Dr.Jit forward AD).
 4. **Glass** (n, pane model): the modulated component of each chunk's harmonic fit, projected on
    the fitted s-direction, over its mean: rho = m / a0 lies in the cone [-DoP_T(theta), DoP_R(theta)]
@@ -118,8 +120,7 @@ def fit_geometry(of: dict, width: int, height: int, block: int, x0: np.ndarray, 
 
     s4, q = of["s4"], of["q"]
     coherent = np.abs(s4) > coherence_sigmas * np.sqrt(0.5 * np.maximum(q, 1e-300))
-    # every block with some signal takes part, weighted by its coherent modulation |sum z^4| (as the
-    # self-calibration's objective): noise blocks have random phases and small weights
+    # every block with some signal takes part; noise blocks have random phases and large noise variance (small weights)
     mask = np.abs(s4) > 1.0 * np.sqrt(0.5 * np.maximum(q, 1e-300))
     if mask.sum() < 4:
         raise ConfigError(f"only {int(mask.sum())} blocks carry any modulation: too few to fit the pane geometry (need 4)")
@@ -676,7 +677,7 @@ def calibrate_frames(I: np.ndarray, phi: np.ndarray, cfg: CalibratePaneConfig = 
                                "n": sel["n"].get("sigma"), "correlation_geometry": geo["corr"],
                                "theta_deg_median": geo["sigma_theta_deg_median"], "theta_deg_max": geo["sigma_theta_deg_max"],
                                "phi_perp_deg_median": geo["sigma_phi_perp_deg_median"], "phi_perp_deg_max": geo["sigma_phi_perp_deg_max"],
-                               "method": "Gauss-Newton covariance (J^T J)^-1 x residual variance (geometry: relative weights |sum z^4|, x (1 + 2 rho_x)(1 + 2 rho_y) for the lag-1 correlation of neighbouring blocks' residuals; n: edge residuals in noise units, geometry errors not propagated), Jacobians by Dr.Jit forward AD"},
+                               "method": "Gauss-Newton covariance (J^T J)^-1 x residual variance (geometry: relative weights 1 / (noise variance of psi_b + misfit floor), x (1 + 2 rho_x)(1 + 2 rho_y) for the lag-1 correlation of neighbouring blocks' residuals; n: edge residuals in noise units, geometry errors not propagated), Jacobians by Dr.Jit forward AD"},
         "geometry": {"blocks": [int(v) for v in of["psi"].shape[::-1]], "block_px": block, "fitted_blocks": int(geo["mask"].sum()), "coherent_blocks": int(geo["coherent"].sum()),
                      "orientation_residual_deg_median": geo["residual_deg_median"], "converged": geo["converged"], "iterations": len(geo["history"]) - 1,
                      "init_tilt_deg": init.tilt_deg, "init_azimuth_deg": init.azimuth_deg, "init_fov_deg": init.fov_deg, "starts": geo["starts"],
