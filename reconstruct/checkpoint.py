@@ -27,13 +27,15 @@ from polinfra.errors import CheckpointError, ConfigError
 from reconstruct.network import NetConfig, PolSpikeNet, count_parameters
 from reconstruct.solvers import SolverConfig
 
-__all__ = ["CKPT_FORMAT", "DEFAULT_WEIGHTS", "V1_WEIGHTS", "save_checkpoint", "read_checkpoint", "load_model", "export_weights"]
+__all__ = ["CKPT_FORMAT", "DEFAULT_WEIGHTS", "V1_WEIGHTS", "V2_WEIGHTS", "save_checkpoint", "read_checkpoint", "load_model", "export_weights"]
 
 CKPT_FORMAT = "polspike-ckpt/1"
 V1_WEIGHTS = Path(__file__).resolve().parent / "weights" / "polspike_v1.pt"
 """The first shipped checkpoint (v1 architecture), kept for comparison."""
-DEFAULT_WEIGHTS = Path(__file__).resolve().parent / "weights" / "polspike_v2.pt"
-"""The shipped checkpoint (see ``docs/MODEL_CARD.md``)."""
+V2_WEIGHTS = Path(__file__).resolve().parent / "weights" / "polspike_v2.pt"
+"""The v2 checkpoint trained on the weak-reflection paper_v1 data (issue 19), the default before issue 16."""
+DEFAULT_WEIGHTS = Path(__file__).resolve().parent / "weights" / "polspike_v2_mean.pt"
+"""The shipped checkpoint (see ``docs/MODEL_CARD.md``): v2 with the long spike mean (``use_mean``), trained on paper.toml."""
 
 
 def save_checkpoint(path: str | os.PathLike, model: PolSpikeNet, *, extra: dict[str, Any] | None = None) -> Path:

@@ -28,7 +28,7 @@ import numpy as np
 
 from polinfra.config import opt
 
-from reconstruct.groups import EvalGroup
+from reconstruct.groups import SPIKE_MEAN_MS, EvalGroup
 from reconstruct.zeta_source import PaneMaps
 
 __all__ = ["SyntheticConfig", "make_group", "make_groups", "PICTURES"]
@@ -134,6 +134,18 @@ def make_group(cfg: SyntheticConfig, index: int) -> EvalGroup:
         Rs.append(Ri)
         Is.append(Ii)
         Zs.append(z)
+    # the long spike mean (17.5 ms, ~6 strides: about half a polarizer turn): the light averaged over the neighbouring
+    # frames with the turn's mean zeta (the modulation averages out, motion blurs), noise of its 350 steps
+    zbar = 0.5 * (maps.R_perp + maps.R_par)
+    L = int(round(SPIKE_MEAN_MS * 1e-3 * cfg.rate_hz)) * cfg.exposure
+    half = 3
+    Im = []
+    for i in range(M):
+        js = range(max(0, i - half), min(M, i + half + 1))
+        m_ = np.mean([0.5 * (zbar * Rs[j] + (1 - zbar) * Ts[j]) for j in js], 0)
+        if cfg.noise in ("poisson", "integrate_fire"):
+            m_ = rng.poisson(np.clip(m_, 0, None) * L) / L
+        Im.append(m_)
     f32 = lambda a: np.asarray(a, np.float32)  # noqa: E731
     return EvalGroup(
         name=f"synthetic-{cfg.seed}-{index:03d}",
@@ -147,6 +159,7 @@ def make_group(cfg: SyntheticConfig, index: int) -> EvalGroup:
         theta=geo["theta"],
         has_gt=np.ones(M, bool),
         gt_zeta=f32(Zs),
+        I_mean=f32(Im),
         fov_deg=60.0,
     )
 
