@@ -14,7 +14,6 @@ runs the network.  Its zeta maps are per full-frame pixel: whole frames only (``
 
 from __future__ import annotations
 
-import dataclasses
 import math
 
 import numpy as np
@@ -91,18 +90,9 @@ def build_net_zeta_model(net, zeta: str, source, *, group_dir=None, window_steps
     info: dict = {"zeta": zeta, "selfcal": None}
     if zeta == "learned":
         return net, info
-    from reconstruct.physics_video import calibrate_source
-    from reconstruct.selfcal import SelfCalConfig
+    from reconstruct.physics_video import calibrate_stream
 
-    sc = SelfCalConfig()
-    if group_dir is not None:
-        from reconstruct.selfcal import fov_from_group_dir
-
-        fov = fov_from_group_dir(group_dir)
-        if fov:
-            sc = dataclasses.replace(sc, fov_deg=fov)
-    sc = dataclasses.replace(sc, n=pane_n, model=pane_model)
-    res = calibrate_source(source, window_steps, exposure, sc)
+    res = calibrate_stream(source, group_dir, window_steps, exposure, None, pane_n, pane_model)
     info["selfcal"] = res.summary()
     if not res.ok:
         info["zeta"] = "learned (no self-calibration: " + res.reason.split(":")[0] + ")"

@@ -134,6 +134,20 @@ class PhysicsModel:
         return PhysicsOutput(T=T, R=R, T_base=T, R_base=R)
 
 
+def calibrate_stream(source, group_dir=None, window_steps: int = 13, exposure: float | None = None, selfcal: SelfCalConfig | None = None,
+                     pane_n: float = 1.5, pane_model: str = "single") -> SelfCalResult:
+    """:func:`calibrate_source` with the settings a stream's caller has: the field of view from the stored group's
+    scene when ``selfcal`` does not give one, and the index / pane model to assume."""
+    sc = selfcal or SelfCalConfig()
+    if not sc.fov_deg and group_dir is not None:
+        from reconstruct.selfcal import fov_from_group_dir
+
+        fov = fov_from_group_dir(group_dir)
+        if fov:
+            sc = dataclasses.replace(sc, fov_deg=fov)
+    return calibrate_source(source, window_steps, exposure, dataclasses.replace(sc, n=pane_n, model=pane_model))
+
+
 def calibrate_source(source, window_steps: int = 13, exposure: float | None = None, cfg: SelfCalConfig = SelfCalConfig()) -> SelfCalResult:
     """Self-calibrate the pane on the first ``cfg.span_s`` of a spike stream (:class:`reconstruct.video.SpikeSource`).
 
@@ -229,15 +243,7 @@ def build_physics_model(
         return PhysicsModel(method, n_obs, learned_model=_need(load_learned), rir=rir, anchor=anchor), info
     if zeta in ("gt", "physics"):
         return PhysicsModel(method, n_obs, maps=group_pane_maps(group_dir, zeta, pane_n, pane_model), span_rad=span, rir=rir, anchor=anchor), info
-    sc = selfcal or SelfCalConfig()
-    if not sc.fov_deg and group_dir is not None:
-        from reconstruct.selfcal import fov_from_group_dir
-
-        fov = fov_from_group_dir(group_dir)
-        if fov:
-            sc = dataclasses.replace(sc, fov_deg=fov)
-    sc = dataclasses.replace(sc, n=pane_n, model=pane_model)
-    res = calibrate_source(source, window_steps, exposure, sc)
+    res = calibrate_stream(source, group_dir, window_steps, exposure, selfcal, pane_n, pane_model)
     info["selfcal"] = res.summary()
     if res.ok:
         return PhysicsModel(method, n_obs, maps=res.maps, span_rad=span, rir=rir, anchor=anchor), info

@@ -202,6 +202,20 @@ def _box_sep(x: torch.Tensor, k: int) -> torch.Tensor:
     return y.reshape(shp)
 
 
+def _ls_noise(zeta: torch.Tensor, b: torch.Tensor, w: torch.Tensor, pool: int):
+    """The weighted least-squares solve and its residual noise, shared by the adaptive Conf and the pooled prior:
+    (S_rr, S_rt, S_tt, sum w, det M, tiny, R_ls, T_ls, sigma^2 box-averaged over ``pool`` pixels)."""
+    S_rr, S_rt, S_tt, sw = moments(zeta, w)
+    tiny = torch.finfo(zeta.dtype).tiny ** 0.5
+    det = (S_rr * S_tt - S_rt * S_rt).clamp_min(0.0)
+    n_eff = sw * sw / ((w * w).sum(-3) + tiny)
+    R, T = solve_weighted_ridge(zeta, b, w, 0.0)
+    r = b - (zeta * R.unsqueeze(-3) + (1.0 - zeta) * T.unsqueeze(-3))
+    dof = (n_eff - 2.0).clamp_min(0.5)
+    sigma2 = _box((w * r * r).sum(-3) / (sw + tiny) * n_eff / dof, pool)
+    return S_rr, S_rt, S_tt, sw, det, tiny, R, T, sigma2
+
+
 def adaptive_confidence(zeta: torch.Tensor, b: torch.Tensor, w: torch.Tensor, snr_kappa: float = 1.0, pool: int = 5) -> torch.Tensor:
     """Noise-aware Conf in [0, 1) (``lambda_map = "adaptive"``; module docstring, "Adaptive Conf").
 
@@ -222,14 +236,7 @@ def adaptive_confidence(zeta: torch.Tensor, b: torch.Tensor, w: torch.Tensor, sn
     Returns:
         Conf (..., H, W).
     """
-    S_rr, S_rt, S_tt, sw = moments(zeta, w)
-    tiny = torch.finfo(zeta.dtype).tiny ** 0.5
-    det = (S_rr * S_tt - S_rt * S_rt).clamp_min(0.0)
-    n_eff = sw * sw / ((w * w).sum(-3) + tiny)
-    R, T = solve_weighted_ridge(zeta, b, w, 0.0)
-    r = b - (zeta * R.unsqueeze(-3) + (1.0 - zeta) * T.unsqueeze(-3))
-    dof = (n_eff - 2.0).clamp_min(0.5)
-    sigma2 = _box((w * r * r).sum(-3) / (sw + tiny) * n_eff / dof, pool)
+    S_rr, S_rt, S_tt, sw, det, tiny, R, T, sigma2 = _ls_noise(zeta, b, w, pool)
     v_R = (sigma2 * S_tt / (det + _eps(zeta.dtype) * S_tt * S_tt + tiny)).clamp_max(1e12)
     v_pool = _box(v_R, pool)
     s2 = (_box(R * R, pool) - v_pool).clamp_min(0.0)
@@ -261,14 +268,7 @@ def pooled_difference_prior(
     Returns:
         (D0, q), each (..., H, W).
     """
-    S_rr, S_rt, S_tt, sw = moments(zeta, w)
-    tiny = torch.finfo(zeta.dtype).tiny ** 0.5
-    det = (S_rr * S_tt - S_rt * S_rt).clamp_min(0.0)
-    n_eff = sw * sw / ((w * w).sum(-3) + tiny)
-    R, T = solve_weighted_ridge(zeta, b, w, 0.0)
-    r = b - (zeta * R.unsqueeze(-3) + (1.0 - zeta) * T.unsqueeze(-3))
-    dof = (n_eff - 2.0).clamp_min(0.5)
-    sigma2 = _box((w * r * r).sum(-3) / (sw + tiny) * n_eff / dof, noise_pool)
+    S_rr, S_rt, S_tt, sw, det, tiny, R, T, sigma2 = _ls_noise(zeta, b, w, noise_pool)
     v_D = (sigma2 * sw / (det + _eps(zeta.dtype) * sw * sw + tiny)).clamp_max(1e12)
     D = R - T
     u = det / (sw + tiny)
