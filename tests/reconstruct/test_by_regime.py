@@ -36,7 +36,7 @@ def groups():
 def test_by_regime_rows_are_means_of_their_groups(groups):
     cfg = EvalConfig(methods="ls,rwps", max_frames=2, rir=False)
     res = evaluate_by_regime(groups, cfg, zetas=("gt",), network=False)
-    assert res["columns"] == ["tfp", "best_frame", "ls@gt", "rwps@gt"]
+    assert res["columns"] == ["tfp", "best_frame", "spike_mean", "ls@gt", "rwps@gt"]
     per = {g["group"]: g for g in res["groups"]}
     rows = {r["regime"]: r for r in res["rows"]}
     assert set(rows) == {"refl=weak", "refl=strong", "inc=normal", "inc=glancing"}

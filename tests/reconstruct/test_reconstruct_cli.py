@@ -77,12 +77,14 @@ def test_real_uhsr_capture(tmp_path, model, shared_data):
     # At 0.01-0.065 spikes per step the 7-window TFP image is itself mostly noise (its correlation with
     # the whole-recording mean is 0.50), so T, which the refinement denoises, is checked against that mean.
     s = reconstruct_stream(array_source(sp, 0.0, 90.0), model, tmp_path, ReconstructConfig(max_frames=1, exposure=0.1, frames="exr"))
-    _check_tfp(tmp_path, s, T_min_corr=0.55)  # measured 0.67 with polspike_v1
+    # the 7-window TFP is mostly noise here: a network that takes the 17.5 ms spike mean (the default) follows the
+    # far less noisy long mean instead (corr with TFP 0.45, with the recording mean 0.76; polspike_v2: 0.71 / 0.68)
+    _check_tfp(tmp_path, s, T_min_corr=0.35)
     from polinfra.exr import read_exr
 
     T = read_exr(tmp_path / "frames" / "000000.exr", ["T"])["T"].ravel()
     ref = sp.mean(0).astype(np.float64).ravel()
-    assert np.corrcoef(T, ref)[0, 1] > 0.55  # measured 0.62 with polspike_v1; the 7-window TFP image: 0.50
+    assert np.corrcoef(T, ref)[0, 1] > 0.65  # measured 0.76 (polspike_v2_mean), 0.68 (v2), 0.62 (v1); the 7-window TFP image: 0.50
 
 
 def test_cli_dat(tmp_path, shared_data):

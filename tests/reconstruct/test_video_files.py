@@ -40,10 +40,16 @@ def reconstructed(tmp_path_factory):
     model = load_model(DEFAULT_WEIGHTS)[0]
     rng = np.random.default_rng(3)
     H, W = 16, 24
-    # a left-to-right ramp of firing rates, and one dark quadrant: frames with structure to compare
-    rate = np.broadcast_to(np.linspace(0.05, 0.45, W), (H, W)).copy()
-    rate[: H // 2, : W // 2] = 0.02
-    spikes = (rng.random((1400, H, W)) < rate).astype(np.uint8)
+    # a left-to-right ramp of firing rates and a dark block sliding right (1 px per 20 steps, ~3 px per output
+    # frame): frames that differ by content, not only by noise (a network taking the 17.5 ms spike mean returns
+    # nearly the same frame for a static scene)
+    ramp = np.broadcast_to(np.linspace(0.05, 0.45, W), (H, W))
+    spikes = np.empty((1400, H, W), np.uint8)
+    for t in range(spikes.shape[0]):
+        rate = ramp.copy()
+        x0 = (t // 20) % W
+        rate[: H // 2, x0 : x0 + W // 4] = 0.02
+        spikes[t] = rng.random((H, W)) < rate
     out = tmp_path_factory.mktemp("video")
     s = reconstruct_stream(array_source(spikes, 0.0, 30.0, chunk_steps=400), model, out, ReconstructConfig(max_frames=4, video=True, frames="png"))
     return out, s, (H, W)
