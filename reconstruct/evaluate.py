@@ -56,10 +56,10 @@ from polinfra.errors import ConfigError, DataFormatError
 from reconstruct.groups import EvalGroup
 from reconstruct.metrics import LPIPS_NA, lpips_status, psnr, score
 from reconstruct.rir import RirConfig, estimate_shifts, warp
-from reconstruct.solvers import PHYSICS_SOLVER_CONFIG, SOLVERS, SolverConfig, solve
+from reconstruct.solvers import PHYSICS_SOLVER_CONFIG, SOLVERS, SolverConfig, anchor_to_mean, solve
 from reconstruct.zeta_source import ZETA_SOURCES, PaneMaps, zeta_from_maps, zeta_learned
 
-__all__ = ["net_zeta_of", "REGIME_FACTORS", "regime_of", "evaluate_by_regime", "regime_markdown", "regime_report", "REGIME_TABLES", "EvalConfig", "EvalReport", "BASELINES", "ANCHOR_SUFFIX", "anchor_to_mean", "NET_METHOD", "load_network", "group_zeta", "evaluate_groups", "write_report", "parse_methods", "load_groups", "window_sweep", "markdown_table", "sweep_markdown"]
+__all__ = ["net_zeta_of", "REGIME_FACTORS", "regime_of", "evaluate_by_regime", "regime_markdown", "regime_report", "REGIME_TABLES", "EvalConfig", "EvalReport", "BASELINES", "ANCHOR_SUFFIX", "NET_METHOD", "load_network", "group_zeta", "evaluate_groups", "write_report", "parse_methods", "load_groups", "window_sweep", "markdown_table", "sweep_markdown"]
 
 log = logging.getLogger(__name__)
 
@@ -384,20 +384,7 @@ def evaluate_groups(
 
 
 ANCHOR_SUFFIX = "+mean"
-"""Row-name suffix of a method anchored to the spike mean (:func:`anchor_to_mean`)."""
-
-
-def anchor_to_mean(T: np.ndarray, R: np.ndarray, I_mean: np.ndarray, zbar: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Anchor a separation to the long spike mean: keep its difference D = R^ - T^, take the level from I_mean.
-
-    Averaged over a half polarizer turn, paper Eq. (1) gives 2 I_mean = T + zbar (R - T) exactly for a static
-    scene (zbar = the turn's mean zeta), so T = 2 I_mean - zbar D: the short windows supply only D, whose noise
-    enters scaled by zbar (small for glass), and the level comes from ~27x more spikes than the 7 windows.
-    Motion over the span blurs I_mean (the cost of the anchor).  Returns (T, R = T + D).
-    """
-    D = R - T
-    Ta = 2.0 * I_mean - zbar * D
-    return Ta, Ta + D
+"""Row-name suffix of a method anchored to the spike mean (:func:`reconstruct.solvers.anchor_to_mean`)."""
 
 
 def _fmt(v, nd=3) -> str:

@@ -53,7 +53,7 @@ import torch.nn.functional as F
 from polinfra.config import opt
 from polinfra.errors import ShapeError
 
-from reconstruct.solvers import SolverConfig, solve
+from reconstruct.solvers import SolverConfig, anchor_to_mean, solve
 
 __all__ = ["NetConfig", "NetOutput", "AngleAttention", "ParameterBranch", "LowResParameterBranch", "Refinement", "window_scale", "PolSpikeNet", "count_parameters", "init_weights", "predict_parameters"]
 
@@ -424,7 +424,7 @@ class PolSpikeNet(nn.Module):
             if I_mean is None or I_mean.shape != I_c.shape:
                 raise ShapeError(f"a use_mean network needs I_mean {tuple(I_c.shape)} (the long spike mean around the centre frame)", actual_shape=None if I_mean is None else tuple(I_mean.shape), expected_shape=tuple(I_c.shape))
             I_mean = I_mean.float()
-            ch += [2 * I_mean, 2 * I_mean - zeta_used.mean(1) * (R0 - T0)]  # the spike mean and T anchored to it
+            ch += [2 * I_mean, anchor_to_mean(T0, R0, I_mean, zeta_used.mean(1))[0]]  # the spike mean and T anchored to it
         x = torch.stack(ch, 1)
         dT, dR = self.refine(x)
         return NetOutput(T=T0 + dT, R=R0 + dR, T_base=T0, R_base=R0, zeta_hat=zeta_hat, zeta_used=zeta_used, weights=w, conf=res.conf, res=resid, I=I, zeta_gt=zeta_gt)

@@ -92,6 +92,7 @@ from polinfra.errors import ConfigError, ShapeError
 
 __all__ = [
     "SOLVERS",
+    "anchor_to_mean",
     "PHYSICS_SOLVER_CONFIG",
     "adaptive_confidence",
     "pooled_difference_prior",
@@ -425,3 +426,17 @@ def solve(
             w = w0 * huber_factor(r, delta)  # supp. Eq. (11): w^(j+1) = w q^(j)
             R, T = solve_weighted_ridge(zeta, b, w, lam, prior, D0)
     return SolverResult(R=R, T=T, conf=conf, weights=w, lam=lam)
+
+
+def anchor_to_mean(T, R, I_mean, zbar):
+    """Anchor a separation to the long spike mean: keep its difference D = R^ - T^, take the level from I_mean.
+
+    Averaged over a half polarizer turn, paper Eq. (1) gives 2 I_mean = T + zbar (R - T) exactly for a static
+    scene (zbar = the turn's mean zeta), so T = 2 I_mean - zbar D: the short windows supply only D, whose noise
+    enters scaled by zbar (small for glass), and the level comes from ~27x more spikes than the 7 windows.
+    Motion over the span blurs I_mean (the cost of the anchor).  numpy arrays or torch tensors (broadcasting);
+    returns (T, R = T + D).
+    """
+    D = R - T
+    Ta = 2.0 * I_mean - zbar * D
+    return Ta, Ta + D

@@ -145,7 +145,7 @@ def test_spike_mean_baseline_sums_the_raw_spikes(tmp_path):
 def test_anchor_to_mean_takes_the_level_from_the_mean_and_the_difference_from_the_solver():
     """Closed form: 2 I_mean = T + zbar (R - T) (paper Eq. (1) over a half turn); a separation with the right
     difference R - T but any wrong level (a common offset, as noise in the short windows gives) is restored exactly."""
-    from reconstruct.evaluate import anchor_to_mean
+    from reconstruct.solvers import anchor_to_mean
 
     rng = np.random.default_rng(0)
     T, R, zbar = rng.uniform(0, 1, (2, 8, 8)), rng.uniform(0, 1, (2, 8, 8)), rng.uniform(0.02, 0.4, (2, 8, 8))
