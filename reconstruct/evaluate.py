@@ -59,7 +59,7 @@ from reconstruct.rir import RirConfig, estimate_shifts, warp
 from reconstruct.solvers import PHYSICS_SOLVER_CONFIG, SOLVERS, SolverConfig, anchor_to_mean, solve
 from reconstruct.zeta_source import ZETA_SOURCES, PaneMaps, zeta_from_maps, zeta_learned
 
-__all__ = ["net_zeta_of", "REGIME_FACTORS", "regime_of", "evaluate_by_regime", "regime_markdown", "regime_report", "REGIME_TABLES", "EvalConfig", "EvalReport", "BASELINES", "ANCHOR_SUFFIX", "NET_METHOD", "load_network", "group_zeta", "evaluate_groups", "write_report", "parse_methods", "load_groups", "window_sweep", "markdown_table", "sweep_markdown"]
+__all__ = ["net_zeta_of", "REGIME_FACTORS", "regime_of", "evaluate_by_regime", "regime_markdown", "regime_report", "REGIME_TABLES", "EvalConfig", "EvalReport", "finite_means", "BASELINES", "ANCHOR_SUFFIX", "NET_METHOD", "load_network", "group_zeta", "evaluate_groups", "write_report", "parse_methods", "load_groups", "window_sweep", "markdown_table", "sweep_markdown"]
 
 log = logging.getLogger(__name__)
 
@@ -224,7 +224,8 @@ def group_zeta(group: EvalGroup, cfg: EvalConfig) -> np.ndarray | None:
     return zeta_from_maps(maps, group.phi_nominal, group.span_rad, dtype=torch.float64).numpy()
 
 
-def _means(items: list[dict], keys: tuple[str, ...]) -> dict:
+def finite_means(items: list[dict], keys: tuple[str, ...]) -> dict:
+    """Per key, the mean of the items' finite values (None where there is none)."""
     out = {}
     for k in keys:
         v = [x[k] for x in items if x.get(k) is not None and np.isfinite(x[k])]
@@ -372,11 +373,11 @@ def evaluate_groups(
         for m in order:
             items = by.get((g, m), [])
             if items:
-                rows.append({"group": g, "method": m, "n_frames": len(items), **_means(items, keys), "lpips_T": lpips_status()})
+                rows.append({"group": g, "method": m, "n_frames": len(items), **finite_means(items, keys), "lpips_T": lpips_status()})
     for m in order:
         items = [f for f in frames if f["method"] == m]
         if items:
-            rows.append({"group": "overall", "method": m, "n_frames": len(items), **_means(items, keys), "lpips_T": lpips_status()})
+            rows.append({"group": "overall", "method": m, "n_frames": len(items), **finite_means(items, keys), "lpips_T": lpips_status()})
     conf = {"eval": to_dict(cfg), "solver": to_dict(solver_cfg), "rir": to_dict(rir_cfg), "groups": [g.name for g in groups]}
     if net_info is not None:
         conf["network"] = net_info

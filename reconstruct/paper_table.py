@@ -35,11 +35,10 @@ import dataclasses
 from collections.abc import Callable, Sequence
 from typing import Any
 
-import numpy as np
 
 from polinfra.errors import ConfigError
 
-from reconstruct.evaluate import EvalConfig, evaluate_groups
+from reconstruct.evaluate import EvalConfig, evaluate_groups, finite_means
 from reconstruct.groups import EvalGroup
 from reconstruct.solvers import PHYSICS_SOLVER_CONFIG, SOLVERS, SolverConfig
 
@@ -65,11 +64,7 @@ def _overall(rep, method: str) -> dict[str, float | None]:
 
 
 def _mean(runs: list[dict]) -> dict[str, float | None]:
-    out = {}
-    for k in METRICS:
-        v = [r[k] for r in runs if r.get(k) is not None and np.isfinite(r[k])]
-        out[k] = float(np.mean(v)) if v else None
-    return out
+    return finite_means(runs, METRICS)
 
 
 def paper_tables(
