@@ -32,7 +32,7 @@ from polinfra.errors import DataFormatError
 
 from reconstruct.zeta_source import PaneMaps
 
-__all__ = ["EvalGroup", "list_groups", "load_store_group", "window_steps_from_ms", "spike_mean_frames", "SPIKE_MEAN_MS"]
+__all__ = ["EvalGroup", "list_groups", "load_store_group", "window_steps_from_ms", "spike_mean_frames", "SpikeMeanSums", "SPIKE_MEAN_MS"]
 
 log = logging.getLogger(__name__)
 
@@ -75,26 +75,71 @@ SPIKE_MEAN_MS = 17.5
 """Span of the plain spike-mean baseline (about half a polarizer turn at 30 rev/s: the modulation averages out)."""
 
 
-def spike_mean_frames(g, centres: np.ndarray, span_steps: int, exposure: float) -> np.ndarray:
-    """Spikes per step / exposure over ``span_steps`` steps centred on each of ``centres`` (ascending), clipped to
-    the stream; a running sum, so every step of an open ``spike_sim.store`` group is read at most twice."""
-    out = np.zeros((len(centres), g.height, g.width), np.float32)
-    acc = np.zeros((g.height, g.width), np.int64)
-    lo = hi = 0  # acc = spikes of steps [lo, hi)
-    for m, c in enumerate(np.asarray(centres, np.int64)):
-        a, b = max(0, int(c) - span_steps // 2), min(g.n_steps, int(c) + span_steps // 2 + 1)
-        if a >= hi:
-            acc[:] = 0
-            lo = hi = a
-        if b > hi:
-            acc += g.read(hi, b).sum(0, dtype=np.int64)
-            hi = b
-        if a > lo:
-            acc -= g.read(lo, a).sum(0, dtype=np.int64)
-            lo = a
-        out[m] = acc / np.float32((hi - lo) * exposure)
-    return out
+class SpikeMeanSums:
+    """Spike counts of a stream up to the boundaries the long spike means need, kept only until used.
 
+    The mean of frame j covers steps [centre_j - L // 2, centre_j + L // 2 + 1) clipped to the stream. Chunks are
+    fed in order (from any step up to the first boundary; earlier steps are skipped) and each boundary's running
+    count is snapshotted once: a stream reconstructor (:func:`reconstruct.video.reconstruct_stream`) and a stored
+    group (:func:`spike_mean_frames`) share this one count.
+    """
+
+    def __init__(self, centres: np.ndarray, steps: int, n_steps: int, shape: tuple[int, int]):
+        self.lo = np.clip(np.asarray(centres, np.int64) - steps // 2, 0, n_steps)
+        self.hi = np.clip(np.asarray(centres, np.int64) + steps // 2 + 1, 0, n_steps)
+        self.want = sorted(set(self.lo.tolist()) | set(self.hi.tolist()))
+        self.snap: dict[int, np.ndarray] = {}
+        self.acc = np.zeros(shape, np.int64)
+        self.pos = self.want[0] if self.want else 0  # acc = spikes of steps [first boundary, pos)
+        self.wi = 0
+
+    def feed(self, s0: int, chunk: np.ndarray) -> None:
+        """The next chunk of spikes (steps s0 .. s0 + len); chunks arrive in order without gaps."""
+        if s0 + chunk.shape[0] <= self.pos:
+            return
+        if s0 > self.pos:
+            raise DataFormatError(f"spike chunks must arrive without gaps: expected step {self.pos}, got {s0}")
+        chunk = chunk[self.pos - s0 :]
+        s0 = self.pos
+        end = s0 + chunk.shape[0]
+        while self.wi < len(self.want) and self.want[self.wi] <= end:
+            b = self.want[self.wi]
+            self.acc += chunk[self.pos - s0 : b - s0].sum(0, dtype=np.int64)
+            self.pos = b
+            self.snap[b] = self.acc.copy()
+            self.wi += 1
+        self.acc += chunk[self.pos - s0 :].sum(0, dtype=np.int64)
+        self.pos = end
+
+    def mean(self, j: int, exposure: float = 1.0) -> np.ndarray:
+        """Spikes per step / exposure around frame j (frames taken in order); frees older snapshots."""
+        lo, hi = int(self.lo[j]), int(self.hi[j])
+        if hi not in self.snap:  # the stream ended early or is not fed that far yet: up to where it is
+            hi = self.pos
+            self.snap[hi] = self.acc.copy()
+        m = (self.snap[hi] - self.snap[lo]) / np.float32(max(hi - lo, 1) * exposure)
+        for k in [k for k in self.snap if k < lo]:
+            del self.snap[k]
+        return m.astype(np.float32)
+
+
+def spike_mean_frames(g, centres: np.ndarray, span_steps: int, exposure: float, chunk_steps: int = 2048) -> np.ndarray:
+    """Spikes per step / exposure over ``span_steps`` steps centred on each of ``centres`` (ascending), clipped to
+    the stream, of an open ``spike_sim.store`` group: :class:`SpikeMeanSums` fed with the steps from the first
+    frame's span to the last's, each read once; a mean is taken as soon as its span is read."""
+    sums = SpikeMeanSums(centres, span_steps, g.n_steps, (g.height, g.width))
+    out = np.zeros((len(centres), g.height, g.width), np.float32)
+    j = 0
+    if sums.want:
+        for n0 in range(sums.want[0], sums.want[-1], chunk_steps):
+            sums.feed(n0, g.read(n0, min(sums.want[-1], n0 + chunk_steps)))
+            while j < len(centres) and sums.hi[j] <= sums.pos:
+                out[j] = sums.mean(j, exposure)
+                j += 1
+    while j < len(centres):  # empty spans only (a frame at the stream's very edge)
+        out[j] = sums.mean(j, exposure)
+        j += 1
+    return out
 
 
 def window_steps_from_ms(dt_ms: float, rate_hz: float) -> int:

@@ -35,7 +35,6 @@ import dataclasses
 from collections.abc import Callable, Sequence
 from typing import Any
 
-
 from polinfra.errors import ConfigError
 
 from reconstruct.evaluate import EvalConfig, evaluate_groups, finite_means

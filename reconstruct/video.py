@@ -45,7 +45,7 @@ from polinfra.atomic import atomic_path, ensure_dir, write_json
 from polinfra.config import opt
 from polinfra.errors import ConfigError, DataFormatError
 
-from reconstruct.groups import SPIKE_MEAN_MS
+from reconstruct.groups import SPIKE_MEAN_MS, SpikeMeanSums
 
 __all__ = ["DISPLAY_CLIP_FRACTION", "DisplayHistogram", "display_gain", "ReconstructConfig", "SpikeSource", "FeatureCache", "auto_tile", "dat_source", "group_source", "reconstruct_stream", "run_model_on_windows"]
 
@@ -435,51 +435,6 @@ class _Writers:
                 self.spool_path.unlink()
 
 
-class _PrefixSums:
-    """Spike counts of the stream up to the boundaries the long spike means need, kept only until used.
-
-    The mean of output frame j covers steps [centre_j - L // 2, centre_j + L // 2 + 1) clipped to the stream
-    (as :func:`reconstruct.groups.spike_mean_frames` on a store); the chunks are fed in order and each
-    boundary's running count is snapshotted once (two (H, W) arrays per frame in flight).
-    """
-
-    def __init__(self, centres: np.ndarray, steps: int, n_steps: int, shape: tuple[int, int]):
-        self.lo = np.clip(np.asarray(centres, np.int64) - steps // 2, 0, n_steps)
-        self.hi = np.clip(np.asarray(centres, np.int64) + steps // 2 + 1, 0, n_steps)
-        self.want = sorted(set(self.lo.tolist()) | set(self.hi.tolist()))
-        self.snap: dict[int, np.ndarray] = {}
-        self.acc = np.zeros(shape, np.int64)
-        self.pos = 0  # acc = spikes of steps [0, pos)
-        self.wi = 0
-
-    def feed(self, s0: int, chunk: np.ndarray) -> None:
-        """The next chunk of spikes (steps s0 .. s0 + len); chunks arrive in order without gaps."""
-        if s0 + chunk.shape[0] <= self.pos:
-            return
-        chunk = chunk[self.pos - s0 :] if s0 < self.pos else chunk
-        s0 = self.pos
-        end = s0 + chunk.shape[0]
-        while self.wi < len(self.want) and self.want[self.wi] <= end:
-            b = self.want[self.wi]
-            self.acc += chunk[self.pos - s0 : b - s0].sum(0, dtype=np.int64)
-            self.pos = b
-            self.snap[b] = self.acc.copy()
-            self.wi += 1
-        self.acc += chunk[self.pos - s0 :].sum(0, dtype=np.int64)
-        self.pos = end
-
-    def mean(self, j: int) -> np.ndarray:
-        """Spikes per step around output frame j (divide by the exposure for radiance units); frees older snapshots."""
-        lo, hi = int(self.lo[j]), int(self.hi[j])
-        if hi not in self.snap:  # the stream ended early or is not fed that far yet: up to where it is
-            hi = self.pos
-            self.snap[hi] = self.acc.copy()
-        m = (self.snap[hi] - self.snap[lo]) / np.float32(max(hi - lo, 1))
-        for k in [k for k in self.snap if k < lo]:
-            del self.snap[k]
-        return m.astype(np.float32)
-
-
 def reconstruct_stream(
     source: SpikeSource,
     model,
@@ -536,7 +491,7 @@ def reconstruct_stream(
     tail_start = 0
 
     mean_steps = int(round(SPIKE_MEAN_MS * 1e-3 * source.rate_hz)) if getattr(model.cfg, "use_mean", False) else 0
-    prefix = _PrefixSums(centres, mean_steps, source.phi_step_rad.size, (source.height, source.width)) if mean_steps else None
+    prefix = SpikeMeanSums(centres, mean_steps, source.phi_step_rad.size, (source.height, source.width)) if mean_steps else None
     tile = auto_tile(model, device) if cfg.tile < 0 else cfg.tile
     cache = FeatureCache(model, device, cfg.precision) if (cfg.cache and tile == 0 and getattr(model, "cacheable", False)) else None
 
@@ -546,7 +501,7 @@ def reconstruct_stream(
             return
         I = np.stack([p[0] for p in pending])
         ph = np.stack([p[1] for p in pending])
-        im = np.stack([p[3] for p in pending]) / np.float32(exposure) if prefix is not None else None
+        im = np.stack([p[3] for p in pending]) if prefix is not None else None
         if cache is not None:
             res = cache.run(I, ph, np.stack([p[2] for p in pending]), I_mean=im)
         else:
@@ -577,7 +532,7 @@ def reconstruct_stream(
                 frames_I.append(buf[c - half : c + half + 1].sum(0, dtype=np.int32).astype(np.float32) / (cfg.window_steps * exposure))  # Eq. (3), radiance units
                 next_c += 1
                 if len(frames_I) == N:
-                    pending.append((np.stack(frames_I), phi_i[next_c - N : next_c], np.arange(next_c - N, next_c), prefix.mean(next_c - 1 - K) if prefix is not None else None))
+                    pending.append((np.stack(frames_I), phi_i[next_c - N : next_c], np.arange(next_c - N, next_c), prefix.mean(next_c - 1 - K, exposure) if prefix is not None else None))
                     if len(pending) >= cfg.batch:
                         flush(writers)
             if done + len(pending) >= n_out:
