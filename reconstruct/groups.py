@@ -32,7 +32,7 @@ from polinfra.errors import DataFormatError
 
 from reconstruct.zeta_source import PaneMaps
 
-__all__ = ["EvalGroup", "list_groups", "load_store_group", "window_steps_from_ms", "spike_mean_frames", "SpikeMeanSums", "SPIKE_MEAN_MS"]
+__all__ = ["EvalGroup", "list_groups", "load_store_group", "window_steps_from_ms", "spike_mean_frames", "SpikeMeanSums", "SPIKE_MEAN_MS", "spike_mean_steps"]
 
 log = logging.getLogger(__name__)
 
@@ -73,6 +73,11 @@ class EvalGroup:
 
 SPIKE_MEAN_MS = 17.5
 """Span of the plain spike-mean baseline (about half a polarizer turn at 30 rev/s: the modulation averages out)."""
+
+
+def spike_mean_steps(rate_hz: float) -> int:
+    """Steps of the :data:`SPIKE_MEAN_MS` span at ``rate_hz`` (350 at 20 kHz; at least 1)."""
+    return max(1, int(round(SPIKE_MEAN_MS * 1e-3 * rate_hz)))
 
 
 class SpikeMeanSums:
@@ -252,7 +257,7 @@ def load_store_group(
                         R[m] = g.gt_frame("R", j)
             if not has.any():
                 log.warning("%s: no frame centre matches a stored GT output step; choose the group's own stride/window", path)
-        span_mean = max(1, int(round(SPIKE_MEAN_MS * 1e-3 * g.rate_hz)))
+        span_mean = spike_mean_steps(g.rate_hz)
         I_mean = spike_mean_frames(g, c, span_mean, exposure)
         mp = g.maps()
         maps = None

@@ -28,7 +28,7 @@ import numpy as np
 
 from polinfra.config import opt
 
-from reconstruct.groups import SPIKE_MEAN_MS, EvalGroup
+from reconstruct.groups import EvalGroup, spike_mean_steps
 from reconstruct.zeta_source import PaneMaps
 
 __all__ = ["SyntheticConfig", "make_group", "make_groups", "PICTURES"]
@@ -137,7 +137,7 @@ def make_group(cfg: SyntheticConfig, index: int) -> EvalGroup:
     # the long spike mean (17.5 ms, ~6 strides: about half a polarizer turn): the light averaged over the neighbouring
     # frames with the turn's mean zeta (the modulation averages out, motion blurs), noise of its 350 steps
     zbar = 0.5 * (maps.R_perp + maps.R_par)
-    L = int(round(SPIKE_MEAN_MS * 1e-3 * cfg.rate_hz)) * cfg.exposure
+    L = spike_mean_steps(cfg.rate_hz) * cfg.exposure
     half = 3
     Im = []
     for i in range(M):

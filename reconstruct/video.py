@@ -45,7 +45,7 @@ from polinfra.atomic import atomic_path, ensure_dir, write_json
 from polinfra.config import opt
 from polinfra.errors import ConfigError, DataFormatError
 
-from reconstruct.groups import SPIKE_MEAN_MS, SpikeMeanSums
+from reconstruct.groups import SpikeMeanSums, spike_mean_steps
 
 __all__ = ["DISPLAY_CLIP_FRACTION", "DisplayHistogram", "display_gain", "ReconstructConfig", "SpikeSource", "FeatureCache", "auto_tile", "dat_source", "group_source", "reconstruct_stream", "run_model_on_windows"]
 
@@ -490,7 +490,7 @@ def reconstruct_stream(
     tail = np.zeros((0, source.height, source.width), np.uint8)
     tail_start = 0
 
-    mean_steps = int(round(SPIKE_MEAN_MS * 1e-3 * source.rate_hz)) if getattr(model.cfg, "use_mean", False) else 0
+    mean_steps = spike_mean_steps(source.rate_hz) if getattr(model.cfg, "use_mean", False) else 0
     prefix = SpikeMeanSums(centres, mean_steps, source.phi_step_rad.size, (source.height, source.width)) if mean_steps else None
     tile = auto_tile(model, device) if cfg.tile < 0 else cfg.tile
     cache = FeatureCache(model, device, cfg.precision) if (cfg.cache and tile == 0 and getattr(model, "cacheable", False)) else None

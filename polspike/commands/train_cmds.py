@@ -195,8 +195,13 @@ def reconstruct_cmd(
     c.print(f"wrote {', '.join(s['outputs']) or 'no video'} to {out} ({s['seconds']:.1f} s)")
 
 
-MEAN_STEPS = 350
-"""Steps of the long spike mean a ``use_mean`` network is given in the held-out windows (17.5 ms at 20 kHz, as trained)."""
+def heldout_mean_steps() -> int:
+    """Steps of the long spike mean a ``use_mean`` network is given in the held-out windows (as trained: the default
+    sensor's rate, 350 at 20 kHz)."""
+    from reconstruct.groups import spike_mean_steps
+    from spike_sim.config import preset
+
+    return spike_mean_steps(preset("default").rate_hz)
 
 
 def heldout_test_set(crop: int = 64, items: int = 96, seed: int = 20_000, manifest: str = "", scenes: int = 10, scene_seed: int = 0, light: str = "range", mean_steps: int = 0):
@@ -250,7 +255,7 @@ def evaluate_checkpoint_cmd(
     dev = "cuda" if device == "auto" and torch.cuda.is_available() else ("cpu" if device == "auto" else device)
     over = ({} if rir is None else {"use_rir": rir}) | ({} if solver is None else {"solver_method": solver})
     model, data = load_model(weights or DEFAULT_WEIGHTS, dev, **over)
-    ds = heldout_test_set(crop, items, seed, manifest, light=light, mean_steps=MEAN_STEPS if model.cfg.use_mean else 0)
+    ds = heldout_test_set(crop, items, seed, manifest, light=light, mean_steps=heldout_mean_steps() if model.cfg.use_mean else 0)
     m = evaluate_model(model, ds, batch_size=8, device=dev, ssim=True)
     rows = [
         ("T: full network", "T"), ("T: RWPS-only, learned zeta and w (T^)", "T_base"), ("T: RWPS, ground-truth zeta (oracle)", "T_oracle"), ("T: TFP, 2 x window mean", "T_tfp"),
