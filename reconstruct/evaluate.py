@@ -56,7 +56,7 @@ from polinfra.errors import ConfigError, DataFormatError
 from reconstruct.groups import EvalGroup
 from reconstruct.metrics import LPIPS_NA, lpips_status, psnr, score
 from reconstruct.rir import RirConfig, estimate_shifts, warp
-from reconstruct.solvers import PHYSICS_SOLVER_CONFIG, SOLVERS, SolverConfig, anchor_to_mean, solve
+from reconstruct.solvers import PHYSICS_SOLVER_CONFIG, SOLVERS, SolverConfig, anchor_to_mean, solve, zbar_of
 from reconstruct.zeta_source import ZETA_SOURCES, PaneMaps, zeta_from_maps, zeta_learned
 
 __all__ = ["net_zeta_of", "REGIME_FACTORS", "regime_of", "evaluate_by_regime", "regime_markdown", "regime_report", "REGIME_TABLES", "EvalConfig", "EvalReport", "finite_means", "BASELINES", "ANCHOR_SUFFIX", "NET_METHOD", "load_network", "group_zeta", "evaluate_groups", "write_report", "parse_methods", "load_groups", "window_sweep", "markdown_table", "sweep_markdown"]
@@ -340,7 +340,7 @@ def evaluate_groups(
                 Im = np.stack([g.I_mean[i] for i in cb])
                 for m, zz in zbars.items():
                     if zz is not None:
-                        est[m + ANCHOR_SUFFIX] = anchor_to_mean(*est[m], Im, zz.mean(1).float().cpu().numpy())
+                        est[m + ANCHOR_SUFFIX] = anchor_to_mean(*est[m], Im, zbar_of(zz, Pw).float().cpu().numpy())
             t0 = time.perf_counter()
             tfp = (2.0 * raw.mean(1)).cpu().numpy()
             raw_np = (2.0 * raw).cpu().numpy()

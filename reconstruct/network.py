@@ -53,7 +53,7 @@ import torch.nn.functional as F
 from polinfra.config import opt
 from polinfra.errors import ShapeError
 
-from reconstruct.solvers import SolverConfig, anchor_to_mean, solve
+from reconstruct.solvers import SolverConfig, anchor_to_mean, solve, zbar_of
 
 __all__ = ["NetConfig", "NetOutput", "AngleAttention", "ParameterBranch", "LowResParameterBranch", "Refinement", "window_scale", "PolSpikeNet", "count_parameters", "init_weights", "predict_parameters"]
 
@@ -83,6 +83,8 @@ class NetConfig:
     use_attention: bool = opt(True, "angle attention block (ablation: without angle attention)")
     use_conf: bool = opt(True, "Conf-driven lambda in RWPS and Conf input to the refinement (ablation: without Conf)")
     use_mean: bool = opt(False, "the refinement also sees the long spike mean I_mean (window.mean_steps) and T anchored to it, 2 I_mean - zbar (R^ - T^) (paper Eq. (1) over a half turn): the level from ~27x more spikes")
+    base: str = opt("solver", "what the refinement's Delta_t, Delta_r are added to: solver (T^, R^, paper Sec. 3.3) | anchored (T^, R^ anchored to the long spike mean, reconstruct.solvers.anchor_to_mean; needs use_mean): the untrained refinement then returns the anchored physics", choices=("solver", "anchored"))
+    anchor_zbar: str = opt("window", "zbar of the anchor: window (mean of zeta over the N windows, what polspike_v2_mean.pt was trained with) | harmonic (the first-harmonic level of zeta over the window's angles, reconstruct.solvers.zbar_of: the half-turn mean paper Eq. (1) needs)", choices=("window", "harmonic"))
     solver_method: str = opt("rwps", "physics solver run on the predicted zeta and w", choices=("ls", "ridge", "irls", "rwps"))
     span_rad: float = opt(math.radians(7.02), "polarizer rotation inside one aggregation window (0.65 ms at 30 rev/s), rad; recorded with the weights, not used by the layers", lo=0.0, hi=math.pi)
 
@@ -370,6 +372,7 @@ class PolSpikeNet(nn.Module):
         feats: tuple[torch.Tensor, torch.Tensor] | None = None,
         scale: torch.Tensor | None = None,
         I_mean: torch.Tensor | None = None,
+        zeta_scale: torch.Tensor | None = None,
     ) -> NetOutput:
         """Reconstruct the centre frame of each window.
 
@@ -385,6 +388,9 @@ class PolSpikeNet(nn.Module):
                 (default :func:`window_scale` of ``I``); tiles of one frame share the frame's.
             I_mean: (B, H, W) the long spike mean around the centre frame, radiance units; required by a
                 ``use_mean`` network, ignored otherwise.
+            zeta_scale: optional (B,) factors applied to ``zeta_gt`` where it is fed to the solver (teacher
+                forcing), not where the losses compare with it: training for an imperfect external zeta
+                (``--zeta self``, whose errors are mostly of scale; RECONSTRUCTION_NOTES "scale vs shape").
 
         Returns:
             :class:`NetOutput`.
@@ -411,7 +417,8 @@ class PolSpikeNet(nn.Module):
             zeta_hat, w, _ = self.param(I, phi, feats, scale)
         zeta_hat, w = zeta_hat.float(), w.float()  # the solver runs in float32 (also under bf16 autocast)
         I = I.float()
-        zeta_used = zeta_hat if (alpha <= 0 or zeta_gt is None) else alpha * zeta_gt + (1 - alpha) * zeta_hat  # teacher forcing
+        z_force = zeta_gt if (zeta_gt is None or zeta_scale is None) else (zeta_gt * zeta_scale.reshape(-1, 1, 1, 1).to(zeta_gt.dtype)).clamp(0.0, 1.0)
+        zeta_used = zeta_hat if (alpha <= 0 or zeta_gt is None) else alpha * z_force + (1 - alpha) * zeta_hat  # teacher forcing
         res = solve(self.cfg.solver_method, zeta_used, I, w, self.solver_cfg)
         T0, R0 = res.T, res.R
         c = I.shape[1] // 2
@@ -420,14 +427,21 @@ class PolSpikeNet(nn.Module):
         resid = I_c - I_hat
         conf = res.conf if self.cfg.use_conf else torch.zeros_like(res.conf)
         ch = [T0, R0, 2 * I_c, 2 * I.min(1).values, conf, 2 * resid]
+        Tb, Rb = T0, R0
         if self.cfg.use_mean:
             if I_mean is None or I_mean.shape != I_c.shape:
                 raise ShapeError(f"a use_mean network needs I_mean {tuple(I_c.shape)} (the long spike mean around the centre frame)", actual_shape=None if I_mean is None else tuple(I_mean.shape), expected_shape=tuple(I_c.shape))
             I_mean = I_mean.float()
-            ch += [2 * I_mean, anchor_to_mean(T0, R0, I_mean, zeta_used.mean(1))[0]]  # the spike mean and T anchored to it
+            zbar = zeta_used.mean(1) if self.cfg.anchor_zbar == "window" else zbar_of(zeta_used, phi)
+            Ta, Ra = anchor_to_mean(T0, R0, I_mean, zbar)
+            ch += [2 * I_mean, Ta]  # the spike mean and T anchored to it
+            if self.cfg.base == "anchored":
+                Tb, Rb = Ta, Ra
+        elif self.cfg.base == "anchored":
+            raise ShapeError("base = anchored needs a use_mean network (the anchor is the long spike mean)", actual_shape=None, expected_shape="use_mean = true")
         x = torch.stack(ch, 1)
         dT, dR = self.refine(x)
-        return NetOutput(T=T0 + dT, R=R0 + dR, T_base=T0, R_base=R0, zeta_hat=zeta_hat, zeta_used=zeta_used, weights=w, conf=res.conf, res=resid, I=I, zeta_gt=zeta_gt)
+        return NetOutput(T=Tb + dT, R=Rb + dR, T_base=T0, R_base=R0, zeta_hat=zeta_hat, zeta_used=zeta_used, weights=w, conf=res.conf, res=resid, I=I, zeta_gt=zeta_gt)
 
 
 def count_parameters(model: nn.Module) -> int:

@@ -31,7 +31,7 @@ import torch
 from polinfra.errors import ConfigError
 
 from reconstruct.selfcal import SelfCalConfig, SelfCalResult, self_calibrate
-from reconstruct.solvers import PHYSICS_SOLVER_CONFIG, SOLVERS, SolverConfig, anchor_to_mean, solve
+from reconstruct.solvers import PHYSICS_SOLVER_CONFIG, SOLVERS, SolverConfig, anchor_to_mean, solve, zbar_of
 from reconstruct.zeta_source import PaneMaps, zeta_from_maps, zeta_learned
 
 __all__ = ["PHYSICS_METHODS", "STREAM_ZETA_SOURCES", "PhysicsModel", "PhysicsOutput", "calibrate_source", "span_frames", "group_pane_maps", "build_physics_model"]
@@ -127,7 +127,7 @@ class PhysicsModel:
         if self.cfg.use_mean:
             if I_mean is None:
                 raise ConfigError("anchor = mean needs the stream's long spike mean (reconstruct_stream passes it)")
-            T, R = anchor_to_mean(T, R, I_mean.to(T.dtype), Z.mean(1).to(T.dtype))
+            T, R = anchor_to_mean(T, R, I_mean.to(T.dtype), zbar_of(Z, phi).to(T.dtype))
         T, R = T.clamp_min(0.0), R.clamp_min(0.0)
         return PhysicsOutput(T=T, R=R, T_base=T, R_base=R)
 

@@ -85,6 +85,7 @@ from __future__ import annotations
 
 import dataclasses
 
+import numpy as np
 import torch
 
 from polinfra.config import opt
@@ -93,6 +94,7 @@ from polinfra.errors import ConfigError, ShapeError
 __all__ = [
     "SOLVERS",
     "anchor_to_mean",
+    "zbar_of",
     "PHYSICS_SOLVER_CONFIG",
     "adaptive_confidence",
     "pooled_difference_prior",
@@ -426,6 +428,27 @@ def solve(
             w = w0 * huber_factor(r, delta)  # supp. Eq. (11): w^(j+1) = w q^(j)
             R, T = solve_weighted_ridge(zeta, b, w, lam, prior, D0)
     return SolverResult(R=R, T=T, conf=conf, weights=w, lam=lam)
+
+
+def zbar_of(zeta, phi, ridge: float = 1e-6):
+    """The polarizer-cycle mean of zeta from its values at a window's angles, (..., N, H, W), (..., N) -> (..., H, W).
+
+    Paper Eq. (2) makes zeta a first harmonic of the polarizer angle, zeta(phi) = a + b cos 2 phi + c sin 2 phi
+    (window averaging scales b and c, never a), so a least-squares fit of (a, b, c) over the N observations gives
+    the mean a = zbar over a half turn, the zbar of :func:`anchor_to_mean`.  The plain mean over the N windows is
+    not it: the N = 7, 0.65 ms windows cover ~84 deg of 2 phi, so their mean is a + ~0.8 b' (b' the amplitude at
+    the window's angle), off by up to the whole modulation depth (at Brewster's angle that is zbar itself).
+    A tiny ridge on (b, c) keeps a degenerate angle set (a still polarizer) at the plain mean.  A zeta that is not
+    a first harmonic (the network's sigmoid, supp. Eq. (19)) gets its best first-harmonic level.  numpy or torch.
+    """
+    is_t = torch.is_tensor(zeta)
+    z = zeta.double() if is_t else torch.as_tensor(np.asarray(zeta, np.float64))
+    p = (phi.double() if torch.is_tensor(phi) else torch.as_tensor(np.asarray(phi, np.float64))).to(z.device)
+    A = torch.stack([torch.ones_like(p), torch.cos(2 * p), torch.sin(2 * p)], -1)  # (..., N, 3)
+    G = A.transpose(-1, -2) @ A + ridge * A.shape[-2] * torch.diag(torch.tensor([0.0, 1.0, 1.0], dtype=A.dtype, device=A.device))
+    row0 = torch.linalg.solve(G, A.transpose(-1, -2))[..., 0, :]  # (..., N): weights giving a
+    zb = (row0[..., :, None, None] * z).sum(-3)
+    return zb.to(zeta.dtype) if is_t else zb.numpy().astype(np.asarray(zeta).dtype)
 
 
 def anchor_to_mean(T, R, I_mean, zbar):

@@ -75,6 +75,9 @@ class TrainConfig:
     test_scenes: int = opt(10, "on-the-fly: validation / test scenes, disjoint layer content (paper: 10 test groups)", lo=1, hi=100000)
     scene_seed: int = opt(0, "on-the-fly: seed of the scene pools", lo=0, hi=2**31 - 1)
     manifest: str = opt("", "on-the-fly: take the scenes of this dataset manifest's train / test groups (e.g. datasets/manifests/paper.toml); empty = sample train_scenes / test_scenes")
+    force_prob: float = opt(0.0, "probability that a step (after the curriculum's alpha = 1 phase) feeds the solver the true zeta (alpha = 1) times a per-item factor exp(N(0, zeta_jitter)), instead of the curriculum's alpha: trains the refinement for an external, imperfect zeta (--zeta self); drawn from the seed and the step (resumable)", lo=0.0, hi=1.0)
+    zeta_jitter: float = opt(0.0, "std of the per-item log factor on the forced zeta (force_prob)", lo=0.0, hi=2.0)
+    init_zero: tuple[str, ...] = opt((), "parameter-name prefixes set to zero after init_from (e.g. refine.dec_t.out to restart a decoder's output as zero: the network starts as its base)")
     init_from: str = opt("", "start from these weights (a checkpoint or exported .pt of the same [net] architecture; path relative to the working directory) instead of a random initialisation: fine-tuning")
 
 
@@ -320,6 +323,15 @@ def train(
         except RuntimeError as e:
             raise CheckpointError(f"init_from = {cfg.init_from}: its weights do not fit [net] of this config ({str(e).splitlines()[0]}); use weights of the same architecture") from None
         log.info("initialised from %s", cfg.init_from)
+    if cfg.init_zero:
+        with torch.no_grad():
+            hit = [n for n, p in model.named_parameters() if any(n.startswith(z) for z in cfg.init_zero)]
+            if not hit:
+                raise CheckpointError(f"init_zero = {list(cfg.init_zero)} names no parameter of this network")
+            for n, p in model.named_parameters():
+                if n in hit:
+                    p.zero_()
+        log.info("zeroed %d parameter tensors (init_zero)", len(hit))
     model.to(dev)
     opt_ = torch.optim.Adam(model.parameters(), lr=cfg.lr)
     step = 0
@@ -362,7 +374,13 @@ def train(
         epoch = step // spe
         alpha = alpha_at(epoch, cfg)
         I, phi, T, R, z = (b[k].to(dev) for k in ("I", "phi", "T", "R", "zeta"))
-        out = model(I, phi, zeta_gt=z, alpha=alpha, I_mean=b["I_mean"].to(dev) if "I_mean" in b else None)
+        scale = None
+        if cfg.force_prob > 0 and alpha < 1.0:
+            g = torch.Generator().manual_seed(cfg.seed * 1_000_003 + step)
+            if float(torch.rand((), generator=g)) < cfg.force_prob:
+                alpha = 1.0
+                scale = torch.exp(cfg.zeta_jitter * torch.randn(I.shape[0], generator=g)).to(dev)
+        out = model(I, phi, zeta_gt=z, alpha=alpha, I_mean=b["I_mean"].to(dev) if "I_mean" in b else None, zeta_scale=scale)
         loss, parts = total_loss(out, T, R, alpha, cfg.loss)
         if not math.isfinite(parts["loss"]):
             raise FloatingPointError(f"non-finite loss at step {step}: {parts}")

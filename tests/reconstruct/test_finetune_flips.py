@@ -128,6 +128,38 @@ def test_init_from_loads_the_weights_and_refuses_another_architecture(tmp_path):
         train(other, *sets, tmp_path / "run2", stop_after=0)
 
 
+def test_init_zero_restarts_the_named_parameters_and_refuses_unknown_names(tmp_path):
+    torch.set_num_threads(1)
+    src = PolSpikeNet(TINY.net, TINY.solver)
+    for p in src.parameters():
+        torch.nn.init.normal_(p, 0.0, 0.01)
+    save_checkpoint(tmp_path / "src.pt", src)
+    sets = OnTheFlyWindows(_item, length=16, seed=0), OnTheFlyWindows(_item, length=2, seed=1)
+    cfg = dataclasses.replace(TINY, init_from=str(tmp_path / "src.pt"), init_zero=("refine.dec_t.out",))
+    train(cfg, *sets, tmp_path / "run", stop_after=0)
+    got = read_checkpoint(tmp_path / "run" / "last.pt")["state_dict"]
+    for k, v in src.state_dict().items():
+        if k.startswith("refine.dec_t.out"):
+            assert float(got[k].abs().max()) == 0.0, k
+        else:
+            assert torch.equal(got[k], v), k
+    with pytest.raises(CheckpointError, match="names no parameter"):
+        train(dataclasses.replace(cfg, init_zero=("refine.nothing",)), *sets, tmp_path / "run2", stop_after=0)
+
+
+def test_forced_zeta_steps_are_drawn_from_the_seed_and_logged(tmp_path):
+    """force_prob = 1: every step after the curriculum runs on the (jittered) true zeta, logged as alpha = 1;
+    force_prob = 0 leaves the curriculum's alpha."""
+    torch.set_num_threads(1)
+    sets = OnTheFlyWindows(_item, length=16, seed=0), OnTheFlyWindows(_item, length=2, seed=1)
+    base = dataclasses.replace(TINY, curriculum_fracs=(0.0, 0.0), log_every=1)
+    for prob, want in ((1.0, 1.0), (0.0, 0.0)):
+        run = tmp_path / f"run{prob}"
+        train(dataclasses.replace(base, force_prob=prob, zeta_jitter=0.2), *sets, run, stop_after=3)
+        alphas = {float(r["alpha"]) for r in csv.DictReader(open(run / "log.csv")) if r.get("loss")}
+        assert alphas == {want}
+
+
 def test_best_checkpoint_is_the_best_validation_row(tmp_path):
     torch.set_num_threads(1)
     sets = OnTheFlyWindows(_item, length=64, seed=0), OnTheFlyWindows(_item, length=4, seed=1)

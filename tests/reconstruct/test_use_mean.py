@@ -130,3 +130,51 @@ def test_synthetic_groups_carry_the_half_turn_mean():
     np.testing.assert_allclose(2 * g.I_mean[4], g.T[4] + zbar * (g.R[4] - g.T[4]), atol=1e-5)
     gn = synth(SyntheticConfig(width=24, height=16, n_groups=1, n_frames=9, motion_px_per_frame=0.0), 0)  # Poisson: 350 steps
     assert float(np.abs(gn.I_mean[4] - g.I_mean[4]).mean()) < float(np.abs(gn.I[4] - g.I[4]).mean()) / 3
+
+
+def test_zbar_of_is_the_half_turn_mean_not_the_window_mean():
+    """Closed form: zeta = a + b cos 2phi + c sin 2phi (paper Eq. (2)); over the N = 7, 0.65 ms windows (~84 deg of
+    2 phi) the plain mean is off by up to the modulation depth, the first-harmonic level is a; it equals the mean
+    over a whole turn, and a still polarizer (all angles equal) gives the plain mean."""
+    from reconstruct.solvers import zbar_of
+
+    rng = np.random.default_rng(3)
+    a, b, c = rng.uniform(0.05, 0.3, (3, 5)), rng.uniform(-0.1, 0.1, (3, 5)), rng.uniform(-0.1, 0.1, (3, 5))
+    phi = 0.4 + np.radians(7.02) * (np.arange(7) - 3)
+    z = a + b * np.cos(2 * phi)[:, None, None] + c * np.sin(2 * phi)[:, None, None]
+    assert float(np.abs(z.mean(0) - a).max()) > 0.05  # the window mean is far off
+    np.testing.assert_allclose(zbar_of(z, phi), a, atol=5e-5)
+    turn = np.linspace(0, np.pi, 64, endpoint=False)
+    zt = a + b * np.cos(2 * turn)[:, None, None] + c * np.sin(2 * turn)[:, None, None]
+    np.testing.assert_allclose(zbar_of(z, phi), zt.mean(0), atol=5e-5)
+    np.testing.assert_allclose(zbar_of(z, np.full(7, 0.4)), z.mean(0), atol=1e-12)
+    zb = zbar_of(torch.tensor(z[None], dtype=torch.float32), torch.tensor(phi[None]))  # batched torch
+    assert zb.dtype == torch.float32 and zb.shape == (1, 3, 5)
+    np.testing.assert_allclose(zb[0].numpy(), a, atol=1e-4)
+
+
+def test_anchored_base_network_starts_as_the_anchored_solver():
+    """base = anchored with zero decoder outputs returns exactly anchor_to_mean of its own solver output (with the
+    first-harmonic zbar); the forced zeta scale reaches the solver but not the returned ground truth."""
+    from reconstruct.solvers import anchor_to_mean, zbar_of
+
+    cfg = dataclasses.replace(SMALL, use_mean=True, base="anchored", anchor_zbar="harmonic")
+    net = init_weights(PolSpikeNet(cfg), torch.Generator().manual_seed(1)).eval()
+    with torch.no_grad():
+        for d in (net.refine.dec_t, net.refine.dec_r):
+            d.out.weight.zero_()
+            d.out.bias.zero_()
+    I, phi, Im = _window()
+    with torch.no_grad():
+        o = net(I, phi, I_mean=Im)
+    Ta, Ra = anchor_to_mean(o.T_base, o.R_base, Im, zbar_of(o.zeta_used, phi))
+    torch.testing.assert_close(o.T, Ta, rtol=0, atol=1e-6)
+    torch.testing.assert_close(o.R, Ra, rtol=0, atol=1e-6)
+    zg = torch.full_like(o.zeta_hat, 0.2)
+    with torch.no_grad():
+        f = net(I, phi, zeta_gt=zg, alpha=1.0, I_mean=Im, zeta_scale=torch.tensor([1.0, 1.5]))
+    torch.testing.assert_close(f.zeta_used[0], zg[0])
+    torch.testing.assert_close(f.zeta_used[1], zg[1] * 1.5)
+    assert f.zeta_gt is zg
+    with pytest.raises(ShapeError, match="use_mean"):
+        PolSpikeNet(dataclasses.replace(SMALL, base="anchored"))(I, phi)
