@@ -77,6 +77,7 @@ class TrainConfig:
     manifest: str = opt("", "on-the-fly: take the scenes of this dataset manifest's train / test groups (e.g. datasets/manifests/paper.toml); empty = sample train_scenes / test_scenes")
     force_prob: float = opt(0.0, "probability that a step (after the curriculum's alpha = 1 phase) feeds the solver the true zeta (alpha = 1) times a per-item factor exp(N(0, zeta_jitter)), instead of the curriculum's alpha: trains the refinement for an external, imperfect zeta (--zeta self); drawn from the seed and the step (resumable)", lo=0.0, hi=1.0)
     zeta_jitter: float = opt(0.0, "std of the per-item log factor on the forced zeta (force_prob)", lo=0.0, hi=2.0)
+    val_select: str = opt("learned", "validation score that picks best.pt: learned (psnr_T, the network on its own zeta) | mean (the mean of that and psnr_T_forced, the network on the true zeta: a network run with --zeta self where the stream calibrates)", choices=("learned", "mean"))
     init_zero: tuple[str, ...] = opt((), "parameter-name prefixes set to zero after init_from (e.g. refine.dec_t.out to restart a decoder's output as zero: the network starts as its base)")
     init_from: str = opt("", "start from these weights (a checkpoint or exported .pt of the same [net] architecture; path relative to the working directory) instead of a random initialisation: fine-tuning")
 
@@ -118,7 +119,7 @@ def _psnr(x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
 
 
 @torch.no_grad()
-def evaluate_model(model: PolSpikeNet, dataset, batch_size: int = 8, device: torch.device | str = "cpu", ssim: bool = False) -> dict[str, float]:
+def evaluate_model(model: PolSpikeNet, dataset, batch_size: int = 8, device: torch.device | str = "cpu", ssim: bool = False, forced: bool = False) -> dict[str, float]:
     """Mean PSNR (and optionally SSIM) of T: full network, solver output, oracle RWPS (GT zeta).
 
     Args:
@@ -136,7 +137,8 @@ def evaluate_model(model: PolSpikeNet, dataset, batch_size: int = 8, device: tor
         range 1 after clipping the estimate to [0, 1].  ``psnrrefl_T*``: PSNR of T pooled over the
         reflection-affected pixels only, where the reflected share of the mixed light
         zeta R / (zeta R + (1 - zeta) T) at the centre frame is >= ``REFL_SHARE`` (``refl_fraction``:
-        their share of all pixels).
+        their share of all pixels).  ``forced``: also ``psnr_T_forced`` / ``psnr_R_forced``, the network
+        on the true zeta (alpha = 1: how it runs on an external zeta, ``--zeta self``).
     """
     from reconstruct.solvers import solve
 
@@ -151,6 +153,9 @@ def evaluate_model(model: PolSpikeNet, dataset, batch_size: int = 8, device: tor
         out = model(I, phi, I_mean=b["I_mean"].to(device) if "I_mean" in b else None)
         orc = solve("rwps", z, I, None, model.solver_cfg_in)
         ests = {"T": out.T, "T_base": out.T_base, "T_oracle": orc.T, "T_tfp": 2.0 * I.mean(1), "R": out.R, "R_base": out.R_base, "R_oracle": orc.R}
+        if forced:
+            fo = model(I, phi, zeta_gt=z, alpha=1.0, I_mean=b["I_mean"].to(device) if "I_mean" in b else None)
+            ests.update({"T_forced": fo.T, "R_forced": fo.R})
         zc = z[:, z.shape[1] // 2]
         share = zc * R / (zc * R + (1 - zc) * T + 1e-6)
         refl = share >= REFL_SHARE
@@ -178,7 +183,7 @@ def evaluate_model(model: PolSpikeNet, dataset, batch_size: int = 8, device: tor
 REFL_SHARE = 0.2
 """Reflected share of the mixed light above which a pixel counts as reflection-affected (evaluation)."""
 
-_LOG_FIELDS = ["step", "epoch", "alpha", "loss", "l_rec", "l_grad", "l_phys", "l_excl", "l_base", "val_psnr_T", "val_psnr_T_base", "val_psnr_T_oracle", "seconds"]
+_LOG_FIELDS = ["step", "epoch", "alpha", "loss", "l_rec", "l_grad", "l_phys", "l_excl", "l_base", "val_psnr_T", "val_psnr_T_base", "val_psnr_T_oracle", "val_psnr_T_forced", "val_score", "seconds"]
 
 
 def _write_log(run: Path, rows: list[dict[str, Any]]) -> None:
@@ -349,7 +354,8 @@ def train(
         best = dict(data.get("best", {}))
         if (run / "best.pt").exists():  # the file is the truth (written before last.pt)
             bd = read_checkpoint(run / "best.pt")
-            best = {"step": int(bd.get("step", 0)), "psnr_T": float(bd.get("metrics", {}).get("psnr_T", -math.inf))}
+            bm = bd.get("metrics", {})
+            best = {"step": int(bd.get("step", 0)), "psnr_T": float(bm.get("psnr_T", -math.inf)), "score": float(bm.get("score", bm.get("psnr_T", -math.inf)))}
         log.info("resumed %s at step %d/%d", ck, step, total)
     write_json(run / "config.json", to_dict(cfg))
     rows = _read_log(run, step)
@@ -395,12 +401,13 @@ def train(
             row = {"step": step, "epoch": epoch + 1, "alpha": alpha, **{k: f"{v:.6g}" for k, v in parts.items()}, "seconds": f"{time.perf_counter() - t0:.1f}"}
         val_now = (cfg.val_every and step % cfg.val_every == 0) or (not cfg.val_every and step % spe == 0) or step == total
         if val_now and val_set is not None and len(val_set):
-            metrics = evaluate_model(model, val_set, cfg.batch_size, dev)
+            metrics = evaluate_model(model, val_set, cfg.batch_size, dev, forced=cfg.val_select != "learned")
+            metrics["score"] = metrics["psnr_T"] if cfg.val_select == "learned" else 0.5 * (metrics["psnr_T"] + metrics["psnr_T_forced"])
             row = row or {"step": step, "epoch": epoch + 1, "alpha": alpha, "seconds": f"{time.perf_counter() - t0:.1f}"}
             row.update({f"val_{k}": f"{v:.4f}" for k, v in metrics.items()})
             log.info("step %d: val PSNR T %.2f dB (solver %.2f, oracle %.2f)", step, metrics["psnr_T"], metrics["psnr_T_base"], metrics["psnr_T_oracle"])
-            if not best or metrics["psnr_T"] > best["psnr_T"]:  # best.pt before last.pt: a kill in between loses nothing
-                best = {"step": step, "psnr_T": metrics["psnr_T"]}
+            if not best or metrics["score"] > best.get("score", best["psnr_T"]):  # best.pt before last.pt: a kill in between loses nothing
+                best = {"step": step, "psnr_T": metrics["psnr_T"], "score": metrics["score"]}
                 save_checkpoint(run / "best.pt", model, extra={"train": to_dict(cfg), "step": step, "metrics": metrics})
                 log.info("step %d: new best validation, written %s", step, run / "best.pt")
         if row:

@@ -171,3 +171,16 @@ def test_best_checkpoint_is_the_best_validation_row(tmp_path):
     b = read_checkpoint(tmp_path / "run" / "best.pt")
     assert b["step"] == int(top["step"]) == res["best"]["step"]
     assert b["metrics"]["psnr_T"] == pytest.approx(float(top["val_psnr_T"]), abs=1e-4)
+
+
+def test_val_select_mean_scores_both_zeta_paths_and_picks_best_by_their_mean(tmp_path):
+    torch.set_num_threads(1)
+    sets = OnTheFlyWindows(_item, length=64, seed=0), OnTheFlyWindows(_item, length=4, seed=1)
+    cfg = dataclasses.replace(TINY, epochs=6, val_every=2, val_select="mean")
+    res = train(cfg, *sets, tmp_path / "run")
+    rows = [r for r in csv.DictReader(open(tmp_path / "run" / "log.csv")) if r["val_psnr_T"]]
+    assert len(rows) >= 3
+    for r in rows:
+        assert float(r["val_score"]) == pytest.approx(0.5 * (float(r["val_psnr_T"]) + float(r["val_psnr_T_forced"])), abs=2e-4)
+    top = max(rows, key=lambda r: float(r["val_score"]))
+    assert read_checkpoint(tmp_path / "run" / "best.pt")["step"] == int(top["step"]) == res["best"]["step"]
