@@ -46,6 +46,24 @@ wrong family breaks it wherever one layer dominates beyond DoP_T
 index and the pane model (:func:`fit_glass`; claimed only with a margin, else
 ``prior_model`` and ``n``, with the reason in ``diagnostics["glass"]``).
 
+Where the transmission dominates everywhere (R < T and no layer ever black), both families hold the cone and
+the **layers' content** decides (:func:`layer_gradient_correlation`, ``content_margin``).  Paper Eq. (1) gives
+I_k = 1/2 [T + zeta_k (R - T)]; the twin sees the modulation with the opposite sign, so its solve returns
+R' - T' ~ -(B / B') (R - T): where T dominates, T' ~ T and R' ~ T + (T - R), i.e. R' carries the transmission's
+texture and the gradients of R' and T' are strongly correlated (positively).  With the right pane R^ and T^ are the
+two independent layers, whose gradients are uncorrelated (the gradient-exclusion idea of reflection separation;
+the paper's Eq. (11) uses it as a loss).  Each cone-consistent candidate of each family is solved in closed form
+on the span's two time halves (R^ from one half against T^ from the other, so the spike noise, shared by R^ and T^
+of one solve, drops out), the layers smoothed by 2 pixels and differenced; a family scores its smallest |correlation|
+over its candidates (the tilt valley and the pane model's scale leak T into R^ by (1 - B / B') T, so only some tilt
+of the right family reaches 0), and wins when the other family's score is larger by ``content_margin`` (0.2) and
+``content_ratio`` (3) times, and the winner holds the cone.  The pane is then the winning candidate.  Pixels a
+hypothesis sees beyond 82 deg are left out (:data:`CONTENT_THETA_MAX_DEG`): there a twin at near-grazing incidence
+reflects about as much as it transmits and its solve becomes a layer swap (T' ~ R, R' ~ T), as uncorrelated as the
+truth.  Flat or featureless layers, or noise too strong for 2-pixel smoothing, leave both scores small: the result
+stays "ambiguous" and says so, with both scores (``diagnostics["cone"]["content"]``).  Where the reflection
+dominates instead the cone already decides (the twin's R' goes negative).
+
 Where nothing modulates (no reflection, R = T, near-normal incidence: the
 fitted pane explains the orientation field less than ``z_min`` noise standard
 deviations above chance), or where the cone cannot refute the twin either, the
@@ -84,6 +102,7 @@ __all__ = [
     "SelfCalResult",
     "orientation_field",
     "fit_normal",
+    "layer_gradient_correlation",
     "self_calibrate",
     "self_zeta",
     "group_self_zeta",
@@ -114,6 +133,8 @@ class SelfCalConfig:
     coherence_sigmas: float = opt(4.0, "diagnostics: a block counts as modulating when its |sum z4| exceeds this many noise standard deviations", lo=0.0, hi=100.0)
     max_twin_ratio: float = opt(0.98, "the pane turned 90 deg (phi_perp <-> p-direction) scoring above this fraction of the best: the DoP cone decides, else ambiguous (ok = False)", lo=0.0, hi=10.0)
     min_tilt_deg: float = opt(3.0, "a fitted tilt below this is near-normal incidence: no usable modulation (ok = False)", lo=0.0, hi=89.0)
+    content_margin: float = opt(0.2, "content test (where the cone leaves the 90 deg twin open): the other family's smallest layer-gradient |correlation| must exceed the chosen one's by this (0 = off: refuse as before)", lo=0.0, hi=2.0)
+    content_ratio: float = opt(3.0, "content test: ... and be at least this many times the chosen one's", lo=1.0, hi=1e9)
 
 
 @dataclasses.dataclass
@@ -648,11 +669,150 @@ def _resolve_by_cone(I, phi, f, fit, W, H, fov_given, cfg) -> dict:
     fam = 0 if v_fam[0] <= v_fam[1] else 1
     other = v_fam[1 - fam]
     resolved = other - v_fam[fam] > cfg.cone_margin and other >= cfg.cone_ratio * v_fam[fam]
+    content = None
+    if not resolved and cfg.content_margin > 0:
+        content = _resolve_by_content(I, phi, cands, v_fam, W, H, sf, cfg)
+        if content["resolved"]:
+            fam, resolved = content["chosen_family"], True
     ok = [cd for cd in cands if cd["family"] == fam and cd["V"] <= v_fam[fam] + cfg.cone_margin]
-    pick = max(ok, key=lambda cd: cd["score"])  # within the family: the cone-consistent pane the orientation field prefers
-    return {"resolved": bool(resolved), "tilt": pick["tilt"], "azimuth": pick["azimuth"], "fov_deg": pick["fov_deg"], "score": pick["score"],
-            "v_family": [v_fam[0], v_fam[1]], "chosen_family": fam, "candidates": len(cands), "aggs": pick["aggs"],
-            "tilt_range_deg": [math.degrees(min(cd["tilt"] for cd in ok)), math.degrees(max(cd["tilt"] for cd in ok))]}
+    if content is not None and content["resolved"]:
+        pick = content["pick"]  # within the family: the pane whose layers come out least correlated
+    else:
+        pick = max(ok, key=lambda cd: cd["score"])  # within the family: the cone-consistent pane the orientation field prefers
+    out = {"resolved": bool(resolved), "by": ("content" if content is not None and content["resolved"] else "cone") if resolved else None,
+           "tilt": pick["tilt"], "azimuth": pick["azimuth"], "fov_deg": pick["fov_deg"], "score": pick["score"],
+           "v_family": [v_fam[0], v_fam[1]], "chosen_family": fam, "candidates": len(cands), "aggs": pick["aggs"],
+           "tilt_range_deg": [math.degrees(min(cd["tilt"] for cd in ok)), math.degrees(max(cd["tilt"] for cd in ok))]}
+    if content is not None:
+        out["content"] = {k: v for k, v in content.items() if k != "pick"}
+    return out
+
+
+CONTENT_SIGMA_PX = 2.0
+"""Gaussian smoothing (pixels) of the solved layers before their gradients are correlated (:func:`layer_gradient_correlation`):
+keeps the texture, damps the per-pixel spike noise (measured on the stress set: 1.5-2 px separate the families alike)."""
+
+CONTENT_TILES = 3
+"""The content score is the RMS of the layer-gradient correlation over CONTENT_TILES x CONTENT_TILES tiles of the view."""
+
+CONTENT_THETA_MAX_DEG = 82.0
+"""Pixels a hypothesis sees beyond this incidence are left out of the content test: there the pane reflects about as much as
+it transmits (A >= 0.5 for n = 1.5), and a 90 deg twin's solve turns into a layer swap (T' ~ R, R' ~ T) that is as
+uncorrelated as the truth (module docstring).  Hypotheses with under a quarter of their pixels below it are not scored."""
+
+
+def _content_halves(I: np.ndarray, phi: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
+    """The span's two time halves, each as its chunk-averaged harmonic mean a0 and modulation c (:func:`chunk_harmonics`).
+    Their spike noise is independent (disjoint spikes; adjacent frames of one half are not: integrate-and-fire makes
+    consecutive counts of a pixel anticorrelated), so correlating one half's R^ with the other's T^ carries no noise term."""
+    M = I.shape[0]
+    out = []
+    for sl in (slice(0, M // 2), slice(M // 2, M)):
+        a0, c = chunk_harmonics(I[sl], phi[sl])
+        out.append((a0.mean(0), c.mean(0)))
+    return out
+
+
+def layer_gradient_correlation(halves, phi_perp: np.ndarray, theta: np.ndarray, n: float, model: str, span_factor: float = 1.0,
+                               sigma: float = CONTENT_SIGMA_PX, theta_max_deg: float = CONTENT_THETA_MAX_DEG, tiles: int = CONTENT_TILES) -> dict:
+    """Normalised correlation of the gradients of R^ and T^ solved under one pane hypothesis (module docstring, "content").
+
+    Per half (:func:`_content_halves`), paper Eq. (1)-(2) invert in closed form: the modulation along phi_perp is
+    m = B sinc (R - T) / 2 and the mean a0 = (T + A (R - T)) / 2, so D = 2 m / (B sinc), T^ = 2 a0 - A D, R^ = T^ + D
+    (A, B the mean and half difference of R_perp, R_par for ``n`` and ``model``).  Each layer is smoothed by ``sigma``
+    pixels and differenced along x and y; the correlation is sum(gR_1 gT_2 + gR_2 gT_1) / 2 over sqrt(mean power of gR x
+    mean power of gT), over pixel pairs the hypothesis sees below ``theta_max_deg``.  Independent layers give about 0;
+    a pane read as its 90 deg twin where T dominates gives R^ ~ T + (T - R) and T^ ~ T: strongly positive.
+
+    Returns ``corr`` (the whole view) and ``rms``: the root mean square of the correlation over ``tiles`` x ``tiles``
+    tiles.  A wrong scale or DoP shape leaks T into R^ by (1 - B / B') T, which changes with theta across the view, so
+    a wrong (tilt, model) pair can zero the whole view's correlation but not every tile's; ``rms`` is the score.
+    Both NaN when fewer than a quarter of the pixels qualify (a tile with fewer than 16 pairs is skipped).
+    """
+    from scipy.ndimage import gaussian_filter
+
+    from polphysics.fresnel import pane_coefficients
+
+    nan = {"corr": float("nan"), "rms": float("nan")}
+    co = pane_coefficients(theta, n, model=model)
+    A = 0.5 * (co["R_perp"] + co["R_par"])
+    B = 0.5 * (co["R_perp"] - co["R_par"]) * span_factor
+    ok = np.degrees(theta) <= theta_max_deg
+    okx, oky = ok[:-1, :-1] & ok[:-1, 1:], ok[:-1, :-1] & ok[1:, :-1]
+    if 0.5 * (okx.mean() + oky.mean()) < 0.25:
+        return nan
+    rot = np.exp(-2j * phi_perp)
+    grads = []
+    for a0, c in halves:
+        D = np.where(ok, 2.0 * (c * rot).real / np.maximum(B, 1e-6), 0.0)
+        T = np.where(ok, 2.0 * a0 - A * D, 0.0)
+        g = []
+        for x in (T + D, T):
+            y = gaussian_filter(x, sigma)
+            g.append((np.where(okx, np.diff(y, axis=1)[:-1, :], 0.0), np.where(oky, np.diff(y, axis=0)[:, :-1], 0.0)))
+        grads.append(g)
+    (R1, T1), (R2, T2) = grads
+    prod = lambda u, v: u[0] * v[0] + u[1] * v[1]  # noqa: E731
+    cross = 0.5 * (prod(R1, T2) + prod(R2, T1))
+    pr = 0.5 * (prod(R1, R1) + prod(R2, R2))
+    pt = 0.5 * (prod(T1, T1) + prod(T2, T2))
+    cnt = okx.astype(int) + oky.astype(int)
+
+    def corr(sl):
+        den = math.sqrt(max(float(pr[sl].sum()) * float(pt[sl].sum()), 1e-300))
+        return float(cross[sl].sum()) / den
+
+    h, w = cross.shape
+    per_tile = [corr((slice(i * h // tiles, (i + 1) * h // tiles), slice(j * w // tiles, (j + 1) * w // tiles)))
+                for i in range(tiles) for j in range(tiles)
+                if cnt[i * h // tiles:(i + 1) * h // tiles, j * w // tiles:(j + 1) * w // tiles].sum() >= 16]
+    return {"corr": corr(slice(None)), "rms": float(np.sqrt(np.mean(np.square(per_tile)))) if per_tile else float("nan")}
+
+
+def _resolve_by_content(I, phi, cands, v_fam, W, H, sf, cfg) -> dict:
+    """The content test between the two families where the cone leaves them both open (module docstring, "content").
+
+    Every cone-consistent candidate of each family is scored by :func:`layer_gradient_correlation` (``rms``) under each
+    pane model that may be used (``cfg.model``, or for auto both of :data:`CONE_MODELS`, at ``cfg.n``); a family's score
+    is its smallest (the tilt valley and the model's scale are nuisances: some tilt of the right family makes the layers
+    independent).  The family with the smaller score wins when the other's exceeds it by ``content_margin`` and by
+    ``content_ratio`` times, and the winner itself holds the cone (violation within ``cone_margin``: a family that
+    breaks the cone is not rescued by its content).  Within the winner, the pane model is claimed when its best score
+    beats the other model's best by :data:`CONTENT_MODEL_MARGIN` (else ``cfg.prior_model``), and the pane is that
+    model's best-scoring candidate.  Returns ``resolved``, ``chosen_family``, ``corr_family`` (the two scores),
+    ``corr_by_model`` (the winner's best per model), ``model``, ``model_identified``, ``n`` and ``pick``.
+    """
+    models = CONE_MODELS if cfg.model == "auto" else (cfg.model,)
+    halves = _content_halves(I, phi)
+    best: dict = {}
+    for cd in cands:
+        k = cd["family"]
+        if cd["V"] > v_fam[k] + cfg.cone_margin:
+            continue
+        pp, th = _hypothesis_maps(W, H, cd["tilt"], cd["azimuth"], cd["fov_deg"])
+        cd["content"] = {}
+        for mo in models:
+            r = layer_gradient_correlation(halves, pp, th, cfg.n, mo, sf)["rms"]
+            cd["content"][mo] = r
+            if np.isfinite(r) and ((k, mo) not in best or r < best[(k, mo)][0]):
+                best[(k, mo)] = (r, cd)
+    score = {k: min((best[(k, mo)][0] for mo in models if (k, mo) in best), default=float("inf")) for k in (0, 1)}
+    fam = 0 if score[0] <= score[1] else 1
+    o, c = score[1 - fam], score[fam]
+    resolved = bool(np.isfinite(c) and o - c > cfg.content_margin and o >= cfg.content_ratio * c and v_fam[fam] <= cfg.cone_margin)
+    by_model = {mo: best[(fam, mo)][0] for mo in models if (fam, mo) in best}
+    order = sorted(by_model, key=by_model.get)
+    model_ok = len(order) > 1 and by_model[order[1]] - by_model[order[0]] > CONTENT_MODEL_MARGIN
+    model = order[0] if (model_ok or len(models) == 1) else cfg.prior_model
+    pick = best.get((fam, model), best.get((fam, order[0]) if order else None, (None, None)))[1] if order else None
+    return {"resolved": resolved, "chosen_family": fam, "corr_family": [score[0], score[1]], "corr_by_model": by_model,
+            "model": model, "model_identified": bool(model_ok), "n": cfg.n,
+            "scored": sum(1 for cd in cands if "content" in cd), "pick": pick}
+
+
+CONTENT_MODEL_MARGIN = 0.05
+"""Content test: a pane model is claimed when its best tile-RMS correlation beats the other model's best by this much
+(measured on the stress set: 0.09 and 0.24 where the model was right, 0.01 where it would have been wrong)."""
 
 
 def _span_factor_of(phi: np.ndarray) -> float:
@@ -733,10 +893,13 @@ def self_calibrate(I: np.ndarray, phi: np.ndarray, cfg: SelfCalConfig = SelfCalC
         aggs = cone.pop("aggs")
         diag["cone"] = cone
         if not cone["resolved"]:
+            ct = cone.get("content")
+            ctxt = (f"; nor does the layers' content (gradient |correlation| of R^ and T^ {ct['corr_family'][0]:.2f} / {ct['corr_family'][1]:.2f}, "
+                    f"need the other family {cfg.content_margin:g} above and {cfg.content_ratio:g} times the chosen one, which must hold the cone)") if ct else ""
             return fail(f"ambiguous: a pane with phi_perp turned by 90 deg explains the orientation field {100 * fit['twin_ratio']:.1f} % as well "
                         f"(narrow field of view or glancing pane), and both keep the DoP inside the Fresnel cone (violations {cone['v_family'][0]:.1f} / "
                         f"{cone['v_family'][1]:.1f}, need the other family {cfg.cone_margin:g} above and {cfg.cone_ratio:g} times the chosen one): "
-                        f"no part of the view shows the reflection dominating beyond DoP_T, or neither family fits")
+                        f"no part of the view shows the reflection dominating beyond DoP_T, or neither family fits" + ctxt)
         fit = {**fit, "tilt": cone["tilt"], "azimuth": cone["azimuth"], "fov_deg": cone["fov_deg"]}
         modulation(fit["tilt"], fit["azimuth"], fit["fov_deg"])
         res_deg = residual()
@@ -756,9 +919,14 @@ def self_calibrate(I: np.ndarray, phi: np.ndarray, cfg: SelfCalConfig = SelfCalC
             a0, c = chunk_harmonics(I[:m], np.asarray(phi)[:m])
             aggs = cone_aggregates(a0, c, geo["phi_perp"], theta)
         gl = fit_glass(glass_scores(aggs, _span_factor_of(np.asarray(phi)[:m]), slack=GLASS_SLACK), cfg.n, cfg.prior_model, cfg.cone_margin)
+        ct = (diag.get("cone") or {}).get("content")
+        if not gl["model_identified"] and ct and diag["cone"].get("by") == "content" and ct["model_identified"]:
+            # the cone does not tell single from slab, the layers' content did (the pane model's scale leaks T into R^)
+            gl["model"], gl["model_by_content"] = ct["model"], True
         n_used, model_used = gl["n"], gl["model"]
         gl["scores_by_model"] = {k: float(v) for k, v in gl["scores_by_model"].items()}
-        gl["why"] = (("model from the cone" if gl["model_identified"] else f"model not identified (no cone edge separates single from slab): assumed {cfg.prior_model}")
+        gl["why"] = (("model from the cone" if gl["model_identified"] else "model from the layers' content (the cone does not separate single from slab)" if gl.get("model_by_content")
+                      else f"model not identified (no cone edge separates single from slab): assumed {cfg.prior_model}")
                      + "; " + (f"index from the cone (range {gl['n_range'][0]:g}-{gl['n_range'][1]:g})" if gl["n_identified"]
                                else f"index not identified (the data fit {gl['n_range'][0]:g}-{gl['n_range'][1]:g}): {n_used:g}"))
         diag["glass"] = gl
@@ -771,9 +939,13 @@ def self_calibrate(I: np.ndarray, phi: np.ndarray, cfg: SelfCalConfig = SelfCalC
         True, "", N, tilt_deg, math.degrees(fit["azimuth"]) % 360.0, vp, float(fit["fov_deg"]), fov_given is None, n_used, model_used, maps, theta, frac,
         res_deg, fit["twin_ratio"], diag,
     )
+    how = ""
+    if "cone" in diag:
+        ct = diag["cone"].get("content")
+        how = (f" (90 deg twin resolved by the layers' content: R^ / T^ gradient |correlation| {ct['corr_family'][diag['cone']['chosen_family']]:.2f} "
+               f"against {ct['corr_family'][1 - diag['cone']['chosen_family']]:.2f} for the twin; the cone held both)") if diag["cone"].get("by") == "content" else " (90 deg twin resolved by the cone)"
     log.info("self-calibrated pane for %s: tilt %.1f deg, azimuth %.1f deg, fov %.1f deg%s, z %.1f, %.0f %% of pixels modulating, %s n %.2f%s",
-             name, tilt_deg, res.azimuth_deg, res.fov_deg, " (fitted)" if res.fov_fitted else "", fit["z"], 100 * diag["modulating_px"], model_used, n_used,
-             " (90 deg twin resolved by the cone)" if "cone" in diag else "")
+             name, tilt_deg, res.azimuth_deg, res.fov_deg, " (fitted)" if res.fov_fitted else "", fit["z"], 100 * diag["modulating_px"], model_used, n_used, how)
     return res
 
 

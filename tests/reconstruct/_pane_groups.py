@@ -41,11 +41,13 @@ def make_pane_group(
     noise: bool = True,
     seed: int = 0,
     record_fov: bool = True,
+    contrast: float = 1.0,
 ) -> tuple[EvalGroup, np.ndarray]:
     """A group of M frames (stride 31.5 deg, 13-step windows at 20 kHz, 30 rev/s) and its true normal.
 
     T: textured, mean ``t_level``, sliding ``motion_px`` per frame; R: textured, mean ``r_gain`` * 0.5,
-    sliding at half that speed the other way.  The camera looks along +z with up +y.
+    sliding at half that speed the other way; ``contrast`` scales both textures (0: flat layers).  The camera looks
+    along +z with up +y.
     """
     rng = np.random.default_rng(seed)
     cam = PinholeCamera.look_at([0, 0, 0], [0, 0, 1], [0, 1, 0], fov_x_deg=fov_deg, width=W, height=H)
@@ -63,8 +65,8 @@ def make_pane_group(
     sR = tex_R.integers(0, 2**31)
     Is, Ts, Rs, Zs = [], [], [], []
     for i in range(M):
-        T = np.clip(t_level * (1 + 0.4 * periodic_texture(np.random.default_rng(sT), H, W, shift=(0.0, motion_px * i))), 0.02, None)
-        R = np.clip(0.5 * r_gain * (1 + 0.5 * periodic_texture(np.random.default_rng(sR), H, W, shift=(0.5 * motion_px * i, 0.0))), 0.02, None)
+        T = np.clip(t_level * (1 + 0.4 * contrast * periodic_texture(np.random.default_rng(sT), H, W, shift=(0.0, motion_px * i))), 0.02, None)
+        R = np.clip(0.5 * r_gain * (1 + 0.5 * contrast * periodic_texture(np.random.default_rng(sR), H, W, shift=(0.5 * motion_px * i, 0.0))), 0.02, None)
         z = 0.5 * (maps.R_perp + maps.R_par) + 0.5 * (maps.R_perp - maps.R_par) * sinc * np.cos(2 * (phi[i] - maps.phi_perp))  # paper Eq. (2), window mean
         I = 0.5 * (z * R + (1 - z) * T)  # paper Eq. (1)
         if noise:
