@@ -26,6 +26,8 @@ def main() -> None:
     ap.add_argument("--fov-given", action="store_true")
     ap.add_argument("--solvers", action="store_true")
     ap.add_argument("--frames", type=int, default=40)
+    ap.add_argument("--compare-prior", action="store_true", help="with --solvers: also the fitted geometry with the prior n / model (the maps before the content test)")
+    ap.add_argument("--no-content", action="store_true", help="calibrate without the content test")
     a = ap.parse_args()
     from polspike.pipeline.calibrate_pane import CalibratePaneConfig, calibrate_input
     from reconstruct.evaluate import EvalConfig, evaluate_groups
@@ -37,7 +39,7 @@ def main() -> None:
     for gd in sorted((Path(a.dataset) / "groups").iterdir()):
         spec = json.loads((gd / "group_spec.json").read_text())["scene"]
         t0 = time.time()
-        res, _, _, _ = calibrate_input(gd, CalibratePaneConfig(fov_deg=spec["camera"]["fov_deg"] if a.fov_given else 0.0))
+        res, _, _, _ = calibrate_input(gd, CalibratePaneConfig(fov_deg=spec["camera"]["fov_deg"] if a.fov_given else 0.0, content=not a.no_content))
         r = res["report"]
         if not res["ok"]:
             rows.append({"group": gd.name, "refused": r["reason"]})
@@ -52,13 +54,26 @@ def main() -> None:
                "fov": [spec["camera"]["fov_deg"], p["fov_deg"]], "theta_err_median": float(np.median(th)), "phi_perp_err_median": float(np.median(dp)),
                "n": [spec["pane"]["n"], p["n"], idn["n"]["identified"]], "model": [spec["pane"]["model"], p["model"], idn["model"]["identified"]],
                "twin": r.get("twin", {}).get("chosen"), "sigma_theta_median": r["uncertainty_1sigma"]["theta_deg_median"],
-               "theta_claimed": idn["fov"]["identified"] is not False, "glass_models": r["glass"]["models"], "why_model": idn["model"]["why"], "why_n": idn["n"]["why"]}
+               "theta_claimed": idn["fov"]["identified"] is not False, "glass_models": r["glass"]["models"], "why_model": idn["model"]["why"], "why_n": idn["n"]["why"],
+               "model_by": idn["model"].get("by", "cone" if idn["model"]["identified"] else None), "n_by": idn["n"].get("by", "cone" if idn["n"]["identified"] else None)}
+        ct = r.get("content") or {}
+        if ct.get("ok"):
+            row["content"] = {"best": [ct["best_model"], ct["best_n"]], "model_z": ct.get("model", {}).get("z"), "other": [ct.get("model", {}).get("other"), ct.get("model", {}).get("other_n")],
+                              "n_range": ct.get("n", {}).get("accepted_range"), "score": ct["best_score"]}
         if a.solvers:
             cfg = EvalConfig(zeta="gt", methods="ls,ridge,irls,rwps", max_frames=a.frames, figure_frames=0)
             grp = load_store_group(gd, max_frames=a.frames)
             m = res["maps"]
             fitted = PaneMaps(R_perp=m["R_perp"], R_par=m["R_par"], phi_perp=m["phi_perp"])
-            for label, maps in (("true", grp.maps), ("fitted", fitted)):
+            cands = [("true", grp.maps), ("fitted", fitted)]
+            if a.compare_prior:
+                from generator.pane_fit import PaneModelAD
+
+                cfg0 = CalibratePaneConfig()
+                x = np.array([np.radians(p["tilt_deg"]), np.radians(p["azimuth_deg"]), np.radians(p["fov_deg"]), cfg0.prior_n])
+                m0 = PaneModelAD(m["theta"].shape[1], m["theta"].shape[0], cfg0.prior_model, sub=cfg0.sub).maps(x)
+                cands.append(("prior", PaneMaps(R_perp=m0["R_perp"], R_par=m0["R_par"], phi_perp=m0["phi_perp"])))
+            for label, maps in cands:
                 rep = evaluate_groups([dataclasses.replace(grp, maps=maps)], cfg)
                 row[f"psnr_T_{label}"] = {x["method"]: x["psnr_T"] for x in rep.rows if x.get("group") == "overall"}
         rows.append(row)
@@ -73,6 +88,8 @@ def main() -> None:
                 f"{r['phi_perp_err_median']:.3f} | {r['n'][0]:.3f} / {r['n'][1]:.3f} ({r['n'][2]}) | {r['model'][0]} / {r['model'][1]} ({r['model'][2]}) |")
         if a.solvers:
             line += " " + " / ".join(f"{r['psnr_T_fitted'][k] - r['psnr_T_true'][k]:+.2f}" for k in ("ls", "ridge", "irls", "rwps")) + " |"
+            if a.compare_prior:
+                line += " prior: " + " / ".join(f"{r['psnr_T_prior'][k] - r['psnr_T_true'][k]:+.2f}" for k in ("ls", "ridge", "irls", "rwps")) + " |"
         print(line)
     # the goals of issue 21, counted over every group of the dataset (a refused group meets none)
     ok = [r for r in rows if "refused" not in r]
@@ -89,9 +106,22 @@ def main() -> None:
     print(f"median |theta err| and |phi_perp err| <= 0.5 deg: {len(geo)} of {len(rows)} ({len(geo)} of {len(ok)} calibrated); theta only: "
           f"{sum(1 for r in ok if r['theta_err_median'] <= 0.5)}, phi_perp only: {sum(1 for r in ok if r['phi_perp_err_median'] <= 0.5)}")
     print(f"n claimed on {len(n_claims)} groups, within 0.03 on {len(n_good)}; model claimed on {len(m_claims)} groups with tilt >= 30, right on {len(m_good)}")
+    by = lambda rs, k, v: sum(1 for r in rs if r.get(k) == v)  # noqa: E731
+    print(f"  of these by the content test: n {by(n_claims, 'n_by', 'content')} (within 0.03: {by(n_good, 'n_by', 'content')}), "
+          f"model {by(m_claims, 'model_by', 'content')} (right: {by(m_good, 'model_by', 'content')})")
+    cs = [r for r in ok if "content" in r]
+    if cs:
+        right = sum(1 for r in cs if r["tilt"][0] >= 30 and slab(r["content"]["best"][0]) == slab(r["model"][0]))
+        print(f"content test's best model (claimed or not), tilt >= 30: right on {right} of {sum(1 for r in cs if r['tilt'][0] >= 30)}; "
+              f"its best n within 0.03 on {sum(1 for r in cs if abs(r['content']['best'][1] - r['n'][0]) <= 0.03)} of {len(cs)}")
     if a.solvers:
         within = [r for r in ok if all(r["psnr_T_fitted"][k] - r["psnr_T_true"][k] >= -0.3 for k in ("ls", "ridge", "irls", "rwps"))]
         print(f"every solver within 0.3 dB of the true maps: {len(within)} of {len(rows)} ({len(within)} of {len(ok)} calibrated)")
+        if a.compare_prior:
+            w0 = [r for r in ok if all(r["psnr_T_prior"][k] - r["psnr_T_true"][k] >= -0.3 for k in ("ls", "ridge", "irls", "rwps"))]
+            d = {k: float(np.mean([r["psnr_T_fitted"][k] - r["psnr_T_prior"][k] for r in ok])) for k in ("ls", "ridge", "irls", "rwps")}
+            print(f"  with the prior n / model instead (same geometry): {len(w0)} of {len(rows)}; mean gain of the fitted over the prior maps "
+                  + " / ".join(f"{d[k]:+.2f}" for k in ("ls", "ridge", "irls", "rwps")) + " dB (LS / ridge / IRLS / RWPS)")
 
 
 if __name__ == "__main__":

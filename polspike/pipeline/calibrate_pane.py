@@ -75,6 +75,12 @@ class CalibratePaneConfig:
     dop_fov: bool = opt(False, "experimental (off: on eval_paper it moved test_004 0.4 deg off, see docs/calibrate_pane.md): where the modulation depths reach the cone's edge, profile the fov-tilt valley of the orientation fit with the cone's theta dependence")
     dop_fov_delta_chi2: float = opt(25.0, "the modulation depth pins the fov only when the cone violations at both ends of the profiled valley exceed its minimum by this much", lo=0.0, hi=1e9)
     max_theta_sigma_deg: float = opt(0.5, "a fitted fov (hence theta) counts as identified only when theta's median 1-sigma is at most this, degrees", lo=0.0, hi=90.0)
+    content: bool = opt(True, "where the DoP cone leaves n / the model open, try the layers' content: the gradients of R^ and T^ solved under the right zeta are least correlated (reconstruct.exclusion); claimed only with a margin over the tiles' spread")
+    content_sigma_px: float = opt(2.0, "smoothing (pixels) of the solved layers before their gradients are correlated (the sensor's fixed pattern correlates them at 1 px)", lo=0.0, hi=20.0)
+    content_tiles: int = opt(6, "the content score's tiles per image axis (its spread across tiles gives the margin)", lo=2, hi=64)
+    content_parts: int = opt(2, "time parts of the span: R^ of one part is correlated with T^ of another (independent spike noise)", lo=2, hi=16)
+    content_best: bool = opt(True, "where the content test does not claim n / the model, its best hypothesis (still reported NOT identified) replaces the prior in the written maps")
+    content_z: float = opt(3.0, "a content claim needs the alternatives' score higher by this many standard errors (across tiles)", lo=0.0, hi=100.0)
     twin_delta_chi2: float = opt(25.0, "an orientation field that cannot tell the pane from its 90 deg twin is resolved by the modulation depth only when one candidate's cone is violated by this much chi^2 less", lo=0.0, hi=1e9)
 
 
@@ -514,6 +520,81 @@ def _select_glass(gl: dict, cfg: CalibratePaneConfig, fixed_n: float | None, for
     return {"model_key": best, "model": model_verdict, "n": n_verdict}
 
 
+CONTENT_N_GRID = np.round(np.arange(1.40, 2.0001, 0.02), 4)
+"""Index grid of the content test (common glasses; a best index at either end is not used)."""
+
+
+def content_glass(I: np.ndarray, phi: np.ndarray, theta: np.ndarray, phi_perp: np.ndarray, gain: float, models: tuple[str, ...],
+                  cfg: CalibratePaneConfig, fixed_n: float | None = None, n_grid: np.ndarray | None = None) -> dict:
+    """Pane model and index from the layers' content (gradient exclusion, :mod:`reconstruct.exclusion`).
+
+    For every hypothesis (model, n) the span's time parts are solved in closed form (paper Eq. (1)-(2)) and the
+    gradients of R^ of one part and T^ of another are correlated per tile (``content_tiles`` per axis); the score is
+    the mean squared tile correlation (a wrong zeta leaks one layer's texture into the other: module docstring of
+    reconstruct.exclusion).  The best hypothesis is the least score.  A model is claimed when the other model's best
+    score is higher by ``content_z`` standard errors of the paired per-tile differences; n when every index more
+    than ``max_n_sigma`` away is rejected in the same way.  Featureless layers leave every score at the noise level
+    and nothing is claimed.  Returns the scores, the choice and the two verdicts."""
+    from polphysics.fresnel import pane_coefficients
+    from reconstruct.exclusion import cross_gradient_sums, label_correlations, part_harmonics
+
+    t0 = time.perf_counter()
+    H, W = theta.shape
+    K = cfg.content_tiles
+    yy, xx = np.mgrid[0:H, 0:W]
+    tiles = (yy * K // H) * K + (xx * K // W)
+    try:
+        parts = part_harmonics(I, phi, cfg.content_parts)
+    except ConfigError as e:
+        return {"ok": False, "why": str(e)}
+    grid = np.array([fixed_n]) if fixed_n else (CONTENT_N_GRID if n_grid is None else n_grid)
+    ct = {}
+    for model in models:
+        rows = []
+        for n in grid:
+            co = pane_coefficients(theta, float(n), model=model)
+            A = 0.5 * (co["R_perp"] + co["R_par"])
+            B = 0.5 * (co["R_perp"] - co["R_par"])
+            rows.append(label_correlations(cross_gradient_sums(parts, phi_perp, A, B, gain, sigma=cfg.content_sigma_px), tiles, K * K))
+        ct[model] = np.array(rows)  # (n, tiles)
+    ok = np.all(np.isfinite(np.concatenate(list(ct.values()))), axis=0)
+    if ok.sum() < 4:
+        return {"ok": False, "why": f"only {int(ok.sum())} tiles carry gradients: nothing to score"}
+    sq = {m: v[:, ok] ** 2 for m, v in ct.items()}
+    score = {m: v.mean(1) for m, v in sq.items()}
+    best_model = min(models, key=lambda m: float(score[m].min()))
+    i_best = int(np.argmin(score[best_model]))
+    ref = sq[best_model][i_best]
+    T_ = int(ok.sum())
+
+    def zdiff(other: np.ndarray) -> float:
+        d = other - ref
+        se = float(np.std(d, ddof=1) / math.sqrt(T_))
+        return float(d.mean() / se) if se > 0 else float("inf")
+
+    out = {"ok": True, "tiles": T_, "n_grid": grid.tolist(), "score": {m: v.tolist() for m, v in score.items()},
+           "correlation_global_best": float(np.nanmean(ct[best_model][i_best][ok])), "best_model": best_model, "best_n": float(grid[i_best]),
+           "best_score": float(score[best_model][i_best])}
+    if len(models) > 1:
+        other = [m for m in models if m != best_model][0]
+        j = int(np.argmin(score[other]))
+        zm = zdiff(sq[other][j])
+        out["model"] = {"identified": bool(zm >= cfg.content_z), "value": best_model, "z": zm, "other": other, "other_n": float(grid[j]), "other_score": float(score[other][j]),
+                        "why": f"layers' gradients least correlated under {best_model} (n {grid[i_best]:.2f}: score {score[best_model][i_best]:.4f}); "
+                               f"best {other} (n {grid[j]:.2f}) scores {score[other][j]:.4f}, {zm:.1f} standard errors higher over {T_} tiles (need {cfg.content_z:g})"}
+    if not fixed_n and grid.size > 1:
+        far = np.abs(grid - grid[i_best]) > cfg.max_n_sigma + 1e-9
+        zs = np.array([zdiff(sq[best_model][k]) if far[k] else 0.0 for k in range(grid.size)])  # within the tolerance: accepted
+        accepted = grid[(zs < cfg.content_z)]
+        lo, hi = float(accepted.min()), float(accepted.max())
+        inside = float(grid[0]) < grid[i_best] < float(grid[-1])
+        out["n"] = {"identified": bool(far.any() and np.all(zs[far] >= cfg.content_z) and inside), "value": float(grid[i_best]), "accepted_range": [lo, hi],
+                    "why": f"indices {lo:.2f}-{hi:.2f} of {best_model} score within {cfg.content_z:g} standard errors of the best ({grid[i_best]:.2f})"
+                           + ("" if inside else "; the best index is at the end of the grid")}
+    out["seconds"] = time.perf_counter() - t0
+    return out
+
+
 def calibrate_frames(I: np.ndarray, phi: np.ndarray, cfg: CalibratePaneConfig = CalibratePaneConfig(), *, span_rad: float = 0.0, name: str = "stream", progress=None) -> dict:
     """Fit the pane to Eq. (3) frames I (M, H, W) at polarizer angles phi (M,); returns the result dict
     (``ok``, ``params``, ``maps`` (full-resolution dict), ``report`` (JSON-ready), ``figures`` data)."""
@@ -644,6 +725,36 @@ def calibrate_frames(I: np.ndarray, phi: np.ndarray, cfg: CalibratePaneConfig = 
             sel["n"] = {"identified": False, "value": cfg.prior_n, "sigma": s_tot, "sigma_from_geometry": s_geo, "fitted_if_edges_are_pure_layers": n_hat,
                         "why": f"the cone's edges give n = {n_hat:.4f}, but the geometry's uncertainty moves it by {s_geo:.3f} (total 1-sigma {s_tot:.3f} > {cfg.max_n_sigma:g}): kept {cfg.prior_n}"}
     timings["glass_s"] = time.perf_counter() - t0
+    content = None
+    if cfg.content and (sel["model"]["identified"] is False or sel["n"]["identified"] is False):
+        # the cone leaves n or the model open: ask the layers' content
+        if progress:
+            progress("content")
+        t0 = time.perf_counter()
+        mfull = pm_full.maps(x)
+        c_models = (forced_model if forced_model != "thick_slab" else "thin_slab",) if forced_model else ("single", "thin_slab")
+        content = content_glass(I, phi, mfull["theta"], mfull["phi_perp"], gain, c_models, cfg, fixed_n=fixed_n)
+        timings["content_s"] = time.perf_counter() - t0
+        if content["ok"] and sel["model"]["identified"] is False and content["model"]["identified"]:
+            v = content["best_model"]
+            value = v if v == "single" else (cfg.prior_model if cfg.prior_model != "single" else "thin_slab")
+            sel["model"] = {"identified": True, "value": value, "by": "content", "why": content["model"]["why"] + (f"; thin vs thick slab not identified: kept {value}" if v != "single" else ""),
+                            "cone": sel["model"]}
+            sel["model_key"] = v
+        model_known = sel["model"]["identified"] is not False
+        if content["ok"] and sel["n"]["identified"] is False and model_known and content.get("n", {}).get("identified") and content["best_model"] == sel["model_key"]:
+            sel["n"] = {"identified": True, "value": content["n"]["value"], "sigma": cfg.max_n_sigma, "by": "content", "why": content["n"]["why"], "cone": sel["n"]}
+        if content["ok"] and cfg.content_best:
+            # not claimed, but the least-mixed layers are a better estimate of zeta than the prior (docs/calibrate_pane.md)
+            if sel["model"]["identified"] is False:
+                v = content["best_model"]
+                sel["model"]["value"] = v if v == "single" else (cfg.prior_model if cfg.prior_model != "single" else "thin_slab")
+                sel["model"]["why"] += f"; the maps use the content test's best guess {sel['model']['value']} (not claimed)"
+                sel["model_key"] = v
+            interior = float(CONTENT_N_GRID[0]) < content["best_n"] < float(CONTENT_N_GRID[-1])
+            if sel["n"]["identified"] is False and content["best_model"] == sel["model_key"] and interior:
+                sel["n"]["value"] = content["best_n"]
+                sel["n"]["why"] += f"; the maps use the content test's best guess {content['best_n']:.2f} (not claimed)"
     n_final = float(sel["n"]["value"])
     model_final = sel["model"]["value"]
     x[3] = n_final
@@ -693,6 +804,7 @@ def calibrate_frames(I: np.ndarray, phi: np.ndarray, cfg: CalibratePaneConfig = 
             "thickness": {"identified": False, "why": "the coefficient maps do not depend on the thickness (only the thick slab's ghost displacement does): kept the base scene's value"},
             "reflectance_scale": {"identified": False, "why": "the absolute reflectance scales R, not T (RECONSTRUCTION_NOTES.md section 1): it follows from n and the model, not from the data"},
         },
+        "content": _json_safe(content),
         "timings_s": timings,
         "variant": pm_full.variant,
     })

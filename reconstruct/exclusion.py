@@ -1,0 +1,123 @@
+"""Gradient exclusion of the solved layers: a content criterion for the pane's zeta (issue 21).
+
+Paper Eq. (1): I_k = 1/2 [T + zeta_k (R - T)], zeta_k = A + B cos 2(phi_k - phi_perp) (Eq. (2); A, B the mean and
+half difference of R_perp, R_par).  Over a half polarizer turn the harmonic fit (supp. Eq. (1)) gives the mean
+a0 = [T + A (R - T)] / 2 and the modulation along phi_perp m = g B (R - T) / 2 (g: the window's sinc), so under a
+hypothesis (A', B') the layers solve in closed form: D' = 2 m / (g B'), T' = 2 a0 - A' D', R' = T' + D'.  With the
+truth (A, B) and a hypothesis off in scale and shape,
+
+    T' = T + alpha (R - T),  R' = T + beta (R - T),  alpha = A - A' B / B',  beta = alpha + B / B',
+
+so a wrong zeta mixes the layers: R' carries T's texture (beta != 1) and T' carries R's (alpha != 0).  Under the
+right zeta R' and T' are the two independent layers and their gradients are uncorrelated (the gradient-exclusion
+idea of reflection separation; the paper's Eq. (11) uses it as a loss).  A pane model or index that scales zeta by k
+(A' = k A, B' = k B) gives alpha = 0, beta = 1 / k and a correlation of the sign of k - 1; one with a different
+theta dependence (single vs slab, Brewster angle) leaves correlations of opposite signs at different incidences.
+
+The spike noise of one solve is shared by its R' and T' (T' = 2 a0 - A' D' and R' = T' + D' both carry D''s noise,
+with opposite-signed weights), which would bias the correlation; so the stream is split in time into parts and R'
+of one part is correlated with T' of another (:func:`cross_gradient_sums`): disjoint spikes, independent noise.
+
+Used by ``polspike calibrate-pane`` (pane model and index where the modulation depths do not reach the DoP cone's
+edges).  reconstruct/selfcal.py has a similar score for the 90 deg twin (``layer_gradient_correlation``); the two can
+share this module.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from polinfra.errors import ConfigError
+
+__all__ = ["part_harmonics", "solve_layers", "cross_gradient_sums", "label_correlations", "SIGMA_PX"]
+
+SIGMA_PX = 1.5
+"""Gaussian smoothing (pixels) of the solved layers before their gradients are taken: keeps the texture, damps the
+per-pixel spike noise (which only widens the score's spread: it is independent across parts)."""
+
+
+def part_harmonics(I: np.ndarray, phi: np.ndarray, parts: int = 2) -> list[tuple[np.ndarray, np.ndarray]]:
+    """The stream split in time into ``parts`` consecutive parts, each as the mean over its back-to-back chunks of
+    about half a polarizer turn of the harmonic fit (supp. Eq. (1)): a list of (a0, c) with c = ac + i as, (H, W).
+
+    Eq. (1) is linear in the layers, so the chunk mean of a0 and c is that of the time-averaged layers (moving
+    content is averaged, not mis-fitted)."""
+    import torch
+
+    from reconstruct.harmonic_fit import harmonic_fit
+
+    I = np.asarray(I, np.float64)
+    phi = np.asarray(phi, np.float64)
+    step = float(np.median(np.abs(np.diff(phi)))) if phi.size > 1 else math.pi
+    L = max(3, int(math.ceil(math.pi / max(step, 1e-9) - 1e-6)))
+    C = I.shape[0] // L
+    if C < parts:
+        raise ConfigError(f"the gradient-exclusion test needs {parts} half turns of the polarizer ({parts * L} frames); got {I.shape[0]} frames")
+    out = []
+    bounds = np.linspace(0, C, parts + 1).round().astype(int)
+    for p in range(parts):
+        sl = slice(bounds[p] * L, bounds[p + 1] * L)
+        c0 = bounds[p + 1] - bounds[p]
+        Ic = torch.from_numpy(I[sl].reshape(c0, L, *I.shape[1:]))
+        Pc = torch.from_numpy(phi[sl].reshape(c0, L))
+        a0, ac, as_ = (t.numpy() for t in harmonic_fit(Ic, Pc))
+        out.append((a0.mean(0), (ac + 1j * as_).mean(0)))
+    return out
+
+
+def solve_layers(a0: np.ndarray, c: np.ndarray, phi_perp: np.ndarray, A: np.ndarray, B: np.ndarray, gain: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+    """(R', T') of paper Eq. (1)-(2) from one part's harmonic mean a0 and modulation c under zeta's (A, B) (module docstring)."""
+    m = (c * np.exp(-2j * phi_perp)).real
+    D = 2.0 * m / (gain * np.where(np.abs(B) > 1e-6, B, 1e-6))
+    T = 2.0 * a0 - A * D
+    return T + D, T
+
+
+def _grad(x: np.ndarray, sigma: float) -> tuple[np.ndarray, np.ndarray]:
+    from scipy.ndimage import gaussian_filter
+
+    y = gaussian_filter(x, sigma) if sigma > 0 else x
+    return np.diff(y, axis=1)[:-1, :], np.diff(y, axis=0)[:, :-1]
+
+
+def cross_gradient_sums(parts, phi_perp: np.ndarray, A: np.ndarray, B: np.ndarray, gain: float = 1.0, sigma: float = SIGMA_PX) -> dict:
+    """Per-pixel products of the layers' gradients solved under zeta (A, B), crossed between time parts.
+
+    Returns (H - 1, W - 1) maps ``cross`` (mean over ordered pairs of distinct parts p != q of gR_p . gT_q, x and y
+    gradients summed), ``pr`` and ``pt`` (mean of |gR_p|^2 and |gT_p|^2 over parts).  Sum them over any pixel set and
+    form cross / sqrt(pr pt) for its normalised correlation (:func:`label_correlations`)."""
+    gs = []
+    for a0, c in parts:
+        R, T = solve_layers(a0, c, phi_perp, A, B, gain)
+        gs.append((_grad(R, sigma), _grad(T, sigma)))
+    P = len(gs)
+    if P < 2:
+        raise ConfigError("cross_gradient_sums needs at least two time parts")
+    cross = np.zeros_like(gs[0][0][0])
+    pr = np.zeros_like(cross)
+    pt = np.zeros_like(cross)
+    for p in range(P):
+        (rx, ry), (tx, ty) = gs[p]
+        pr += rx * rx + ry * ry
+        pt += tx * tx + ty * ty
+        for q in range(P):
+            if q != p:
+                (ux, uy), (vx, vy) = gs[q]
+                cross += rx * vx + ry * vy
+    return {"cross": cross / (P * (P - 1)), "pr": pr / P, "pt": pt / P}
+
+
+def label_correlations(sums: dict, labels: np.ndarray, n_labels: int) -> np.ndarray:
+    """Normalised gradient correlation cross / sqrt(pr pt) per label (an int map of shape (H - 1, W - 1) or (H, W),
+    -1 = left out); NaN for empty labels."""
+    lab = labels[: sums["cross"].shape[0], : sums["cross"].shape[1]]
+    ok = lab >= 0
+    li = lab[ok]
+    cr = np.bincount(li, sums["cross"][ok], n_labels)
+    pr = np.bincount(li, sums["pr"][ok], n_labels)
+    pt = np.bincount(li, sums["pt"][ok], n_labels)
+    den = np.sqrt(pr * pt)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(den > 0, cr / den, np.nan)
