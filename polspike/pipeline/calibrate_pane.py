@@ -735,7 +735,9 @@ def calibrate_frames(I: np.ndarray, phi: np.ndarray, cfg: CalibratePaneConfig = 
         c_models = (forced_model if forced_model != "thick_slab" else "thin_slab",) if forced_model else ("single", "thin_slab")
         content = content_glass(I, phi, mfull["theta"], mfull["phi_perp"], gain, c_models, cfg, fixed_n=fixed_n)
         timings["content_s"] = time.perf_counter() - t0
-        if content["ok"] and sel["model"]["identified"] is False and content["model"]["identified"]:
+        # a best index at the end of the range of common glasses is no minimum: nothing is claimed or used then
+        interior = bool(content["ok"]) and (fixed_n is not None or float(CONTENT_N_GRID[0]) < content["best_n"] < float(CONTENT_N_GRID[-1]))
+        if content["ok"] and interior and sel["model"]["identified"] is False and content.get("model", {}).get("identified"):
             v = content["best_model"]
             value = v if v == "single" else (cfg.prior_model if cfg.prior_model != "single" else "thin_slab")
             sel["model"] = {"identified": True, "value": value, "by": "content", "why": content["model"]["why"] + (f"; thin vs thick slab not identified: kept {value}" if v != "single" else ""),
@@ -744,15 +746,14 @@ def calibrate_frames(I: np.ndarray, phi: np.ndarray, cfg: CalibratePaneConfig = 
         model_known = sel["model"]["identified"] is not False
         if content["ok"] and sel["n"]["identified"] is False and model_known and content.get("n", {}).get("identified") and content["best_model"] == sel["model_key"]:
             sel["n"] = {"identified": True, "value": content["n"]["value"], "sigma": cfg.max_n_sigma, "by": "content", "why": content["n"]["why"], "cone": sel["n"]}
-        if content["ok"] and cfg.content_best:
+        if content["ok"] and cfg.content_best and interior:
             # not claimed, but the least-mixed layers are a better estimate of zeta than the prior (docs/calibrate_pane.md)
             if sel["model"]["identified"] is False:
                 v = content["best_model"]
                 sel["model"]["value"] = v if v == "single" else (cfg.prior_model if cfg.prior_model != "single" else "thin_slab")
                 sel["model"]["why"] += f"; the maps use the content test's best guess {sel['model']['value']} (not claimed)"
                 sel["model_key"] = v
-            interior = float(CONTENT_N_GRID[0]) < content["best_n"] < float(CONTENT_N_GRID[-1])
-            if sel["n"]["identified"] is False and content["best_model"] == sel["model_key"] and interior:
+            if sel["n"]["identified"] is False and content["best_model"] == sel["model_key"]:
                 sel["n"]["value"] = content["best_n"]
                 sel["n"]["why"] += f"; the maps use the content test's best guess {content['best_n']:.2f} (not claimed)"
     n_final = float(sel["n"]["value"])
