@@ -61,7 +61,11 @@ def calibrate_pane_cmd(
 
     def verdict(k):
         v = ident[k]["identified"]
-        return "given" if v is None else ("fitted" if v else "NOT identified, prior kept")
+        if v is None:
+            return "given"
+        if v:
+            return "fitted" + (" from the layers' content" if ident[k].get("by") == "content" else "")
+        return "NOT identified: " + ("the content test's best guess" if "content test's best guess" in ident[k]["why"] else "prior kept")
 
     con.print(f"tilt {p['tilt_deg']:.2f} +- {u['tilt_deg']:.2f} deg, azimuth {p['azimuth_deg']:.2f} +- {u['azimuth_deg']:.2f} deg, "
               f"fov {p['fov_deg']:.2f} +- {u['fov_deg']:.2f} deg ({'given' if ident['fov']['identified'] is None else 'fitted' if ident['fov']['identified'] else 'NOT identified: give --fov-deg if known'})")

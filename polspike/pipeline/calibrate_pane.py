@@ -21,6 +21,13 @@ Pipeline (issue 21; physics in ../shared/RECONSTRUCTION_NOTES.md):
    that holds the data); n is refined by Gauss-Newton on the blocks on the edge.  This constrains
    n and the model ONLY where some part of the view shows one layer black for a moment: otherwise
    the data give a bound, and the report says "not identified" and keeps the prior.
+4b. **Content** (where the cone leaves n or the model open; ``content``): under the right zeta the layers solved
+   by paper Eq. (1)-(2) are independent, under a wrong one each carries the other's texture
+   (:mod:`reconstruct.exclusion`).  For single / slab and n over common glasses (1.40-2.00) the span's time parts
+   are solved in closed form and the gradients of R^ (one part) and T^ (another) correlated per tile; the least
+   mean squared correlation is the best guess.  A model / n is claimed only when the alternatives score higher by
+   ``content_z`` standard errors across the tiles; unclaimed, the best guess still replaces the prior in the maps
+   (``content_best``; it is reported NOT identified), unless the best index is at the end of the range.
 5. **Maps** at full resolution (2 x 2 rays per pixel, as the maps tier) -> maps.exr; the scene
    file of the fitted setup -> pane.toml; report.json with uncertainties (Gauss-Newton covariance
    scaled by the residual variance) and the identifiability verdicts; figures.
