@@ -103,6 +103,7 @@ __all__ = [
     "orientation_field",
     "fit_normal",
     "layer_gradient_correlation",
+    "content_model",
     "self_calibrate",
     "self_zeta",
     "group_self_zeta",
@@ -675,8 +676,8 @@ def _resolve_by_cone(I, phi, f, fit, W, H, fov_given, cfg) -> dict:
         if content["resolved"]:
             fam, resolved = content["chosen_family"], True
     ok = [cd for cd in cands if cd["family"] == fam and cd["V"] <= v_fam[fam] + cfg.cone_margin]
-    if content is not None and content["resolved"]:
-        pick = content["pick"]  # within the family: the pane whose layers come out least correlated
+    if content is not None and content["resolved"] and (content["model_identified"] or cfg.model != "auto"):
+        pick = content["pick"]  # within the family: the pane whose layers come out least correlated under the model they identify
     else:
         pick = max(ok, key=lambda cd: cd["score"])  # within the family: the cone-consistent pane the orientation field prefers
     out = {"resolved": bool(resolved), "by": ("content" if content is not None and content["resolved"] else "cone") if resolved else None,
@@ -701,27 +702,36 @@ it transmits (A >= 0.5 for n = 1.5), and a 90 deg twin's solve turns into a laye
 uncorrelated as the truth (module docstring).  Hypotheses with under a quarter of their pixels below it are not scored."""
 
 
-def _content_halves(I: np.ndarray, phi: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
-    """The span's two time halves, each as its chunk-averaged harmonic mean a0 and modulation c (:func:`chunk_harmonics`).
-    Their spike noise is independent (disjoint spikes; adjacent frames of one half are not: integrate-and-fire makes
-    consecutive counts of a pixel anticorrelated), so correlating one half's R^ with the other's T^ carries no noise term."""
-    M = I.shape[0]
+def _content_parts(I: np.ndarray, phi: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
+    """The span cut into consecutive parts of at least half a polarizer turn (as many as fit, every frame used), each
+    as its harmonic mean a0 and modulation c = ac + i as (supp. Eq. (1) fitted over the part); [] when fewer than two
+    fit.  Their spike noise is independent (disjoint spikes), so correlating one part's R^ with the next one's T^
+    carries no noise term (consecutive frames are not independent: integrate-and-fire makes a pixel's consecutive
+    counts anticorrelated), and adjacent parts keep the layers' motion between the two small."""
+    I = np.asarray(I, np.float64)
+    phi = np.asarray(phi, np.float64)
+    step = float(np.median(np.abs(np.diff(phi)))) if phi.size > 1 else math.pi
+    L = max(3, int(math.ceil(math.pi / max(step, 1e-9) - 1e-6)))
+    C = I.shape[0] // L
+    if C < 2:
+        return []
+    b = np.linspace(0, I.shape[0], C + 1).astype(int)
     out = []
-    for sl in (slice(0, M // 2), slice(M // 2, M)):
-        a0, c = chunk_harmonics(I[sl], phi[sl])
-        out.append((a0.mean(0), c.mean(0)))
+    for j in range(C):
+        a0, ac, as_ = (t.numpy() for t in harmonic_fit(torch.from_numpy(I[b[j]:b[j + 1]]), torch.from_numpy(phi[b[j]:b[j + 1]])))  # supp. Eq. (1)
+        out.append((a0, ac + 1j * as_))
     return out
 
 
-def layer_gradient_correlation(halves, phi_perp: np.ndarray, theta: np.ndarray, n: float, model: str, span_factor: float = 1.0,
+def layer_gradient_correlation(parts, phi_perp: np.ndarray, theta: np.ndarray, n: float, model: str, span_factor: float = 1.0,
                                sigma: float = CONTENT_SIGMA_PX, theta_max_deg: float = CONTENT_THETA_MAX_DEG, tiles: int = CONTENT_TILES) -> dict:
     """Normalised correlation of the gradients of R^ and T^ solved under one pane hypothesis (module docstring, "content").
 
-    Per half (:func:`_content_halves`), paper Eq. (1)-(2) invert in closed form: the modulation along phi_perp is
+    Per chunk (``parts``, :func:`_content_parts`), paper Eq. (1)-(2) invert in closed form: the modulation along phi_perp is
     m = B sinc (R - T) / 2 and the mean a0 = (T + A (R - T)) / 2, so D = 2 m / (B sinc), T^ = 2 a0 - A D, R^ = T^ + D
     (A, B the mean and half difference of R_perp, R_par for ``n`` and ``model``).  Each layer is smoothed by ``sigma``
-    pixels and differenced along x and y; the correlation is sum(gR_1 gT_2 + gR_2 gT_1) / 2 over sqrt(mean power of gR x
-    mean power of gT), over pixel pairs the hypothesis sees below ``theta_max_deg``.  Independent layers give about 0;
+    pixels and differenced along x and y; the correlation is the mean over adjacent chunks of (gR_j gT_j+1 + gR_j+1 gT_j) / 2
+    over sqrt(mean power of gR x mean power of gT), over pixel pairs the hypothesis sees below ``theta_max_deg``.  Independent layers give about 0;
     a pane read as its 90 deg twin where T dominates gives R^ ~ T + (T - R) and T^ ~ T: strongly positive.
 
     Returns ``corr`` (the whole view) and ``rms``: the root mean square of the correlation over ``tiles`` x ``tiles``
@@ -734,6 +744,8 @@ def layer_gradient_correlation(halves, phi_perp: np.ndarray, theta: np.ndarray, 
     from polphysics.fresnel import pane_coefficients
 
     nan = {"corr": float("nan"), "rms": float("nan")}
+    if len(parts) < 2:
+        return nan
     co = pane_coefficients(theta, n, model=model)
     A = 0.5 * (co["R_perp"] + co["R_par"])
     B = 0.5 * (co["R_perp"] - co["R_par"]) * span_factor
@@ -743,7 +755,7 @@ def layer_gradient_correlation(halves, phi_perp: np.ndarray, theta: np.ndarray, 
         return nan
     rot = np.exp(-2j * phi_perp)
     grads = []
-    for a0, c in halves:
+    for a0, c in parts:
         D = np.where(ok, 2.0 * (c * rot).real / np.maximum(B, 1e-6), 0.0)
         T = np.where(ok, 2.0 * a0 - A * D, 0.0)
         g = []
@@ -751,11 +763,11 @@ def layer_gradient_correlation(halves, phi_perp: np.ndarray, theta: np.ndarray, 
             y = gaussian_filter(x, sigma)
             g.append((np.where(okx, np.diff(y, axis=1)[:-1, :], 0.0), np.where(oky, np.diff(y, axis=0)[:, :-1], 0.0)))
         grads.append(g)
-    (R1, T1), (R2, T2) = grads
     prod = lambda u, v: u[0] * v[0] + u[1] * v[1]  # noqa: E731
-    cross = 0.5 * (prod(R1, T2) + prod(R2, T1))
-    pr = 0.5 * (prod(R1, R1) + prod(R2, R2))
-    pt = 0.5 * (prod(T1, T1) + prod(T2, T2))
+    pairs = len(grads) - 1
+    cross = sum(0.5 * (prod(grads[j][0], grads[j + 1][1]) + prod(grads[j + 1][0], grads[j][1])) for j in range(pairs)) / pairs
+    pr = sum(prod(g[0], g[0]) for g in grads) / len(grads)
+    pt = sum(prod(g[1], g[1]) for g in grads) / len(grads)
     cnt = okx.astype(int) + oky.astype(int)
 
     def corr(sl):
@@ -778,12 +790,13 @@ def _resolve_by_content(I, phi, cands, v_fam, W, H, sf, cfg) -> dict:
     independent).  The family with the smaller score wins when the other's exceeds it by ``content_margin`` and by
     ``content_ratio`` times, and the winner itself holds the cone (violation within ``cone_margin``: a family that
     breaks the cone is not rescued by its content).  Within the winner, the pane model is claimed when its best score
-    beats the other model's best by :data:`CONTENT_MODEL_MARGIN` (else ``cfg.prior_model``), and the pane is that
-    model's best-scoring candidate.  Returns ``resolved``, ``chosen_family``, ``corr_family`` (the two scores),
+    is low and beats the other model's best (:func:`_content_claims_model`; else ``cfg.prior_model``), and the pane is
+    that model's best-scoring candidate (unclaimed: the caller keeps the orientation field's choice, the content's
+    tilt being conditional on an assumed scale).  Returns ``resolved``, ``chosen_family``, ``corr_family`` (the two scores),
     ``corr_by_model`` (the winner's best per model), ``model``, ``model_identified``, ``n`` and ``pick``.
     """
     models = CONE_MODELS if cfg.model == "auto" else (cfg.model,)
-    halves = _content_halves(I, phi)
+    halves = _content_parts(I, phi)
     best: dict = {}
     for cd in cands:
         k = cd["family"]
@@ -802,7 +815,7 @@ def _resolve_by_content(I, phi, cands, v_fam, W, H, sf, cfg) -> dict:
     resolved = bool(np.isfinite(c) and o - c > cfg.content_margin and o >= cfg.content_ratio * c and v_fam[fam] <= cfg.cone_margin)
     by_model = {mo: best[(fam, mo)][0] for mo in models if (fam, mo) in best}
     order = sorted(by_model, key=by_model.get)
-    model_ok = len(order) > 1 and by_model[order[1]] - by_model[order[0]] > CONTENT_MODEL_MARGIN
+    model_ok = len(order) > 1 and _content_claims_model(by_model[order[0]], by_model[order[1]])
     model = order[0] if (model_ok or len(models) == 1) else cfg.prior_model
     pick = best.get((fam, model), best.get((fam, order[0]) if order else None, (None, None)))[1] if order else None
     return {"resolved": resolved, "chosen_family": fam, "corr_family": [score[0], score[1]], "corr_by_model": by_model,
@@ -811,8 +824,29 @@ def _resolve_by_content(I, phi, cands, v_fam, W, H, sf, cfg) -> dict:
 
 
 CONTENT_MODEL_MARGIN = 0.05
-"""Content test: a pane model is claimed when its best tile-RMS correlation beats the other model's best by this much
-(measured on the stress set: 0.09 and 0.24 where the model was right, 0.01 where it would have been wrong)."""
+"""Content test: a pane model is claimed when its tile-RMS correlation beats the other model's by this much ..."""
+
+CONTENT_INDEPENDENT = 0.25
+"""... and is at most this (the layers come out nearly independent under it: the chance correlation of independent
+textures is 0.1-0.25 on 100-200 px views).  Both chosen on the stress set (docs/selfcal.md, "Pane model from the
+content"): every claim made there is right; a fast, dim, strong-reflection slab scores 0.34 / 0.45 (single / slab)
+and would be read as a single pane by the margin alone."""
+
+
+def _content_claims_model(best: float, second: float) -> bool:
+    return bool(best <= CONTENT_INDEPENDENT and second - best > CONTENT_MODEL_MARGIN)
+
+
+def content_model(I: np.ndarray, phi: np.ndarray, phi_perp: np.ndarray, theta: np.ndarray, n: float, models=CONE_MODELS) -> dict:
+    """The pane model by the layers' content at a fixed geometry (module docstring, "content"): the tile-RMS layer-gradient
+    correlation (:func:`layer_gradient_correlation`) under each model; the best is claimed by :func:`_content_claims_model`.
+    A wrong model's scale leaks T into R^ by (1 - B / B') T.  Returns ``scores``, ``model`` (or None) and ``identified``."""
+    halves = _content_parts(I, phi)
+    sf = _span_factor_of(phi)
+    sc = {mo: layer_gradient_correlation(halves, phi_perp, theta, n, mo, sf)["rms"] for mo in models}
+    fin = sorted((v, k) for k, v in sc.items() if np.isfinite(v))
+    ok = len(fin) > 1 and _content_claims_model(fin[0][0], fin[1][0])
+    return {"scores": sc, "model": fin[0][1] if ok else None, "identified": ok}
 
 
 def _span_factor_of(phi: np.ndarray) -> float:
@@ -923,6 +957,11 @@ def self_calibrate(I: np.ndarray, phi: np.ndarray, cfg: SelfCalConfig = SelfCalC
         if not gl["model_identified"] and ct and diag["cone"].get("by") == "content" and ct["model_identified"]:
             # the cone does not tell single from slab, the layers' content did (the pane model's scale leaks T into R^)
             gl["model"], gl["model_by_content"] = ct["model"], True
+        elif not gl["model_identified"]:
+            cm = content_model(I[:m], np.asarray(phi)[:m], geo["phi_perp"], theta, gl["n"])
+            gl["content"] = cm
+            if cm["identified"]:
+                gl["model"], gl["model_by_content"] = cm["model"], True
         n_used, model_used = gl["n"], gl["model"]
         gl["scores_by_model"] = {k: float(v) for k, v in gl["scores_by_model"].items()}
         gl["why"] = (("model from the cone" if gl["model_identified"] else "model from the layers' content (the cone does not separate single from slab)" if gl.get("model_by_content")
