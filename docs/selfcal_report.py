@@ -124,10 +124,11 @@ def _calibration_row(g) -> dict:
     row = {"group": g.name, "ok": r.ok, "calib_s": time.perf_counter() - t0, "z": sm["z"], "twin_ratio": sm["twin_ratio"],
            "modulating_px": sm["modulating_px"], "modulating_blocks": sm["modulating_blocks"], "reason": r.reason}
     if sm["cone"]:
-        row["cone"] = {k: sm["cone"][k] for k in ("resolved", "v_family", "chosen_family", "tilt_range_deg")}
+        row["cone"] = {k: sm["cone"].get(k) for k in ("resolved", "by", "v_family", "chosen_family", "tilt_range_deg", "content")}
     if r.ok:
         Zg = group_zeta(g, EvalConfig(zeta="gt"))
         row.update({"tilt_fit_deg": r.tilt_deg, "model": r.model, "n": r.n, "glass_why": (sm["glass"] or {}).get("why"),
+                    "glass_content": ((sm["glass"] or {}).get("content") or {}).get("scores"),
                     "theta_err_deg": float(np.degrees(np.abs(r.theta - g.theta)).mean()),
                     "phi_perp_err_deg_median": float(np.median(np.degrees(np.abs(np.mod(r.maps.phi_perp - g.maps.phi_perp + np.pi / 2, np.pi) - np.pi / 2)))),
                     "zeta_mae_rel": float(np.abs(Zs - Zg).mean() / Zg.mean())})
@@ -140,7 +141,7 @@ MODULATES_PX = 0.05
 
 def _short_reason(row) -> str:
     if row["ok"]:
-        return "calibrated" + (" (cone)" if "cone" in row else "")
+        return "calibrated" + ((" (content)" if row["cone"].get("by") == "content" else " (cone)") if "cone" in row else "")
     r = row["reason"]
     return "refused: nothing modulates" if r.startswith("nothing") else "refused: 90 deg ambiguous" if r.startswith("ambiguous") else "refused: " + r[:40]
 

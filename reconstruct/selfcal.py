@@ -52,17 +52,27 @@ I_k = 1/2 [T + zeta_k (R - T)]; the twin sees the modulation with the opposite s
 R' - T' ~ -(B / B') (R - T): where T dominates, T' ~ T and R' ~ T + (T - R), i.e. R' carries the transmission's
 texture and the gradients of R' and T' are strongly correlated (positively).  With the right pane R^ and T^ are the
 two independent layers, whose gradients are uncorrelated (the gradient-exclusion idea of reflection separation;
-the paper's Eq. (11) uses it as a loss).  Each cone-consistent candidate of each family is solved in closed form
-on the span's two time halves (R^ from one half against T^ from the other, so the spike noise, shared by R^ and T^
-of one solve, drops out), the layers smoothed by 2 pixels and differenced; a family scores its smallest |correlation|
-over its candidates (the tilt valley and the pane model's scale leak T into R^ by (1 - B / B') T, so only some tilt
-of the right family reaches 0), and wins when the other family's score is larger by ``content_margin`` (0.2) and
-``content_ratio`` (3) times, and the winner holds the cone.  The pane is then the winning candidate.  Pixels a
-hypothesis sees beyond 82 deg are left out (:data:`CONTENT_THETA_MAX_DEG`): there a twin at near-grazing incidence
-reflects about as much as it transmits and its solve becomes a layer swap (T' ~ R, R' ~ T), as uncorrelated as the
-truth.  Flat or featureless layers, or noise too strong for 2-pixel smoothing, leave both scores small: the result
-stays "ambiguous" and says so, with both scores (``diagnostics["cone"]["content"]``).  Where the reflection
+the paper's Eq. (11) uses it as a loss).  Each cone-consistent candidate of each family is solved in closed form on
+consecutive parts of the span of at least half a turn each (R^ of one part against T^ of the next, so the spike
+noise, shared by R^ and T^ of one solve, drops out), the layers smoothed by 2 pixels and differenced; the score is
+the RMS of the correlation over 3 x 3 tiles (a wrong scale leaks T into R^ by (1 - B / B') T, which changes across
+the view, so a wrong (tilt, model) pair may zero the whole view's correlation but not every tile's).  A family scores
+its smallest value over its candidates and both pane models (the tilt valley and the model's scale are nuisances),
+and wins when the other family's score is larger by ``content_margin`` (0.2) and ``content_ratio`` (3) times, and the
+winner holds the cone.  Pixels a hypothesis sees beyond 82 deg are left out (:data:`CONTENT_THETA_MAX_DEG`): there a
+twin at near-grazing incidence reflects about as much as it transmits and its solve becomes a layer swap
+(T' ~ R, R' ~ T), as uncorrelated as the truth.  Flat or featureless layers, noise too strong for 2-pixel smoothing,
+or layers moving fast within half a turn (the closed-form solve assumes them still) leave both scores alike: the
+result stays "ambiguous" and says so, with both scores (``diagnostics["cone"]["content"]``).  Where the reflection
 dominates instead the cone already decides (the twin's R' goes negative).
+
+The same score tells the **pane model** where the cone does not (:func:`content_model`; the cone almost never does,
+section "Index and pane model" of docs/selfcal.md): under the wrong model's scale B', R^ = (1 - B / B') T + (B / B') R.
+A model is claimed when its score is at most :data:`CONTENT_INDEPENDENT` (0.25: the layers come out nearly
+independent) and beats the other model's by :data:`CONTENT_MODEL_MARGIN` (0.05); otherwise ``prior_model``.  For a
+twin resolved by the content the pane is then the claimed model's best candidate; with no model claimed the tilt
+stays the orientation field's choice (the content's tilt is conditional on the assumed scale) and the model is
+scored again at that geometry.  The two thresholds were chosen on the stress set (docs/selfcal.md).
 
 Where nothing modulates (no reflection, R = T, near-normal incidence: the
 fitted pane explains the orientation field less than ``z_min`` noise standard
