@@ -134,7 +134,7 @@ class SelfCalConfig:
     fov_deg: float = opt(0.0, "horizontal field of view in degrees (0 = fit it from the orientation field)", lo=0.0, hi=170.0)
     fov_init_deg: float = opt(60.0, "start value when the field of view is fitted", lo=5.0, hi=170.0)
     n: float = opt(1.5, "refractive index of the pane", lo=1.0, hi=4.0)
-    model: str = opt("auto", "pane model: auto (single or slab and the index fitted from the DoP's cone where the data constrain them, else prior_model and n) or a given model", choices=("auto", "single", "thin_slab", "thick_slab"))
+    model: str = opt("auto", "pane model: auto (the index from the DoP's cone, single or slab from the cone or the layers' content, where the data constrain them, else prior_model and n) or a given model", choices=("auto", "single", "thin_slab", "thick_slab"))
     prior_model: str = opt("thin_slab", "model: auto keeps this pane model where the data do not tell single from slab (the safer guess for ridge / RWPS, docs/selfcal.md)", choices=("single", "thin_slab", "thick_slab"))
     cone_margin: float = opt(9.0, "cone test: a pane family (or glass) is rejected when its DoP-cone violation (chi^2, noise units) exceeds the best by this", lo=0.0, hi=1e9)
     cone_ratio: float = opt(10.0, "cone test: the rejected pane family's DoP-cone violation must also be at least this many times the chosen one's (else neither fits)", lo=1.0, hi=1e9)
@@ -1002,7 +1002,7 @@ def group_self_zeta(group, n: float | None = None, model: str | None = None, cfg
     """The ``self`` zeta source for an evaluation group: zeta (M, H, W) at the group's nominal angles, or None.
 
     ``n`` / ``model`` given: that index and pane model; None: ``cfg``'s (default: fitted from the DoP's cone
-    where the data constrain them, else thin slab, n = 1.5).
+    and the layers' content where the data constrain them, else thin slab, n = 1.5).
 
     The field of view is the group's (``group.fov_deg``, from its scene) when recorded, else fitted.
     A group loaded from a store (``group.source_dir``) is calibrated on every spike of its first
