@@ -27,7 +27,8 @@ Pipeline (issue 21; physics in ../shared/RECONSTRUCTION_NOTES.md):
    are solved in closed form and the gradients of R^ (one part) and T^ (another) correlated per tile; the least
    mean squared correlation is the best guess.  A model / n is claimed only when the alternatives score higher by
    ``content_z`` standard errors across the tiles; unclaimed, the best guess still replaces the prior in the maps
-   (``content_best``; it is reported NOT identified), unless the best index is at the end of the range.
+   (``content_best``; it is reported NOT identified), unless the best index is at the end of the range or the
+   other model scores within ``content_best_z`` (1) standard errors of it.
 5. **Maps** at full resolution (2 x 2 rays per pixel, as the maps tier) -> maps.exr; the scene
    file of the fitted setup -> pane.toml; report.json with uncertainties (Gauss-Newton covariance
    scaled by the residual variance) and the identifiability verdicts; figures.
@@ -87,6 +88,7 @@ class CalibratePaneConfig:
     content_tiles: int = opt(6, "the content score's tiles per image axis (its spread across tiles gives the margin)", lo=2, hi=64)
     content_parts: int = opt(2, "time parts of the span: R^ of one part is correlated with T^ of another (independent spike noise)", lo=2, hi=16)
     content_best: bool = opt(True, "where the content test does not claim n / the model, its best hypothesis (still reported NOT identified) replaces the prior in the written maps")
+    content_best_z: float = opt(1.0, "the content test's unclaimed best model replaces the prior only when the other model scores higher by at least this many standard errors (below: a coin flip, the prior stays)", lo=0.0, hi=100.0)
     content_z: float = opt(3.0, "a content claim needs the alternatives' score higher by this many standard errors (across tiles)", lo=0.0, hi=100.0)
     twin_delta_chi2: float = opt(25.0, "an orientation field that cannot tell the pane from its 90 deg twin is resolved by the modulation depth only when one candidate's cone is violated by this much chi^2 less", lo=0.0, hi=1e9)
 
@@ -755,7 +757,7 @@ def calibrate_frames(I: np.ndarray, phi: np.ndarray, cfg: CalibratePaneConfig = 
             sel["n"] = {"identified": True, "value": content["n"]["value"], "sigma": cfg.max_n_sigma, "by": "content", "why": content["n"]["why"], "cone": sel["n"]}
         if content["ok"] and cfg.content_best and interior:
             # not claimed, but the least-mixed layers are a better estimate of zeta than the prior (docs/calibrate_pane.md)
-            if sel["model"]["identified"] is False:
+            if sel["model"]["identified"] is False and content.get("model", {}).get("z", 0.0) >= cfg.content_best_z:
                 v = content["best_model"]
                 sel["model"]["value"] = v if v == "single" else (cfg.prior_model if cfg.prior_model != "single" else "thin_slab")
                 sel["model"]["why"] += f"; the maps use the content test's best guess {sel['model']['value']} (not claimed)"
