@@ -1,12 +1,14 @@
 """Reproduce the tables of docs/calibrate_pane.md (issue 21).
 
-    PYTHONPATH=. python docs/calibrate_pane_report.py out/datasets/eval_paper [--fov-given] [--solvers] [--frames 40]
+    PYTHONPATH=. python docs/calibrate_pane_report.py out/datasets/eval_paper [--fov-given] [--solvers [--compare-prior]] [--no-content] [--frames 40]
 
 For every group of the dataset: calibrate-pane on its spikes (default options; --fov-given passes the
 scene's fov), errors of theta / phi_perp against the group's stored maps, the fitted vs true tilt, fov,
 n and model; with --solvers, T PSNR of LS / ridge / IRLS / RWPS with zeta from the true maps and from the
-fitted maps (same frames, same solver configuration, same run).  Prints one JSON line per group and a
-markdown table.
+fitted maps (same frames, same solver configuration, same run); --compare-prior adds the same solvers with the
+fitted geometry and the prior n / model (thin slab, 1.5: the maps without the content test); --no-content
+calibrates without the content test.  Prints one JSON line per group, a markdown table and the goal counts
+(claims and the content test's best guesses against the truth).
 """
 
 from __future__ import annotations
