@@ -5,6 +5,8 @@ Usage (from the repository root, venv active; one torch thread):
     python docs/selfcal_report.py closed-form                       # closed-form pane groups (tests/reconstruct/_pane_groups.py)
     python docs/selfcal_report.py dataset out/datasets/selfcal_strong [--pane-model M --pane-n N --max-frames 8]   # built groups (docs/selfcal_strong.toml)
     python docs/selfcal_report.py speed GROUP_DIR [WEIGHTS]          # frames/s: physics-only streams vs the network, same run
+    python docs/selfcal_report.py twin-heldout                      # 16 random T-dominated narrow glancing closed-form groups:
+        # how the 90 deg twin is decided (cone / content / refused) against the truth (not used to choose any threshold)
     python docs/selfcal_report.py stress out/datasets/stress BY_REGIME_JSON [FIGURE.png]   # per-group table: calibration
         # (modulating share, cone, glass, geometry and zeta error) beside the PSNRs of
         # `polspike evaluate out/datasets/stress --by-regime --regime-zetas gt,self --no-net --max-frames 3` (its by_regime.json)
@@ -200,10 +202,37 @@ def _stress_figure(rows, figure: str) -> None:
     save_figure(fig, figure, dpi=130)
 
 
+def twin_heldout(n_groups: int = 16, seed: int = 2026) -> None:
+    """Closed-form groups where the transmission dominates (R/T 0.04-0.3) in a narrow view (15-25 deg) of a glancing pane
+    (66-80 deg), random axis, single or thin slab, exposure 3 or 10, layers sliding 0, 0.2 or 0.5 px per strided frame:
+    the family chosen (by the cone, by the content, or refused) against the true phi_perp."""
+    from reconstruct.selfcal import SelfCalConfig, self_calibrate
+    from tests.reconstruct._pane_groups import make_pane_group
+
+    rng = np.random.default_rng(seed)
+    for k in range(n_groups):
+        tilt, az, fov = float(rng.uniform(66, 80)), float(rng.uniform(0, 360)), float(rng.uniform(15, 25))
+        rg, ex, mo = float(rng.uniform(0.15, 0.6)), float(rng.choice([3.0, 10.0])), float(rng.choice([0.0, 0.2, 0.5]))
+        model = str(rng.choice(["single", "thin_slab"]))
+        g, _ = make_pane_group(tilt, az, fov_deg=fov, r_gain=rg, t_level=1.0, exposure=ex, motion_px=mo, model=model, seed=100 + k, H=64, W=96, M=34)
+        r = self_calibrate(g.I, g.phi_nominal, SelfCalConfig(fov_deg=fov, valley_step_deg=4.0))
+        cone = r.diagnostics.get("cone") or {}
+        row = {"tilt": tilt, "azimuth": az, "fov": fov, "R_over_T": 0.5 * rg, "exposure": ex, "motion_px": mo, "model": model, "twin_ratio": r.twin_ratio,
+               "by": cone.get("by"), "content": (cone.get("content") or {}).get("corr_family"), "ok": r.ok, "model_used": r.model}
+        if r.ok:
+            row["phi_perp_err_deg"] = float(np.median(np.degrees(np.abs(np.mod(r.maps.phi_perp - g.maps.phi_perp + np.pi / 2, np.pi) - np.pi / 2))))
+            row["theta_err_deg"] = float(np.degrees(np.abs(r.theta - g.theta)).mean())
+            row["family"] = "right" if row["phi_perp_err_deg"] < 10 else "twin"
+        print(json.dumps(row), flush=True)
+
+
 if __name__ == "__main__":
     a = sys.argv[1:]
-    if not a or a[0] not in ("closed-form", "dataset", "speed", "stress"):
+    if not a or a[0] not in ("closed-form", "dataset", "speed", "stress", "twin-heldout"):
         sys.exit(__doc__)
+    if a[0] == "twin-heldout":
+        twin_heldout()
+        sys.exit(0)
     if a[0] == "stress":
         stress(a[1], a[2], a[3] if len(a) > 3 else None)
         sys.exit(0)
