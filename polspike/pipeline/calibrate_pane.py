@@ -1067,7 +1067,7 @@ def run_bench(out: Path, width: int = 400, height: int = 250, span_s: float = 0.
     rep = res["report"]
     tm = rep.get("timings_s", {})
     rows = [{"stage": "self-calibration alone (reference)", "s": ref, "ratio": 1.0}]
-    for k in ("selfcal_s", "geometry_s", "twin_s", "glass_s", "dop_fov_s", "maps_s"):
+    for k in ("selfcal_s", "geometry_s", "twin_s", "glass_s", "content_s", "dop_fov_s", "maps_s"):
         if k in tm:
             rows.append({"stage": k[:-2], "s": tm[k], "ratio": tm[k] / ref})
     rows.append({"stage": "calibrate-pane total", "s": total, "ratio": total / ref})
