@@ -681,16 +681,23 @@ def _resolve_by_cone(I, phi, f, fit, W, H, fov_given, cfg) -> dict:
     other = v_fam[1 - fam]
     resolved = other - v_fam[fam] > cfg.cone_margin and other >= cfg.cone_ratio * v_fam[fam]
     content = None
-    if not resolved and cfg.content_margin > 0:
+    conflict = False
+    if cfg.content_margin > 0:
         content = _resolve_by_content(I, phi, cands, v_fam, W, H, sf, cfg)
-        if content["resolved"]:
+        if not resolved and content["resolved"]:
             fam, resolved = content["chosen_family"], True
+            content["used"] = True
+        elif resolved and content["clear"] and content["chosen_family"] != fam:
+            # the cone and the content disagree: the cone's edge is noise-sensitive where one layer is nearly black
+            # (the right family sits on -DoP_T there with no slack), the content is blind to motion within half a turn;
+            # neither is trusted over the other
+            resolved, conflict = False, True
     ok = [cd for cd in cands if cd["family"] == fam and cd["V"] <= v_fam[fam] + cfg.cone_margin]
-    if content is not None and content["resolved"] and (content["model_identified"] or cfg.model != "auto"):
+    if content is not None and content.get("used") and (content["model_identified"] or cfg.model != "auto"):
         pick = content["pick"]  # within the family: the pane whose layers come out least correlated under the model they identify
     else:
         pick = max(ok, key=lambda cd: cd["score"])  # within the family: the cone-consistent pane the orientation field prefers
-    out = {"resolved": bool(resolved), "by": ("content" if content is not None and content["resolved"] else "cone") if resolved else None,
+    out = {"resolved": bool(resolved), "by": ("content" if content is not None and content.get("used") else "cone") if resolved else None, "conflict": conflict,
            "tilt": pick["tilt"], "azimuth": pick["azimuth"], "fov_deg": pick["fov_deg"], "score": pick["score"],
            "v_family": [v_fam[0], v_fam[1]], "chosen_family": fam, "candidates": len(cands), "aggs": pick["aggs"],
            "tilt_range_deg": [math.degrees(min(cd["tilt"] for cd in ok)), math.degrees(max(cd["tilt"] for cd in ok))]}
@@ -822,13 +829,14 @@ def _resolve_by_content(I, phi, cands, v_fam, W, H, sf, cfg) -> dict:
     score = {k: min((best[(k, mo)][0] for mo in models if (k, mo) in best), default=float("inf")) for k in (0, 1)}
     fam = 0 if score[0] <= score[1] else 1
     o, c = score[1 - fam], score[fam]
-    resolved = bool(np.isfinite(c) and o - c > cfg.content_margin and o >= cfg.content_ratio * c and v_fam[fam] <= cfg.cone_margin)
+    clear = bool(np.isfinite(c) and o - c > cfg.content_margin and o >= cfg.content_ratio * c)
+    resolved = clear and v_fam[fam] <= cfg.cone_margin
     by_model = {mo: best[(fam, mo)][0] for mo in models if (fam, mo) in best}
     order = sorted(by_model, key=by_model.get)
     model_ok = len(order) > 1 and _content_claims_model(by_model[order[0]], by_model[order[1]])
     model = order[0] if (model_ok or len(models) == 1) else cfg.prior_model
     pick = best.get((fam, model), best.get((fam, order[0]) if order else None, (None, None)))[1] if order else None
-    return {"resolved": resolved, "chosen_family": fam, "corr_family": [score[0], score[1]], "corr_by_model": by_model,
+    return {"resolved": resolved, "clear": clear, "chosen_family": fam, "corr_family": [score[0], score[1]], "corr_by_model": by_model,
             "model": model, "model_identified": bool(model_ok), "n": cfg.n,
             "scored": sum(1 for cd in cands if "content" in cd), "pick": pick}
 
@@ -938,6 +946,10 @@ def self_calibrate(I: np.ndarray, phi: np.ndarray, cfg: SelfCalConfig = SelfCalC
         diag["cone"] = cone
         if not cone["resolved"]:
             ct = cone.get("content")
+            if cone.get("conflict"):
+                return fail(f"ambiguous: a pane with phi_perp turned by 90 deg explains the orientation field {100 * fit['twin_ratio']:.1f} % as well, and the "
+                            f"DoP cone (violations {cone['v_family'][0]:.1f} / {cone['v_family'][1]:.1f}) and the layers' content (gradient |correlation| "
+                            f"{ct['corr_family'][0]:.2f} / {ct['corr_family'][1]:.2f}) pick different families")
             ctxt = (f"; nor does the layers' content (gradient |correlation| of R^ and T^ {ct['corr_family'][0]:.2f} / {ct['corr_family'][1]:.2f}, "
                     f"need the other family {cfg.content_margin:g} above and {cfg.content_ratio:g} times the chosen one, which must hold the cone)") if ct else ""
             return fail(f"ambiguous: a pane with phi_perp turned by 90 deg explains the orientation field {100 * fit['twin_ratio']:.1f} % as well "
