@@ -64,7 +64,10 @@ twin at near-grazing incidence reflects about as much as it transmits and its so
 (T' ~ R, R' ~ T), as uncorrelated as the truth.  Flat or featureless layers, noise too strong for 2-pixel smoothing,
 or layers moving fast within half a turn (the closed-form solve assumes them still) leave both scores alike: the
 result stays "ambiguous" and says so, with both scores (``diagnostics["cone"]["content"]``).  Where the reflection
-dominates instead the cone already decides (the twin's R' goes negative).
+dominates instead the cone already decides (the twin's R' goes negative).  The content is scored on every cone
+test: where the cone picks one family and the content clearly the other, the result is "ambiguous" too
+(``diagnostics["cone"]["conflict"]``): with R nearly black the right family sits on the cone's -DoP_T edge, where
+noise can push it out by a little more than the twin.
 
 The same score tells the **pane model** where the cone does not (:func:`content_model`; the cone almost never does,
 section "Index and pane model" of docs/selfcal.md): under the wrong model's scale B', R^ = (1 - B / B') T + (B / B') R.
