@@ -832,7 +832,7 @@ def _resolve_by_content(I, phi, cands, v_fam, W, H, sf, cfg) -> dict:
     score = {k: min((best[(k, mo)][0] for mo in models if (k, mo) in best), default=float("inf")) for k in (0, 1)}
     fam = 0 if score[0] <= score[1] else 1
     o, c = score[1 - fam], score[fam]
-    clear = bool(np.isfinite(c) and o - c > cfg.content_margin and o >= cfg.content_ratio * c)
+    clear = bool(np.isfinite(c) and np.isfinite(o) and o - c > cfg.content_margin and o >= cfg.content_ratio * c)  # both families scored
     resolved = clear and v_fam[fam] <= cfg.cone_margin
     by_model = {mo: best[(fam, mo)][0] for mo in models if (fam, mo) in best}
     order = sorted(by_model, key=by_model.get)
