@@ -111,13 +111,18 @@ def _item(seed: int, index: int):
     return {"I": I, "phi": phi, "T": T, "R": R, "zeta": zeta}
 
 
-def test_init_from_loads_the_weights_and_refuses_another_architecture(tmp_path):
+def _saved_source(tmp_path):
+    """A TINY network with random weights saved as src.pt, and small train / validation sets."""
     torch.set_num_threads(1)
     src = PolSpikeNet(TINY.net, TINY.solver)
     for p in src.parameters():
         torch.nn.init.normal_(p, 0.0, 0.01)
     save_checkpoint(tmp_path / "src.pt", src)
-    sets = OnTheFlyWindows(_item, length=16, seed=0), OnTheFlyWindows(_item, length=2, seed=1)
+    return src, (OnTheFlyWindows(_item, length=16, seed=0), OnTheFlyWindows(_item, length=2, seed=1))
+
+
+def test_init_from_loads_the_weights_and_refuses_another_architecture(tmp_path):
+    src, sets = _saved_source(tmp_path)
     cfg = dataclasses.replace(TINY, init_from=str(tmp_path / "src.pt"))
     train(cfg, *sets, tmp_path / "run", stop_after=0)
     got = read_checkpoint(tmp_path / "run" / "last.pt")["state_dict"]
@@ -129,12 +134,7 @@ def test_init_from_loads_the_weights_and_refuses_another_architecture(tmp_path):
 
 
 def test_init_zero_restarts_the_named_parameters_and_refuses_unknown_names(tmp_path):
-    torch.set_num_threads(1)
-    src = PolSpikeNet(TINY.net, TINY.solver)
-    for p in src.parameters():
-        torch.nn.init.normal_(p, 0.0, 0.01)
-    save_checkpoint(tmp_path / "src.pt", src)
-    sets = OnTheFlyWindows(_item, length=16, seed=0), OnTheFlyWindows(_item, length=2, seed=1)
+    src, sets = _saved_source(tmp_path)
     cfg = dataclasses.replace(TINY, init_from=str(tmp_path / "src.pt"), init_zero=("refine.dec_t.out",))
     train(cfg, *sets, tmp_path / "run", stop_after=0)
     got = read_checkpoint(tmp_path / "run" / "last.pt")["state_dict"]
