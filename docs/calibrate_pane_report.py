@@ -30,7 +30,10 @@ def main() -> None:
     ap.add_argument("--frames", type=int, default=40)
     ap.add_argument("--compare-prior", action="store_true", help="with --solvers: also the fitted geometry with the prior n / model (the maps before the content test)")
     ap.add_argument("--no-content", action="store_true", help="calibrate without the content test")
+    ap.add_argument("--content-true-geometry", action="store_true", help="only the content test, on the stored (true) theta / phi_perp of each group")
     a = ap.parse_args()
+    if a.content_true_geometry:
+        return content_on_true_geometry(Path(a.dataset))
     from polspike.pipeline.calibrate_pane import CalibratePaneConfig, calibrate_input
     from reconstruct.evaluate import EvalConfig, evaluate_groups
     from reconstruct.groups import load_store_group
@@ -124,6 +127,40 @@ def main() -> None:
             d = {k: float(np.mean([r["psnr_T_fitted"][k] - r["psnr_T_prior"][k] for r in ok])) for k in ("ls", "ridge", "irls", "rwps")}
             print(f"  with the prior n / model instead (same geometry): {len(w0)} of {len(rows)}; mean gain of the fitted over the prior maps "
                   + " / ".join(f"{d[k]:+.2f}" for k in ("ls", "ridge", "irls", "rwps")) + " dB (LS / ridge / IRLS / RWPS)")
+
+
+def content_on_true_geometry(dataset: Path) -> None:
+    """The content test alone (default options) with each group's stored theta / phi_perp: how well the layers' content
+    tells the model and n when the geometry is right."""
+    import math
+
+    from polspike.pipeline.calibrate_pane import CalibratePaneConfig, content_glass
+    from reconstruct.physics_video import span_frames
+    from reconstruct.video import group_source
+    from spike_sim.store import open_group
+
+    cfg = CalibratePaneConfig()
+    slab = lambda m: "single" if m == "single" else "slab"  # noqa: E731
+    rows = []
+    for gd in sorted((dataset / "groups").iterdir()):
+        spec = json.loads((gd / "group_spec.json").read_text())["scene"]
+        src = group_source(gd)
+        I, phi = span_frames(src, cfg.span_s, cfg.window_steps)
+        span = 2 * math.pi * src.polarizer_rev_s * cfg.window_steps / src.rate_hz
+        with open_group(gd) as g:
+            mp = g.maps()
+        r = content_glass(I, phi, mp["theta"], mp["phi_perp"], math.sin(span) / span, ("single", "thin_slab"), cfg)
+        row = {"group": gd.name, "model": spec["pane"]["model"], "n": spec["pane"]["n"], "tilt": spec["pane"]["tilt_deg"]}
+        if r["ok"]:
+            row.update({"best": [r["best_model"], r["best_n"]], "z": r["model"]["z"], "claimed": r["model"]["identified"], "n_claimed": r["n"]["identified"], "n_range": r["n"]["accepted_range"]})
+        rows.append(row)
+        print(json.dumps(row), flush=True)
+    t30 = [r for r in rows if "best" in r and r["tilt"] >= 30]
+    right = [r for r in t30 if slab(r["best"][0]) == slab(r["model"])]
+    cl = [r for r in t30 if r["claimed"]]
+    print(f"tilt >= 30: {len(t30)} groups; best model right on {len(right)}; claimed on {len(cl)}, right on {sum(1 for r in cl if slab(r['best'][0]) == slab(r['model']))}; "
+          f"best n within 0.03 on {sum(1 for r in right if abs(r['best'][1] - r['n']) <= 0.03)} of the {len(right)} with the right model; "
+          f"n claimed on {sum(1 for r in rows if r.get('n_claimed'))}")
 
 
 if __name__ == "__main__":
