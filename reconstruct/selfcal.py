@@ -837,7 +837,7 @@ def _resolve_by_content(I, phi, cands, v_fam, W, H, sf, cfg) -> dict:
     by_model = {mo: best[(fam, mo)][0] for mo in models if (fam, mo) in best}
     order = sorted(by_model, key=by_model.get)
     model_ok = len(order) > 1 and _content_claims_model(by_model[order[0]], by_model[order[1]])
-    model = order[0] if (model_ok or len(models) == 1) else cfg.prior_model
+    model = order[0] if order and (model_ok or len(models) == 1) else cfg.prior_model  # nothing scored (no candidate within the cone): the prior
     pick = best.get((fam, model), best.get((fam, order[0]) if order else None, (None, None)))[1] if order else None
     return {"resolved": resolved, "clear": clear, "chosen_family": fam, "corr_family": [score[0], score[1]], "corr_by_model": by_model,
             "model": model, "model_identified": bool(model_ok), "n": cfg.n,
