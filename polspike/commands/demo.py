@@ -101,7 +101,7 @@ def run_demo(out: Path, scene_name: str = "brewster", quick: bool = False) -> Pa
     rec = reconstruct_and_score(out / "spikes", figs, n_frames=1 if quick else 2, crop=96 if quick else 160)
     timings[f"reconstruct {rec['frames']} frames of {rec['crop']}x{rec['crop']} (CPU)"] = time.perf_counter() - t0
     sec = rep.section("reconstruction", "Reconstruction vs ground truth")
-    sec.text(f"checkpoint {rec['checkpoint']}; {rec['frames']} output frame(s), centre crop {rec['crop']}x{rec['crop']} px, N = 7 observations.")
+    sec.text(f"checkpoint {rec['checkpoint']}, zeta {rec['zeta']}; {rec['frames']} output frame(s), centre crop {rec['crop']}x{rec['crop']} px, N = 7 observations.")
     sec.table(["estimate", "PSNR T (dB)", "SSIM T", "PSNR R (dB)", "SSIM R"], rec["rows"])
     sec.image(rec["figure"], "input, TFP baseline, physics-only RWPS, network output and ground truth")
     sec.image(overview_figure(rd, out / "spikes", rec, figs / "overview.png"), "the pipeline on one crop, from layers to reconstruction")
@@ -154,9 +154,17 @@ def reconstruct_and_score(group_dir: Path, figs: Path, n_frames: int, crop: int)
     from reconstruct.metrics import score
     from reconstruct.video import run_model_on_windows
 
+    from reconstruct.net_zeta import NET_DEFAULT_ZETA
+
     model, _ = load_model(DEFAULT_WEIGHTS, "cpu")
     K = model.cfg.n_obs // 2
     g = load_store_group(group_dir)
+    Z, zeta_used = None, "learned"
+    if NET_DEFAULT_ZETA == "self":  # the network on the pane fitted to this stream, as `polspike reconstruct` runs it
+        from reconstruct.selfcal import group_self_zeta
+
+        Z = group_self_zeta(g)
+        zeta_used = "self" if Z is not None else "learned (the stream does not calibrate: " + group_self_zeta.last.reason.split(":")[0] + ")"
     M, H, W = g.I.shape
     idx = np.linspace(K, M - 1 - K, n_frames + 2).round().astype(int)[1:-1]
     c = min(crop, H, W)
@@ -165,8 +173,9 @@ def reconstruct_and_score(group_dir: Path, figs: Path, n_frames: int, crop: int)
     I = np.stack([g.I[i - K : i + K + 1][:, sl[0], sl[1]] for i in idx])
     phi = np.stack([g.phi_nominal[i - K : i + K + 1] for i in idx])
     im = np.stack([g.I_mean[i][sl] for i in idx]) if model.cfg.use_mean else None  # the long spike mean, when the net takes it
+    zw = None if Z is None else np.stack([Z[i - K : i + K + 1][:, sl[0], sl[1]] for i in idx]).astype(np.float32)
     with torch.no_grad():
-        res = run_model_on_windows(model, I, phi, I_mean=im)
+        res = run_model_on_windows(model, I, phi, I_mean=im, zeta=zw)
     est = {"TFP (window mean)": (2 * I.mean(1), None), "RWPS only": (res["T_base"], res["R_base"]), "full network": (res["T"], res["R"])}
     rows = []
     for name, (T, R) in est.items():
@@ -183,7 +192,7 @@ def reconstruct_and_score(group_dir: Path, figs: Path, n_frames: int, crop: int)
     ]
     fig = image_grid(panels, ncols=4, title=f"frame {i}: reconstruction vs ground truth (radiance)")
     png = save_figure(fig, figs / "reconstruction.png")
-    return {"rows": rows, "figure": png, "frames": len(idx), "crop": c, "checkpoint": DEFAULT_WEIGHTS.name,
+    return {"rows": rows, "figure": png, "frames": len(idx), "crop": c, "checkpoint": DEFAULT_WEIGHTS.name, "zeta": zeta_used,
             "arrays": {"I": I[b, K], "T_net": res["T"][b], "R_net": res["R"][b], "T_gt": g.T[i][sl], "R_gt": g.R[i][sl], "frame": i, "slice": sl}}
 
 
