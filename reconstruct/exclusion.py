@@ -19,8 +19,7 @@ with opposite-signed weights), which would bias the correlation; so the stream i
 of one part is correlated with T' of another (:func:`cross_gradient_sums`): disjoint spikes, independent noise.
 
 Used by ``polspike calibrate-pane`` (pane model and index where the modulation depths do not reach the DoP cone's
-edges).  reconstruct/selfcal.py has a similar score for the 90 deg twin (``layer_gradient_correlation``); the two can
-share this module.
+edges) and by the self zeta's 90 deg twin and pane-model test (``reconstruct.selfcal.layer_gradient_correlation``).
 """
 
 from __future__ import annotations
@@ -67,11 +66,14 @@ def part_harmonics(I: np.ndarray, phi: np.ndarray, parts: int = 2) -> list[tuple
     return out
 
 
-def solve_layers(a0: np.ndarray, c: np.ndarray, phi_perp: np.ndarray, A: np.ndarray, B: np.ndarray, gain: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
-    """(R', T') of paper Eq. (1)-(2) from one part's harmonic mean a0 and modulation c under zeta's (A, B) (module docstring)."""
+def solve_layers(a0: np.ndarray, c: np.ndarray, phi_perp: np.ndarray, A: np.ndarray, B: np.ndarray, gain: float = 1.0, mask: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """(R', T') of paper Eq. (1)-(2) from one part's harmonic mean a0 and modulation c under zeta's (A, B) (module docstring);
+    ``mask``: D and T set to 0 where it is False."""
     m = (c * np.exp(-2j * phi_perp)).real
     D = 2.0 * m / (gain * np.where(np.abs(B) > 1e-6, B, 1e-6))
     T = 2.0 * a0 - A * D
+    if mask is not None:
+        D, T = np.where(mask, D, 0.0), np.where(mask, T, 0.0)
     return T + D, T
 
 
@@ -82,31 +84,45 @@ def _grad(x: np.ndarray, sigma: float) -> tuple[np.ndarray, np.ndarray]:
     return np.diff(y, axis=1)[:-1, :], np.diff(y, axis=0)[:, :-1]
 
 
-def cross_gradient_sums(parts, phi_perp: np.ndarray, A: np.ndarray, B: np.ndarray, gain: float = 1.0, sigma: float = SIGMA_PX) -> dict:
+def cross_gradient_sums(parts, phi_perp: np.ndarray, A: np.ndarray, B: np.ndarray, gain: float = 1.0, sigma: float = SIGMA_PX,
+                        mask: np.ndarray | None = None, pairs: str = "all") -> dict:
     """Per-pixel products of the layers' gradients solved under zeta (A, B), crossed between time parts.
 
-    Returns (H - 1, W - 1) maps ``cross`` (mean over ordered pairs of distinct parts p != q of gR_p . gT_q, x and y
-    gradients summed), ``pr`` and ``pt`` (mean of |gR_p|^2 and |gT_p|^2 over parts).  Sum them over any pixel set and
-    form cross / sqrt(pr pt) for its normalised correlation (:func:`label_correlations`)."""
+    Returns (H - 1, W - 1) maps ``cross`` (gR_p . gT_q with p != q, x and y gradients summed; ``pairs`` = "all": the
+    mean over the ordered pairs of distinct parts, "adjacent": the mean over j of (gR_j . gT_j+1 + gR_j+1 . gT_j) / 2,
+    which keeps the layers' motion between the two parts small), ``pr`` and ``pt`` (mean of |gR_p|^2 and |gT_p|^2
+    over parts).  ``mask`` (H, W): pixels left out (the layers set to 0 there, gradient pairs touching them 0).  Sum
+    the maps over any pixel set and form cross / sqrt(pr pt) for its normalised correlation (:func:`label_correlations`).
+    Shared by ``polspike calibrate-pane`` (pane model and index) and the self zeta's 90 deg twin test
+    (``reconstruct.selfcal.layer_gradient_correlation``)."""
+    from scipy.ndimage import gaussian_filter
+
+    if pairs not in ("all", "adjacent"):
+        raise ConfigError(f"pairs = {pairs!r}: choose all or adjacent")
+    if mask is not None:
+        okx, oky = mask[:-1, :-1] & mask[:-1, 1:], mask[:-1, :-1] & mask[1:, :-1]
     gs = []
     for a0, c in parts:
-        R, T = solve_layers(a0, c, phi_perp, A, B, gain)
-        gs.append((_grad(R, sigma), _grad(T, sigma)))
+        R, T = solve_layers(a0, c, phi_perp, A, B, gain, mask)
+        g = []
+        for x in (R, T):
+            if mask is None:
+                g.append(_grad(x, sigma))
+            else:  # R = T + D with D and T zero outside the mask
+                y = gaussian_filter(x, sigma)
+                g.append((np.where(okx, np.diff(y, axis=1)[:-1, :], 0.0), np.where(oky, np.diff(y, axis=0)[:, :-1], 0.0)))
+        gs.append(tuple(g))
     P = len(gs)
     if P < 2:
         raise ConfigError("cross_gradient_sums needs at least two time parts")
-    cross = np.zeros_like(gs[0][0][0])
-    pr = np.zeros_like(cross)
-    pt = np.zeros_like(cross)
-    for p in range(P):
-        (rx, ry), (tx, ty) = gs[p]
-        pr += rx * rx + ry * ry
-        pt += tx * tx + ty * ty
-        for q in range(P):
-            if q != p:
-                (ux, uy), (vx, vy) = gs[q]
-                cross += rx * vx + ry * vy
-    return {"cross": cross / (P * (P - 1)), "pr": pr / P, "pt": pt / P}
+    prod = lambda u, v: u[0] * v[0] + u[1] * v[1]  # noqa: E731
+    if pairs == "adjacent":
+        cross = sum(0.5 * (prod(gs[j][0], gs[j + 1][1]) + prod(gs[j + 1][0], gs[j][1])) for j in range(P - 1)) / (P - 1)
+    else:
+        cross = sum(prod(gs[p][0], gs[q][1]) for p in range(P) for q in range(P) if q != p) / (P * (P - 1))
+    pr = sum(prod(g[0], g[0]) for g in gs) / P
+    pt = sum(prod(g[1], g[1]) for g in gs) / P
+    return {"cross": cross, "pr": pr, "pt": pt}
 
 
 def label_correlations(sums: dict, labels: np.ndarray, n_labels: int) -> np.ndarray:

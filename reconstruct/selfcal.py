@@ -107,6 +107,7 @@ import torch
 from polinfra.config import opt
 from polinfra.errors import ConfigError, ShapeError
 
+from reconstruct.exclusion import cross_gradient_sums
 from reconstruct.harmonic_fit import harmonic_fit
 from reconstruct.zeta_source import PaneMaps, pane_maps_from_geometry, zeta_from_maps
 
@@ -759,8 +760,6 @@ def layer_gradient_correlation(parts, phi_perp: np.ndarray, theta: np.ndarray, n
     a wrong (tilt, model) pair can zero the whole view's correlation but not every tile's; ``rms`` is the score.
     Both NaN when fewer than a quarter of the pixels qualify (a tile with fewer than 16 pairs is skipped).
     """
-    from scipy.ndimage import gaussian_filter
-
     from polphysics.fresnel import pane_coefficients
 
     nan = {"corr": float("nan"), "rms": float("nan")}
@@ -773,21 +772,8 @@ def layer_gradient_correlation(parts, phi_perp: np.ndarray, theta: np.ndarray, n
     okx, oky = ok[:-1, :-1] & ok[:-1, 1:], ok[:-1, :-1] & ok[1:, :-1]
     if 0.5 * (okx.mean() + oky.mean()) < 0.25:
         return nan
-    rot = np.exp(-2j * phi_perp)
-    grads = []
-    for a0, c in parts:
-        D = np.where(ok, 2.0 * (c * rot).real / np.maximum(B, 1e-6), 0.0)
-        T = np.where(ok, 2.0 * a0 - A * D, 0.0)
-        g = []
-        for x in (T + D, T):
-            y = gaussian_filter(x, sigma)
-            g.append((np.where(okx, np.diff(y, axis=1)[:-1, :], 0.0), np.where(oky, np.diff(y, axis=0)[:, :-1], 0.0)))
-        grads.append(g)
-    prod = lambda u, v: u[0] * v[0] + u[1] * v[1]  # noqa: E731
-    pairs = len(grads) - 1
-    cross = sum(0.5 * (prod(grads[j][0], grads[j + 1][1]) + prod(grads[j + 1][0], grads[j][1])) for j in range(pairs)) / pairs
-    pr = sum(prod(g[0], g[0]) for g in grads) / len(grads)
-    pt = sum(prod(g[1], g[1]) for g in grads) / len(grads)
+    sums = cross_gradient_sums(parts, phi_perp, A, B, sigma=sigma, mask=ok, pairs="adjacent")  # reconstruct.exclusion
+    cross, pr, pt = sums["cross"], sums["pr"], sums["pt"]
     cnt = okx.astype(int) + oky.astype(int)
 
     def corr(sl):
