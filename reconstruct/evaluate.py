@@ -82,7 +82,7 @@ class EvalConfig:
     batch: int = opt(4, "windows solved together", lo=1, hi=4096)
     pane_n: float = opt(1.5, "physics zeta: calibrated refractive index of the pane", lo=1.0, hi=4.0)
     pane_model: str = opt("single", "physics zeta: pane model", choices=("single", "thin_slab", "thick_slab"))
-    self_pane_model: str = opt("auto", "self zeta: pane model (auto: fitted from the DoP cone where the data constrain it, else thin slab; a model given here is used with pane_n)", choices=("auto", "single", "thin_slab", "thick_slab"))
+    self_pane_model: str = opt("auto", "self zeta: pane model (auto: from the DoP cone where the data constrain it, else from the layers' content test where it clearly separates the models, else thin slab; a model given here is used with pane_n)", choices=("auto", "single", "thin_slab", "thick_slab"))
     dtype: str = opt("float32", "solver dtype", choices=("float32", "float64"))
     device: str = opt("cpu", "torch device for the solvers and the network (cpu, cuda, auto)")
     checkpoint: str = opt("", "network checkpoint for method full / zeta learned (empty: the shipped reconstruct/weights default)")

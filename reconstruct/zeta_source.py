@@ -7,8 +7,10 @@
   reflectances by :mod:`polphysics.fresnel`, then paper Eq. (2).
 * ``learned``: the parameter branch of the network of issue 9 (:func:`zeta_learned`).
 * ``self``: the pane geometry estimated from the stream itself (:mod:`reconstruct.selfcal`;
-  the 90 deg twin of narrow glancing views resolved by the DoP cone, the index and pane model
-  fitted where the cone constrains them, else a thin slab with n = 1.5), then as ``physics``;
+  the 90 deg twin of narrow glancing views resolved by the DoP cone, or where the cone holds both by
+  the layers' content, R^ and T^ gradients uncorrelated under the right pane; the index and pane
+  model fitted where the cone constrains them, the model also by that content test, else a thin slab
+  with n = 1.5), then as ``physics``;
   falls back to ``learned`` where nothing modulates or the twin stays ambiguous.
 
 A spike frame integrates over an aggregation window during which the polarizer
