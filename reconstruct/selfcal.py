@@ -190,8 +190,8 @@ class SelfCalResult:
     diagnostics: dict
 
     def summary(self) -> dict:
-        """Plain-data summary (for JSON)."""
-        return {
+        """Plain-data summary (for JSON; a value that was not scored, NaN or inf, is None)."""
+        return _plain({
             "ok": self.ok,
             "reason": self.reason,
             "normal": None if self.normal is None else [float(v) for v in self.normal],
@@ -209,19 +209,21 @@ class SelfCalResult:
             "alignment": self.diagnostics.get("alignment"),
             "modulating_px": self.diagnostics.get("modulating_px"),
             "modulating_blocks": self.diagnostics.get("modulating_blocks"),
-            "cone": _plain(self.diagnostics.get("cone")),
-            "glass": _plain(self.diagnostics.get("glass")),
-        }
+            "cone": self.diagnostics.get("cone"),
+            "glass": self.diagnostics.get("glass"),
+        })
 
 
 def _plain(x):
-    """JSON-ready copy (numpy scalars to floats, tuple keys to strings)."""
+    """JSON-ready copy (numpy scalars to floats, tuple keys to strings, non-finite floats to None: not scored)."""
     if isinstance(x, dict):
         return {(k if isinstance(k, str) else ":".join(map(str, k)) if isinstance(k, tuple) else str(k)): _plain(v) for k, v in x.items()}
     if isinstance(x, (list, tuple)):
         return [_plain(v) for v in x]
     if isinstance(x, (np.floating, np.integer, np.bool_)):
-        return x.item()
+        x = x.item()
+    if isinstance(x, float) and not math.isfinite(x):
+        return None
     return x
 
 
