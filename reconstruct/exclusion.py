@@ -24,8 +24,6 @@ edges) and by the self zeta's 90 deg twin and pane-model test (``reconstruct.sel
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 
 from polinfra.errors import ConfigError
@@ -45,12 +43,11 @@ def part_harmonics(I: np.ndarray, phi: np.ndarray, parts: int = 2) -> list[tuple
     content is averaged, not mis-fitted)."""
     import torch
 
-    from reconstruct.harmonic_fit import harmonic_fit
+    from reconstruct.harmonic_fit import half_turn_frames, harmonic_fit
 
     I = np.asarray(I, np.float64)
     phi = np.asarray(phi, np.float64)
-    step = float(np.median(np.abs(np.diff(phi)))) if phi.size > 1 else math.pi
-    L = max(3, int(math.ceil(math.pi / max(step, 1e-9) - 1e-6)))
+    L = half_turn_frames(phi)
     C = I.shape[0] // L
     if C < parts:
         raise ConfigError(f"the gradient-exclusion test needs {parts} half turns of the polarizer ({parts * L} frames); got {I.shape[0]} frames")

@@ -20,7 +20,7 @@ import torch
 
 from polinfra.errors import ShapeError
 
-__all__ = ["harmonic_fit", "harmonic_eval", "dop", "aolp"]
+__all__ = ["harmonic_fit", "harmonic_eval", "dop", "aolp", "half_turn_frames"]
 
 _DEF_EPS = 1e-6
 
@@ -123,3 +123,16 @@ def dop(a0: torch.Tensor, ac: torch.Tensor, as_: torch.Tensor, eps: float = _DEF
 def aolp(ac: torch.Tensor, as_: torch.Tensor) -> torch.Tensor:
     """Angle of linear polarization 1/2 atan2(as, ac), radians in (-pi/2, pi/2], image convention."""
     return 0.5 * torch.atan2(as_, ac)
+
+
+def half_turn_frames(phi) -> int:
+    """Frames in a chunk of about half a polarizer turn (one cycle of 2 phi), at least 3, for frames at angles ``phi``
+    (radians, a roughly constant step): the chunk length of every long-span harmonic fit (self-calibration, the DoP
+    cone, the content test, calibrate-pane)."""
+    import math
+
+    import numpy as np
+
+    phi = np.asarray(phi, np.float64).ravel()
+    step = float(np.median(np.abs(np.diff(phi)))) if phi.size > 1 else math.pi
+    return max(3, int(math.ceil(math.pi / max(step, 1e-9) - 1e-6)))

@@ -108,7 +108,7 @@ from polinfra.config import opt
 from polinfra.errors import ConfigError, ShapeError
 
 from reconstruct.exclusion import cross_gradient_sums
-from reconstruct.harmonic_fit import harmonic_fit
+from reconstruct.harmonic_fit import half_turn_frames, harmonic_fit
 from reconstruct.zeta_source import PaneMaps, pane_maps_from_geometry, zeta_from_maps
 
 __all__ = [
@@ -291,8 +291,7 @@ def orientation_field(I: np.ndarray, phi: np.ndarray, block: int) -> dict:
     if I.ndim != 3 or phi.shape != I.shape[:1]:
         raise ShapeError(f"orientation_field needs I (M, H, W) and phi (M,); got {I.shape} and {phi.shape}", actual_shape=I.shape, expected_shape="(M, H, W)")
     # chunks of about half a polarizer turn (one cycle of 2 phi), at least 3 frames
-    step = float(np.median(np.abs(np.diff(phi)))) if phi.size > 1 else math.pi
-    L = max(3, int(math.ceil(math.pi / max(step, 1e-9) - 1e-6)))
+    L = half_turn_frames(phi)
     n_chunks = I.shape[0] // L
     if n_chunks < 1:
         raise ConfigError(f"self-calibration needs at least {L} frames (half a polarizer turn); got {I.shape[0]}: use a longer span")
@@ -466,8 +465,7 @@ def chunk_harmonics(I: np.ndarray, phi: np.ndarray) -> tuple[np.ndarray, np.ndar
     """
     I = np.asarray(I, np.float64)
     phi = np.asarray(phi, np.float64)
-    step = float(np.median(np.abs(np.diff(phi)))) if phi.size > 1 else math.pi
-    L = max(3, int(math.ceil(math.pi / max(step, 1e-9) - 1e-6)))
+    L = half_turn_frames(phi)
     C = I.shape[0] // L
     if C < 1:
         raise ConfigError(f"the cone test needs at least {L} frames (half a polarizer turn); got {I.shape[0]}")
@@ -733,8 +731,7 @@ def _content_parts(I: np.ndarray, phi: np.ndarray) -> list[tuple[np.ndarray, np.
     counts anticorrelated), and adjacent parts keep the layers' motion between the two small."""
     I = np.asarray(I, np.float64)
     phi = np.asarray(phi, np.float64)
-    step = float(np.median(np.abs(np.diff(phi)))) if phi.size > 1 else math.pi
-    L = max(3, int(math.ceil(math.pi / max(step, 1e-9) - 1e-6)))
+    L = half_turn_frames(phi)
     C = I.shape[0] // L
     if C < 2:
         return []

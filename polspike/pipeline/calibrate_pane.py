@@ -257,10 +257,9 @@ def edge_statistics(I: np.ndarray, phi: np.ndarray, phi_perp: np.ndarray, block:
     """
     import torch
 
-    from reconstruct.harmonic_fit import harmonic_fit
+    from reconstruct.harmonic_fit import half_turn_frames, harmonic_fit
 
-    step = float(np.median(np.abs(np.diff(phi)))) if phi.size > 1 else math.pi
-    L = max(3, int(math.ceil(math.pi / max(step, 1e-9) - 1e-6)))
+    L = half_turn_frames(phi)
     C = I.shape[0] // L
     if C < 2:
         raise ConfigError(f"the glass fit needs at least {2 * L} frames (two half turns of the polarizer); got {I.shape[0]}: use a longer --span-s")
