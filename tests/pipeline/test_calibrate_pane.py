@@ -30,19 +30,24 @@ def _field(rng, H, W, shift):
     return f / 6 * 2.2
 
 
-def pane_stream(tilt_deg, azimuth_deg, *, fov_deg=55.0, n=1.5, model="single", H=64, W=96, M=34, exposure=40.0, black=True, seed=0, stride_deg=31.5, motion=1.0):
-    """Eq. (3) frames behind a known pane (13-step windows at 20 kHz, 30 rev/s, ``stride_deg`` apart:
-    31.5 = the output cadence, 7.02 = back to back).  black=True: T is black over part of the view and R
-    over another part (the cone's edges are reached); else both layers are >= 0.3 everywhere."""
+def _pane_geometry(tilt_deg, azimuth_deg, fov_deg, W, H, n, model):
+    """The known pane's per-pixel geometry and Fresnel coefficients, and the 13-step window's polarizer sweep and sinc."""
     from reconstruct.selfcal import camera_for, normal_from_angles
 
-    rng = np.random.default_rng(seed)
     cam = camera_for(W, H, fov_deg)
     N = normal_from_angles(math.radians(tilt_deg), math.radians(azimuth_deg), cam)
     geo = incidence_geometry(cam, Plane(cam.position + cam.forward, N))
     co = pane_coefficients(geo["theta"], n, model=model)
     span = 2 * math.pi * 30.0 * 13 / 20000.0
-    sinc = math.sin(span) / span
+    return geo, co, span, math.sin(span) / span
+
+
+def pane_stream(tilt_deg, azimuth_deg, *, fov_deg=55.0, n=1.5, model="single", H=64, W=96, M=34, exposure=40.0, black=True, seed=0, stride_deg=31.5, motion=1.0):
+    """Eq. (3) frames behind a known pane (13-step windows at 20 kHz, 30 rev/s, ``stride_deg`` apart:
+    31.5 = the output cadence, 7.02 = back to back).  black=True: T is black over part of the view and R
+    over another part (the cone's edges are reached); else both layers are >= 0.3 everywhere."""
+    rng = np.random.default_rng(seed)
+    geo, co, span, sinc = _pane_geometry(tilt_deg, azimuth_deg, fov_deg, W, H, n, model)
     phi = rng.uniform(0, math.pi) + math.radians(stride_deg) * np.arange(M)
     sT, sR = rng.integers(0, 2**31), rng.integers(0, 2**31)
     I = []
@@ -158,15 +163,8 @@ def textured_stream(tilt_deg, azimuth_deg, model, n, *, H=80, W=128, M=104, fov_
     flat layers (contrast=False)."""
     from scipy.ndimage import gaussian_filter
 
-    from reconstruct.selfcal import camera_for, normal_from_angles
-
     rng = np.random.default_rng(seed)
-    cam = camera_for(W, H, fov_deg)
-    N = normal_from_angles(math.radians(tilt_deg), math.radians(azimuth_deg), cam)
-    geo = incidence_geometry(cam, Plane(cam.position + cam.forward, N))
-    co = pane_coefficients(geo["theta"], n, model=model)
-    span = 2 * math.pi * 30.0 * 13 / 20000.0
-    sinc = math.sin(span) / span
+    geo, co, span, sinc = _pane_geometry(tilt_deg, azimuth_deg, fov_deg, W, H, n, model)
     phi = rng.uniform(0, math.pi) + span * np.arange(M)
 
     def tex(s):
