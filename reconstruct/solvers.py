@@ -186,16 +186,8 @@ def confidence(zeta: torch.Tensor, w: torch.Tensor | None = None, kappa: float =
 
 
 def _box(x: torch.Tensor, k: int) -> torch.Tensor:
-    """Mean over a k x k box (edge-aware: padding does not count) of (..., H, W)."""
-    if k <= 1:
-        return x
-    shp = x.shape
-    y = torch.nn.functional.avg_pool2d(x.reshape(-1, 1, *shp[-2:]), k, stride=1, padding=k // 2, count_include_pad=False)
-    return y[..., : shp[-2], : shp[-1]].reshape(shp)
-
-
-def _box_sep(x: torch.Tensor, k: int) -> torch.Tensor:
-    """:func:`_box` as two 1-D passes (rows, then columns): the same edge-aware mean, O(k) per pixel."""
+    """Mean over a k x k box (edge-aware: padding does not count) of (..., H, W), as two 1-D passes (rows, then
+    columns; the valid part of a box is a product of row and column ranges, so this is the 2-D mean), O(k) per pixel."""
     if k <= 1:
         return x
     shp = x.shape
@@ -275,10 +267,10 @@ def pooled_difference_prior(
     v_D = (sigma2 * sw / (det + _eps(zeta.dtype) * sw * sw + tiny)).clamp_max(1e12)
     D = R - T
     u = det / (sw + tiny)
-    bu = _box_sep(u, pool) + tiny
-    D0 = _box_sep(u * D, pool) / bu
-    s2 = ((_box_sep(u * (D - D0) ** 2, pool) - _box_sep(u * v_D, pool)) / bu).clamp_min(0.0)
-    d = _box_sep(4.0 * det / (sw * sw + tiny), pool)
+    bu = _box(u, pool) + tiny
+    D0 = _box(u * D, pool) / bu
+    s2 = ((_box(u * (D - D0) ** 2, pool) - _box(u * v_D, pool)) / bu).clamp_min(0.0)
+    d = _box(4.0 * det / (sw * sw + tiny), pool)
     D0 = D0 * d / (d + kappa0 + tiny)
     return D0, s2 / (v_D + tiny)
 
