@@ -319,25 +319,22 @@ def evaluate_groups(
                 r = solve(m, Zw, Iw, weights=w, config=solver_cfg)
                 est[m] = (r.T.cpu().numpy(), r.R.cpu().numpy())
             t["solve"] += time.perf_counter() - t0
+            Im = None if g.I_mean is None else np.stack([g.I_mean[i] for i in cb])  # the long spike mean of each centre
             if net_rows:
                 t0 = time.perf_counter()
                 zn = None if Znet is None else np.stack([np.ascontiguousarray(Znet[i - K : i + K + 1], np.float32) for i in cb])
-                im = None
-                if getattr(model.cfg, "use_mean", False):
-                    if g.I_mean is None:
-                        raise ConfigError(f"group {g.name}: the network takes the long spike mean, which only stored groups (spikes.h5) give; evaluate it on a built dataset")
-                    im = np.stack([g.I_mean[i] for i in cb])
-                o = run_model_on_windows(model, raw.float().cpu().numpy(), Pw.float().cpu().numpy(), device=next(model.parameters()).device, tile=cfg.net_tile, zeta=zn, I_mean=im)
+                use_mean = getattr(model.cfg, "use_mean", False)
+                if use_mean and Im is None:
+                    raise ConfigError(f"group {g.name}: the network takes the long spike mean, which only stored groups (spikes.h5) give; evaluate it on a built dataset")
+                o = run_model_on_windows(model, raw.float().cpu().numpy(), Pw.float().cpu().numpy(), device=next(model.parameters()).device, tile=cfg.net_tile, zeta=zn, I_mean=Im if use_mean else None)
                 est[net_rows[0]] = (o["T"], o["R"])
                 est[net_rows[1]] = (o["T_base"], o["R_base"])
                 t["network"] += time.perf_counter() - t0
-            if cfg.anchor == "mean" and g.I_mean is not None:
-                zbars = {m: (Zw if Zw is not None else None) for m in solvers}
+            if cfg.anchor == "mean" and Im is not None:
+                zbars = {m: Zw for m in solvers}
                 if net_rows:
-                    zn_t = None if Znet is None else torch.as_tensor(zn, dtype=dtype, device=dev)
-                    zl = zn_t if zn_t is not None else zeta_learned(model, raw, Pw)[0]
+                    zl = torch.as_tensor(zn, dtype=dtype, device=dev) if zn is not None else zeta_learned(model, raw, Pw)[0]
                     zbars.update({net_rows[0]: zl, net_rows[1]: zl})
-                Im = np.stack([g.I_mean[i] for i in cb])
                 for m, zz in zbars.items():
                     if zz is not None:
                         est[m + ANCHOR_SUFFIX] = anchor_to_mean(*est[m], Im, zbar_of(zz, Pw).float().cpu().numpy())

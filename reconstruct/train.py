@@ -150,11 +150,12 @@ def evaluate_model(model: PolSpikeNet, dataset, batch_size: int = 8, device: tor
     for s in range(0, len(dataset), batch_size):
         b = collate([dataset[i] for i in range(s, min(len(dataset), s + batch_size))])
         I, phi, T, R, z = (b[k].to(device) for k in ("I", "phi", "T", "R", "zeta"))
-        out = model(I, phi, I_mean=b["I_mean"].to(device) if "I_mean" in b else None)
+        Im = b["I_mean"].to(device) if "I_mean" in b else None
+        out = model(I, phi, I_mean=Im)
         orc = solve("rwps", z, I, None, model.solver_cfg_in)
         ests = {"T": out.T, "T_base": out.T_base, "T_oracle": orc.T, "T_tfp": 2.0 * I.mean(1), "R": out.R, "R_base": out.R_base, "R_oracle": orc.R}
         if forced:
-            fo = model(I, phi, zeta_gt=z, alpha=1.0, I_mean=b["I_mean"].to(device) if "I_mean" in b else None)
+            fo = model(I, phi, zeta_gt=z, alpha=1.0, I_mean=Im)
             ests.update({"T_forced": fo.T, "R_forced": fo.R})
         zc = z[:, z.shape[1] // 2]
         share = zc * R / (zc * R + (1 - zc) * T + 1e-6)
@@ -329,13 +330,12 @@ def train(
             raise CheckpointError(f"init_from = {cfg.init_from}: its weights do not fit [net] of this config ({str(e).splitlines()[0]}); use weights of the same architecture") from None
         log.info("initialised from %s", cfg.init_from)
     if cfg.init_zero:
+        hit = [p for n, p in model.named_parameters() if n.startswith(tuple(cfg.init_zero))]
+        if not hit:
+            raise CheckpointError(f"init_zero = {list(cfg.init_zero)} names no parameter of this network")
         with torch.no_grad():
-            hit = [n for n, p in model.named_parameters() if any(n.startswith(z) for z in cfg.init_zero)]
-            if not hit:
-                raise CheckpointError(f"init_zero = {list(cfg.init_zero)} names no parameter of this network")
-            for n, p in model.named_parameters():
-                if n in hit:
-                    p.zero_()
+            for p in hit:
+                p.zero_()
         log.info("zeroed %d parameter tensors (init_zero)", len(hit))
     model.to(dev)
     opt_ = torch.optim.Adam(model.parameters(), lr=cfg.lr)
