@@ -32,7 +32,7 @@ from polinfra.errors import DataFormatError
 
 from reconstruct.zeta_source import PaneMaps
 
-__all__ = ["EvalGroup", "list_groups", "load_store_group", "window_steps_from_ms", "spike_mean_frames", "SpikeMeanSums", "SPIKE_MEAN_MS", "spike_mean_steps"]
+__all__ = ["EvalGroup", "list_groups", "load_store_group", "window_steps_from_ms", "spike_mean_frames", "SpikeMeanSums", "SPIKE_MEAN_MS", "spike_mean_steps", "spike_mean_span"]
 
 log = logging.getLogger(__name__)
 
@@ -80,6 +80,12 @@ def spike_mean_steps(rate_hz: float) -> int:
     return max(1, int(round(SPIKE_MEAN_MS * 1e-3 * rate_hz)))
 
 
+def spike_mean_span(centre, steps: int, n_steps: int):
+    """Steps [lo, hi) of the long spike mean of ``steps`` steps centred on step ``centre`` (scalar or array), clipped
+    to a stream of ``n_steps``: the one span of the stream reconstructor, the stored groups and the training items."""
+    return np.clip(centre - steps // 2, 0, n_steps), np.clip(centre + steps // 2 + 1, 0, n_steps)
+
+
 class SpikeMeanSums:
     """Spike counts of a stream up to the boundaries the long spike means need, kept only until used.
 
@@ -90,8 +96,7 @@ class SpikeMeanSums:
     """
 
     def __init__(self, centres: np.ndarray, steps: int, n_steps: int, shape: tuple[int, int]):
-        self.lo = np.clip(np.asarray(centres, np.int64) - steps // 2, 0, n_steps)
-        self.hi = np.clip(np.asarray(centres, np.int64) + steps // 2 + 1, 0, n_steps)
+        self.lo, self.hi = spike_mean_span(np.asarray(centres, np.int64), steps, n_steps)
         self.want = sorted(set(self.lo.tolist()) | set(self.hi.tolist()))
         self.snap: dict[int, np.ndarray] = {}
         self.acc = np.zeros(shape, np.int64)

@@ -36,6 +36,8 @@ import torch
 from polinfra.config import opt
 from polinfra.errors import ConfigError, ShapeError
 
+from reconstruct.groups import spike_mean_span
+
 __all__ = ["WindowConfig", "ITEM_KEYS", "WindowSource", "window_centres", "item_from_stream", "OnTheFlyWindows", "flip_item"]
 
 ITEM_KEYS = ("I", "phi", "T", "R", "zeta", "R_perp", "R_par", "phi_perp", "T_perp", "T_par", "exposure")
@@ -146,8 +148,7 @@ def item_from_stream(
         "T_perp": _t(Tp), "T_par": _t(Ts), "exposure": torch.tensor(float(exposure), dtype=torch.float32),
     }
     if cfg.mean_steps:  # the long spike mean around the centre frame, clipped to the stream
-        c = int(ck[len(ck) // 2])
-        a, b = max(0, c - cfg.mean_steps // 2), min(spikes.shape[0], c + cfg.mean_steps // 2 + 1)
+        a, b = (int(v) for v in spike_mean_span(int(ck[len(ck) // 2]), cfg.mean_steps, spikes.shape[0]))
         item["I_mean"] = _t(spikes[a:b].sum(0, dtype=np.int64) / ((b - a) * exposure))
     return item
 
