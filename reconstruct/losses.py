@@ -23,7 +23,7 @@ import torch
 
 from polinfra.config import opt
 
-__all__ = ["LossConfig", "reflection_mask", "image_grad", "loss_rec", "loss_grad", "loss_phys", "loss_excl", "total_loss"]
+__all__ = ["LossConfig", "reflection_mask", "image_grad", "loss_rec", "loss_grad", "loss_phys", "loss_excl", "ssim_map", "total_loss"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -37,6 +37,7 @@ class LossConfig:
     lambda_zeta: float = opt(1.0, "weight of the zeta term inside L_phys, paper Eq. (10)", lo=0.0, hi=100.0)
     lambda_ex: float = opt(4.0, "tanh scale lambda_ex of the exclusion loss, paper Eq. (11), per radiance unit per pixel", lo=0.0, hi=1e4)
     lambda_base: float = opt(0.5, "weight of L1 on the solver outputs (T^, R^), times (0.2 + 0.8 alpha): supervision shifts to the refined output as alpha drops", lo=0.0, hi=100.0)
+    lambda_ssim: float = opt(0.0, "weight of 1 - SSIM(T) (skimage's 7x7 uniform-window SSIM at data range 1, the evaluation metric, on the estimate clipped to [0, 1]): a structure term beside the L1 terms (0 = off, the paper's objective)", lo=0.0, hi=100.0)
     m_floor: float = opt(0.5, "reflection mask M value where there is no reflection", lo=0.0, hi=1.0)
     rho_ref: float = opt(0.3, "reflected share of the mixed light at which M reaches 1", lo=1e-6, hi=1.0)
 
@@ -91,6 +92,28 @@ def loss_excl(T, R, cfg: LossConfig = LossConfig()) -> torch.Tensor:
     return 0.5 * ((torch.tanh(k * tx.abs()) * torch.tanh(k * rx.abs())).mean() + (torch.tanh(k * ty.abs()) * torch.tanh(k * ry.abs())).mean())  # Eq. (11)
 
 
+SSIM_WIN = 7
+"""Window of :func:`ssim_map`: skimage.metrics.structural_similarity's default (uniform 7x7)."""
+
+
+def ssim_map(x: torch.Tensor, y: torch.Tensor, win: int = SSIM_WIN, data_range: float = 1.0) -> torch.Tensor:
+    """SSIM map of (B, H, W) images, as skimage.metrics.structural_similarity computes it.
+
+    Uniform ``win`` x ``win`` window, K1 = 0.01, K2 = 0.03, sample covariances (N / (N - 1));
+    the map covers the "valid" interior, (B, H - win + 1, W - win + 1), whose mean is skimage's
+    score (it crops (win - 1) / 2 pixels of border).  Differentiable in both arguments.
+    """
+    c1, c2 = (0.01 * data_range) ** 2, (0.03 * data_range) ** 2
+    n = win * win
+    pool = lambda a: torch.nn.functional.avg_pool2d(a.unsqueeze(1), win, stride=1).squeeze(1)  # noqa: E731
+    ux, uy = pool(x), pool(y)
+    cov = n / (n - 1.0)
+    vx = cov * (pool(x * x) - ux * ux)
+    vy = cov * (pool(y * y) - uy * uy)
+    vxy = cov * (pool(x * y) - ux * uy)
+    return ((2 * ux * uy + c1) * (2 * vxy + c2)) / ((ux * ux + uy * uy + c1) * (vx + vy + c2))
+
+
 def total_loss(out, T_gt: torch.Tensor, R_gt: torch.Tensor, alpha: float, cfg: LossConfig = LossConfig()) -> tuple[torch.Tensor, dict[str, float]]:
     """Total objective, paper Eq. (12), plus the solver-output term (``lambda_base``).
 
@@ -113,5 +136,10 @@ def total_loss(out, T_gt: torch.Tensor, R_gt: torch.Tensor, alpha: float, cfg: L
     l_base = loss_rec(out.T_base, out.R_base, T_gt, R_gt, M, cfg)
     total = l_rec + cfg.lambda_g * l_grad + cfg.lambda_p * l_phys + cfg.lambda_e * l_excl  # Eq. (12)
     total = total + cfg.lambda_base * (0.2 + 0.8 * alpha) * l_base
-    parts = {"loss": float(total.detach()), "l_rec": float(l_rec.detach()), "l_grad": float(l_grad.detach()), "l_phys": float(l_phys.detach()), "l_excl": float(l_excl.detach()), "l_base": float(l_base.detach())}
+    extra = {}
+    if cfg.lambda_ssim > 0:
+        l_ssim = 1.0 - ssim_map(out.T.clamp(0, 1), T_gt).mean()
+        total = total + cfg.lambda_ssim * l_ssim
+        extra["l_ssim"] = float(l_ssim.detach())
+    parts = {"loss": float(total.detach()), "l_rec": float(l_rec.detach()), "l_grad": float(l_grad.detach()), "l_phys": float(l_phys.detach()), "l_excl": float(l_excl.detach()), "l_base": float(l_base.detach()), **extra}
     return total, parts

@@ -75,6 +75,9 @@ class TrainConfig:
     test_scenes: int = opt(10, "on-the-fly: validation / test scenes, disjoint layer content (paper: 10 test groups)", lo=1, hi=100000)
     scene_seed: int = opt(0, "on-the-fly: seed of the scene pools", lo=0, hi=2**31 - 1)
     manifest: str = opt("", "on-the-fly: take the scenes of this dataset manifest's train / test groups (e.g. datasets/manifests/paper.toml); empty = sample train_scenes / test_scenes")
+    val_manifest: str = opt("", "validation windows from this manifest's val_split groups instead of the test groups of manifest (a validation split that never touches the test groups); empty = the test groups")
+    val_split: str = opt("train", "split of val_manifest whose groups validate")
+    val_ssim: bool = opt(False, "also score SSIM of T at each validation (val_ssim_T, val_ssim_T_forced in log.csv; scikit-image)")
     force_prob: float = opt(0.0, "probability that a step (after the curriculum's alpha = 1 phase) feeds the solver the true zeta (alpha = 1) times a per-item factor exp(N(0, zeta_jitter)), instead of the curriculum's alpha: trains the refinement for an external, imperfect zeta (--zeta self); drawn from the seed and the step (resumable)", lo=0.0, hi=1.0)
     zeta_jitter: float = opt(0.0, "std of the per-item log factor on the forced zeta (force_prob)", lo=0.0, hi=2.0)
     val_select: str = opt("learned", "validation score that picks best.pt: learned (psnr_T, the network on its own zeta) | mean (the mean of that and psnr_T_forced, the network on the true zeta: a network run with --zeta self where the stream calibrates)", choices=("learned", "mean"))
@@ -184,7 +187,7 @@ def evaluate_model(model: PolSpikeNet, dataset, batch_size: int = 8, device: tor
 REFL_SHARE = 0.2
 """Reflected share of the mixed light above which a pixel counts as reflection-affected (evaluation)."""
 
-_LOG_FIELDS = ["step", "epoch", "alpha", "loss", "l_rec", "l_grad", "l_phys", "l_excl", "l_base", "val_psnr_T", "val_psnr_T_base", "val_psnr_T_oracle", "val_psnr_T_forced", "val_score", "seconds"]
+_LOG_FIELDS = ["step", "epoch", "alpha", "loss", "l_rec", "l_grad", "l_phys", "l_excl", "l_base", "l_ssim", "val_psnr_T", "val_psnr_T_base", "val_psnr_T_oracle", "val_psnr_T_forced", "val_ssim_T", "val_ssim_T_forced", "val_score", "seconds"]
 
 
 def _write_log(run: Path, rows: list[dict[str, Any]]) -> None:
@@ -401,7 +404,7 @@ def train(
             row = {"step": step, "epoch": epoch + 1, "alpha": alpha, **{k: f"{v:.6g}" for k, v in parts.items()}, "seconds": f"{time.perf_counter() - t0:.1f}"}
         val_now = (cfg.val_every and step % cfg.val_every == 0) or (not cfg.val_every and step % spe == 0) or step == total
         if val_now and val_set is not None and len(val_set):
-            metrics = evaluate_model(model, val_set, cfg.batch_size, dev, forced=cfg.val_select != "learned")
+            metrics = evaluate_model(model, val_set, cfg.batch_size, dev, forced=cfg.val_select != "learned", ssim=cfg.val_ssim)
             metrics["score"] = metrics["psnr_T"] if cfg.val_select == "learned" else 0.5 * (metrics["psnr_T"] + metrics["psnr_T_forced"])
             row = row or {"step": step, "epoch": epoch + 1, "alpha": alpha, "seconds": f"{time.perf_counter() - t0:.1f}"}
             row.update({f"val_{k}": f"{v:.4f}" for k, v in metrics.items()})

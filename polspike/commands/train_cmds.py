@@ -19,7 +19,7 @@ def on_the_fly_sets(cfg):
     """(train set, validation set) of on-the-fly windows: generator analytic tier + spike_sim, disjoint scenes and content."""
     from polspike.pipeline.train_windows import window_sets
 
-    return window_sets(cfg.window, cfg.train_items, cfg.val_items, cfg.seed, cfg.train_scenes, cfg.test_scenes, cfg.scene_seed, cfg.manifest)
+    return window_sets(cfg.window, cfg.train_items, cfg.val_items, cfg.seed, cfg.train_scenes, cfg.test_scenes, cfg.scene_seed, cfg.manifest, cfg.val_manifest, cfg.val_split)
 
 
 def _limit_numba_threads(threads: int) -> None:

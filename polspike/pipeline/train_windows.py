@@ -302,12 +302,14 @@ def manifest_scenes(path: str, split: str, with_sensor: bool = False) -> list:
     return (out, sims) if with_sensor else out
 
 
-def window_sets(window, train_items: int, val_items: int, seed: int, n_train_scenes: int = 40, n_test_scenes: int = 10, scene_seed: int = 0, manifest: str = ""):
+def window_sets(window, train_items: int, val_items: int, seed: int, n_train_scenes: int = 40, n_test_scenes: int = 10, scene_seed: int = 0, manifest: str = "", val_manifest: str = "", val_split: str = "train"):
     """(train, validation) :class:`reconstruct.onthefly.OnTheFlyWindows` on disjoint scenes and content.
 
     With ``manifest``: the scenes of its "train" and "test" groups (e.g. ``paper.toml``: 40 / 10).
     Else training windows come from ``n_train_scenes`` scenes drawn with seed ``scene_seed``
     (the paper's 40 training groups) and validation windows from ``n_test_scenes`` test scenes.
+    With ``val_manifest``: validation windows from its ``val_split`` groups instead (a validation split
+    apart from the test groups).
     """
     from reconstruct.onthefly import OnTheFlyWindows
 
@@ -318,4 +320,7 @@ def window_sets(window, train_items: int, val_items: int, seed: int, n_train_sce
     else:
         tr = GeneratorWindows(scene_pool(n_train_scenes, scene_seed, "train"), window)
         te = GeneratorWindows(scene_pool(n_test_scenes, scene_seed, "test"), window)
+    if val_manifest:
+        sc_va, si_va = manifest_scenes(val_manifest, val_split, with_sensor=True)
+        te = GeneratorWindows(sc_va, window, sims=si_va)
     return OnTheFlyWindows(tr, length=train_items, seed=seed), OnTheFlyWindows(te, length=val_items, seed=seed + 10_000)
