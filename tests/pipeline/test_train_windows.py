@@ -139,3 +139,18 @@ def test_group_sensor_light_level_and_flips():
     assert float(a["exposure"]) == pytest.approx(src.window_group(0, 2)["config"].exposure)
     with pytest.raises(SceneError, match="manifest sensor"):
         GeneratorWindows(scenes, w)
+
+
+def test_validation_from_another_manifest_never_draws_the_test_groups():
+    """val_manifest: the validation windows come from that manifest's val_split groups, not the test groups."""
+    from polspike.pipeline.train_windows import manifest_scenes, window_sets
+
+    root = Path(__file__).resolve().parents[2] / "datasets" / "manifests"
+    man, val = str(root / "small.toml"), str(root / "paper_val.toml")
+    w = WindowConfig(crop=16, keyframe_hz=1000.0)
+    _, te = window_sets(w, 4, 2, 0, manifest=man)
+    _, va = window_sets(w, 4, 2, 0, manifest=man, val_manifest=val, val_split="train")
+    key = lambda sc: repr(sc)  # noqa: E731  (scenes are frozen dataclasses: equal draws give equal reprs)
+    assert [key(s) for s in te.source.scenes] == [key(s) for s in manifest_scenes(man, "test")]
+    assert [key(s) for s in va.source.scenes] == [key(s) for s in manifest_scenes(val, "train")]
+    assert not {key(s) for s in va.source.scenes} & {key(s) for s in manifest_scenes(man, "test")}
