@@ -42,7 +42,7 @@ from reconstruct.network import NetConfig, PolSpikeNet, count_parameters, init_w
 from reconstruct.onthefly import WindowConfig
 from reconstruct.solvers import SolverConfig
 
-__all__ = ["TrainConfig", "alpha_at", "collate", "evaluate_model", "train", "TINY"]
+__all__ = ["TrainConfig", "alpha_at", "lr_at", "collate", "evaluate_model", "train", "TINY"]
 
 log = logging.getLogger(__name__)
 
@@ -58,6 +58,8 @@ class TrainConfig:
     steps_per_epoch: int = opt(0, "optimizer steps per epoch; 0 = len(train set) // batch_size", lo=0, hi=10**9)
     batch_size: int = opt(8, "windows per step (paper: 8)", lo=1, hi=4096)
     lr: float = opt(3e-4, "Adam learning rate (paper: 3e-4)", lo=1e-8, hi=1.0)
+    lr_schedule: str = opt("constant", "learning rate over the run: constant, or cosine (from lr down to lr_min at the last step; a function of the step, so resuming keeps it)", choices=("constant", "cosine"))
+    lr_min: float = opt(0.0, "final learning rate of the cosine schedule", lo=0.0, hi=1.0)
     grad_clip: float = opt(1.0, "gradient-norm clip (0 = off)", lo=0.0, hi=1e6)
     curriculum_fracs: tuple[float, float] = opt((5 / 60, 15 / 60), "end of the alpha=1.0 and alpha=0.5 phases as fractions of the epochs (paper: 5/60, 15/60)", lo=0.0, hi=1.0)
     curriculum_alphas: tuple[float, float, float] = opt((1.0, 0.5, 0.0), "teacher-forcing ratio in the three phases (paper: 1.0, 0.5, 0.0)", lo=0.0, hi=1.0)
@@ -99,6 +101,14 @@ def alpha_at(epoch: int, cfg: TrainConfig) -> float:
     a1, a2, a3 = cfg.curriculum_alphas
     e1, e2 = cfg.curriculum_fracs
     return a1 if f < e1 - 1e-12 else (a2 if f < e2 - 1e-12 else a3)
+
+
+def lr_at(step: int, total: int, cfg: TrainConfig) -> float:
+    """Learning rate of the optimizer step that follows ``step`` done steps (``cfg.lr_schedule``)."""
+    if cfg.lr_schedule == "constant" or total <= 1:
+        return cfg.lr
+    f = min(max(step / (total - 1), 0.0), 1.0)
+    return cfg.lr_min + 0.5 * (cfg.lr - cfg.lr_min) * (1.0 + math.cos(math.pi * f))
 
 
 def collate(items: list[dict[str, torch.Tensor]]) -> dict[str, torch.Tensor]:
@@ -395,6 +405,8 @@ def train(
             raise FloatingPointError(f"non-finite loss at step {step}: {parts}")
         opt_.zero_grad(set_to_none=True)
         loss.backward()
+        for group in opt_.param_groups:
+            group["lr"] = lr_at(step, total, cfg)
         if cfg.grad_clip > 0:
             torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.grad_clip)
         opt_.step()

@@ -236,3 +236,24 @@ def test_window_config_checks():
         WindowConfig(n_obs=6)
     with pytest.raises(ConfigError):
         WindowConfig(window_steps=12)
+
+
+def test_cosine_schedule_closed_form_and_resume(tmp_path, sets):
+    """lr_at: lr at the first step, lr_min at the last, their mean half way; a cosine run killed half way and
+    resumed ends with the weights of an uninterrupted one (the rate is a function of the step)."""
+    from reconstruct.train import lr_at
+
+    cfg = dataclasses.replace(TINY, lr=1e-3, lr_schedule="cosine", lr_min=1e-5)
+    total = 9
+    assert lr_at(0, total, cfg) == pytest.approx(1e-3)
+    assert lr_at(8, total, cfg) == pytest.approx(1e-5)
+    assert lr_at(4, total, cfg) == pytest.approx(0.5 * (1e-3 + 1e-5))
+    assert all(lr_at(k + 1, total, cfg) < lr_at(k, total, cfg) for k in range(total - 1))
+    assert lr_at(3, total, TINY) == TINY.lr  # constant
+    tr, va = sets
+    train(cfg, tr, va, tmp_path / "whole")
+    train(cfg, tr, va, tmp_path / "pieces", stop_after=3)
+    train(cfg, tr, va, tmp_path / "pieces")
+    a, b = (read_checkpoint(tmp_path / d / "last.pt") for d in ("whole", "pieces"))
+    assert all(torch.equal(a["state_dict"][k], b["state_dict"][k]) for k in a["state_dict"])
+    assert a["optimizer"]["param_groups"][0]["lr"] == pytest.approx(lr_at(TINY.epochs * TINY.steps_per_epoch - 1, TINY.epochs * TINY.steps_per_epoch, cfg))
