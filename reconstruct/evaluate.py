@@ -54,12 +54,13 @@ from polinfra.config import opt, to_dict
 from polinfra.errors import ConfigError, DataFormatError
 
 from reconstruct.groups import EvalGroup
-from reconstruct.metrics import LPIPS_NA, lpips_status, psnr, score
+from reconstruct.identifiability import SHARE_MIN, bound_psnr, ls_layer_variance, reflected_share, window_mean_variance
+from reconstruct.metrics import LPIPS_NA, lpips_status, masked_score, psnr, score
 from reconstruct.rir import RirConfig, estimate_shifts, warp
 from reconstruct.solvers import PHYSICS_SOLVER_CONFIG, SOLVERS, SolverConfig, anchor_to_mean, solve, zbar_of
 from reconstruct.zeta_source import ZETA_SOURCES, PaneMaps, zeta_from_maps, zeta_learned
 
-__all__ = ["net_zeta_of", "REGIME_FACTORS", "regime_of", "evaluate_by_regime", "regime_markdown", "regime_report", "REGIME_TABLES", "EvalConfig", "EvalReport", "finite_means", "BASELINES", "ANCHOR_SUFFIX", "NET_METHOD", "load_network", "group_zeta", "evaluate_groups", "write_report", "parse_methods", "load_groups", "window_sweep", "markdown_table", "sweep_markdown"]
+__all__ = ["SHARE_KEYS", "SHARE_FRAME_KEYS", "group_noise", "share_context", "share_scores", "net_zeta_of", "REGIME_FACTORS", "regime_of", "evaluate_by_regime", "regime_markdown", "regime_report", "REGIME_TABLES", "EvalConfig", "EvalReport", "finite_means", "BASELINES", "ANCHOR_SUFFIX", "NET_METHOD", "load_network", "group_zeta", "evaluate_groups", "write_report", "parse_methods", "load_groups", "window_sweep", "markdown_table", "sweep_markdown"]
 
 log = logging.getLogger(__name__)
 
@@ -224,6 +225,101 @@ def group_zeta(group: EvalGroup, cfg: EvalConfig) -> np.ndarray | None:
     return zeta_from_maps(maps, group.phi_nominal, group.span_rad, dtype=torch.float64).numpy()
 
 
+# ---- R where the reflection is >= 20 % of the light, and its noise floor (reconstruct.identifiability) ----
+
+SHARE_FRAME_KEYS = ("share_frac", "psnr_R_bound", "psnr_R_bound_all", "psnr_R_bound_gls")
+"""Per-frame values that do not depend on the method: the fraction of pixels with reflected share rho >=
+:data:`SHARE_MIN`, the PSNR of R implied by the noise floor of the unbiased LS estimate with the true zeta
+(:func:`reconstruct.identifiability.ls_layer_variance`) over those pixels, over the whole frame, and that of
+the inverse-variance weighted LS (the Cramer-Rao bound for Gaussian noise) over those pixels."""
+
+SHARE_KEYS = ("psnr_R_share", "ssim_R_share", *SHARE_FRAME_KEYS)
+"""Keys added to every frame and row: PSNR / SSIM of R over the pixels with rho >= :data:`SHARE_MIN`
+(:func:`reconstruct.metrics.masked_score`), then :data:`SHARE_FRAME_KEYS`; None where not defined (no GT R or
+zeta; the bounds also need the stored group's exposure, :func:`group_noise`)."""
+
+
+SHARE_NOTE = (
+    "rho>=0.2: R scored over the pixels where the reflected share rho = zbar R / (zbar R + (1 - zbar) T) >= 0.2 "
+    "(true layers, zbar = half-turn mean of the true zeta); frac = their fraction. R bound (LS, true zeta): PSNR of R over "
+    "those pixels implied by the variance of the unbiased least-squares (T, R) from the window's N observations with the "
+    "true zeta and the simulator's spike noise (reconstruct/identifiability.py; unclipped, one window)."
+)
+"""Legend of the reflected-share columns."""
+
+
+def group_noise(group: EvalGroup, cfg: EvalConfig) -> dict | None:
+    """Noise of the group's Eq. (3) window means, as keywords of
+    :func:`reconstruct.identifiability.window_mean_variance`, read from the stored group's simulator
+    configuration (integrate-and-fire pixel: exposure, window steps at its rate, shot and reset noise, gain
+    and threshold spread); None for a group that is not a stored simulation (no ``source_dir`` or config)."""
+    if not group.source_dir:
+        return None
+    from reconstruct.groups import window_steps_from_ms
+    from spike_sim.store import open_group
+
+    try:
+        with open_group(group.source_dir) as s:
+            sim = s.json_attr("config_json") or {}
+            rate = float(s.rate_hz)
+    except (OSError, ValueError, KeyError):
+        return None
+    if not sim:
+        return None
+    fp = bool(sim.get("fixed_pattern", True))
+    rel = float(np.sqrt(sum(float(sim.get(k, 0.0)) ** 2 for k in ("gain_sigma", "offset_sigma", "threshold_sigma")))) if fp else 0.0
+    return {
+        "exposure": float(sim.get("exposure", 1.0)),
+        "window_steps": window_steps_from_ms(cfg.dt_ms, rate),
+        "model": "integrate_fire",
+        "photons_per_threshold": float(sim.get("photons_per_threshold", 1000.0)) if sim.get("shot_noise", True) else float("inf"),
+        "reset_sigma": float(sim.get("reset_sigma", 0.0)) if sim.get("reset_noise", True) else 0.0,
+        "rel_sigma": rel,
+    }
+
+
+def share_context(group: EvalGroup, cfg: EvalConfig) -> dict | None:
+    """What :func:`share_scores` needs for a group: the TRUE zeta of every frame (pane maps, else the group's
+    GT zeta; whatever ``cfg.zeta`` the solvers use), its half-turn mean zbar, the noise (:func:`group_noise`);
+    None without GT layers or a true zeta.
+
+    The share uses zbar = (R_perp + R_par) / 2, the mean of zeta over a half polarizer turn, not the centre
+    window's zeta: "the share of reflection in the light" is then a property of the scene (what the camera
+    receives without the polarizer), and the mask does not flicker with the polarizer's phase."""
+    if group.T is None or group.R is None:
+        return None
+    if group.maps is not None:
+        Z = zeta_from_maps(group.maps, group.phi_true, group.span_rad, dtype=torch.float64).numpy()
+        zbar = 0.5 * (np.asarray(group.maps.R_perp, np.float64) + np.asarray(group.maps.R_par, np.float64))
+    elif group.gt_zeta is not None:
+        Z, zbar = np.asarray(group.gt_zeta, np.float64), None  # zbar per window (zbar_of)
+    else:
+        return None
+    return {"Z": Z, "zbar": zbar, "phi": np.asarray(group.phi_true, np.float64), "T": group.T, "R": group.R, "noise": group_noise(group, cfg)}
+
+
+def share_scores(ctx: dict | None, i: int, K: int) -> dict | None:
+    """Frame ``i`` (window i - K .. i + K): {"mask": rho >= SHARE_MIN, "share_frac", "psnr_R_bound",
+    "psnr_R_bound_all", "psnr_R_bound_gls"} (bounds None without the noise), or None without a context.
+
+    The bound takes the centre frame's GT layers as static over the window (I_k = ((1 - zeta_k) T + zeta_k R) / 2
+    with the window's true zeta_k) and the noise of each window mean at that I_k."""
+    if ctx is None:
+        return None
+    Zw = ctx["Z"][i - K : i + K + 1]
+    T = np.asarray(ctx["T"][i], np.float64)
+    R = np.asarray(ctx["R"][i], np.float64)
+    zbar = ctx["zbar"] if ctx["zbar"] is not None else zbar_of(Zw, ctx["phi"][i - K : i + K + 1])
+    mask = reflected_share(T, R, zbar) >= SHARE_MIN
+    out = {"mask": mask, "share_frac": float(mask.mean()), "psnr_R_bound": None, "psnr_R_bound_all": None, "psnr_R_bound_gls": None}
+    if ctx["noise"] is not None:
+        var_I = window_mean_variance(0.5 * ((1.0 - Zw) * T + Zw * R), **ctx["noise"])
+        _, vR = ls_layer_variance(Zw, var_I)
+        _, vRg = ls_layer_variance(Zw, var_I, weighted=True)
+        out.update(psnr_R_bound=bound_psnr(vR, mask), psnr_R_bound_all=bound_psnr(vR), psnr_R_bound_gls=bound_psnr(vRg, mask))
+    return out
+
+
 def finite_means(items: list[dict], keys: tuple[str, ...]) -> dict:
     """Per key, the mean of the items' finite values (None where there is none)."""
     out = {}
@@ -285,6 +381,7 @@ def evaluate_groups(
         Znet = None  # the network's zeta when not its own (None: learned, also where self finds nothing modulating)
         if net_rows and nz != "learned":
             Znet = Z if nz == cfg.zeta else group_zeta(g, dataclasses.replace(cfg, zeta=nz))
+        share = share_context(g, cfg)
         t["zeta"] += time.perf_counter() - t0
         M = g.I.shape[0]
         has = np.ones(M, bool) if g.has_gt is None else g.has_gt
@@ -344,6 +441,7 @@ def evaluate_groups(
             for j, i in enumerate(cb):
                 gtT = g.T[i]
                 gtR = None if g.R is None else g.R[i]
+                shr = share_scores(share, i, K)  # the reflected-share mask and the R noise floor of this frame
                 rows = {"tfp": (tfp[j], None)}
                 best = max(range(cfg.n_obs), key=lambda k: psnr(raw_np[j, k], gtT))
                 rows["best_frame"] = (raw_np[j, best], None)
@@ -352,15 +450,18 @@ def evaluate_groups(
                 rows.update(est_j := {m: (v[0][j], v[1][j]) for m, v in est.items()})
                 for name, (Th, Rh) in rows.items():
                     sT = score(Th, gtT)
-                    sR = score(Rh, gtR) if (Rh is not None and gtR is not None) else {"psnr": None, "ssim": None}
-                    frames.append({"group": g.name, "frame": int(i), "method": name, "psnr_T": sT["psnr"], "ssim_T": sT["ssim"], "psnr_R": sR["psnr"], "ssim_R": sR["ssim"]})
+                    has_R = Rh is not None and gtR is not None
+                    sR = score(Rh, gtR) if has_R else {"psnr": None, "ssim": None}
+                    sS = masked_score(Rh, gtR, shr["mask"]) if (has_R and shr is not None) else {"psnr": None, "ssim": None}
+                    frames.append({"group": g.name, "frame": int(i), "method": name, "psnr_T": sT["psnr"], "ssim_T": sT["ssim"], "psnr_R": sR["psnr"], "ssim_R": sR["ssim"],
+                                   "psnr_R_share": sS["psnr"], "ssim_R_share": sS["ssim"], **({k: None for k in SHARE_FRAME_KEYS} if shr is None else {k: shr[k] for k in SHARE_FRAME_KEYS})})
                 if j == 0 and b0 == 0 and len(fig["frames"]) < cfg.figure_frames:  # first frame of each group
                     fig["frames"].append(f"{g.name} #{i}")
                     fig["images"].append([raw_np[j, K], tfp[j], *[est_j[m][0] for m in solvers], *[est_j[m][0] for m in net_rows[:1]], gtT])
             t["metrics"] += time.perf_counter() - t0
         if progress is not None:
             progress(gi + 1, len(groups))
-    keys = ("psnr_T", "ssim_T", "psnr_R", "ssim_R")
+    keys = ("psnr_T", "ssim_T", "psnr_R", "ssim_R", *SHARE_KEYS)
     order = [*BASELINES, *[x for m in [*solvers, *net_rows] for x in (m, m + ANCHOR_SUFFIX)]]
     rows = []
     by = defaultdict(list)
@@ -390,14 +491,19 @@ def _fmt(v, nd=3) -> str:
 
 
 def markdown_table(report: EvalReport, overall_only: bool = False) -> str:
-    """Markdown table of per-group and overall means (PSNR dB / SSIM for T and R)."""
-    head = "| group | method | frames | PSNR T (dB) | SSIM T | PSNR R (dB) | SSIM R | LPIPS T |\n|---|---|---:|---:|---:|---:|---:|---|\n"
+    """Markdown table of per-group and overall means (PSNR dB / SSIM for T and R; R also over the pixels with
+    reflected share rho >= 0.2, their fraction and the R noise floor there, :data:`SHARE_KEYS`)."""
+    head = (
+        "| group | method | frames | PSNR T (dB) | SSIM T | PSNR R (dB) | SSIM R | LPIPS T | PSNR R rho>=0.2 (dB) | SSIM R rho>=0.2 | rho>=0.2 frac | R bound (LS, true zeta) |\n"
+        "|---|---|---:|---:|---:|---:|---:|---|---:|---:|---:|---:|\n"
+    )
     lines = []
     for r in report.rows:
         if overall_only and r["group"] != "overall":
             continue
         lines.append(
-            f"| {r['group']} | {r['method']} | {r['n_frames']} | {_fmt(r['psnr_T'], 2)} | {_fmt(r['ssim_T'])} | {_fmt(r['psnr_R'], 2)} | {_fmt(r['ssim_R'])} | {r['lpips_T']} |"
+            f"| {r['group']} | {r['method']} | {r['n_frames']} | {_fmt(r['psnr_T'], 2)} | {_fmt(r['ssim_T'])} | {_fmt(r['psnr_R'], 2)} | {_fmt(r['ssim_R'])} | {r['lpips_T']} "
+            f"| {_fmt(r.get('psnr_R_share'), 2)} | {_fmt(r.get('ssim_R_share'))} | {_fmt(r.get('share_frac'))} | {_fmt(r.get('psnr_R_bound'), 2)} |"
         )
     return head + "\n".join(lines) + "\n"
 
@@ -412,14 +518,14 @@ def write_report(report: EvalReport, out_dir: str | Path) -> dict[str, Path]:
     out = ensure_dir(out_dir)
     paths = {}
     buf = io.StringIO()
-    cols = ["group", "method", "n_frames", "psnr_T", "ssim_T", "psnr_R", "ssim_R", "lpips_T"]
+    cols = ["group", "method", "n_frames", "psnr_T", "ssim_T", "psnr_R", "ssim_R", "lpips_T", *SHARE_KEYS]
     wr = csv.DictWriter(buf, fieldnames=cols)
     wr.writeheader()
     for r in report.rows:
         wr.writerow({k: ("n/a" if r.get(k) is None else r[k]) for k in cols})
     paths["csv"] = write_text(out / "results.csv", buf.getvalue())
     md = "# Evaluation\n\n" + markdown_table(report) + f"\nLPIPS: {LPIPS_NA}: LPIPS needs pretrained backbone weights and there is no download here.\n"
-    md += f"\nBaselines: tfp = 2 x window mean of I (unaligned); best_frame = best single 2 I(i+k) by PSNR (oracle pick).\n\nTimings (s): {', '.join(f'{k} {v:.2f}' for k, v in report.timings.items())}\n"
+    md += f"\nBaselines: tfp = 2 x window mean of I (unaligned); best_frame = best single 2 I(i+k) by PSNR (oracle pick).\n\n{SHARE_NOTE}\n\nTimings (s): {', '.join(f'{k} {v:.2f}' for k, v in report.timings.items())}\n"
     paths["md"] = write_text(out / "results.md", md)
     paths["json"] = write_json(out / "results.json", {"rows": report.rows, "timings": report.timings, "config": report.config})
     paths["config"] = write_json(out / "config.json", report.config)
@@ -551,7 +657,11 @@ def evaluate_by_regime(
         {"columns": [...], "groups": [{"group", "regime", column: PSNR T}], "rows": [{"regime",
         "n_groups", column: mean PSNR T over the level's groups}], "ssim": same for SSIM T,
         "rows_R" / "ssim_R": same for R (None where a column has no R, e.g. the baselines),
-        "groups_R": per-group {column: [PSNR R, SSIM R]}}.
+        "groups_R": per-group {column: [PSNR R, SSIM R]},
+        "rows_R_share" / "ssim_R_share": PSNR / SSIM of R over the pixels with reflected share rho >= 0.2
+        (:data:`SHARE_KEYS`), each row also with the level's mean of :data:`SHARE_FRAME_KEYS` (fraction of
+        such pixels, R bound of the LS with the true zeta, ...), "groups_R_share": per-group {column:
+        [PSNR, SSIM]} of that, "groups_share": per-group :data:`SHARE_FRAME_KEYS`}.
     """
     zetas = list(dict.fromkeys(zetas))
     net_zetas = list(dict.fromkeys(net_zetas)) if network else []
@@ -559,8 +669,9 @@ def evaluate_by_regime(
     if bad:
         raise ConfigError(f"unknown zeta source(s) {bad}; choose from {list(ZETA_SOURCES)}")
     solvers = [m for m in parse_methods(cfg.methods) if m in SOLVERS] or list(SOLVERS)
-    keys = ("psnr_T", "ssim_T", "psnr_R", "ssim_R")
+    keys = ("psnr_T", "ssim_T", "psnr_R", "ssim_R", "psnr_R_share", "ssim_R_share")
     per: dict[str, dict[str, dict[str, float]]] = {k: defaultdict(dict) for k in keys}
+    gshare: dict[str, dict] = {}  # per group: SHARE_FRAME_KEYS (method-independent; from the first run that has them)
     columns: list[str] = []  # baselines first, in BASELINES order, where the groups have them (spike_mean: stored groups)
     runs = [(z, solvers, None) for z in zetas] + [(None, [NET_METHOD], nz) for nz in net_zetas]
     for j, (z, methods, nz) in enumerate(runs):
@@ -581,6 +692,8 @@ def evaluate_by_regime(
                 col = f"{m}@{z}"
             for k in keys:
                 per[k][r["group"]][col] = r[k]
+            if r.get("share_frac") is not None and r["group"] not in gshare:
+                gshare[r["group"]] = {k: r.get(k) for k in SHARE_FRAME_KEYS}
             if col not in columns:
                 columns.append(col)
         columns.sort(key=lambda c: BASELINES.index(c) if c in BASELINES else len(BASELINES))  # stable: the rest keep their order
@@ -593,10 +706,15 @@ def evaluate_by_regime(
             names = [g["group"] for g in grows if g["regime"].get(f) == lv]
             if not names:
                 continue
+            sh = {k: _mean_or_none([gshare.get(n, {}).get(k) for n in names]) for k in SHARE_FRAME_KEYS}
             for k in keys:
-                out_rows[k].append({"regime": f"{f}={lv}", "n_groups": len(names), **{c: _mean_or_none([per[k][n].get(c) for n in names]) for c in columns}})
+                extra = sh if k.endswith("_share") else {}
+                out_rows[k].append({"regime": f"{f}={lv}", "n_groups": len(names), **{c: _mean_or_none([per[k][n].get(c) for n in names]) for c in columns}, **extra})
     groups_R = {g["group"]: {c: [per["psnr_R"][g["group"]].get(c), per["ssim_R"][g["group"]].get(c)] for c in columns} for g in grows}
-    return {"columns": columns, "groups": grows, "rows": out_rows["psnr_T"], "ssim": out_rows["ssim_T"], "rows_R": out_rows["psnr_R"], "ssim_R": out_rows["ssim_R"], "groups_R": groups_R}
+    groups_R_share = {g["group"]: {c: [per["psnr_R_share"][g["group"]].get(c), per["ssim_R_share"][g["group"]].get(c)] for c in columns} for g in grows}
+    groups_share = {g["group"]: gshare.get(g["group"], {k: None for k in SHARE_FRAME_KEYS}) for g in grows}
+    return {"columns": columns, "groups": grows, "rows": out_rows["psnr_T"], "ssim": out_rows["ssim_T"], "rows_R": out_rows["psnr_R"], "ssim_R": out_rows["ssim_R"], "groups_R": groups_R,
+            "rows_R_share": out_rows["psnr_R_share"], "ssim_R_share": out_rows["ssim_R_share"], "groups_R_share": groups_R_share, "groups_share": groups_share}
 
 
 def _mean_or_none(v: list) -> float | None:
@@ -606,22 +724,29 @@ def _mean_or_none(v: list) -> float | None:
 
 def regime_markdown(res: dict, metric: str = "rows") -> str:
     """Markdown table of :func:`evaluate_by_regime` rows: ``metric`` = "rows" (PSNR of T, dB, the default),
-    "ssim" (SSIM of T), "rows_R" (PSNR of R, dB) or "ssim_R" (SSIM of R); n/a where a column has no value."""
+    "ssim" (SSIM of T), "rows_R" (PSNR of R, dB), "ssim_R" (SSIM of R), "rows_R_share" / "ssim_R_share" (R over
+    the pixels with reflected share >= 0.2, led by their fraction and the R bound); n/a where a column has no value."""
     cols = res["columns"]
     rows = res.get(metric)
     if rows is None:
-        raise ConfigError(f"no {metric!r} table in this result; choose rows, ssim, rows_R or ssim_R")
+        raise ConfigError(f"no {metric!r} table in this result; choose rows, ssim, rows_R, ssim_R, rows_R_share or ssim_R_share")
     nd = 3 if metric.startswith("ssim") else 2
-    if metric.endswith("_R"):  # the baselines estimate no R
+    if metric.endswith(("_R", "_R_share")):  # the baselines estimate no R
         cols = [c for c in cols if any(r.get(c) is not None for r in rows)]
-    head = "| regime | groups | " + " | ".join(cols) + " |\n|---|---:|" + "---:|" * len(cols) + "\n"
-    return head + "\n".join(f"| {r['regime']} | {r['n_groups']} | " + " | ".join(_fmt(r[c], nd) for c in cols) + " |" for r in rows) + "\n"
+    extra = [(k, t, d) for k, t, d in SHARE_EXTRA if metric.endswith("_share")]
+    head = "| regime | groups | " + "".join(f"{t} | " for _, t, _ in extra) + " | ".join(cols) + " |\n|---|---:|" + "---:|" * (len(extra) + len(cols)) + "\n"
+    return head + "\n".join(f"| {r['regime']} | {r['n_groups']} | " + "".join(f"{_fmt(r.get(k), d)} | " for k, _, d in extra) + " | ".join(_fmt(r[c], nd) for c in cols) + " |" for r in rows) + "\n"
 
 
-REGIME_TABLES = (("rows", "PSNR of T (dB)"), ("ssim", "SSIM of T"), ("rows_R", "PSNR of R (dB)"), ("ssim_R", "SSIM of R"))
+SHARE_EXTRA = (("share_frac", "rho>=0.2 frac", 3), ("psnr_R_bound", "R bound (LS, true zeta)", 2))
+"""Leading columns of the reflected-share tables: (row key, title, decimals)."""
+
+
+REGIME_TABLES = (("rows", "PSNR of T (dB)"), ("ssim", "SSIM of T"), ("rows_R", "PSNR of R (dB)"), ("ssim_R", "SSIM of R"),
+                 ("rows_R_share", "PSNR of R where the reflection is >= 20 % of the light (dB)"), ("ssim_R_share", "SSIM of R where the reflection is >= 20 % of the light"))
 """The tables of ``by_regime.md``: (key of :func:`evaluate_by_regime`'s result, title)."""
 
 
 def regime_report(res: dict) -> str:
-    """``by_regime.md``: the four per-regime tables (PSNR / SSIM of T and of R)."""
-    return "\n".join(f"## {title} per regime level\n\n" + regime_markdown(res, key) for key, title in REGIME_TABLES if res.get(key) is not None)
+    """``by_regime.md``: the per-regime tables (PSNR / SSIM of T, of R, and of R where the reflected share is >= 0.2)."""
+    return "\n".join(f"## {title} per regime level\n\n" + regime_markdown(res, key) for key, title in REGIME_TABLES if res.get(key) is not None) + f"\n{SHARE_NOTE}\n"
