@@ -83,7 +83,7 @@ def evaluate_cmd(
         res["checkpoint"] = str(checkpoint) if checkpoint else "shipped default"
         write_json(out / "by_regime.json", res)
         write_text(out / "by_regime.md", f"# Stress set per regime level ({dataset}, split {split}; network: {res['checkpoint']})\n\n" + regime_report(res))
-        Console().print("PSNR of T (dB)\n" + regime_markdown(res) + "\nPSNR of R (dB)\n" + regime_markdown(res, "rows_R"))
+        Console().print("PSNR of T (dB)\n" + regime_markdown(res) + "\nPSNR of R (dB)\n" + regime_markdown(res, "rows_R") + "\nPSNR of R where the reflection is >= 20 % of the light (dB)\n" + regime_markdown(res, "rows_R_share"))
         Console().print(f"[green]wrote[/] {out / 'by_regime.md'}, {out / 'by_regime.json'}")
         return
     with rich_progress("evaluate", enabled=not quiet) as cb:

@@ -83,3 +83,23 @@ def test_fit_picks_the_best_grid_point():
 def test_fit_rwps_refuses_the_test_split(tmp_path):
     r = subprocess.run([sys.executable, "-c", "from polspike.cli import app; app()", "fit-rwps", str(tmp_path), "--split", "test", "--quiet"], capture_output=True, text=True, cwd=REPO, timeout=120)
     assert r.returncode == 2 and "training groups" in r.stderr and "Traceback" not in r.stderr
+
+
+def test_share_tables_are_means_of_their_groups_and_render(groups):
+    """R where the reflection is >= 20 % of the light: per-regime rows average the groups' masked scores and
+    fractions; the table leads with the fraction and the bound (n/a without a stored group's noise)."""
+    from reconstruct.evaluate import regime_markdown, regime_report
+
+    cfg = EvalConfig(methods="ls", max_frames=2, rir=False)
+    res = evaluate_by_regime(groups, cfg, zetas=("gt",), network=False)
+    rows = {r["regime"]: r for r in res["rows_R_share"]}
+    gs, gr = res["groups_share"], res["groups_R_share"]
+    names = ["refl-strong_inc-normal", "refl-strong_inc-glancing"]
+    assert rows["refl=strong"]["share_frac"] == pytest.approx(np.mean([gs[n]["share_frac"] for n in names]))
+    vals = [gr[n]["ls@gt"][0] for n in names if gr[n]["ls@gt"][0] is not None]
+    assert vals and rows["refl=strong"]["ls@gt"] == pytest.approx(np.mean(vals))
+    assert rows["refl=strong"]["psnr_R_bound"] is None  # synthetic groups carry no simulator noise
+    md = regime_markdown(res, "rows_R_share")
+    assert md.splitlines()[0].startswith("| regime | groups | rho>=0.2 frac | R bound (LS, true zeta) | ls@gt |")
+    assert "tfp" not in md.splitlines()[0]  # the baselines estimate no R
+    assert "PSNR of R where the reflection is >= 20 % of the light" in regime_report(res)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import numpy as np
@@ -172,3 +173,18 @@ def test_anchor_rows_on_a_static_store_beat_the_short_windows(tmp_path):
     assert ov["rwps+mean"]["psnr_T"] > ov["spike_mean"]["psnr_T"] - 0.5  # 26.56
     off = evaluate_groups([g], EvalConfig(rir=False, methods="ls"))
     assert not any(r["method"].endswith("+mean") for r in off.rows)
+
+
+def test_share_scores_equal_the_whole_frame_ones_where_all_the_light_is_reflection():
+    """GT with T ~ 0 and R = 1: the reflected share is >= 0.2 at every pixel, so the masked R scores equal the
+    whole-frame ones; with R = 0 no pixel qualifies and they are None (fraction 0)."""
+    g = make_group(SyntheticConfig(width=24, height=16, n_groups=1, n_frames=9, seed=4), 0)
+    cfg = EvalConfig(methods="ls", max_frames=2, rir=False)
+    full = evaluate_groups([dataclasses.replace(g, T=np.full_like(g.T, 1e-4), R=np.ones_like(g.R))], cfg)
+    f = [x for x in full.frames if x["method"] == "ls"]
+    assert f and all(x["share_frac"] == 1.0 for x in f)
+    for x in f:
+        assert x["psnr_R_share"] == pytest.approx(x["psnr_R"], abs=1e-9) and x["ssim_R_share"] == pytest.approx(x["ssim_R"], abs=1e-12)
+    none = evaluate_groups([dataclasses.replace(g, R=np.zeros_like(g.R))], cfg)
+    f0 = [x for x in none.frames if x["method"] == "ls"]
+    assert all(x["share_frac"] == 0.0 and x["psnr_R_share"] is None and x["ssim_R_share"] is None for x in f0)
