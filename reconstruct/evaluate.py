@@ -60,7 +60,7 @@ from reconstruct.rir import RirConfig, estimate_shifts, warp
 from reconstruct.solvers import PHYSICS_SOLVER_CONFIG, SOLVERS, SolverConfig, anchor_to_mean, solve, zbar_of
 from reconstruct.zeta_source import ZETA_SOURCES, PaneMaps, zeta_from_maps, zeta_learned
 
-__all__ = ["SHARE_KEYS", "SHARE_FRAME_KEYS", "group_noise", "share_context", "share_scores", "net_zeta_of", "REGIME_FACTORS", "regime_of", "evaluate_by_regime", "regime_markdown", "regime_report", "REGIME_TABLES", "EvalConfig", "EvalReport", "finite_means", "BASELINES", "ANCHOR_SUFFIX", "NET_METHOD", "load_network", "group_zeta", "evaluate_groups", "write_report", "parse_methods", "load_groups", "window_sweep", "markdown_table", "sweep_markdown"]
+__all__ = ["BOUND_GOAL_DB", "SHARE_KEYS", "SHARE_FRAME_KEYS", "group_noise", "share_context", "share_scores", "net_zeta_of", "REGIME_FACTORS", "regime_of", "evaluate_by_regime", "regime_markdown", "regime_report", "REGIME_TABLES", "EvalConfig", "EvalReport", "finite_means", "BASELINES", "ANCHOR_SUFFIX", "NET_METHOD", "load_network", "group_zeta", "evaluate_groups", "write_report", "parse_methods", "load_groups", "window_sweep", "markdown_table", "sweep_markdown"]
 
 log = logging.getLogger(__name__)
 
@@ -660,7 +660,8 @@ def evaluate_by_regime(
         "groups_R": per-group {column: [PSNR R, SSIM R]},
         "rows_R_share" / "ssim_R_share": PSNR / SSIM of R over the pixels with reflected share rho >= 0.2
         (:data:`SHARE_KEYS`), each row also with the level's mean of :data:`SHARE_FRAME_KEYS` (fraction of
-        such pixels, R bound of the LS with the true zeta, ...), "groups_R_share": per-group {column:
+        such pixels, R bound of the LS with the true zeta, ...) and "n_bound" / "n_bound_ge_22" (groups with
+        a bound / with a bound >= :data:`BOUND_GOAL_DB`), "groups_R_share": per-group {column:
         [PSNR, SSIM]} of that, "groups_share": per-group :data:`SHARE_FRAME_KEYS`}.
     """
     zetas = list(dict.fromkeys(zetas))
@@ -707,6 +708,8 @@ def evaluate_by_regime(
             if not names:
                 continue
             sh = {k: _mean_or_none([gshare.get(n, {}).get(k) for n in names]) for k in SHARE_FRAME_KEYS}
+            bnd = [gshare[n]["psnr_R_bound"] for n in names if gshare.get(n, {}).get("psnr_R_bound") is not None]
+            sh.update(n_bound=len(bnd), n_bound_ge_22=sum(b >= BOUND_GOAL_DB for b in bnd))  # a dB mean hides -50 dB groups
             for k in keys:
                 extra = sh if k.endswith("_share") else {}
                 out_rows[k].append({"regime": f"{f}={lv}", "n_groups": len(names), **{c: _mean_or_none([per[k][n].get(c) for n in names]) for c in columns}, **extra})
@@ -733,13 +736,21 @@ def regime_markdown(res: dict, metric: str = "rows") -> str:
     nd = 3 if metric.startswith("ssim") else 2
     if metric.endswith(("_R", "_R_share")):  # the baselines estimate no R
         cols = [c for c in cols if any(r.get(c) is not None for r in rows)]
-    extra = [(k, t, d) for k, t, d in SHARE_EXTRA if metric.endswith("_share")]
-    head = "| regime | groups | " + "".join(f"{t} | " for _, t, _ in extra) + " | ".join(cols) + " |\n|---|---:|" + "---:|" * (len(extra) + len(cols)) + "\n"
-    return head + "\n".join(f"| {r['regime']} | {r['n_groups']} | " + "".join(f"{_fmt(r.get(k), d)} | " for k, _, d in extra) + " | ".join(_fmt(r[c], nd) for c in cols) + " |" for r in rows) + "\n"
+    extra = [(t, fm) for _, t, fm in SHARE_EXTRA if metric.endswith("_share")]
+    head = "| regime | groups | " + "".join(f"{t} | " for t, _ in extra) + " | ".join(cols) + " |\n|---|---:|" + "---:|" * (len(extra) + len(cols)) + "\n"
+    return head + "\n".join(f"| {r['regime']} | {r['n_groups']} | " + "".join(f"{fm(r)} | " for _, fm in extra) + " | ".join(_fmt(r[c], nd) for c in cols) + " |" for r in rows) + "\n"
 
 
-SHARE_EXTRA = (("share_frac", "rho>=0.2 frac", 3), ("psnr_R_bound", "R bound (LS, true zeta)", 2))
-"""Leading columns of the reflected-share tables: (row key, title, decimals)."""
+BOUND_GOAL_DB = 22.0
+"""Issue 16's goal for R where the reflection is >= 20 % of the light; the share tables count the groups whose
+R bound reaches it."""
+
+SHARE_EXTRA = (
+    ("share_frac", "rho>=0.2 frac", lambda r: _fmt(r.get("share_frac"), 3)),
+    ("psnr_R_bound", "R bound (LS, true zeta)", lambda r: _fmt(r.get("psnr_R_bound"), 2)),
+    ("n_bound_ge_22", "groups with bound >= 22 dB", lambda r: "n/a" if not r.get("n_bound") else f"{r['n_bound_ge_22']}/{r['n_bound']}"),
+)
+"""Leading columns of the reflected-share tables: (row key, title, formatter of the row)."""
 
 
 REGIME_TABLES = (("rows", "PSNR of T (dB)"), ("ssim", "SSIM of T"), ("rows_R", "PSNR of R (dB)"), ("ssim_R", "SSIM of R"),

@@ -100,6 +100,24 @@ def test_share_tables_are_means_of_their_groups_and_render(groups):
     assert vals and rows["refl=strong"]["ls@gt"] == pytest.approx(np.mean(vals))
     assert rows["refl=strong"]["psnr_R_bound"] is None  # synthetic groups carry no simulator noise
     md = regime_markdown(res, "rows_R_share")
-    assert md.splitlines()[0].startswith("| regime | groups | rho>=0.2 frac | R bound (LS, true zeta) | ls@gt |")
+    assert md.splitlines()[0].startswith("| regime | groups | rho>=0.2 frac | R bound (LS, true zeta) | groups with bound >= 22 dB | ls@gt |")
+    assert rows["refl=strong"]["n_bound"] == 0 and "| n/a | n/a |" in md
     assert "tfp" not in md.splitlines()[0]  # the baselines estimate no R
     assert "PSNR of R where the reflection is >= 20 % of the light" in regime_report(res)
+
+
+def test_share_rows_count_the_groups_whose_bound_reaches_22_db(groups, monkeypatch):
+    """With a known window noise (the synthetic set's Poisson counts, exposure 1, 13 steps) every group gets an R
+    bound; each level counts the groups whose bound is >= 22 dB and averages the bounds."""
+    import reconstruct.evaluate as ev
+
+    monkeypatch.setattr(ev, "group_noise", lambda g, cfg: {"exposure": 1.0, "window_steps": 13, "model": "poisson"})
+    res = evaluate_by_regime(groups, EvalConfig(methods="ls", max_frames=2, rir=False), zetas=("gt",), network=False)
+    b = {n: v["psnr_R_bound"] for n, v in res["groups_share"].items()}
+    for r in res["rows_R_share"]:
+        f, lv = r["regime"].split("=")
+        mine = [b[n] for n in b if ev.regime_of(n).get(f) == lv and b[n] is not None]
+        assert r["n_bound"] == len(mine) and r["n_bound_ge_22"] == sum(x >= 22.0 for x in mine)
+        if mine:
+            assert r["psnr_R_bound"] == pytest.approx(np.mean(mine))
+    assert any(v is not None for v in b.values())
