@@ -133,7 +133,10 @@ def test_the_evaluation_bound_equals_the_unclipped_ls_error_on_a_stored_group(tm
         r = solve("ls", torch.from_numpy(Zw)[None], torch.from_numpy(g.I[i - K : i + K + 1].astype(np.float64))[None])
         err.append(float(((r.R[0].numpy() - g.R[i]) ** 2).mean()))
         var.append(float(ls_layer_variance(Zw, window_mean_variance(0.5 * ((1 - Zw) * g.T[i] + Zw * g.R[i]), **noise))[1].mean()))
-        assert share_scores(ctx, i, K)["psnr_R_bound_all"] == pytest.approx(10 * np.log10(1 / var[-1]))
+        sc = share_scores(ctx, i, K)
+        assert sc["psnr_R_bound_all"] == pytest.approx(10 * np.log10(1 / var[-1]))
+        vR = ls_layer_variance(Zw, window_mean_variance(0.5 * ((1 - Zw) * g.T[i] + Zw * g.R[i]), **noise))[1]
+        assert sc["bound_frac_22"] == pytest.approx(float((vR[sc["mask"]] <= 10 ** -2.2).mean()))
     assert abs(np.mean(err) / np.mean(var) - 1) < 0.1
     rep = evaluate_groups([g], cfg)
     ls = next(r for r in rep.rows if r["group"] == "overall" and r["method"] == "ls")
