@@ -55,7 +55,7 @@ from polinfra.errors import ConfigError, DataFormatError
 
 from reconstruct.groups import EvalGroup
 from reconstruct.identifiability import SHARE_MIN, bound_psnr, ls_layer_variance, reflected_share, window_mean_variance
-from reconstruct.metrics import LPIPS_NA, lpips_status, masked_score, psnr, score
+from reconstruct.metrics import LPIPS_NA, lpips_status, masked_psnr, masked_score, psnr, score
 from reconstruct.rir import RirConfig, estimate_shifts, warp
 from reconstruct.solvers import PHYSICS_SOLVER_CONFIG, SOLVERS, SolverConfig, anchor_to_mean, solve, zbar_of
 from reconstruct.zeta_source import ZETA_SOURCES, PaneMaps, zeta_from_maps, zeta_learned
@@ -231,13 +231,15 @@ BOUND_GOAL_DB = 22.0
 """Issue 16's goal for R where the reflection is >= 20 % of the light; the share tables count the groups whose
 R bound reaches it."""
 
-SHARE_FRAME_KEYS = ("share_frac", "psnr_R_bound", "psnr_R_bound_all", "psnr_R_bound_gls", "bound_frac_22")
+SHARE_FRAME_KEYS = ("share_frac", "psnr_R_bound", "psnr_R_bound_all", "psnr_R_bound_gls", "bound_frac_22", "psnr_R_flat")
 """Per-frame values that do not depend on the method: the fraction of pixels with reflected share rho >=
 :data:`SHARE_MIN`, the PSNR of R implied by the noise floor of the unbiased LS estimate with the true zeta
 (:func:`reconstruct.identifiability.ls_layer_variance`) over those pixels, over the whole frame, that of
 the inverse-variance weighted LS (the Cramer-Rao bound for Gaussian noise) over those pixels, and the
 fraction of those pixels whose own LS variance reaches :data:`BOUND_GOAL_DB` (var R^ <= 10^-2.2: a mean
-variance is ruled by the few pixels where zeta hardly modulates, this count is not)."""
+variance is ruled by the few pixels where zeta hardly modulates, this count is not), and the PSNR over those
+pixels of a flat R^ at the GT's mean there (an oracle level without any content: the reference that says how
+much of an R score the layer's contrast leaves to explain; a dim or saturated R scores high flat)."""
 
 SHARE_KEYS = ("psnr_R_share", "ssim_R_share", *SHARE_FRAME_KEYS)
 """Keys added to every frame and row: PSNR / SSIM of R over the pixels with rho >= :data:`SHARE_MIN`
@@ -317,7 +319,8 @@ def share_scores(ctx: dict | None, i: int, K: int) -> dict | None:
     R = np.asarray(ctx["R"][i], np.float64)
     zbar = ctx["zbar"] if ctx["zbar"] is not None else zbar_of(Zw, ctx["phi"][i - K : i + K + 1])
     mask = reflected_share(T, R, zbar) >= SHARE_MIN
-    out = {"mask": mask, "share_frac": float(mask.mean()), "psnr_R_bound": None, "psnr_R_bound_all": None, "psnr_R_bound_gls": None, "bound_frac_22": None}
+    out = {"mask": mask, "share_frac": float(mask.mean()), "psnr_R_bound": None, "psnr_R_bound_all": None, "psnr_R_bound_gls": None, "bound_frac_22": None,
+           "psnr_R_flat": masked_psnr(np.full_like(R, R[mask].mean()), R, mask) if mask.any() else None}
     if ctx["noise"] is not None:
         var_I = window_mean_variance(0.5 * ((1.0 - Zw) * T + Zw * R), **ctx["noise"])
         _, vR = ls_layer_variance(Zw, var_I)
@@ -753,6 +756,7 @@ SHARE_EXTRA = (
     ("psnr_R_bound", "R bound (LS, true zeta)", lambda r: _fmt(r.get("psnr_R_bound"), 2)),
     ("n_bound_ge_22", "groups with bound >= 22 dB", lambda r: "n/a" if not r.get("n_bound") else f"{r['n_bound_ge_22']}/{r['n_bound']}"),
     ("bound_frac_22", "rho>=0.2 px with bound >= 22 dB", lambda r: _fmt(r.get("bound_frac_22"), 3)),
+    ("psnr_R_flat", "flat R (oracle level)", lambda r: _fmt(r.get("psnr_R_flat"), 2)),
 )
 """Leading columns of the reflected-share tables: (row key, title, formatter of the row)."""
 

@@ -100,7 +100,7 @@ def test_share_tables_are_means_of_their_groups_and_render(groups):
     assert vals and rows["refl=strong"]["ls@gt"] == pytest.approx(np.mean(vals))
     assert rows["refl=strong"]["psnr_R_bound"] is None  # synthetic groups carry no simulator noise
     md = regime_markdown(res, "rows_R_share")
-    assert md.splitlines()[0].startswith("| regime | groups | rho>=0.2 frac | R bound (LS, true zeta) | groups with bound >= 22 dB | rho>=0.2 px with bound >= 22 dB | ls@gt |")
+    assert md.splitlines()[0].startswith("| regime | groups | rho>=0.2 frac | R bound (LS, true zeta) | groups with bound >= 22 dB | rho>=0.2 px with bound >= 22 dB | flat R (oracle level) | ls@gt |")
     assert rows["refl=strong"]["n_bound"] == 0 and "| n/a | n/a | n/a |" in md
     assert "tfp" not in md.splitlines()[0]  # the baselines estimate no R
     assert "PSNR of R where the reflection is >= 20 % of the light" in regime_report(res)

@@ -183,8 +183,14 @@ def test_share_scores_equal_the_whole_frame_ones_where_all_the_light_is_reflecti
     full = evaluate_groups([dataclasses.replace(g, T=np.full_like(g.T, 1e-4), R=np.ones_like(g.R))], cfg)
     f = [x for x in full.frames if x["method"] == "ls"]
     assert f and all(x["share_frac"] == 1.0 for x in f)
+    assert all(x["psnr_R_flat"] == 100.0 for x in f)  # a flat R is its own mean level
     for x in f:
         assert x["psnr_R_share"] == pytest.approx(x["psnr_R"], abs=1e-9) and x["ssim_R_share"] == pytest.approx(x["ssim_R"], abs=1e-12)
     none = evaluate_groups([dataclasses.replace(g, R=np.zeros_like(g.R))], cfg)
     f0 = [x for x in none.frames if x["method"] == "ls"]
-    assert all(x["share_frac"] == 0.0 and x["psnr_R_share"] is None and x["ssim_R_share"] is None for x in f0)
+    assert all(x["share_frac"] == 0.0 and x["psnr_R_share"] is None and x["ssim_R_share"] is None and x["psnr_R_flat"] is None for x in f0)
+    # the flat reference: R = a on half the pixels and b on the other half -> MSE ((a - b) / 2)^2
+    R2 = np.ones_like(g.R)
+    R2[..., : g.R.shape[-1] // 2] = 0.6
+    half = evaluate_groups([dataclasses.replace(g, T=np.full_like(g.T, 1e-4), R=R2)], cfg)
+    assert all(x["psnr_R_flat"] == pytest.approx(10 * np.log10(1 / 0.2**2)) for x in half.frames if x["method"] == "ls")
