@@ -32,7 +32,10 @@ The learned reconstructor (issue 9) from a checkpoint (:func:`load_network`):
   fed to the physics solvers (w to rwps only).
 
 Scores: PSNR / SSIM (:mod:`reconstruct.metrics`) of T and R per frame,
-averaged per group and over all frames (``overall``).  Outputs (see
+averaged per group and over all frames (``overall``); R also over the pixels where
+the reflection is >= 20 % of the light, with the fraction of such pixels, the noise
+floor of R for the least-squares estimate with the true zeta
+(:mod:`reconstruct.identifiability`) and a flat-R reference (:data:`SHARE_KEYS`).  Outputs (see
 :func:`write_report`): ``results.csv``, ``results.md``, ``results.json``,
 ``figure.png`` (input / TFP / solver T / GT, the first frame of the first
 ``figure_frames`` groups), ``config.json``.
