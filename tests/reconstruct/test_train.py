@@ -257,3 +257,18 @@ def test_cosine_schedule_closed_form_and_resume(tmp_path, sets):
     a, b = (read_checkpoint(tmp_path / d / "last.pt") for d in ("whole", "pieces"))
     assert all(torch.equal(a["state_dict"][k], b["state_dict"][k]) for k in a["state_dict"])
     assert a["optimizer"]["param_groups"][0]["lr"] == pytest.approx(lr_at(TINY.epochs * TINY.steps_per_epoch - 1, TINY.epochs * TINY.steps_per_epoch, cfg))
+
+
+def test_every_shipped_training_config_loads_and_its_init_weights_exist():
+    """Each reconstruct/configs/*.toml is a valid TrainConfig whose init_from / manifests are in the repository."""
+    from pathlib import Path
+
+    from polinfra.config import from_dict, load_toml
+
+    root = Path(__file__).resolve().parents[2]
+    files = sorted((root / "reconstruct" / "configs").glob("*.toml"))
+    assert files
+    for f in files:
+        cfg = from_dict(TrainConfig, load_toml(f), where=str(f))
+        for p in (cfg.init_from, cfg.manifest, cfg.val_manifest):
+            assert not p or (root / p).is_file(), f"{f.name}: {p} missing"
