@@ -8,8 +8,9 @@ Pipeline (issue 21; physics in ../shared/RECONSTRUCTION_NOTES.md):
    pane normal and, unless given, the field of view from the modulation's orientation mod 90 deg).
 3. **Geometry** (tilt, azimuth, fov): bounded Gauss-Newton on the block orientation field of
    :func:`reconstruct.selfcal.orientation_field` (psi_b = arg(sum z^4)/4), residual
-   sqrt(w_b) sin 2(psi_b - phi_perp_b(x)) / 2 with w_b = 1 / (Var_noise psi_b + a misfit floor estimated
-   from the best-measured blocks): invariant to the 90 deg flip where R < T, blocks that do not modulate
+   sqrt(w_b) sin 2(psi_b - phi_perp_b(x)) / 2 with w_b = 1 / (Var psi_b + a misfit floor estimated
+   from the best-measured blocks), Var psi_b measured from the scatter of the block's pixels perpendicular to its
+   direction (:func:`block_orientation_variance`): invariant to the 90 deg flip where R < T, blocks that do not modulate
    left out.  Where the self-calibration cannot tell the pane from its 90 deg twin, both are fitted and
    the cone of step 4 decides (:func:`find_twin`); a fitted fov is claimed only where theta's 1-sigma is small.  phi_perp_b(x) and its Jacobian come from
    the differentiable maps tier (:class:`generator.pane_fit.PaneModelAD`, Dr.Jit forward AD).
@@ -121,11 +122,34 @@ def _wmedian(v: np.ndarray, w: np.ndarray) -> float:
 
 
 # --------------------------------------------------------------------------- geometry
-def fit_geometry(of: dict, width: int, height: int, block: int, x0: np.ndarray, fit_fov: bool, coherence_sigmas: float = 4.0, weighting: str = "floor",
+def block_orientation_variance(of: dict, block: int) -> tuple[np.ndarray, np.ndarray]:
+    """Noise variance (rad^2) of each block's orientation psi_b = arg(s4_b) / 4, measured from the scatter of its
+    pixels' sums s4_px perpendicular to the block's direction: Var Im(s4_b e^{-i 4 psi_b}) = (pixels) x their
+    variance, and 4 |s4_b| dpsi = Im(...).  Unlike q / (32 |s4|^2) (the pure-noise scale, which holds the signal's
+    power too), this is the orientation's actual spread, spike noise and content alike.  Also returns the block's
+    effective number of contributing pixels (sum |s4_px|)^2 / sum |s4_px|^2."""
+    s4, sp = of["s4"], of["s4_px"]
+    h, w = s4.shape
+    b = int(block)
+    sp = sp[: h * b, : w * b].reshape(h, b, w, b)
+    u = np.exp(-1j * np.angle(s4))[:, None, :, None]
+    perp = np.imag(sp * u)
+    npx = b * b
+    v = (perp ** 2).sum(axis=(1, 3)) * npx / max(npx - 1, 1) / (16.0 * np.maximum(np.abs(s4), 1e-300) ** 2)
+    a = np.abs(sp)
+    n_eff = a.sum(axis=(1, 3)) ** 2 / np.maximum((a * a).sum(axis=(1, 3)), 1e-300)
+    return v, n_eff
+
+
+def fit_geometry(of: dict, width: int, height: int, block: int, x0: np.ndarray, fit_fov: bool, coherence_sigmas: float = 4.0, weighting: str = "scatter",
                  fov_starts: tuple[float, ...] = (25.0, 40.0, 55.0, 70.0), rounds: int = 0) -> dict:
     """Gauss-Newton of (tilt, azimuth[, fov]) on the block orientation field (module docstring, step 3).
 
-    ``weighting``: ``snr2`` (default) weighs each block by its information about the angle,
+    ``weighting``: ``scatter`` (default) weighs each block by 1 / (its measured orientation variance
+    (:func:`block_orientation_variance`) + a misfit floor) and leaves out blocks whose modulation sits in a quarter
+    of their pixels or fewer; ``floor`` does the same with the pure-noise scale q / (32 |s4|^2), which holds the
+    signal's power and so weighs every strongly modulating block alike (on the stress set it left theta 1-8 deg
+    off: weak blocks biased towards a fixed angle pulled the fov-tilt valley); ``snr2`` weighs each block by its information about the angle,
     |sum z4|^2 / q (the inverse variance of psi_b: 1 / Var psi_b is proportional to the squared
     signal-to-noise ratio of s4), so that the weak second-order curvature of the field, the only thing
     in it that separates the field of view from the tilt, is read where it is measured precisely;
@@ -139,10 +163,20 @@ def fit_geometry(of: dict, width: int, height: int, block: int, x0: np.ndarray, 
     mask = np.abs(s4) > 1.0 * np.sqrt(0.5 * np.maximum(q, 1e-300))
     if mask.sum() < 4:
         raise ConfigError(f"only {int(mask.sum())} blocks carry any modulation: too few to fit the pane geometry (need 4)")
-    if weighting not in ("floor", "snr2", "s4"):
-        raise ConfigError(f"unknown geometry weighting {weighting!r}; use floor, snr2 or s4")
-    # noise variance of psi_b (rad^2): Im(s4 e^{-4i phi}) has variance q / 2, and 4 |s4| dpsi = that
-    v_noise = (np.maximum(q, 1e-300) / (32.0 * np.maximum(np.abs(s4), 1e-300) ** 2))[mask]
+    if weighting not in ("scatter", "floor", "snr2", "s4"):
+        raise ConfigError(f"unknown geometry weighting {weighting!r}; use scatter, floor, snr2 or s4")
+    if weighting == "scatter":
+        v_all, n_eff = block_orientation_variance(of, block)
+        # a block whose modulation comes from a few of its pixels (a hot pixel, the pane's edge) has no
+        # scatter to measure its noise with: it is left out
+        mask &= (n_eff >= 0.25 * block * block) & (v_all > 0)
+        if mask.sum() < 4:
+            raise ConfigError(f"only {int(mask.sum())} blocks carry a measurable modulation: too few to fit the pane geometry (need 4)")
+        v_noise = v_all[mask]
+    else:
+        # noise variance of psi_b (rad^2) under pure noise: Im(s4 e^{-4i phi}) has variance q / 2, and 4 |s4| dpsi = that
+        # (q also holds the signal's power: where the pane modulates this overstates the noise, up to 100-fold)
+        v_noise = (np.maximum(q, 1e-300) / (32.0 * np.maximum(np.abs(s4), 1e-300) ** 2))[mask]
     snr_top = v_noise <= np.quantile(v_noise, 0.25)  # the best-measured quarter of the blocks
 
     def _weights(sys2: float) -> np.ndarray:
@@ -186,7 +220,7 @@ def fit_geometry(of: dict, width: int, height: int, block: int, x0: np.ndarray, 
             res = gauss_newton(lambda z: f(z, u)[:2], xs, lb_, ub_, max_iter=40)
             xs = res.x
             d = np.abs(f(xs, u)[2])
-            if weighting == "floor":
+            if weighting in ("floor", "scatter"):
                 # misfit floor: the best-measured blocks scatter by more than their noise (content moving through
                 # the harmonic fit); every block's variance is its noise plus that floor (median of chi^2_1: 0.455)
                 sys2 = max(math.radians(0.1) ** 2, float(np.median(d[snr_top] ** 2)) / 0.455 - float(np.median(v_noise[snr_top])))
