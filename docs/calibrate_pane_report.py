@@ -31,7 +31,10 @@ def main() -> None:
     ap.add_argument("--compare-prior", action="store_true", help="with --solvers: also the fitted geometry with the prior n / model (the maps before the content test)")
     ap.add_argument("--no-content", action="store_true", help="calibrate without the content test")
     ap.add_argument("--content-true-geometry", action="store_true", help="only the content test, on the stored (true) theta / phi_perp of each group")
+    ap.add_argument("--identifiability", action="store_true", help="only the content test on the true geometry, from the spikes and from noiseless harmonics of the ground-truth layers (what the layers' content allows without spike noise)")
     a = ap.parse_args()
+    if a.identifiability:
+        return identifiability(Path(a.dataset))
     if a.content_true_geometry:
         return content_on_true_geometry(Path(a.dataset))
     from polspike.pipeline.calibrate_pane import CalibratePaneConfig, calibrate_input
@@ -161,6 +164,71 @@ def content_on_true_geometry(dataset: Path) -> None:
     print(f"tilt >= 30: {len(t30)} groups; best model right on {len(right)}; claimed on {len(cl)}, right on {sum(1 for r in cl if slab(r['best'][0]) == slab(r['model']))}; "
           f"best n within 0.03 on {sum(1 for r in right if abs(r['best'][1] - r['n']) <= 0.03)} of the {len(right)} with the right model; "
           f"n claimed on {sum(1 for r in rows if r.get('n_claimed'))}")
+
+
+def identifiability(dataset: Path) -> None:
+    """How far the layers' content, not the spike noise, limits the pane model and the index.
+
+    Per group, the content test (default options) on the true theta / phi_perp twice: (a) from the spikes, as
+    calibrate-pane runs it; (b) from noiseless parts: the time-mean ground-truth layers of each half of the group,
+    put through paper Eq. (1)-(2) with the true maps' A, B (a0 = [T + A (R - T)] / 2, c = B (R - T) / 2 e^{2 i phi_perp}).
+    Per pixel (a0, c) -> (R', T') is invertible under ANY hypothesis (A', B'), so the likelihood of the spikes alone is
+    flat in n and the model; only the layers' content (and positivity: the cone) tells.  (b) is that information with
+    the spike noise removed: where (b) does not claim, no amount of spikes lets this test claim."""
+    import math
+
+    from polspike.pipeline.calibrate_pane import CalibratePaneConfig, content_glass
+    from reconstruct.physics_video import span_frames
+    from reconstruct.video import group_source
+    from spike_sim.store import open_group
+
+    cfg = CalibratePaneConfig()
+    slab = lambda m: "single" if m == "single" else "slab"  # noqa: E731
+    rows = []
+    for gd in sorted((dataset / "groups").iterdir()):
+        spec = json.loads((gd / "group_spec.json").read_text())["scene"]
+        src = group_source(gd)
+        I, phi = span_frames(src, cfg.span_s, cfg.window_steps)
+        span = 2 * math.pi * src.polarizer_rev_s * cfg.window_steps / src.rate_hz
+        with open_group(gd) as g:
+            mp = g.maps()
+            nf = g.f["gt/R"].shape[0]
+            Rg = np.stack([g.gt_frame("R", i) for i in range(nf)]).astype(np.float64)
+            Tg = np.stack([g.gt_frame("T", i) for i in range(nf)]).astype(np.float64)
+        A = 0.5 * (mp["R_perp"] + mp["R_par"])
+        B = 0.5 * (mp["R_perp"] - mp["R_par"])
+        rot = np.exp(2j * mp["phi_perp"])
+        bounds = np.linspace(0, nf, cfg.content_parts + 1).round().astype(int)
+        parts = []
+        for p in range(cfg.content_parts):
+            R, T = Rg[bounds[p]:bounds[p + 1]].mean(0), Tg[bounds[p]:bounds[p + 1]].mean(0)
+            parts.append((0.5 * (T + A * (R - T)), 0.5 * B * (R - T) * rot))
+        row = {"group": gd.name, "model": spec["pane"]["model"], "n": spec["pane"]["n"], "tilt": spec["pane"]["tilt_deg"]}
+        for key, kw in (("spikes", {}), ("noiseless", {"parts": parts})):
+            r = content_glass(I, phi, mp["theta"], mp["phi_perp"], math.sin(span) / span if key == "spikes" else 1.0, ("single", "thin_slab"), cfg, **kw)
+            if r["ok"]:
+                row[key] = {"best": [r["best_model"], r["best_n"]], "z": round(r["model"]["z"], 2), "model_claimed": r["model"]["identified"],
+                            "n_claimed": r["n"]["identified"], "n_range": r["n"]["accepted_range"]}
+        rows.append(row)
+        print(json.dumps(row), flush=True)
+    print("\n| group | model / n | tilt | spikes: best (z) / n accepted | noiseless layers: best (z) / n accepted |\n|---|---|---|---|---|")
+    for r in rows:
+        cells = []
+        for key in ("spikes", "noiseless"):
+            c = r.get(key)
+            cells.append(f"{c['best'][0]} {c['best'][1]:.2f} ({c['z']:.1f}) / {c['n_range'][0]:.2f}-{c['n_range'][1]:.2f}" if c else "not scored")
+        print(f"| {r['group']} | {r['model']} / {r['n']:.3f} | {r['tilt']:.0f} | {cells[0]} | {cells[1]} |")
+    for key in ("spikes", "noiseless"):
+        t30 = [r for r in rows if key in r and r["tilt"] >= 30]
+        cl = [r for r in t30 if r[key]["model_claimed"]]
+        right = [r for r in t30 if slab(r[key]["best"][0]) == slab(r["model"])]
+        ncl = [r for r in rows if key in r and r[key]["n_claimed"]]
+        w = [r[key]["n_range"][1] - r[key]["n_range"][0] for r in rows if key in r]
+        print(f"{key}: tilt >= 30: {len(t30)} groups, best model right on {len(right)}, claimed (z >= {cfg.content_z:g}) on {len(cl)} "
+              f"(right on {sum(1 for r in cl if slab(r[key]['best'][0]) == slab(r['model']))}); n claimed on {len(ncl)} "
+              f"(within 0.03 on {sum(1 for r in ncl if abs(r[key]['best'][1] - r['n']) <= 0.03)}); best n within 0.03 on "
+              f"{sum(1 for r in rows if key in r and abs(r[key]['best'][1] - r['n']) <= 0.03)} of {sum(1 for r in rows if key in r)}; "
+              f"accepted n range median width {np.median(w) if w else float('nan'):.2f}")
 
 
 if __name__ == "__main__":

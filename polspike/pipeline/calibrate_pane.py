@@ -567,7 +567,7 @@ CONTENT_N_GRID = np.round(np.arange(1.40, 2.0001, 0.02), 4)
 
 
 def content_glass(I: np.ndarray, phi: np.ndarray, theta: np.ndarray, phi_perp: np.ndarray, gain: float, models: tuple[str, ...],
-                  cfg: CalibratePaneConfig, fixed_n: float | None = None, n_grid: np.ndarray | None = None) -> dict:
+                  cfg: CalibratePaneConfig, fixed_n: float | None = None, n_grid: np.ndarray | None = None, parts: list | None = None) -> dict:
     """Pane model and index from the layers' content (gradient exclusion, :mod:`reconstruct.exclusion`).
 
     For every hypothesis (model, n) the span's time parts are solved in closed form (paper Eq. (1)-(2)) and the
@@ -585,10 +585,11 @@ def content_glass(I: np.ndarray, phi: np.ndarray, theta: np.ndarray, phi_perp: n
     K = cfg.content_tiles
     yy, xx = np.mgrid[0:H, 0:W]
     tiles = (yy * K // H) * K + (xx * K // W)
-    try:
-        parts = part_harmonics(I, phi, cfg.content_parts)
-    except ConfigError as e:
-        return {"ok": False, "why": str(e)}
+    if parts is None:  # ``parts``: the time parts' (a0, c) given directly (docs/calibrate_pane_report.py: noiseless parts)
+        try:
+            parts = part_harmonics(I, phi, cfg.content_parts)
+        except ConfigError as e:
+            return {"ok": False, "why": str(e)}
     grid = np.array([fixed_n]) if fixed_n else (CONTENT_N_GRID if n_grid is None else n_grid)
     ct = {}
     for model in models:
