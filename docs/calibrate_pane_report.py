@@ -32,9 +32,10 @@ def main() -> None:
     ap.add_argument("--no-content", action="store_true", help="calibrate without the content test")
     ap.add_argument("--content-true-geometry", action="store_true", help="only the content test, on the stored (true) theta / phi_perp of each group")
     ap.add_argument("--identifiability", action="store_true", help="only the content test on the true geometry, from the spikes and from noiseless harmonics of the ground-truth layers (what the layers' content allows without spike noise)")
+    ap.add_argument("--content-power", default="same", choices=("same", "cross"), help="CalibratePaneConfig.content_power")
     a = ap.parse_args()
     if a.identifiability:
-        return identifiability(Path(a.dataset))
+        return identifiability(Path(a.dataset), a.content_power)
     if a.content_true_geometry:
         return content_on_true_geometry(Path(a.dataset))
     from polspike.pipeline.calibrate_pane import CalibratePaneConfig, calibrate_input
@@ -47,7 +48,7 @@ def main() -> None:
     for gd in sorted((Path(a.dataset) / "groups").iterdir()):
         spec = json.loads((gd / "group_spec.json").read_text())["scene"]
         t0 = time.time()
-        res, _, _, _ = calibrate_input(gd, CalibratePaneConfig(fov_deg=spec["camera"]["fov_deg"] if a.fov_given else 0.0, content=not a.no_content))
+        res, _, _, _ = calibrate_input(gd, CalibratePaneConfig(fov_deg=spec["camera"]["fov_deg"] if a.fov_given else 0.0, content=not a.no_content, content_power=a.content_power))
         r = res["report"]
         if not res["ok"]:
             rows.append({"group": gd.name, "refused": r["reason"]})
@@ -166,7 +167,7 @@ def content_on_true_geometry(dataset: Path) -> None:
           f"n claimed on {sum(1 for r in rows if r.get('n_claimed'))}")
 
 
-def identifiability(dataset: Path) -> None:
+def identifiability(dataset: Path, content_power: str = "same") -> None:
     """How far the layers' content, not the spike noise, limits the pane model and the index.
 
     Per group, the content test (default options) on the true theta / phi_perp twice: (a) from the spikes, as
@@ -182,7 +183,7 @@ def identifiability(dataset: Path) -> None:
     from reconstruct.video import group_source
     from spike_sim.store import open_group
 
-    cfg = CalibratePaneConfig()
+    cfg = CalibratePaneConfig(content_power=content_power)
     slab = lambda m: "single" if m == "single" else "slab"  # noqa: E731
     rows = []
     for gd in sorted((dataset / "groups").iterdir()):

@@ -119,18 +119,29 @@ def cross_gradient_sums(parts, phi_perp: np.ndarray, A: np.ndarray, B: np.ndarra
         cross = sum(prod(gs[p][0], gs[q][1]) for p in range(P) for q in range(P) if q != p) / (P * (P - 1))
     pr = sum(prod(g[0], g[0]) for g in gs) / P
     pt = sum(prod(g[1], g[1]) for g in gs) / P
-    return {"cross": cross, "pr": pr, "pt": pt}
+    # the layers' gradient power crossed between parts as well: the spike noise is independent across parts, so these
+    # hold the content's power without the noise's (pr, pt hold both; a hypothesis that amplifies the noise, small B',
+    # would otherwise have its correlation shrunk by its own noise and look less mixed)
+    prx = sum(prod(gs[p][0], gs[q][0]) for p in range(P) for q in range(P) if q != p) / (P * (P - 1))
+    ptx = sum(prod(gs[p][1], gs[q][1]) for p in range(P) for q in range(P) if q != p) / (P * (P - 1))
+    return {"cross": cross, "pr": pr, "pt": pt, "pr_x": prx, "pt_x": ptx}
 
 
-def label_correlations(sums: dict, labels: np.ndarray, n_labels: int) -> np.ndarray:
+def label_correlations(sums: dict, labels: np.ndarray, n_labels: int, power: str = "same") -> np.ndarray:
     """Normalised gradient correlation cross / sqrt(pr pt) per label (an int map of shape (H - 1, W - 1) or (H, W),
-    -1 = left out); NaN for empty labels."""
+    -1 = left out); NaN for empty labels.  ``power``: ``same`` normalises by each part's own gradient power (content
+    plus spike noise), ``cross`` by the power crossed between parts (content only, noise-free in expectation; NaN where
+    it is not positive: a label where the noise swamps the content)."""
+    if power not in ("same", "cross"):
+        raise ConfigError(f"power = {power!r}: choose same or cross")
+    kr, kt = ("pr", "pt") if power == "same" else ("pr_x", "pt_x")
     lab = labels[: sums["cross"].shape[0], : sums["cross"].shape[1]]
     ok = lab >= 0
     li = lab[ok]
     cr = np.bincount(li, sums["cross"][ok], n_labels)
-    pr = np.bincount(li, sums["pr"][ok], n_labels)
-    pt = np.bincount(li, sums["pt"][ok], n_labels)
-    den = np.sqrt(pr * pt)
+    pr = np.bincount(li, sums[kr][ok], n_labels)
+    pt = np.bincount(li, sums[kt][ok], n_labels)
+    good = (pr > 0) & (pt > 0)
+    den = np.sqrt(np.where(good, pr * pt, 1.0))
     with np.errstate(invalid="ignore", divide="ignore"):
-        return np.where(den > 0, cr / den, np.nan)
+        return np.where(good, cr / den, np.nan)

@@ -88,6 +88,7 @@ class CalibratePaneConfig:
     content_sigma_px: float = opt(2.0, "smoothing (pixels) of the solved layers before their gradients are correlated (the sensor's fixed pattern correlates them at 1 px)", lo=0.0, hi=20.0)
     content_tiles: int = opt(6, "the content score's tiles per image axis (its spread across tiles gives the margin)", lo=2, hi=64)
     content_parts: int = opt(2, "time parts of the span: R^ of one part is correlated with T^ of another (independent spike noise)", lo=2, hi=16)
+    content_power: str = opt("same", "normalisation of the content test's tile correlations: same (each part's own gradient power: content + spike noise, so hypotheses that amplify the noise score lower) or cross (the power crossed between time parts: content only)", choices=("same", "cross"))
     content_best: bool = opt(True, "where the content test does not claim n / the model, its best hypothesis (still reported NOT identified) replaces the prior in the written maps")
     content_best_z: float = opt(1.0, "the content test's unclaimed best model replaces the prior only when the other model scores higher by at least this many standard errors (below: a coin flip, the prior stays)", lo=0.0, hi=100.0)
     content_z: float = opt(3.0, "a content claim needs the alternatives' score higher by this many standard errors (across tiles)", lo=0.0, hi=100.0)
@@ -598,7 +599,7 @@ def content_glass(I: np.ndarray, phi: np.ndarray, theta: np.ndarray, phi_perp: n
             co = pane_coefficients(theta, float(n), model=model)
             A = 0.5 * (co["R_perp"] + co["R_par"])
             B = 0.5 * (co["R_perp"] - co["R_par"])
-            rows.append(label_correlations(cross_gradient_sums(parts, phi_perp, A, B, gain, sigma=cfg.content_sigma_px), tiles, K * K))
+            rows.append(label_correlations(cross_gradient_sums(parts, phi_perp, A, B, gain, sigma=cfg.content_sigma_px), tiles, K * K, power=cfg.content_power))
         ct[model] = np.array(rows)  # (n, tiles)
     ok = np.all(np.isfinite(np.concatenate(list(ct.values()))), axis=0)
     if ok.sum() < 4:
