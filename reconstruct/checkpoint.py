@@ -27,7 +27,7 @@ from polinfra.errors import CheckpointError, ConfigError
 from reconstruct.network import NetConfig, PolSpikeNet, count_parameters
 from reconstruct.solvers import SolverConfig
 
-__all__ = ["CKPT_FORMAT", "DEFAULT_WEIGHTS", "V1_WEIGHTS", "V2_WEIGHTS", "V2_MEAN_WEIGHTS", "save_checkpoint", "read_checkpoint", "load_model", "export_weights"]
+__all__ = ["CKPT_FORMAT", "DEFAULT_WEIGHTS", "V1_WEIGHTS", "V2_WEIGHTS", "V2_MEAN_WEIGHTS", "V3_WEIGHTS", "save_checkpoint", "read_checkpoint", "load_model", "export_weights"]
 
 CKPT_FORMAT = "polspike-ckpt/1"
 V1_WEIGHTS = Path(__file__).resolve().parent / "weights" / "polspike_v1.pt"
@@ -36,9 +36,12 @@ V2_WEIGHTS = Path(__file__).resolve().parent / "weights" / "polspike_v2.pt"
 """The v2 checkpoint trained on the weak-reflection paper_v1 data (issue 19), the default before issue 16."""
 V2_MEAN_WEIGHTS = Path(__file__).resolve().parent / "weights" / "polspike_v2_mean.pt"
 """v2 with the long spike mean as a refinement input (issue 16, first round), the default before v3."""
-DEFAULT_WEIGHTS = Path(__file__).resolve().parent / "weights" / "polspike_v3.pt"
-"""The shipped checkpoint (see ``docs/MODEL_CARD.md``): v3, the refinement correcting the physics anchored to the long
-spike mean (``base = anchored``), trained on paper.toml for its own and an external (``--zeta self``) zeta."""
+DEFAULT_WEIGHTS = Path(__file__).resolve().parent / "weights" / "polspike_v4.pt"
+"""The shipped checkpoint (see ``docs/MODEL_CARD.md``): v4, the v3 network (the refinement correcting the physics anchored
+to the long spike mean, ``base = anchored``, trained on paper.toml for its own and an external ``--zeta self`` zeta)
+trained further with a structure (SSIM) term and picked on a validation split apart from the test groups."""
+V3_WEIGHTS = Path(__file__).resolve().parent / "weights" / "polspike_v3.pt"
+"""The default before v4 (issue 16, second round), kept for comparison."""
 
 
 def save_checkpoint(path: str | os.PathLike, model: PolSpikeNet, *, extra: dict[str, Any] | None = None) -> Path:
