@@ -33,7 +33,11 @@ def main() -> None:
     ap.add_argument("--content-true-geometry", action="store_true", help="only the content test, on the stored (true) theta / phi_perp of each group")
     ap.add_argument("--identifiability", action="store_true", help="only the content test on the true geometry, from the spikes and from noiseless harmonics of the ground-truth layers (what the layers' content allows without spike noise)")
     ap.add_argument("--content-power", default="same", choices=("same", "cross"), help="CalibratePaneConfig.content_power")
+    ap.add_argument("--valley", action="store_true", help="only the geometry: fit_geometry with the fov fitted and given, per weighting (--weightings), the cost at the fit and at the truth, and a profile along the fov")
+    ap.add_argument("--weightings", default="floor,scatter", help="with --valley: comma-separated fit_geometry weightings")
     a = ap.parse_args()
+    if a.valley:
+        return valley(Path(a.dataset), a.weightings.split(","))
     if a.identifiability:
         return identifiability(Path(a.dataset), a.content_power)
     if a.content_true_geometry:
@@ -165,6 +169,87 @@ def content_on_true_geometry(dataset: Path) -> None:
     print(f"tilt >= 30: {len(t30)} groups; best model right on {len(right)}; claimed on {len(cl)}, right on {sum(1 for r in cl if slab(r['best'][0]) == slab(r['model']))}; "
           f"best n within 0.03 on {sum(1 for r in right if abs(r['best'][1] - r['n']) <= 0.03)} of the {len(right)} with the right model; "
           f"n claimed on {sum(1 for r in rows if r.get('n_claimed'))}")
+
+
+def valley(dataset: Path, weightings: list[str]) -> None:
+    """The fov-tilt valley of the orientation fit (round 4 of docs/calibrate_pane.md).
+
+    Per group: the pipeline's self-calibrated start and orientation field; the truth (tilt, azimuth, fov fitted to the
+    group's stored theta / phi_perp maps by Gauss-Newton); for each weighting, fit_geometry with the fov fitted and with
+    the scene's fov, the median |theta error| over pixels and theta's median 1-sigma; the cost sum w (1 - cos 4 d) at
+    the fit and at the truth with the fit's final weights held fixed, and the profile of that cost along the fov
+    (tilt and azimuth refitted at 0.75 / 0.9 / 1 / 1.1 / 1.25 x the true fov)."""
+    import dataclasses as dc
+    import math
+
+    from generator.pane_fit import PaneModelAD, gauss_newton
+    from polspike.pipeline.calibrate_pane import CalibratePaneConfig, _wrap90, block_orientation_variance, fit_geometry
+    from reconstruct.physics_video import span_frames
+    from reconstruct.selfcal import SelfCalConfig, orientation_field, self_calibrate
+    from reconstruct.video import group_source
+    from spike_sim.store import open_group
+
+    cfg = CalibratePaneConfig()
+    for gd in sorted((dataset / "groups").iterdir()):
+        spec = json.loads((gd / "group_spec.json").read_text())["scene"]
+        src = group_source(gd)
+        I, phi = span_frames(src, cfg.span_s, cfg.window_steps)
+        M, H, W = I.shape
+        with open_group(gd) as g:
+            mp = g.maps()
+        fov_t = math.radians(spec["camera"]["fov_deg"])
+        sc = SelfCalConfig(span_s=cfg.span_s, block_px=0, fov_deg=0.0, n=cfg.prior_n, model=cfg.prior_model)
+        init = self_calibrate(I, phi, sc, name=gd.name)
+        if not init.ok and init.reason.startswith("ambiguous"):
+            init = self_calibrate(I, phi, dc.replace(sc, max_twin_ratio=10.0), name=gd.name)
+        if not init.ok:
+            print(json.dumps({"group": gd.name, "refused": init.reason[:80]}), flush=True)
+            continue
+        block = max(int(init.diagnostics["block_px"]), min(4, W // 8, H // 8))
+        of = orientation_field(I, phi, block)
+        x0 = np.array([math.radians(init.tilt_deg), math.radians(init.azimuth_deg), math.radians(init.fov_deg), cfg.prior_n])
+        pmf = PaneModelAD(W, H, "single", sub=1)
+        pmb = PaneModelAD(W, H, "single", block=block)
+        sl = (slice(2, None, 6), slice(2, None, 6))
+
+        def f_true(z):
+            m, J = pmf.maps_and_jacobian(np.r_[z, cfg.prior_n], (0, 1, 2))
+            d = np.mod(m["phi_perp"][sl] - mp["phi_perp"][sl] + np.pi / 2, np.pi) - np.pi / 2
+            return (np.concatenate([(m["theta"][sl] - mp["theta"][sl]).ravel(), d.ravel()]),
+                    np.concatenate([J["theta"][:, sl[0], sl[1]].reshape(3, -1).T, J["phi_perp"][:, sl[0], sl[1]].reshape(3, -1).T]))
+
+        best = None
+        for off in (0.0, 0.5 * math.pi, math.pi, 1.5 * math.pi):
+            r = gauss_newton(f_true, np.array([x0[0], x0[1] + off, fov_t]), [0.0, -10.0, 0.05], [1.56, 10.0, 2.6], max_iter=50)
+            best = r if best is None or r.chi2 < best.chi2 else best
+        xt = np.r_[best.x, cfg.prior_n]
+        th_err = lambda x: float(np.degrees(np.median(np.abs(pmf.maps(x)["theta"] - mp["theta"]))))  # noqa: E731
+        row = {"group": gd.name, "tilt_fov_true": [spec["pane"]["tilt_deg"], spec["camera"]["fov_deg"]], "truth_fit_theta_err": th_err(xt)}
+        for wname in weightings:
+            geo = fit_geometry(of, W, H, block, x0, fit_fov=True, weighting=wname)
+            giv = fit_geometry(of, W, H, block, np.r_[x0[:2], fov_t, cfg.prior_n], fit_fov=False, weighting=wname)
+            mask = geo["mask"]
+            if wname == "scatter":
+                v = block_orientation_variance(of, block)[0][mask]
+            else:
+                v = (np.maximum(of["q"], 1e-300) / (32.0 * np.maximum(np.abs(of["s4"]), 1e-300) ** 2))[mask]
+            resid = lambda x: _wrap90(of["psi"][mask] - pmb.maps(x)["phi_perp"][mask])  # noqa: E731
+            d = resid(geo["x"])
+            top = v <= np.quantile(v, 0.25)
+            sys2 = max(math.radians(0.1) ** 2, float(np.median(d[top] ** 2)) / 0.455 - float(np.median(v[top])))
+            w = 1.0 / (v + sys2)
+            w = w / w.sum() * w.size
+            cost = lambda x: float(np.sum(w * (1.0 - np.cos(4.0 * resid(x)))))  # noqa: E731
+            prof = []
+            for rel in (0.75, 0.9, 1.0, 1.1, 1.25):
+                gp = fit_geometry(of, W, H, block, np.r_[geo["x"][:2], fov_t * rel, cfg.prior_n], fit_fov=False, rounds=1, weighting=wname)
+                prof.append([round(math.degrees(fov_t * rel), 2), round(cost(gp["x"]), 3), round(th_err(gp["x"]), 2)])
+            row[wname] = {"fitted": {"theta_err": round(th_err(geo["x"]), 3), "theta_sigma": round(geo["sigma_theta_deg_median"], 3), "fov": round(math.degrees(geo["x"][2]), 2),
+                                     "starts_end_fov": [round(t["end"][2], 2) for t in geo["starts"]]},
+                          "given": {"theta_err": round(th_err(giv["x"]), 3), "theta_sigma": round(giv["sigma_theta_deg_median"], 3)},
+                          "cost_fit_truth": [round(cost(geo["x"]), 3), round(cost(xt), 3)], "chi2_per_block_at_truth": round(float(np.mean(resid(xt) ** 2 / (v + sys2))), 3),
+                          "profile_fov_cost_theta_err": prof}
+        print(json.dumps(row), flush=True)
 
 
 def identifiability(dataset: Path, content_power: str = "same") -> None:
