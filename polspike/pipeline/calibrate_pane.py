@@ -833,7 +833,7 @@ def calibrate_frames(I: np.ndarray, phi: np.ndarray, cfg: CalibratePaneConfig = 
                                "n": sel["n"].get("sigma"), "correlation_geometry": geo["corr"],
                                "theta_deg_median": geo["sigma_theta_deg_median"], "theta_deg_max": geo["sigma_theta_deg_max"],
                                "phi_perp_deg_median": geo["sigma_phi_perp_deg_median"], "phi_perp_deg_max": geo["sigma_phi_perp_deg_max"],
-                               "method": "Gauss-Newton covariance (J^T J)^-1 x residual variance (geometry: relative weights 1 / (noise variance of psi_b + misfit floor), x (1 + 2 rho_x)(1 + 2 rho_y) for the lag-1 correlation of neighbouring blocks' residuals; n: edge residuals in noise units, geometry errors not propagated), Jacobians by Dr.Jit forward AD"},
+                               "method": "Gauss-Newton covariance (J^T J)^-1 x residual variance (geometry: relative weights 1 / (variance of psi_b measured from its pixels' scatter + misfit floor), x (1 + 2 rho_x)(1 + 2 rho_y) for the lag-1 correlation of neighbouring blocks' residuals; n: edge residuals in noise units, geometry errors not propagated), Jacobians by Dr.Jit forward AD"},
         "geometry": {"blocks": [int(v) for v in of["psi"].shape[::-1]], "block_px": block, "fitted_blocks": int(geo["mask"].sum()), "coherent_blocks": int(geo["coherent"].sum()),
                      "orientation_residual_deg_median": geo["residual_deg_median"], "converged": geo["converged"], "iterations": len(geo["history"]) - 1,
                      "init_tilt_deg": init.tilt_deg, "init_azimuth_deg": init.azimuth_deg, "init_fov_deg": init.fov_deg, "starts": geo["starts"],
