@@ -663,6 +663,7 @@ def calibrate_frames(I: np.ndarray, phi: np.ndarray, cfg: CalibratePaneConfig = 
         # can (R and T swap sides of the cone, and DoP_R > DoP_T): take the best, find its twin, let the cone decide
         init2 = self_calibrate(I, phi, dc.replace(sc_cfg, max_twin_ratio=10.0), name=name)
         if init2.ok:
+            amb_reason = init.reason
             init, ambiguous = init2, True
     timings["selfcal_s"] = time.perf_counter() - t0
     report: dict = {"input": name, "frames": int(M), "size": [int(W), int(H)], "config": dc.asdict(cfg), "init": init.summary()}
@@ -712,7 +713,7 @@ def calibrate_frames(I: np.ndarray, phi: np.ndarray, cfg: CalibratePaneConfig = 
         if "twin" in twin:
             twin["twin"]["eligible"] = bool(np.isfinite(v_tw))
         if not (abs(v_tw - v_best) >= cfg.twin_delta_chi2):  # also both ineligible (inf - inf = nan)
-            report.update({"ok": False, "reason": f"{init.reason}; the modulation depth does not tell them apart either (cone violation chi^2 {v_best:.1f} vs {v_tw:.1f}, "
+            report.update({"ok": False, "reason": f"{amb_reason}; the modulation depth does not tell them apart either (cone violation chi^2 {v_best:.1f} vs {v_tw:.1f}, "
                                                   f"need a difference of {cfg.twin_delta_chi2:g})"})
             return {"ok": False, "report": report}
         if v_tw < v_best:
