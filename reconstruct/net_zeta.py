@@ -14,6 +14,7 @@ runs the network.  Its zeta maps are per full-frame pixel: whole frames only (``
 
 from __future__ import annotations
 
+import logging
 import math
 
 import numpy as np
@@ -25,6 +26,8 @@ from polinfra.errors import ConfigError
 from reconstruct.zeta_source import PaneMaps, zeta_from_maps
 
 __all__ = ["MapsZetaNet", "NET_ZETA_SOURCES", "NET_DEFAULT_ZETA", "build_net_zeta_model"]
+
+log = logging.getLogger(__name__)
 
 NET_ZETA_SOURCES = ("learned", "self")
 """zeta sources of the network in ``polspike reconstruct`` (``learned``: its own parameter branch)."""
@@ -93,8 +96,14 @@ def build_net_zeta_model(net, zeta: str, source, *, group_dir=None, window_steps
     if zeta == "learned":
         return net, info
     from reconstruct.physics_video import calibrate_stream
+    from reconstruct.selfcal import StreamTooShortError
 
-    res = calibrate_stream(source, group_dir, window_steps, exposure, None, pane_n, pane_model)
+    try:
+        res = calibrate_stream(source, group_dir, window_steps, exposure, None, pane_n, pane_model)
+    except StreamTooShortError as e:  # e.g. a 15 ms .dat at 30 rev/s: the learned zeta, as where nothing modulates
+        log.warning("%s; the network uses its learned zeta", e)
+        info["zeta"] = "learned (no self-calibration: the stream is shorter than half a polarizer turn)"
+        return net, info
     info["selfcal"] = res.summary()
     if not res.ok:
         info["zeta"] = "learned (no self-calibration: " + res.reason.split(":")[0] + ")"

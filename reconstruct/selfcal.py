@@ -112,6 +112,7 @@ from reconstruct.harmonic_fit import half_turn_frames, harmonic_fit
 from reconstruct.zeta_source import PaneMaps, pane_maps_from_geometry, zeta_from_maps
 
 __all__ = [
+    "StreamTooShortError",
     "SelfCalConfig",
     "SelfCalResult",
     "orientation_field",
@@ -128,6 +129,11 @@ __all__ = [
 
 log = logging.getLogger(__name__)
 
+
+
+class StreamTooShortError(ConfigError):
+    """The stream is shorter than the self-calibration needs (half a polarizer turn of frames): a caller with
+    another zeta source (the network's learned zeta) falls back to it; one without says so (exit 2)."""
 
 @dataclasses.dataclass(frozen=True)
 class SelfCalConfig:
@@ -294,7 +300,7 @@ def orientation_field(I: np.ndarray, phi: np.ndarray, block: int) -> dict:
     L = half_turn_frames(phi)
     n_chunks = I.shape[0] // L
     if n_chunks < 1:
-        raise ConfigError(f"self-calibration needs at least {L} frames (half a polarizer turn); got {I.shape[0]}: use a longer span")
+        raise StreamTooShortError(f"self-calibration needs at least {L} frames (half a polarizer turn); got {I.shape[0]}: use a longer span")
     H, W = I.shape[1:]
     s4 = np.zeros((H, W), np.complex128)
     q = np.zeros((H, W))

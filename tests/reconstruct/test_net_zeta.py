@@ -120,3 +120,21 @@ def test_evaluate_labels_the_network_zeta():
     rowR = {r["regime"]: r for r in res["rows_R"]}["refl=strong"]
     assert rowR["tfp"] is None and rowR["net@gt"] is not None
     assert "PSNR of R" in regime_report(res)
+
+
+def test_a_stream_shorter_than_half_a_turn_falls_back_to_the_learned_zeta():
+    """--zeta self (the default) on a stream too short to self-calibrate: the network itself, the reason in info;
+    the physics path, which has no fallback, refuses with the one-line error's type."""
+    from polinfra.errors import ConfigError
+    from reconstruct.net_zeta import build_net_zeta_model
+    from reconstruct.physics_video import calibrate_stream
+    from reconstruct.selfcal import StreamTooShortError
+    from reconstruct.video import array_source
+
+    sp = (np.random.default_rng(0).random((200, 16, 24)) < 0.1).astype(np.uint8)  # 10 ms at 30 rev/s: 15 frames < 26
+    net = object()
+    m, info = build_net_zeta_model(net, "self", array_source(sp, 0.0, 30.0))
+    assert m is net and info["zeta"].startswith("learned (no self-calibration: the stream is shorter")
+    with pytest.raises(StreamTooShortError):
+        calibrate_stream(array_source(sp, 0.0, 30.0))
+    assert issubclass(StreamTooShortError, ConfigError)

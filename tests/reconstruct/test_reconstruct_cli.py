@@ -65,7 +65,7 @@ def test_real_spikingsim_capture(tmp_path, model, shared_data):
         pytest.skip(f"{p} absent")
     sp = np.load(p)["arr_0"].transpose(2, 0, 1)[:, 80:144, 150:230]  # (T, H, W), a 64x80 crop
     s = reconstruct_stream(array_source(sp, 0.0, 30.0), model, tmp_path, ReconstructConfig(max_frames=1))
-    _check_tfp(tmp_path, s)
+    _check_tfp(tmp_path, s, T_min_corr=0.85)  # a 64x80 crop: polspike_v3.pt 0.90+, polspike_v4.pt 0.898 (whole frames: 0.97)
 
 
 def test_real_uhsr_capture(tmp_path, model, shared_data):
