@@ -137,24 +137,33 @@ def main() -> None:
                   + " / ".join(f"{d[k]:+.2f}" for k in ("ls", "ridge", "irls", "rwps")) + " dB (LS / ridge / IRLS / RWPS)")
 
 
+def _group_spans(dataset: Path, cfg):
+    """(group dir, its scene spec, the calibration span's frames I and angles phi, the window's sweep in radians) per
+    stored group of ``dataset`` (the spikes calibrate-pane reads with ``cfg``)."""
+    import math
+
+    from reconstruct.physics_video import span_frames
+    from reconstruct.video import group_source
+
+    for gd in sorted((dataset / "groups").iterdir()):
+        spec = json.loads((gd / "group_spec.json").read_text())["scene"]
+        src = group_source(gd)
+        I, phi = span_frames(src, cfg.span_s, cfg.window_steps)
+        yield gd, spec, I, phi, 2 * math.pi * src.polarizer_rev_s * cfg.window_steps / src.rate_hz
+
+
 def content_on_true_geometry(dataset: Path) -> None:
     """The content test alone (default options) with each group's stored theta / phi_perp: how well the layers' content
     tells the model and n when the geometry is right."""
     import math
 
     from polspike.pipeline.calibrate_pane import CalibratePaneConfig, content_glass
-    from reconstruct.physics_video import span_frames
-    from reconstruct.video import group_source
     from spike_sim.store import open_group
 
     cfg = CalibratePaneConfig()
     slab = lambda m: "single" if m == "single" else "slab"  # noqa: E731
     rows = []
-    for gd in sorted((dataset / "groups").iterdir()):
-        spec = json.loads((gd / "group_spec.json").read_text())["scene"]
-        src = group_source(gd)
-        I, phi = span_frames(src, cfg.span_s, cfg.window_steps)
-        span = 2 * math.pi * src.polarizer_rev_s * cfg.window_steps / src.rate_hz
+    for gd, spec, I, phi, span in _group_spans(dataset, cfg):
         with open_group(gd) as g:
             mp = g.maps()
         r = content_glass(I, phi, mp["theta"], mp["phi_perp"], math.sin(span) / span, ("single", "thin_slab"), cfg)
@@ -264,18 +273,12 @@ def identifiability(dataset: Path, content_power: str = "same") -> None:
     import math
 
     from polspike.pipeline.calibrate_pane import CalibratePaneConfig, content_glass
-    from reconstruct.physics_video import span_frames
-    from reconstruct.video import group_source
     from spike_sim.store import open_group
 
     cfg = CalibratePaneConfig(content_power=content_power)
     slab = lambda m: "single" if m == "single" else "slab"  # noqa: E731
     rows = []
-    for gd in sorted((dataset / "groups").iterdir()):
-        spec = json.loads((gd / "group_spec.json").read_text())["scene"]
-        src = group_source(gd)
-        I, phi = span_frames(src, cfg.span_s, cfg.window_steps)
-        span = 2 * math.pi * src.polarizer_rev_s * cfg.window_steps / src.rate_hz
+    for gd, spec, I, phi, span in _group_spans(dataset, cfg):
         with open_group(gd) as g:
             mp = g.maps()
             nf = g.f["gt/R"].shape[0]
