@@ -35,9 +35,9 @@ NET_ZETA_SOURCES = ("learned", "self")
 NET_DEFAULT_ZETA = "self"
 """The network's zeta when ``--zeta`` is not given (``polspike reconstruct``, ``evaluate-real``, ``evaluate-paper``,
 the demo): the better of the two, measured (``polspike evaluate ... --by-regime --net-zetas learned,self``).
-The shipped v3 network is trained for it (half its steps ran on a jittered external zeta): on the stress set
-self beats learned on every regime level (docs/MODEL_CARD.md).  Where the stream does not calibrate
-(nothing modulates) the network runs on its own zeta, and the run's info says so."""
+The shipped network (v3 and v4) is trained for it (half its steps ran on a jittered external zeta): on the stress
+set self beats learned on every regime level (docs/MODEL_CARD.md).  Where the stream does not calibrate (nothing
+modulates, or shorter than half a polarizer turn) the network runs on its own zeta, and the run's info says so."""
 
 
 class MapsZetaNet:

@@ -21,7 +21,7 @@ def evaluate_cmd(
     dt_ms: float = typer.Option(0.65, "--dt-ms", help="aggregation window, milliseconds (odd number of steps)"),
     stride_deg: float = typer.Option(31.5, "--stride-deg", help="polarizer rotation between output frames, degrees"),
     rir: bool = typer.Option(True, "--rir/--no-rir", help="reflection-invariant registration of each window (full: the without-RIR ablation)"),
-    checkpoint: Optional[Path] = typer.Option(None, "--checkpoint", help="network checkpoint for --method full / --zeta learned [default: the shipped reconstruct/weights/polspike_v3.pt]"),
+    checkpoint: Optional[Path] = typer.Option(None, "--checkpoint", help="network checkpoint for --method full / --zeta learned [default: the shipped reconstruct/weights default, reconstruct.checkpoint.DEFAULT_WEIGHTS]"),
     no_attention: bool = typer.Option(False, "--no-attention", help="full: the checkpoint is the without-angle-attention ablation (trained so)"),
     no_conf: bool = typer.Option(False, "--no-conf", help="full: the without-Conf ablation (trained so, else a test-time ablation)"),
     net_tile: int = typer.Option(256, "--net-tile", help="full: network tile size in pixels (0 = whole frame)"),

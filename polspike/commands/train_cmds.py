@@ -97,7 +97,7 @@ def reconstruct_cmd(
     window_steps: int = typer.Option(13, "--window-steps", help="Eq. (3) window in steps (13 = 0.65 ms)"),
     stride_deg: float = typer.Option(31.5, "--stride-deg", help="polarizer rotation between output frames (31.5 deg -> 342.9 FPS at 30 rev/s)"),
     frames: str = typer.Option("none", "--frames", help="also write frames: none | png | exr"),
-    weights: Optional[Path] = typer.Option(None, "--weights", help="checkpoint [default: the shipped reconstruct/weights/polspike_v3.pt]"),
+    weights: Optional[Path] = typer.Option(None, "--weights", help="checkpoint [default: the shipped reconstruct/weights default, reconstruct.checkpoint.DEFAULT_WEIGHTS]"),
     rir: Optional[bool] = typer.Option(None, "--rir/--no-rir", help="RIR alignment [default: as trained]"),
     max_frames: int = typer.Option(0, "--max-frames", help="stop after this many output frames (0 = all)"),
     device: str = typer.Option("auto", "--device", help="auto | cpu | cuda"),
@@ -229,7 +229,7 @@ def heldout_test_set(crop: int = 64, items: int = 96, seed: int = 20_000, manife
 
 @app_typer.command("evaluate-checkpoint")
 def evaluate_checkpoint_cmd(
-    weights: Optional[Path] = typer.Argument(None, help="checkpoint [default: the shipped reconstruct/weights/polspike_v3.pt]"),
+    weights: Optional[Path] = typer.Argument(None, help="checkpoint [default: the shipped reconstruct/weights default, reconstruct.checkpoint.DEFAULT_WEIGHTS]"),
     out: Optional[Path] = typer.Option(None, "--out", help="write scores.json and scores.md here"),
     items: int = typer.Option(96, "--items", help="test windows"),
     crop: int = typer.Option(64, "--crop", help="test crop side (multiple of 4)"),
