@@ -749,19 +749,19 @@ def regime_markdown(res: dict, metric: str = "rows") -> str:
     nd = 3 if metric.startswith("ssim") else 2
     if metric.endswith(("_R", "_R_share")):  # the baselines estimate no R
         cols = [c for c in cols if any(r.get(c) is not None for r in rows)]
-    extra = [(t, fm) for _, t, fm in SHARE_EXTRA if metric.endswith("_share")]
+    extra = SHARE_EXTRA if metric.endswith("_share") else ()
     head = "| regime | groups | " + "".join(f"{t} | " for t, _ in extra) + " | ".join(cols) + " |\n|---|---:|" + "---:|" * (len(extra) + len(cols)) + "\n"
     return head + "\n".join(f"| {r['regime']} | {r['n_groups']} | " + "".join(f"{fm(r)} | " for _, fm in extra) + " | ".join(_fmt(r[c], nd) for c in cols) + " |" for r in rows) + "\n"
 
 
 SHARE_EXTRA = (
-    ("share_frac", "rho>=0.2 frac", lambda r: _fmt(r.get("share_frac"), 3)),
-    ("psnr_R_bound", "R bound (LS, true zeta)", lambda r: _fmt(r.get("psnr_R_bound"), 2)),
-    ("n_bound_ge_22", "groups with bound >= 22 dB", lambda r: "n/a" if not r.get("n_bound") else f"{r['n_bound_ge_22']}/{r['n_bound']}"),
-    ("bound_frac_22", "rho>=0.2 px with bound >= 22 dB", lambda r: _fmt(r.get("bound_frac_22"), 3)),
-    ("psnr_R_flat", "flat R (oracle level)", lambda r: _fmt(r.get("psnr_R_flat"), 2)),
+    ("rho>=0.2 frac", lambda r: _fmt(r.get("share_frac"), 3)),
+    ("R bound (LS, true zeta)", lambda r: _fmt(r.get("psnr_R_bound"), 2)),
+    ("groups with bound >= 22 dB", lambda r: "n/a" if not r.get("n_bound") else f"{r['n_bound_ge_22']}/{r['n_bound']}"),
+    ("rho>=0.2 px with bound >= 22 dB", lambda r: _fmt(r.get("bound_frac_22"), 3)),
+    ("flat R (oracle level)", lambda r: _fmt(r.get("psnr_R_flat"), 2)),
 )
-"""Leading columns of the reflected-share tables: (row key, title, formatter of the row)."""
+"""Leading columns of the reflected-share tables: (title, formatter of the row)."""
 
 
 REGIME_TABLES = (("rows", "PSNR of T (dB)"), ("ssim", "SSIM of T"), ("rows_R", "PSNR of R (dB)"), ("ssim_R", "SSIM of R"),

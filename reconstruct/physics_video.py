@@ -30,7 +30,7 @@ import torch
 
 from polinfra.errors import ConfigError
 
-from reconstruct.selfcal import SelfCalConfig, SelfCalResult, self_calibrate
+from reconstruct.selfcal import SelfCalConfig, SelfCalResult, StreamTooShortError, self_calibrate
 from reconstruct.solvers import PHYSICS_SOLVER_CONFIG, SOLVERS, SolverConfig, anchor_to_mean, solve, zbar_of
 from reconstruct.zeta_source import PaneMaps, zeta_from_maps, zeta_learned
 
@@ -170,8 +170,6 @@ def span_frames(source, span_s: float, window_steps: int = 13, exposure: float |
     sp = np.concatenate(bufs)[:steps_needed] if bufs else np.zeros((0, source.height, source.width), np.uint8)
     M = sp.shape[0] // window_steps
     if M < 3:
-        from reconstruct.selfcal import StreamTooShortError
-
         raise StreamTooShortError(f"{source.name}: self-calibration needs at least {3 * window_steps} steps; the stream has {sp.shape[0]}")
     counts = sp[: M * window_steps].reshape(M, window_steps, source.height, source.width).sum(1, dtype=np.int32)
     I = counts.astype(np.float32) / np.float32(window_steps * ex)  # Eq. (3), radiance units

@@ -37,6 +37,7 @@ from polinfra.config import from_dict, opt, to_dict
 from polinfra.errors import CheckpointError, ConfigError
 
 from reconstruct.checkpoint import read_checkpoint, save_checkpoint
+from reconstruct.identifiability import SHARE_MIN
 from reconstruct.losses import LossConfig, total_loss
 from reconstruct.network import NetConfig, PolSpikeNet, count_parameters, init_weights
 from reconstruct.onthefly import WindowConfig
@@ -194,8 +195,9 @@ def evaluate_model(model: PolSpikeNet, dataset, batch_size: int = 8, device: tor
     return res
 
 
-REFL_SHARE = 0.2
-"""Reflected share of the mixed light above which a pixel counts as reflection-affected (evaluation)."""
+REFL_SHARE = SHARE_MIN
+"""Reflected share of the mixed light above which a pixel counts as reflection-affected (evaluation; the same 20 %
+as :data:`reconstruct.identifiability.SHARE_MIN`, here with the centre window's zeta)."""
 
 _LOG_FIELDS = ["step", "epoch", "alpha", "loss", "l_rec", "l_grad", "l_phys", "l_excl", "l_base", "l_ssim", "val_psnr_T", "val_psnr_T_base", "val_psnr_T_oracle", "val_psnr_T_forced", "val_ssim_T", "val_ssim_T_forced", "val_score", "seconds"]
 

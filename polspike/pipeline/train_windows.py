@@ -314,13 +314,13 @@ def window_sets(window, train_items: int, val_items: int, seed: int, n_train_sce
     from reconstruct.onthefly import OnTheFlyWindows
 
     if manifest:
-        (sc_tr, si_tr), (sc_te, si_te) = (manifest_scenes(manifest, s, with_sensor=True) for s in ("train", "test"))
+        sc_tr, si_tr = manifest_scenes(manifest, "train", with_sensor=True)
         tr = GeneratorWindows(sc_tr, window, sims=si_tr)
-        te = GeneratorWindows(sc_te, window, sims=si_te)
     else:
         tr = GeneratorWindows(scene_pool(n_train_scenes, scene_seed, "train"), window)
-        te = GeneratorWindows(scene_pool(n_test_scenes, scene_seed, "test"), window)
-    if val_manifest:
-        sc_va, si_va = manifest_scenes(val_manifest, val_split, with_sensor=True)
+    if val_manifest or manifest:
+        sc_va, si_va = manifest_scenes(val_manifest, val_split, with_sensor=True) if val_manifest else manifest_scenes(manifest, "test", with_sensor=True)
         te = GeneratorWindows(sc_va, window, sims=si_va)
+    else:
+        te = GeneratorWindows(scene_pool(n_test_scenes, scene_seed, "test"), window)
     return OnTheFlyWindows(tr, length=train_items, seed=seed), OnTheFlyWindows(te, length=val_items, seed=seed + 10_000)
