@@ -94,7 +94,8 @@ class EvalConfig:
     no_conf: bool = opt(False, "method full: evaluate without Conf (checkpoint trained without it, else a test-time ablation)")
     net_tile: int = opt(256, "method full: network tile size in pixels (bounded memory; 0 = whole frame)", lo=0, hi=100000)
     net_solver: str = opt("", "method full: physics solver before the network's refinement instead of the trained one (supp. Table 3); empty = as trained", choices=("", "ls", "ridge", "irls", "rwps"))
-    net_zeta: str = opt("", "method full: zeta of the network's solver and refinement: learned (its parameter branch), self, gt or physics (instead of its own); empty = self when zeta is self, else learned", choices=("", "learned", "self", "gt", "physics"))
+    net_zeta: str = opt("", "method full: zeta of the network's solver and refinement: learned (its parameter branch), self, gt, physics, or none (zeta = 0: no separable reflection, T is the whole light); empty = self when zeta is self, else learned", choices=("", "learned", "self", "gt", "physics", "none"))
+    net_fallback: str = opt("none", "method full with net zeta self, where the stream does not self-calibrate: none (zeta = 0, T is the whole light; measured better, docs/MODEL_CARD.md) or learned (the network's own zeta)", choices=("none", "learned"))
     anchor: str = opt("none", "mean: also score each method anchored to the 17.5 ms spike mean, T = 2 I_mean - zbar (R^ - T^), R = T + (R^ - T^) (rows '<method>+mean'; stored groups only)", choices=("none", "mean"))
 
 
@@ -391,9 +392,11 @@ def evaluate_groups(
         Z = group_zeta(g, cfg)
         if Z is None and model is None:  # --zeta self found nothing modulating: the learned zeta instead
             model, net_info = load_network(cfg)
-        Znet = None  # the network's zeta when not its own (None: learned, also where self finds nothing modulating)
+        Znet = None  # the network's zeta when not its own (None: learned)
         if net_rows and nz != "learned":
-            Znet = Z if nz == cfg.zeta else group_zeta(g, dataclasses.replace(cfg, zeta=nz))
+            Znet = None if nz == "none" else (Z if nz == cfg.zeta else group_zeta(g, dataclasses.replace(cfg, zeta=nz)))
+            if nz == "none" or (Znet is None and nz == "self" and cfg.net_fallback == "none"):
+                Znet = np.zeros(g.I.shape, np.float64)  # no separable reflection: zeta = 0, T is the whole light
         share = share_context(g, cfg)
         t["zeta"] += time.perf_counter() - t0
         M = g.I.shape[0]
@@ -679,9 +682,9 @@ def evaluate_by_regime(
     """
     zetas = list(dict.fromkeys(zetas))
     net_zetas = list(dict.fromkeys(net_zetas)) if network else []
-    bad = [z for z in [*zetas, *net_zetas] if z not in ZETA_SOURCES]
+    bad = [z for z in zetas if z not in ZETA_SOURCES] + [z for z in net_zetas if z not in (*ZETA_SOURCES, "none")]
     if bad:
-        raise ConfigError(f"unknown zeta source(s) {bad}; choose from {list(ZETA_SOURCES)}")
+        raise ConfigError(f"unknown zeta source(s) {bad}; choose from {list(ZETA_SOURCES)} (network columns also none)")
     solvers = [m for m in parse_methods(cfg.methods) if m in SOLVERS] or list(SOLVERS)
     keys = ("psnr_T", "ssim_T", "psnr_R", "ssim_R", "psnr_R_share", "ssim_R_share")
     per: dict[str, dict[str, dict[str, float]]] = {k: defaultdict(dict) for k in keys}

@@ -38,15 +38,17 @@ class LossConfig:
     lambda_ex: float = opt(4.0, "tanh scale lambda_ex of the exclusion loss, paper Eq. (11), per radiance unit per pixel", lo=0.0, hi=1e4)
     lambda_base: float = opt(0.5, "weight of L1 on the solver outputs (T^, R^), times (0.2 + 0.8 alpha): supervision shifts to the refined output as alpha drops", lo=0.0, hi=100.0)
     lambda_ssim: float = opt(0.0, "weight of 1 - SSIM(T) (skimage's 7x7 uniform-window SSIM at data range 1, the evaluation metric, on the estimate clipped to [0, 1]): a structure term beside the L1 terms (0 = off, the paper's objective)", lo=0.0, hi=100.0)
+    r_floor: float = opt(1.0, "weight of the R term where the reflection carries none of the light: the R term is weighted by r_floor + (1 - r_floor) clip(rho / rho_ref, 0, 1) (1 = unweighted, the paper's Eq. (8); lower values train R where the spikes identify it, not its level where they cannot)", lo=0.0, hi=1.0)
     m_floor: float = opt(0.5, "reflection mask M value where there is no reflection", lo=0.0, hi=1.0)
     rho_ref: float = opt(0.3, "reflected share of the mixed light at which M reaches 1", lo=1e-6, hi=1.0)
 
 
-def reflection_mask(T_gt: torch.Tensor, R_gt: torch.Tensor, zeta_c: torch.Tensor, cfg: LossConfig = LossConfig()) -> torch.Tensor:
-    """Soft reflection-dominance mask M in [m_floor, 1] (module docstring), (B, H, W)."""
+def reflection_mask(T_gt: torch.Tensor, R_gt: torch.Tensor, zeta_c: torch.Tensor, cfg: LossConfig = LossConfig(), floor: float | None = None) -> torch.Tensor:
+    """Soft reflection-dominance mask in [floor, 1] (module docstring; floor: ``cfg.m_floor`` unless given), (B, H, W)."""
     num = zeta_c * R_gt.clamp_min(0)
     rho = num / (num + (1 - zeta_c) * T_gt.clamp_min(0) + 1e-6)
-    return cfg.m_floor + (1 - cfg.m_floor) * (rho / cfg.rho_ref).clamp(0, 1)
+    f = cfg.m_floor if floor is None else floor
+    return f + (1 - f) * (rho / cfg.rho_ref).clamp(0, 1)
 
 
 def image_grad(x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -58,9 +60,9 @@ def _wmean(x: torch.Tensor, m: torch.Tensor | None) -> torch.Tensor:
     return x.abs().mean() if m is None else (m * x.abs()).mean()
 
 
-def loss_rec(T, R, T_gt, R_gt, M, cfg: LossConfig = LossConfig()) -> torch.Tensor:
-    """L_rec = ||T - T_gt||_{1,M} + lambda_r ||R - R_gt||_1, paper Eq. (8)."""
-    return _wmean(T - T_gt, M) + cfg.lambda_r * _wmean(R - R_gt, None)  # Eq. (8)
+def loss_rec(T, R, T_gt, R_gt, M, cfg: LossConfig = LossConfig(), M_r: torch.Tensor | None = None) -> torch.Tensor:
+    """L_rec = ||T - T_gt||_{1,M} + lambda_r ||R - R_gt||_{1,M_r}, paper Eq. (8) (M_r None: unweighted, as the paper)."""
+    return _wmean(T - T_gt, M) + cfg.lambda_r * _wmean(R - R_gt, M_r)  # Eq. (8)
 
 
 def loss_grad(T, T_gt, M) -> torch.Tensor:
@@ -129,11 +131,12 @@ def total_loss(out, T_gt: torch.Tensor, R_gt: torch.Tensor, alpha: float, cfg: L
     c = out.I.shape[1] // 2
     zc = out.zeta_gt[:, c] if out.zeta_gt is not None else out.zeta_hat[:, c].detach()
     M = reflection_mask(T_gt, R_gt, zc, cfg)
-    l_rec = loss_rec(out.T, out.R, T_gt, R_gt, M, cfg)
+    M_r = None if cfg.r_floor >= 1.0 else reflection_mask(T_gt, R_gt, zc, cfg, floor=cfg.r_floor)
+    l_rec = loss_rec(out.T, out.R, T_gt, R_gt, M, cfg, M_r)
     l_grad = loss_grad(out.T, T_gt, M)
     l_phys = loss_phys(out.T, out.R, out.zeta_hat, out.I, out.zeta_gt, cfg)
     l_excl = loss_excl(out.T, out.R, cfg)
-    l_base = loss_rec(out.T_base, out.R_base, T_gt, R_gt, M, cfg)
+    l_base = loss_rec(out.T_base, out.R_base, T_gt, R_gt, M, cfg, M_r)
     total = l_rec + cfg.lambda_g * l_grad + cfg.lambda_p * l_phys + cfg.lambda_e * l_excl  # Eq. (12)
     total = total + cfg.lambda_base * (0.2 + 0.8 * alpha) * l_base
     extra = {}

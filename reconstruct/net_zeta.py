@@ -5,7 +5,8 @@ The network's parameter branch estimates zeta (and the reliability weights w) pe
 same fit the physics methods use) and that zeta (paper Eq. (2), window-averaged) replaces the
 learned one in the network's solver and refinement: ``model(I, phi, zeta_gt=zeta, alpha=1)``
 (the teacher-forcing path of :class:`reconstruct.network.PolSpikeNet`); w stays learned.  Where
-nothing modulates (no pane can be fitted) the network runs on its own zeta, and the info says so.
+nothing modulates (no pane can be fitted) the network runs on zeta = 0 (:data:`NET_FALLBACK_ZETA`:
+no separable reflection, T is the whole light) or, asked for, on its own zeta; the info says which.
 
 :class:`MapsZetaNet` follows the model protocol of :func:`reconstruct.video.run_model_on_windows`
 and of the stream's feature cache, so :func:`reconstruct.video.reconstruct_stream` runs it as it
@@ -25,34 +26,39 @@ from polinfra.errors import ConfigError
 
 from reconstruct.zeta_source import PaneMaps, zeta_from_maps
 
-__all__ = ["MapsZetaNet", "NET_ZETA_SOURCES", "NET_DEFAULT_ZETA", "build_net_zeta_model"]
+__all__ = ["MapsZetaNet", "ZeroZetaNet", "NET_ZETA_SOURCES", "NET_DEFAULT_ZETA", "NET_FALLBACK_ZETA", "build_net_zeta_model"]
 
 log = logging.getLogger(__name__)
 
-NET_ZETA_SOURCES = ("learned", "self")
-"""zeta sources of the network in ``polspike reconstruct`` (``learned``: its own parameter branch)."""
+NET_ZETA_SOURCES = ("learned", "self", "none")
+"""zeta sources of the network in ``polspike reconstruct`` (``learned``: its own parameter branch; ``none``: zeta = 0,
+no separable reflection, T is the whole light, the network still denoises)."""
 
 NET_DEFAULT_ZETA = "self"
 """The network's zeta when ``--zeta`` is not given (``polspike reconstruct``, ``evaluate-real``, ``evaluate-paper``,
 the demo): the better of the two, measured (``polspike evaluate ... --by-regime --net-zetas learned,self``).
 The shipped network (v3 and v4) is trained for it (half its steps ran on a jittered external zeta): on the stress
 set self beats learned on every regime level (docs/MODEL_CARD.md).  Where the stream does not calibrate (nothing
-modulates, or shorter than half a polarizer turn) the network runs on its own zeta, and the run's info says so."""
+modulates, or shorter than half a polarizer turn) the network runs on :data:`NET_FALLBACK_ZETA`, and the run's info
+says so."""
+
+NET_FALLBACK_ZETA = "none"
+"""The network's zeta where ``self`` cannot calibrate the stream: ``none`` (zeta = 0).  Measured against the learned
+zeta on the streams that do not calibrate: the real recordings without a polarizer (the REDS stream's 48 px crops:
+T within 30.3 dB of the TFP image against 20.3 with the learned zeta) and the stress groups that refuse
+(docs/MODEL_CARD.md).  Nothing modulating means the spikes cannot separate a reflection; a learned zeta then
+invents one."""
 
 
-class MapsZetaNet:
-    """A :class:`reconstruct.network.PolSpikeNet` whose solver and refinement run on zeta from pane maps.
+class _ExternalZetaNet:
+    """A :class:`reconstruct.network.PolSpikeNet` whose solver and refinement run on a zeta it did not estimate.
 
-    Args:
-        net: the network (eval mode).
-        maps: per-pixel pane maps (H, W) of the stream's frames.
-        span_rad: polarizer rotation during one Eq. (3) window (zeta is window-averaged).
+    Follows the model protocol of :func:`reconstruct.video.run_model_on_windows` and of the stream's feature cache;
+    subclasses give :meth:`zeta` (B, N, H, W) for the window angles ``phi``.
     """
 
-    stream_tile = 0
-
-    def __init__(self, net, maps: PaneMaps, span_rad: float):
-        self.net, self.maps, self.span_rad = net, maps, float(span_rad)
+    def __init__(self, net):
+        self.net = net
         self.cfg = net.cfg
 
     @property
@@ -66,14 +72,43 @@ class MapsZetaNet:
     def encode_obs(self, I, scale):
         return self.net.encode_obs(I, scale)
 
-    def eval(self) -> MapsZetaNet:
+    def eval(self):
         self.net.eval()
         return self
 
     def parameters(self):
         return self.net.parameters()
 
+    def zeta(self, I: torch.Tensor, phi: torch.Tensor) -> torch.Tensor:
+        raise NotImplementedError
+
     def __call__(self, I: torch.Tensor, phi: torch.Tensor, **kw):
+        return self.net(I, phi, zeta_gt=self.zeta(I, phi), alpha=1.0, **kw)
+
+
+class ZeroZetaNet(_ExternalZetaNet):
+    """The network on zeta = 0 (source ``none``): the solver returns the whole light as T; tiles allowed."""
+
+    def zeta(self, I: torch.Tensor, phi: torch.Tensor) -> torch.Tensor:
+        return torch.zeros(I.shape, dtype=torch.float32, device=I.device)
+
+
+class MapsZetaNet(_ExternalZetaNet):
+    """The network on zeta from pane maps (source ``self``).
+
+    Args:
+        net: the network (eval mode).
+        maps: per-pixel pane maps (H, W) of the stream's frames.
+        span_rad: polarizer rotation during one Eq. (3) window (zeta is window-averaged).
+    """
+
+    stream_tile = 0
+
+    def __init__(self, net, maps: PaneMaps, span_rad: float):
+        super().__init__(net)
+        self.maps, self.span_rad = maps, float(span_rad)
+
+    def zeta(self, I: torch.Tensor, phi: torch.Tensor) -> torch.Tensor:
         H0, W0 = self.maps.phi_perp.shape
         H, W = I.shape[-2:]
         if H < H0 or W < W0 or H - H0 >= self.pad_multiple or W - W0 >= self.pad_multiple:
@@ -81,32 +116,39 @@ class MapsZetaNet:
         Z = zeta_from_maps(self.maps, phi.detach().cpu().numpy().astype(np.float64), self.span_rad, dtype=torch.float32, device=I.device)  # paper Eq. (2)
         if (H, W) != (H0, W0):
             Z = F.pad(Z, (0, W - W0, 0, H - H0), mode="replicate")
-        return self.net(I, phi, zeta_gt=Z, alpha=1.0, **kw)
+        return Z
 
 
-def build_net_zeta_model(net, zeta: str, source, *, group_dir=None, window_steps: int = 13, exposure: float | None = None, pane_n: float = 1.5, pane_model: str = "single"):
+def build_net_zeta_model(net, zeta: str, source, *, group_dir=None, window_steps: int = 13, exposure: float | None = None, pane_n: float = 1.5, pane_model: str = "single",
+                         fallback: str = NET_FALLBACK_ZETA):
     """The network on zeta source ``zeta`` (:data:`NET_ZETA_SOURCES`) for this stream -> (model, info).
 
-    info = {"zeta": source used, "selfcal": summary or None}; ``self`` falls back to the learned
-    zeta (the network itself) when the pane cannot be fitted (info["zeta"] says why).
+    info = {"zeta": source used, "selfcal": summary or None}; ``self`` falls back to ``fallback``
+    (:data:`NET_FALLBACK_ZETA`, or ``learned``) when the pane cannot be fitted (info["zeta"] says why).
     """
     if zeta not in NET_ZETA_SOURCES:
         raise ConfigError(f"--zeta {zeta!r} for the network: choose one of {', '.join(NET_ZETA_SOURCES)}")
+    if fallback not in ("none", "learned"):
+        raise ConfigError(f"zeta fallback {fallback!r}: choose none or learned")
     info: dict = {"zeta": zeta, "selfcal": None}
     if zeta == "learned":
         return net, info
+    if zeta == "none":
+        return ZeroZetaNet(net), info
     from reconstruct.physics_video import calibrate_stream
     from reconstruct.selfcal import StreamTooShortError
 
+    def fall(why: str):
+        info["zeta"] = f"{fallback} (no self-calibration: {why})"
+        return (ZeroZetaNet(net) if fallback == "none" else net), info
+
     try:
         res = calibrate_stream(source, group_dir, window_steps, exposure, None, pane_n, pane_model)
-    except StreamTooShortError as e:  # e.g. a 15 ms .dat at 30 rev/s: the learned zeta, as where nothing modulates
-        log.warning("%s; the network uses its learned zeta", e)
-        info["zeta"] = "learned (no self-calibration: the stream is shorter than half a polarizer turn)"
-        return net, info
+    except StreamTooShortError as e:  # e.g. a 15 ms .dat at 30 rev/s: as where nothing modulates
+        log.warning("%s; the network runs on zeta %s", e, fallback)
+        return fall("the stream is shorter than half a polarizer turn")
     info["selfcal"] = res.summary()
     if not res.ok:
-        info["zeta"] = "learned (no self-calibration: " + res.reason.split(":")[0] + ")"
-        return net, info
+        return fall(res.reason.split(":")[0])
     span = 2 * math.pi * source.polarizer_rev_s * window_steps / source.rate_hz
     return MapsZetaNet(net, res.maps, span), info

@@ -83,7 +83,7 @@ def paper_tables(
         cfg: window, frames, device, tile; ``zeta`` is the physics baseline's zeta source.
         solvers: the solvers of supp. Table 3 (empty: skip it).
         solver_cfg: the physics baseline's solver parameters.
-        net_zeta: zeta of every network run: ``learned`` (its own) or ``self`` / ``gt`` / ``physics``
+        net_zeta: zeta of every network run: ``learned`` (its own) or ``self`` / ``gt`` / ``physics`` / ``none``
             (:data:`reconstruct.evaluate.EvalConfig.net_zeta`).
 
     Returns:
@@ -99,10 +99,10 @@ def paper_tables(
     bad = [s for s in solvers if s not in SOLVERS]
     if bad:
         raise ConfigError(f"unknown solver(s) {bad}; choose from {list(SOLVERS)}")
-    if net_zeta not in ("learned", "self", "gt", "physics"):
-        raise ConfigError(f"net_zeta {net_zeta!r}: choose learned, self, gt or physics")
+    if net_zeta not in ("learned", "self", "gt", "physics", "none"):
+        raise ConfigError(f"net_zeta {net_zeta!r}: choose learned, self, gt, physics or none")
     base = dataclasses.replace(cfg, figure_frames=0, net_zeta="learned", net_solver="", no_attention=False, no_conf=False, rir=True)
-    nz = {"zeta": net_zeta, "net_zeta": net_zeta}  # the network runs: learned needs no per-group zeta
+    nz = {"zeta": "learned" if net_zeta == "none" else net_zeta, "net_zeta": net_zeta}  # the network runs: learned (and none) need no per-group zeta
     jobs: list[tuple[str, str, str, EvalConfig]] = []  # (table, column, checkpoint, cfg)
     jobs.append(("table1", "physics", "", dataclasses.replace(base, methods="rwps")))
     for col, key in ABLATIONS:

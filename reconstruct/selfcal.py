@@ -79,7 +79,8 @@ scored again at that geometry.  The two thresholds were chosen on the stress set
 
 Where nothing modulates (no reflection, R = T, near-normal incidence: the
 fitted pane explains the orientation field less than ``z_min`` noise standard
-deviations above chance), or where the cone cannot refute the twin either, the
+deviations above chance, or makes fewer than ``min_modulating_blocks`` of the 4 x 4
+blocks modulate above noise: a scene moving in a stream without a polarizer), or where the cone cannot refute the twin either, the
 result carries ``ok = False`` and a reason, a warning is logged, and the
 callers fall back to the learned zeta.  ``diagnostics["modulating_px"]`` reports
 the share of pixels modulating above noise (:func:`modulating_fraction`).
@@ -151,6 +152,7 @@ class SelfCalConfig:
     valley_step_deg: float = opt(2.0, "cone test: tilt step of the candidate panes, degrees", lo=0.5, hi=20.0)
     valley_ratio: float = opt(0.97, "cone test: panes scoring at least this fraction of the orientation optimum are candidates", lo=0.0, hi=1.0)
     z_min: float = opt(8.0, "the fitted pane must explain the orientation field this many noise standard deviations above chance, else 'nothing modulates' (ok = False)", lo=0.0, hi=1e6)
+    min_modulating_blocks: float = opt(0.01, "the fitted pane must make at least this share of 4 x 4 pixel blocks modulate above 3 noise sigmas (diagnostics modulating_blocks), else 'nothing modulates' (ok = False): a moving scene seen without a polarizer aliases into an orientation field that a narrow pane explains above chance while no block modulates (the REDS stream: z 11.5, 0 % of blocks); the groups of ours that calibrate have 5 % and more", lo=0.0, hi=1.0)
     coherence_sigmas: float = opt(4.0, "diagnostics: a block counts as modulating when its |sum z4| exceeds this many noise standard deviations", lo=0.0, hi=100.0)
     max_twin_ratio: float = opt(0.98, "the pane turned 90 deg (phi_perp <-> p-direction) scoring above this fraction of the best: the DoP cone decides, else ambiguous (ok = False)", lo=0.0, hi=10.0)
     min_tilt_deg: float = opt(3.0, "a fitted tilt below this is near-normal incidence: no usable modulation (ok = False)", lo=0.0, hi=89.0)
@@ -931,6 +933,10 @@ def self_calibrate(I: np.ndarray, phi: np.ndarray, cfg: SelfCalConfig = SelfCalC
     if not fit["z"] >= cfg.z_min:
         return fail(f"nothing modulates: the best planar pane explains the polarization orientation only {fit['z']:.1f} noise sigmas above chance (need {cfg.z_min:g}; "
                     f"{100 * diag['modulating_px']:.1f} % of pixels modulate above noise); no reflection, R = T, or near-normal incidence")
+    if not diag["modulating_blocks"] >= cfg.min_modulating_blocks:
+        return fail(f"nothing modulates: the best planar pane explains the orientation field {fit['z']:.1f} noise sigmas above chance, yet only "
+                    f"{100 * diag['modulating_blocks']:.2f} % of 4 x 4 pixel blocks modulate above noise (need {100 * cfg.min_modulating_blocks:g} %): "
+                    "motion aliasing into the polarizer's harmonic, no polarizer, or near-normal incidence")
     aggs = None
     if fit["twin_ratio"] > cfg.max_twin_ratio:
         # the orientation field cannot separate the pane from its 90 deg twin (nor pin the tilt of a narrow view):

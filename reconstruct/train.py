@@ -83,8 +83,9 @@ class TrainConfig:
     val_ssim: bool = opt(False, "also score SSIM of T at each validation (val_ssim_T, val_ssim_T_forced in log.csv; scikit-image)")
     force_prob: float = opt(0.0, "probability that a step (after the curriculum's alpha = 1 phase) feeds the solver the true zeta (alpha = 1) times a per-item factor exp(N(0, zeta_jitter)), instead of the curriculum's alpha: trains the refinement for an external, imperfect zeta (--zeta self); drawn from the seed and the step (resumable)", lo=0.0, hi=1.0)
     zeta_jitter: float = opt(0.0, "std of the per-item log factor on the forced zeta (force_prob)", lo=0.0, hi=2.0)
-    val_select: str = opt("learned", "validation score that picks best.pt: learned (psnr_T, the network on its own zeta) | mean (the mean of that and psnr_T_forced, the network on the true zeta: a network run with --zeta self where the stream calibrates)", choices=("learned", "mean"))
+    val_select: str = opt("learned", "validation score that picks best.pt: learned (psnr_T, the network on its own zeta) | mean (the mean of that and psnr_T_forced, the network on the true zeta: a network run with --zeta self where the stream calibrates) | r_share (the mean of psnrrefl_R and psnrrefl_R_forced: R over the pixels where the reflection carries >= 20 % of the light, for an R-only run with trainable)", choices=("learned", "mean", "r_share"))
     init_zero: tuple[str, ...] = opt((), "parameter-name prefixes set to zero after init_from (e.g. refine.dec_t.out to restart a decoder's output as zero: the network starts as its base)")
+    trainable: tuple[str, ...] = opt((), "parameter-name prefixes that train (e.g. refine.dec_r: the R decoder alone, every T output stays exactly as init_from's); the others are frozen; empty = all")
     init_from: str = opt("", "start from these weights (a checkpoint or exported .pt of the same [net] architecture; path relative to the working directory) instead of a random initialisation: fine-tuning")
 
 
@@ -176,8 +177,8 @@ def evaluate_model(model: PolSpikeNet, dataset, batch_size: int = 8, device: tor
         refl = share >= REFL_SHARE
         n_refl += int(refl.sum())
         n_all += refl.numel()
-        for name in ("T", "T_base", "T_oracle", "T_tfp"):
-            sq.setdefault(name, []).append(float(((ests[name].clamp(0, 1) - T) ** 2)[refl].sum()))
+        for name in ("T", "T_base", "T_oracle", "T_tfp", "R", "R_base", *(("R_forced",) if forced else ())):
+            sq.setdefault(name, []).append(float(((ests[name].clamp(0, 1) - (R if name.startswith("R") else T)) ** 2)[refl].sum()))
         for name, est in ests.items():
             ref = R if name.startswith("R") else T
             acc.setdefault(f"psnr_{name}", []).extend(_psnr(est, ref).cpu().tolist())
@@ -193,6 +194,16 @@ def evaluate_model(model: PolSpikeNet, dataset, batch_size: int = 8, device: tor
         for name, v in sq.items():
             res[f"psnrrefl_{name}"] = float(-10 * np.log10(max(sum(v) / n_refl, 1e-10)))
     return res
+
+
+def val_score(metrics: dict[str, float], select: str) -> float:
+    """The validation score that picks best.pt (:attr:`TrainConfig.val_select`) from :func:`evaluate_model`'s metrics."""
+    if select == "learned":
+        return metrics["psnr_T"]
+    if select == "mean":
+        return 0.5 * (metrics["psnr_T"] + metrics["psnr_T_forced"])
+    # r_share: R where the reflection carries >= REFL_SHARE of the light (whole-frame R where no pixel does)
+    return 0.5 * (metrics.get("psnrrefl_R", metrics["psnr_R"]) + metrics.get("psnrrefl_R_forced", metrics["psnr_R_forced"]))
 
 
 REFL_SHARE = SHARE_MIN
@@ -352,8 +363,16 @@ def train(
             for p in hit:
                 p.zero_()
         log.info("zeroed %d parameter tensors (init_zero)", len(hit))
+    if cfg.trainable:
+        named = list(model.named_parameters())
+        keep = [n for n, _ in named if n.startswith(tuple(cfg.trainable))]
+        if not keep:
+            raise ConfigError(f"trainable = {list(cfg.trainable)} names no parameter of this network (names start with param., refine.e1, refine.dec_t, refine.dec_r, ...)")
+        for n, p in named:
+            p.requires_grad_(n in keep)
+        log.info("training %d of %d parameter tensors (trainable = %s); the rest frozen", len(keep), len(named), list(cfg.trainable))
     model.to(dev)
-    opt_ = torch.optim.Adam(model.parameters(), lr=cfg.lr)
+    opt_ = torch.optim.Adam([p for p in model.parameters() if p.requires_grad], lr=cfg.lr)
     step = 0
     metrics: dict[str, float] = {}
     best: dict[str, Any] = {}  # the best validation so far: {"step", "psnr_T"}; best.pt holds its weights
@@ -410,7 +429,7 @@ def train(
         for group in opt_.param_groups:
             group["lr"] = lr_at(step, total, cfg)
         if cfg.grad_clip > 0:
-            torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.grad_clip)
+            torch.nn.utils.clip_grad_norm_([p for p in model.parameters() if p.requires_grad], cfg.grad_clip)
         opt_.step()
         step += 1
         row: dict[str, Any] = {}
@@ -419,7 +438,7 @@ def train(
         val_now = (cfg.val_every and step % cfg.val_every == 0) or (not cfg.val_every and step % spe == 0) or step == total
         if val_now and val_set is not None and len(val_set):
             metrics = evaluate_model(model, val_set, cfg.batch_size, dev, forced=cfg.val_select != "learned", ssim=cfg.val_ssim)
-            metrics["score"] = metrics["psnr_T"] if cfg.val_select == "learned" else 0.5 * (metrics["psnr_T"] + metrics["psnr_T_forced"])
+            metrics["score"] = val_score(metrics, cfg.val_select)
             row = row or {"step": step, "epoch": epoch + 1, "alpha": alpha, "seconds": f"{time.perf_counter() - t0:.1f}"}
             row.update({f"val_{k}": f"{v:.4f}" for k, v in metrics.items()})
             log.info("step %d: val PSNR T %.2f dB (solver %.2f, oracle %.2f)", step, metrics["psnr_T"], metrics["psnr_T_base"], metrics["psnr_T_oracle"])

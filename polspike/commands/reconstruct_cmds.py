@@ -34,8 +34,9 @@ def evaluate_cmd(
     by_regime: bool = typer.Option(False, "--by-regime", help="stress table: every solver with each zeta of --regime-zetas, baselines and the network (unless --no-net), one row per regime level of the group names (datasets/manifests/stress.toml)"),
     regime_zetas: str = typer.Option("gt,learned", "--regime-zetas", help="--by-regime: comma-separated zeta sources (gt, physics, learned, self)"),
     net: bool = typer.Option(True, "--net/--no-net", help="--by-regime: include the network (full) column"),
-    net_zeta: str = typer.Option("", "--net-zeta", help="full: zeta of the network's solver and refinement: learned (its own), self, gt or physics [default: self with --zeta self, else learned]"),
-    net_zetas: str = typer.Option("learned", "--net-zetas", help="--by-regime: comma-separated zeta sources of the network columns (learned -> net, self -> net@self)"),
+    net_zeta: str = typer.Option("", "--net-zeta", help="full: zeta of the network's solver and refinement: learned (its own), self, gt, physics or none (zeta = 0) [default: self with --zeta self, else learned]"),
+    net_fallback: str = typer.Option("none", "--net-fallback", help="full with net zeta self: the zeta where a group does not self-calibrate: none (zeta = 0, T is the whole light) | learned"),
+    net_zetas: str = typer.Option("learned", "--net-zetas", help="--by-regime: comma-separated zeta sources of the network columns (learned -> net, self -> net@self, none -> net@none)"),
     lambda_map: str = typer.Option("adaptive", "--lambda-map", help="rwps Conf -> lambda: adaptive (fitted physics default) or fixed (the original mapping)"),
     anchor: str = typer.Option("none", "--anchor", help="mean: also score every method anchored to the 17.5 ms spike mean (rows and columns '+mean'; T = 2 I_mean - zbar (R^ - T^)); none: off"),
     synthetic_groups: int = typer.Option(4, "--synthetic-groups", help="synthetic: number of groups"),
@@ -56,7 +57,7 @@ def evaluate_cmd(
     cfg = from_dict(
         EvalConfig,
         {"n_obs": n_obs, "dt_ms": dt_ms, "stride_deg": stride_deg, "methods": method, "zeta": zeta, "rir": rir, "max_frames": max_frames, "pane_n": pane_n, "pane_model": pane_model, "dtype": dtype, "device": device,
-         "checkpoint": str(checkpoint or ""), "no_attention": no_attention, "no_conf": no_conf, "net_tile": net_tile, "net_zeta": net_zeta, "anchor": anchor},
+         "checkpoint": str(checkpoint or ""), "no_attention": no_attention, "no_conf": no_conf, "net_tile": net_tile, "net_zeta": net_zeta, "net_fallback": net_fallback, "anchor": anchor},
         where="command line",
     )
     try:
@@ -109,7 +110,7 @@ def evaluate_paper_cmd(
     no_conf: list[Path] = typer.Option([], "--no-conf", help="checkpoint(s) trained without Conf [default: --full with Conf zeroed at test time]"),
     solvers: str = typer.Option("ls,ridge,irls,rwps", "--solvers", help="supp. Table 3 solvers, comma-separated ('' = skip the table)"),
     zeta: str = typer.Option("self", "--zeta", help="zeta of the physics RWPS column: self (fitted to each group's stream), gt, physics or learned"),
-    net_zeta: str = typer.Option("self", "--net-zeta", help="zeta of every network column: self (the pane fitted to each group's stream; the learned zeta where it refuses: how polspike reconstruct runs the network) or learned (its own), gt, physics"),
+    net_zeta: str = typer.Option("self", "--net-zeta", help="zeta of every network column: self (the pane fitted to each group's stream; zeta = 0 where it refuses: how polspike reconstruct runs the network) or learned (its own), gt, physics, none"),
     split: str = typer.Option("test", "--split", help="split listed in dataset.json"),
     out: Path = typer.Option(Path("out/evaluate_paper"), "--out", help="output folder (paper_table.md/.csv/.json)"),
     n_obs: int = typer.Option(7, "--n-obs", help="observations per output frame N"),
@@ -176,7 +177,7 @@ def evaluate_real_cmd(
     checkpoint: Optional[Path] = typer.Option(None, "--checkpoint", help="network checkpoint [default: the shipped reconstruct/weights default]"),
     max_frames: int = typer.Option(3, "--max-frames", help="output frames per recording (bounded run)"),
     crop: int = typer.Option(0, "--crop", help="centre crop side in pixels (0 = whole frames)"),
-    zeta: Optional[str] = typer.Option(None, "--zeta", help="the network's zeta: learned or self [default: reconstruct.net_zeta.NET_DEFAULT_ZETA, self: the pane fitted to each recording, the learned zeta where it does not calibrate]"),
+    zeta: Optional[str] = typer.Option(None, "--zeta", help="the network's zeta: self, learned or none [default: reconstruct.net_zeta.NET_DEFAULT_ZETA, self: the pane fitted to each recording, zeta = 0 where it does not calibrate]"),
     device: str = typer.Option("cpu", "--device", help="cpu or cuda"),
     threads: int = typer.Option(0, "--threads", help="torch CPU threads (0 = torch default)"),
     quiet: bool = typer.Option(False, "--quiet", help="no progress bar"),
@@ -200,8 +201,8 @@ def evaluate_real_cmd(
     if threads > 0:
         torch.set_num_threads(threads)
     zeta = zeta or NET_DEFAULT_ZETA
-    if zeta not in ("learned", "self"):
-        raise ConfigError(f"--zeta {zeta!r}: choose learned or self")
+    if zeta not in ("learned", "self", "none"):
+        raise ConfigError(f"--zeta {zeta!r}: choose self, learned or none")
     if max_frames < 1:
         raise ConfigError(f"--max-frames {max_frames}: must be >= 1 (a bounded run)")
     folder = folder or default_real_dir()

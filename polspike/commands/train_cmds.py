@@ -104,7 +104,8 @@ def reconstruct_cmd(
     quiet: bool = typer.Option(False, "--quiet", help="no progress bar"),
     method: str = typer.Option("net", "--method", help="net (the network) | ls | ridge | irls | rwps (a physics solver alone: no checkpoint unless --zeta learned)"),
     anchor: str = typer.Option("none", "--anchor", help="physics methods: mean = anchor each frame to the 17.5 ms spike mean (T = 2 I_mean - zbar (R - T): the level from ~27x more spikes, only R - T from the 7 windows; motion blurs the mean) | none"),
-    zeta: Optional[str] = typer.Option(None, "--zeta", help="self (pane fitted to the stream) | learned (the network's parameter branch) | physics | gt (physics methods, group stores only) [default: self; the network falls back to its own zeta where the stream does not calibrate (reconstruct.net_zeta.NET_DEFAULT_ZETA)]"),
+    zeta: Optional[str] = typer.Option(None, "--zeta", help="self (pane fitted to the stream) | learned (the network's parameter branch) | none (the network on zeta = 0: no separable reflection, T is the whole light) | physics | gt (physics methods, group stores only) [default: self (reconstruct.net_zeta.NET_DEFAULT_ZETA)]"),
+    zeta_fallback: str = typer.Option("none", "--zeta-fallback", help="the network's zeta where --zeta self cannot calibrate the stream (nothing modulates, or shorter than half a polarizer turn): none (zeta = 0) | learned"),
     precision: str = typer.Option("float32", "--precision", help="float32 | bfloat16 (autocast of the network; the solver stays float32)"),
 ) -> None:
     """Turn a spike group or a .dat into reflection-free T and R video at the output cadence (~343 FPS)."""
@@ -122,10 +123,14 @@ def reconstruct_cmd(
 
     if method not in ("net", *PHYSICS_METHODS):
         raise ConfigError(f"--method {method!r}: choose net or one of {', '.join(PHYSICS_METHODS)}")
-    if zeta is not None and zeta not in STREAM_ZETA_SOURCES:
-        raise ConfigError(f"--zeta {zeta!r}: choose one of {', '.join(STREAM_ZETA_SOURCES)}")
-    if method == "net" and zeta not in (None, "learned", "self"):
-        raise ConfigError(f"--zeta {zeta} needs a physics --method (ls, ridge, irls, rwps); the network takes --zeta learned or self")
+    if zeta is not None and zeta not in (*STREAM_ZETA_SOURCES, "none"):
+        raise ConfigError(f"--zeta {zeta!r}: choose one of {', '.join(STREAM_ZETA_SOURCES)}, none")
+    if method == "net" and zeta not in (None, "learned", "self", "none"):
+        raise ConfigError(f"--zeta {zeta} needs a physics --method (ls, ridge, irls, rwps); the network takes --zeta self, learned or none")
+    if method != "net" and zeta == "none":
+        raise ConfigError("--zeta none is for the network (--method net): a physics solver cannot separate anything on zeta = 0")
+    if zeta_fallback not in ("none", "learned"):
+        raise ConfigError(f"--zeta-fallback {zeta_fallback!r}: choose none or learned")
     if zeta in ("gt", "physics") and input.suffix.lower() == ".dat":
         raise ConfigError(f"--zeta {zeta} needs a stored group's pane maps; a raw .dat has none: use --zeta self or learned")
     if anchor not in ("none", "mean"):
@@ -164,11 +169,11 @@ def reconstruct_cmd(
 
         model = net_model
         zeta = zeta or NET_DEFAULT_ZETA
-        if zeta == "self":
+        if zeta in ("self", "none"):
             from reconstruct.net_zeta import build_net_zeta_model
 
-            model, info = build_net_zeta_model(model, "self", src, group_dir=None if input.suffix.lower() == ".dat" else input, window_steps=window_steps,
-                                               exposure=None if src.exposure is not None else cfg.exposure)
+            model, info = build_net_zeta_model(model, zeta, src, group_dir=None if input.suffix.lower() == ".dat" else input, window_steps=window_steps,
+                                               exposure=None if src.exposure is not None else cfg.exposure, fallback=zeta_fallback)
     else:
         from reconstruct.physics_video import build_physics_model
 

@@ -114,3 +114,25 @@ def test_ssim_term_is_off_by_default_and_pulls_toward_the_structure():
     with torch.no_grad():
         est2 = est - 0.05 * est.grad / est.grad.abs().max()
     assert float(1 - ssim_map(est2.clamp(0, 1), gt).mean()) < float(l0)
+
+
+def test_r_floor_weights_the_r_term_by_the_reflected_share():
+    """r_floor < 1: the R term of L_rec is the L1 weighted by r_floor + (1 - r_floor) clip(rho / rho_ref, 0, 1)
+    (closed form on three pixels: no reflection, share 0.1, share 0.53); r_floor = 1 is the paper's unweighted term."""
+    T = torch.ones(1, 1, 3)
+    R = torch.tensor([[[0.0, 1.0, 10.0]]])
+    zc = torch.full_like(T, 0.1)
+    err = torch.tensor([[[0.3, 0.2, 0.1]]])
+    rho = torch.tensor([0.0, 0.1 / (0.1 + 0.9), 1.0 / (1.0 + 0.9)])
+    cfg = LossConfig(lambda_r=1.0, r_floor=0.2, rho_ref=0.3)
+    w = 0.2 + 0.8 * (rho / 0.3).clamp(0, 1)
+    M_r = reflection_mask(T, R, zc, cfg, floor=cfg.r_floor)
+    assert torch.allclose(M_r[0, 0], w, atol=1e-5)
+    got = loss_rec(T, R + err, T, R, torch.ones_like(T), cfg, M_r)
+    assert math.isclose(float(got), float((w * err[0, 0]).mean()), rel_tol=1e-5)
+    z = zc[:, None].expand(1, 7, 1, 3)
+    I = 0.5 * (z * R[:, None] + (1 - z) * T[:, None])
+    out = SimpleNamespace(T=T, R=R + err, T_base=T, R_base=R, zeta_hat=z, zeta_gt=z, I=I)
+    _, p1 = total_loss(out, T, R, 0.0, LossConfig(lambda_r=1.0))
+    _, p2 = total_loss(out, T, R, 0.0, cfg)
+    assert math.isclose(p1["l_rec"], float(err.mean()), rel_tol=1e-5) and math.isclose(p2["l_rec"], float(got), rel_tol=1e-5)

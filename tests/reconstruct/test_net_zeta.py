@@ -122,19 +122,84 @@ def test_evaluate_labels_the_network_zeta():
     assert "PSNR of R" in regime_report(res)
 
 
-def test_a_stream_shorter_than_half_a_turn_falls_back_to_the_learned_zeta():
-    """--zeta self (the default) on a stream too short to self-calibrate: the network itself, the reason in info;
-    the physics path, which has no fallback, refuses with the one-line error's type."""
+def test_a_stream_shorter_than_half_a_turn_falls_back_to_zero_zeta_or_the_learned_one():
+    """--zeta self (the default) on a stream too short to self-calibrate: zeta = 0 (the default fallback) or, asked
+    for, the network itself, the reason in info; the physics path, which has no fallback, refuses with the one-line
+    error's type."""
     from polinfra.errors import ConfigError
-    from reconstruct.net_zeta import build_net_zeta_model
+    from reconstruct.net_zeta import NET_FALLBACK_ZETA, ZeroZetaNet, build_net_zeta_model
     from reconstruct.physics_video import calibrate_stream
     from reconstruct.selfcal import StreamTooShortError
     from reconstruct.video import array_source
 
     sp = (np.random.default_rng(0).random((200, 16, 24)) < 0.1).astype(np.uint8)  # 10 ms at 30 rev/s: 15 frames < 26
-    net = object()
+    net = _tiny_net()
     m, info = build_net_zeta_model(net, "self", array_source(sp, 0.0, 30.0))
+    assert NET_FALLBACK_ZETA == "none" and isinstance(m, ZeroZetaNet) and m.net is net
+    assert info["zeta"].startswith("none (no self-calibration: the stream is shorter")
+    m, info = build_net_zeta_model(net, "self", array_source(sp, 0.0, 30.0), fallback="learned")
     assert m is net and info["zeta"].startswith("learned (no self-calibration: the stream is shorter")
+    with pytest.raises(ConfigError):
+        build_net_zeta_model(net, "self", array_source(sp, 0.0, 30.0), fallback="gt")
     with pytest.raises(StreamTooShortError):
         calibrate_stream(array_source(sp, 0.0, 30.0))
     assert issubclass(StreamTooShortError, ConfigError)
+
+
+def _tiny_net():
+    import torch
+
+    from reconstruct.network import PolSpikeNet, init_weights
+    from reconstruct.train import TINY
+
+    net = PolSpikeNet(TINY.net, TINY.solver)
+    init_weights(net, torch.Generator().manual_seed(0))
+    with torch.no_grad():  # a refinement that changes T, so the test below sees the solver's own output in T_base
+        net.refine.dec_t.out.weight.mul_(100.0)
+    return net.eval()
+
+
+def test_zero_zeta_solves_for_the_whole_light():
+    """zeta = 0 in paper Eq. (1) leaves I_k = T / 2 for every observation: the solver's T is a weighted mean of the
+    2 I_k, within [2 min_k I_k, 2 max_k I_k] (times the solver's ridge shrinkage, a few per cent here), and R has no
+    say in it; tiles are fine (no per-pixel maps)."""
+    import torch
+
+    from reconstruct.net_zeta import ZeroZetaNet
+
+    net = _tiny_net()
+    g = torch.Generator().manual_seed(1)
+    N = net.cfg.n_obs
+    I = 0.05 + 0.4 * torch.rand(2, N, 16, 16, generator=g)
+    phi = torch.linspace(0, 1.2, N).repeat(2, 1)
+    with torch.no_grad():
+        o = ZeroZetaNet(net)(I, phi)
+    assert torch.count_nonzero(o.zeta_used) == 0
+    assert (o.T_base <= 2 * I.max(1).values + 1e-6).all() and (o.T_base >= 0.8 * 2 * I.min(1).values).all()
+    assert torch.isfinite(o.R).all() and not torch.allclose(o.T, o.T_base)  # the refinement still runs
+    assert ZeroZetaNet(net).pad_multiple == net.pad_multiple and not hasattr(ZeroZetaNet(net), "stream_tile")
+
+
+def test_a_stream_without_polarizer_does_not_self_calibrate(shared_data):
+    """The independent simulator's REDS stream has no polarizer. At 48.95 rev/s its moving scene aliases into an
+    orientation field that a narrow pane explains 11 sigmas above chance (z_min 8), yet no pixel modulates above
+    noise: the modulating-block gate (min_modulating_blocks) is what refuses it; without the gate a pane is claimed."""
+    import dataclasses
+
+    from polspike.pipeline.real_eval import _load, RECORDINGS
+    from reconstruct.exposure import estimate_exposure
+    from reconstruct.physics_video import calibrate_stream
+    from reconstruct.selfcal import SelfCalConfig
+    from reconstruct.video import array_source
+
+    rec = next(r for r in RECORDINGS if r.file.endswith(".dat"))
+    if not (shared_data / "real_spikes" / rec.file).is_file():
+        pytest.skip("REDS sample absent")
+    sp = _load(rec, shared_data / "real_spikes", 0)
+    src = array_source(sp, 0.0, 48.95, name=rec.file)
+    exp = estimate_exposure(sp).exposure
+    r = calibrate_stream(src, None, 13, exp, None, 1.5, "single")
+    assert not r.ok and "pixel blocks modulate above noise (need" in r.reason, r.reason
+    assert r.diagnostics["modulating_blocks"] < SelfCalConfig().min_modulating_blocks and r.diagnostics["z"] > SelfCalConfig().z_min
+    r0 = calibrate_stream(src, None, 13, exp, dataclasses.replace(SelfCalConfig(), min_modulating_blocks=0.0), 1.5, "single")
+    assert r0.ok  # the gate, not another test, refuses it

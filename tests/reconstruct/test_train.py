@@ -272,3 +272,29 @@ def test_every_shipped_training_config_loads_and_its_init_weights_exist():
         cfg = from_dict(TrainConfig, load_toml(f), where=str(f))
         for p in (cfg.init_from, cfg.manifest, cfg.val_manifest):
             assert not p or (root / p).is_file(), f"{f.name}: {p} missing"
+
+
+def test_trainable_freezes_every_other_weight(tmp_path, sets):
+    """trainable = ("refine.dec_r",): after a run only the R decoder's weights moved (so T is exactly the start's);
+    a prefix naming no parameter is a one-line ConfigError."""
+    tr, va = sets
+    train(TINY, tr, va, tmp_path / "base")
+    init = str(tmp_path / "base" / "last.pt")
+    cfg = dataclasses.replace(TINY, init_from=init, trainable=("refine.dec_r",), lr=1e-2)
+    train(cfg, tr, va, tmp_path / "r")
+    a, b = read_checkpoint(init)["state_dict"], read_checkpoint(tmp_path / "r" / "last.pt")["state_dict"]
+    moved = {k for k in a if not torch.equal(a[k], b[k])}
+    assert moved and all(k.startswith("refine.dec_r") for k in moved), moved
+    with pytest.raises(ConfigError, match="trainable"):
+        train(dataclasses.replace(cfg, trainable=("refine.nothing",)), tr, va, tmp_path / "bad")
+
+
+def test_val_score_of_each_selection():
+    """val_select: learned = psnr_T; mean = the mean over both zeta paths; r_share = R over the reflection pixels
+    (both paths), whole-frame R where a validation set has none."""
+    from reconstruct.train import val_score
+
+    m = {"psnr_T": 30.0, "psnr_T_forced": 34.0, "psnr_R": 18.0, "psnr_R_forced": 20.0, "psnrrefl_R": 12.0, "psnrrefl_R_forced": 16.0}
+    assert val_score(m, "learned") == 30.0 and val_score(m, "mean") == 32.0 and val_score(m, "r_share") == 14.0
+    m2 = {k: v for k, v in m.items() if not k.startswith("psnrrefl")}
+    assert val_score(m2, "r_share") == 19.0
