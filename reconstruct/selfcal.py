@@ -927,7 +927,7 @@ def self_calibrate(I: np.ndarray, phi: np.ndarray, cfg: SelfCalConfig = SelfCalC
     auto = cfg.model == "auto"
 
     def fail(reason):
-        log.warning("self-calibrated zeta for %s: %s; falling back to the learned zeta", name, reason)
+        log.warning("self-calibrated zeta for %s: %s; no self-calibrated zeta (the caller's fallback: zeta = 0 for the network, the learned zeta for the physics solvers)", name, reason)
         return SelfCalResult(False, reason, None, None, None, None, float(fit["fov_deg"]), False, cfg.n, cfg.prior_model if auto else cfg.model, None, None, frac, res_deg, fit["twin_ratio"], diag)
 
     if not fit["z"] >= cfg.z_min:

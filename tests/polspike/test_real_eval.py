@@ -48,10 +48,10 @@ def test_real_recordings_cropped(tmp_path, shared_data, polspike_main):
         if "uhsr" in name:
             assert x["corr_mean"] > 0.5, x
         else:
-            # 48 px centre crops (little texture). polspike_v3.pt: 28.2 / 27.7 dB; polspike_v4.pt: 28.1 / 17.3 dB (the REDS
-            # crop: T's level and contrast drift from TFP's on so small a crop; at 128 px both give 20.7, and on whole
-            # frames both match the REDS ground truth equally, test_reds_whole_frames_match_the_ground_truth)
-            assert x["psnr_tfp"] > 15.0 and x["corr_tfp"] > 0.5, x
+            # 48 px centre crops (little texture), polspike_v4.pt: SpikingSIM 28.1 dB, REDS 30.3 dB on zeta = 0, the
+            # fallback where nothing modulates (on its learned zeta the REDS crop gave 17.3-20.3 dB: T's level and
+            # contrast drifted from TFP's; polspike_v3.pt 27.7)
+            assert x["psnr_tfp"] > 25.0 and x["corr_tfp"] > 0.5, x
     assert (tmp_path / "real.png").is_file() and (tmp_path / "real.md").read_text().count("| ok |") == len(rows)
 
 
@@ -116,8 +116,9 @@ def test_real_recordings_whole_frames(tmp_path, shared_data):
 @needs_ckpt
 def test_reds_whole_frames_match_the_ground_truth(tmp_path, shared_data, polspike_main):
     """The independent simulator's REDS stream (no polarizer) through the console script, default network and zeta:
-    every output frame correlates with the ground-truth PNG (frame 151) at >= 0.88 and, after one gain, is within
-    >= 22 dB of it (measured 0.90-0.93 / 22.4-23.8 dB with polspike_v3.pt and polspike_v4.pt)."""
+    every output frame correlates with the ground-truth PNG (frame 151) at >= 0.92 and, after one gain, is within
+    >= 23.5 dB of it. Measured with polspike_v4.pt: 0.933-0.942 / 24.0-24.6 dB on zeta = 0, the default where the
+    stream does not self-calibrate (--zeta-fallback learned: 0.90-0.93 / 22.4-23.8)."""
     import imageio.v3 as iio
 
     from polinfra.exr import read_exr
@@ -139,4 +140,4 @@ def test_reds_whole_frames_match_the_ground_truth(tmp_path, shared_data, polspik
         corr = np.corrcoef(T.ravel(), gt.ravel())[0, 1]
         g = float((T * gt).sum() / (T * T).sum())
         psnr = 10 * np.log10(1.0 / np.mean((g * T - gt) ** 2))
-        assert corr > 0.88 and psnr > 22.0, (f.name, corr, psnr)
+        assert corr > 0.92 and psnr > 23.5, (f.name, corr, psnr)
