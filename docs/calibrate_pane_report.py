@@ -192,7 +192,8 @@ def valley(dataset: Path, weightings: list[str]) -> None:
     import math
 
     from generator.pane_fit import PaneModelAD, gauss_newton
-    from polspike.pipeline.calibrate_pane import CalibratePaneConfig, _wrap90, block_orientation_variance, fit_geometry
+    from polspike.pipeline.calibrate_pane import CalibratePaneConfig, _wrap90, fit_geometry
+    from reconstruct.selfcal import block_orientation_variance
     from reconstruct.physics_video import span_frames
     from reconstruct.selfcal import SelfCalConfig, orientation_field, self_calibrate
     from reconstruct.video import group_source

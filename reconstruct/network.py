@@ -373,6 +373,7 @@ class PolSpikeNet(nn.Module):
         scale: torch.Tensor | None = None,
         I_mean: torch.Tensor | None = None,
         zeta_scale: torch.Tensor | None = None,
+        zeta_shape: torch.Tensor | None = None,
     ) -> NetOutput:
         """Reconstruct the centre frame of each window.
 
@@ -391,6 +392,9 @@ class PolSpikeNet(nn.Module):
             zeta_scale: optional (B,) factors applied to ``zeta_gt`` where it is fed to the solver (teacher
                 forcing), not where the losses compare with it: training for an imperfect external zeta
                 (``--zeta self``, whose errors are mostly of scale; RECONSTRUCTION_NOTES "scale vs shape").
+            zeta_shape: optional (B,) factors on the modulation of that fed zeta about its window mean,
+                zeta' = m + f (zeta - m), m = mean over the N observations (applied before ``zeta_scale``): the
+                degree of polarization an assumed index or pane model gets wrong.
 
         Returns:
             :class:`NetOutput`.
@@ -417,7 +421,14 @@ class PolSpikeNet(nn.Module):
             zeta_hat, w, _ = self.param(I, phi, feats, scale)
         zeta_hat, w = zeta_hat.float(), w.float()  # the solver runs in float32 (also under bf16 autocast)
         I = I.float()
-        z_force = zeta_gt if (zeta_gt is None or zeta_scale is None) else (zeta_gt * zeta_scale.reshape(-1, 1, 1, 1).to(zeta_gt.dtype)).clamp(0.0, 1.0)
+        z_force = zeta_gt
+        if zeta_gt is not None and zeta_shape is not None:
+            zm = zeta_gt.mean(1, keepdim=True)
+            z_force = zm + zeta_shape.reshape(-1, 1, 1, 1).to(zeta_gt.dtype) * (zeta_gt - zm)
+        if zeta_gt is not None and zeta_scale is not None:
+            z_force = z_force * zeta_scale.reshape(-1, 1, 1, 1).to(zeta_gt.dtype)
+        if z_force is not zeta_gt:
+            z_force = z_force.clamp(0.0, 1.0)
         zeta_used = zeta_hat if (alpha <= 0 or zeta_gt is None) else alpha * z_force + (1 - alpha) * zeta_hat  # teacher forcing
         res = solve(self.cfg.solver_method, zeta_used, I, w, self.solver_cfg)
         T0, R0 = res.T, res.R

@@ -152,6 +152,7 @@ class SelfCalConfig:
     valley_step_deg: float = opt(2.0, "cone test: tilt step of the candidate panes, degrees", lo=0.5, hi=20.0)
     valley_ratio: float = opt(0.97, "cone test: panes scoring at least this fraction of the orientation optimum are candidates", lo=0.0, hi=1.0)
     z_min: float = opt(8.0, "the fitted pane must explain the orientation field this many noise standard deviations above chance, else 'nothing modulates' (ok = False)", lo=0.0, hi=1e6)
+    geometry_weighting: str = opt("scatter", "weights of the blocks in the final geometry fit: scatter (each block by 1 / (its orientation's measured variance, from the scatter of its pixels across its direction, plus a misfit floor), robust to blocks the plane does not explain; calibrate-pane's, docs/selfcal.md) or s4 (by |sum z4|, the matched filter of the grid search, which overweights weak blocks whose |sum z4| is mostly their signal's power)", choices=("scatter", "s4"))
     min_modulating_blocks: float = opt(0.01, "the fitted pane must make at least this share of 4 x 4 pixel blocks modulate above 3 noise sigmas (diagnostics modulating_blocks), else 'nothing modulates' (ok = False): a moving scene seen without a polarizer aliases into an orientation field that a narrow pane explains above chance while no block modulates (the REDS stream: z 11.5, 0 % of blocks); the groups of ours that calibrate have 5 % and more", lo=0.0, hi=1.0)
     coherence_sigmas: float = opt(4.0, "diagnostics: a block counts as modulating when its |sum z4| exceeds this many noise standard deviations", lo=0.0, hi=100.0)
     max_twin_ratio: float = opt(0.98, "the pane turned 90 deg (phi_perp <-> p-direction) scoring above this fraction of the best: the DoP cone decides, else ambiguous (ok = False)", lo=0.0, hi=10.0)
@@ -446,6 +447,82 @@ def _sep(t1, a1, t2, a2) -> float:
     v1 = np.array([math.sin(t1) * math.cos(a1), math.sin(t1) * math.sin(a1), math.cos(t1)])
     v2 = np.array([math.sin(t2) * math.cos(a2), math.sin(t2) * math.sin(a2), math.cos(t2)])
     return math.acos(max(-1.0, min(1.0, float(v1 @ v2))))
+
+
+def block_orientation_variance(of: dict, block: int) -> tuple[np.ndarray, np.ndarray]:
+    """Noise variance (rad^2) of each block's orientation psi_b = arg(s4_b) / 4, measured from the scatter of its
+    pixels' sums s4_px perpendicular to the block's direction: Var Im(s4_b e^{-i 4 psi_b}) = (pixels) x their
+    variance, and 4 |s4_b| dpsi = Im(...).  Unlike q / (32 |s4|^2) (the pure-noise scale, which holds the signal's
+    power too), this is the orientation's actual spread, spike noise and content alike.  Also returns the block's
+    effective number of contributing pixels (sum |s4_px|)^2 / sum |s4_px|^2."""
+    s4, sp = of["s4"], of["s4_px"]
+    h, w = s4.shape
+    b = int(block)
+    sp = sp[: h * b, : w * b].reshape(h, b, w, b)
+    u = np.exp(-1j * np.angle(s4))[:, None, :, None]
+    perp = np.imag(sp * u)
+    npx = b * b
+    v = (perp ** 2).sum(axis=(1, 3)) * npx / max(npx - 1, 1) / (16.0 * np.maximum(np.abs(s4), 1e-300) ** 2)
+    a = np.abs(sp)
+    n_eff = a.sum(axis=(1, 3)) ** 2 / np.maximum((a * a).sum(axis=(1, 3)), 1e-300)
+    return v, n_eff
+
+
+POLISH_MIN_BLOCK = 4
+"""Smallest block (pixels per side) whose orientation variance the polish measures from its pixels' scatter."""
+
+POLISH_ROBUST_C = 4.0
+"""Cauchy scale of the scatter-weighted geometry polish, in standard deviations of a block's orientation."""
+
+
+def polish_geometry(of: dict, block: int, tilt: float, az: float, fov_deg: float, fit_fov: bool) -> dict | None:
+    """Scatter-weighted, robust least squares of the pane geometry on the block orientation field, from (tilt, az, fov).
+
+    Each block weighs 1 / (v_b + floor): v_b its orientation's measured variance (:func:`block_orientation_variance`),
+    the floor the misfit the best-measured quarter of the blocks shows beyond their noise (content moving through the
+    harmonic fit), re-estimated once; Cauchy loss at :data:`POLISH_ROBUST_C` standard deviations.  Blocks without a
+    measurable modulation (|s4| under its noise, or modulation in <= a quarter of their pixels) are left out.  The
+    residual is sin(2 delta) / 2 (delta = psi - phi_perp): invariant to the 90 deg flip where R < T.
+    Returns {"tilt", "azimuth", "fov_deg"} (radians, radians, degrees), or None with fewer than 8 usable blocks.
+    """
+    from scipy.optimize import least_squares
+
+    if block < POLISH_MIN_BLOCK and "q_px" in of:  # a variance from a handful of pixels is too noisy to weigh by: re-block
+        block = POLISH_MIN_BLOCK
+        H, W = of["s4_px"].shape
+        hb, wb = H // block, W // block
+        if hb < 2 or wb < 2:
+            return None
+        s4b = _block(of["s4_px"], block)
+        of = {"s4": s4b, "q": _block(of["q_px"], block), "psi": np.angle(s4b) / 4.0, "s4_px": of["s4_px"]}
+    s4, q = of["s4"], of["q"]
+    h, w = s4.shape
+    v, n_eff = block_orientation_variance(of, block)
+    mask = (np.abs(s4) > np.sqrt(0.5 * np.maximum(q, 1e-300))) & (n_eff >= 0.25 * block * block) & (v > 0)
+    if mask.sum() < 8:
+        return None
+    v = v[mask]
+    psi = of["psi"][mask]
+    top = v <= np.quantile(v, 0.25)
+
+    def pp(x):
+        f = x[2] if fit_fov else fov_deg
+        cam = camera_for(w, h, f)
+        return _phi_perp_grid(cam, normal_from_angles(x[0], x[1], cam))[mask]
+
+    x = np.array([tilt, az] + ([fov_deg] if fit_fov else []), np.float64)
+    lb = [0.0, az - math.pi] + ([5.0] if fit_fov else [])
+    ub = [math.radians(89.9), az + math.pi] + ([150.0] if fit_fov else [])
+    x = np.clip(x, lb, ub)
+    sys2 = math.radians(1.0) ** 2
+    for _ in range(2):
+        sd = np.sqrt(v + sys2)
+        r = least_squares(lambda z: 0.5 * np.sin(2.0 * (psi - pp(z))) / sd, x, bounds=(lb, ub), loss="cauchy", f_scale=POLISH_ROBUST_C,
+                          x_scale=[0.1, 0.1] + ([10.0] if fit_fov else []))
+        x = r.x
+        d = 0.5 * np.abs(np.sin(2.0 * (psi - pp(x))))
+        sys2 = max(math.radians(0.1) ** 2, float(np.median(d[top] ** 2)) / 0.455 - float(np.median(v[top])))
+    return {"tilt": float(x[0]), "azimuth": float(x[1]) % (2 * math.pi), "fov_deg": float(x[2]) if fit_fov else float(fov_deg)}
 
 
 # --------------------------------------------------------------------------- the polarization cone
@@ -959,6 +1036,26 @@ def self_calibrate(I: np.ndarray, phi: np.ndarray, cfg: SelfCalConfig = SelfCalC
         fit = {**fit, "tilt": cone["tilt"], "azimuth": cone["azimuth"], "fov_deg": cone["fov_deg"]}
         modulation(fit["tilt"], fit["azimuth"], fit["fov_deg"])
         res_deg = residual()
+    if cfg.geometry_weighting == "scatter":
+        # the grid search and the twin / cone decisions weigh blocks by |sum z4|, which holds the signal's power: the final
+        # geometry is the scatter-weighted fit from there, kept in the chosen family (a local move, no 90 deg flip)
+        pol = polish_geometry(f, s, fit["tilt"], fit["azimuth"], fit["fov_deg"], fov_given is None and "cone" not in diag)  # the cone chose along the tilt-fov valley: keep its fov
+        if pol is not None:
+            cam_b = camera_for(w, h, fit["fov_deg"])
+            pp0 = _phi_perp_grid(cam_b, normal_from_angles(fit["tilt"], fit["azimuth"], cam_b))
+            cam_p = camera_for(w, h, pol["fov_deg"])
+            pp1 = _phi_perp_grid(cam_p, normal_from_angles(pol["tilt"], pol["azimuth"], cam_p))
+            a4 = np.abs(f["s4"])
+            same = float(np.sum(a4 * np.cos(2.0 * (pp1 - pp0))) / max(float(a4.sum()), 1e-300))
+            moved = math.degrees(_sep(fit["tilt"], fit["azimuth"], pol["tilt"], pol["azimuth"]))
+            diag["polish"] = {"from": [math.degrees(fit["tilt"]), math.degrees(fit["azimuth"]) % 360.0, float(fit["fov_deg"])],
+                              "to": [math.degrees(pol["tilt"]), math.degrees(pol["azimuth"]), pol["fov_deg"]], "same_family": same, "moved_deg": moved}
+            if same > 0.5 and moved < 15.0:
+                fit = {**fit, **pol}
+                modulation(fit["tilt"], fit["azimuth"], fit["fov_deg"])
+                res_deg = residual()
+            else:
+                diag["polish"]["kept"] = "the cone's / grid's pane (the polish left the family or moved > 15 deg)"
     tilt_deg = math.degrees(fit["tilt"])
     if tilt_deg < cfg.min_tilt_deg:
         return fail(f"near-normal incidence (fitted tilt {tilt_deg:.1f} deg): no usable modulation")

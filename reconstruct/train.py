@@ -83,6 +83,7 @@ class TrainConfig:
     val_ssim: bool = opt(False, "also score SSIM of T at each validation (val_ssim_T, val_ssim_T_forced in log.csv; scikit-image)")
     force_prob: float = opt(0.0, "probability that a step (after the curriculum's alpha = 1 phase) feeds the solver the true zeta (alpha = 1) times a per-item factor exp(N(0, zeta_jitter)), instead of the curriculum's alpha: trains the refinement for an external, imperfect zeta (--zeta self); drawn from the seed and the step (resumable)", lo=0.0, hi=1.0)
     zeta_jitter: float = opt(0.0, "std of the per-item log factor on the forced zeta (force_prob)", lo=0.0, hi=2.0)
+    zeta_shape_jitter: float = opt(0.0, "std of the per-item log factor on the forced zeta's modulation about its window mean (force_prob): the degree of polarization a wrong index or pane model gives the self-calibrated zeta", lo=0.0, hi=2.0)
     val_select: str = opt("learned", "validation score that picks best.pt: learned (psnr_T, the network on its own zeta) | mean (the mean of that and psnr_T_forced, the network on the true zeta: a network run with --zeta self where the stream calibrates) | r_share (the mean of psnrrefl_R and psnrrefl_R_forced: R over the pixels where the reflection carries >= 20 % of the light, for an R-only run with trainable)", choices=("learned", "mean", "r_share"))
     init_zero: tuple[str, ...] = opt((), "parameter-name prefixes set to zero after init_from (e.g. refine.dec_t.out to restart a decoder's output as zero: the network starts as its base)")
     trainable: tuple[str, ...] = opt((), "parameter-name prefixes that train (e.g. refine.dec_r: the R decoder alone, every T output stays exactly as init_from's); the others are frozen; empty = all")
@@ -414,13 +415,15 @@ def train(
         epoch = step // spe
         alpha = alpha_at(epoch, cfg)
         I, phi, T, R, z = (b[k].to(dev) for k in ("I", "phi", "T", "R", "zeta"))
-        scale = None
+        scale = shape = None
         if cfg.force_prob > 0 and alpha < 1.0:
             g = torch.Generator().manual_seed(cfg.seed * 1_000_003 + step)
             if float(torch.rand((), generator=g)) < cfg.force_prob:
                 alpha = 1.0
                 scale = torch.exp(cfg.zeta_jitter * torch.randn(I.shape[0], generator=g)).to(dev)
-        out = model(I, phi, zeta_gt=z, alpha=alpha, I_mean=b["I_mean"].to(dev) if "I_mean" in b else None, zeta_scale=scale)
+                if cfg.zeta_shape_jitter > 0:  # drawn after scale: configs without it keep their trajectory
+                    shape = torch.exp(cfg.zeta_shape_jitter * torch.randn(I.shape[0], generator=g)).to(dev)
+        out = model(I, phi, zeta_gt=z, alpha=alpha, I_mean=b["I_mean"].to(dev) if "I_mean" in b else None, zeta_scale=scale, zeta_shape=shape)
         loss, parts = total_loss(out, T, R, alpha, cfg.loss)
         if not math.isfinite(parts["loss"]):
             raise FloatingPointError(f"non-finite loss at step {step}: {parts}")

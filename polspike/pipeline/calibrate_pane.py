@@ -123,25 +123,6 @@ def _wmedian(v: np.ndarray, w: np.ndarray) -> float:
 
 
 # --------------------------------------------------------------------------- geometry
-def block_orientation_variance(of: dict, block: int) -> tuple[np.ndarray, np.ndarray]:
-    """Noise variance (rad^2) of each block's orientation psi_b = arg(s4_b) / 4, measured from the scatter of its
-    pixels' sums s4_px perpendicular to the block's direction: Var Im(s4_b e^{-i 4 psi_b}) = (pixels) x their
-    variance, and 4 |s4_b| dpsi = Im(...).  Unlike q / (32 |s4|^2) (the pure-noise scale, which holds the signal's
-    power too), this is the orientation's actual spread, spike noise and content alike.  Also returns the block's
-    effective number of contributing pixels (sum |s4_px|)^2 / sum |s4_px|^2."""
-    s4, sp = of["s4"], of["s4_px"]
-    h, w = s4.shape
-    b = int(block)
-    sp = sp[: h * b, : w * b].reshape(h, b, w, b)
-    u = np.exp(-1j * np.angle(s4))[:, None, :, None]
-    perp = np.imag(sp * u)
-    npx = b * b
-    v = (perp ** 2).sum(axis=(1, 3)) * npx / max(npx - 1, 1) / (16.0 * np.maximum(np.abs(s4), 1e-300) ** 2)
-    a = np.abs(sp)
-    n_eff = a.sum(axis=(1, 3)) ** 2 / np.maximum((a * a).sum(axis=(1, 3)), 1e-300)
-    return v, n_eff
-
-
 def fit_geometry(of: dict, width: int, height: int, block: int, x0: np.ndarray, fit_fov: bool, coherence_sigmas: float = 4.0, weighting: str = "scatter",
                  fov_starts: tuple[float, ...] = (25.0, 40.0, 55.0, 70.0), rounds: int = 0) -> dict:
     """Gauss-Newton of (tilt, azimuth[, fov]) on the block orientation field (module docstring, step 3).
@@ -157,6 +138,7 @@ def fit_geometry(of: dict, width: int, height: int, block: int, x0: np.ndarray, 
     ``s4`` weighs by |sum z4| (the matched-filter weight of the self-calibration).
     ``fov_starts``: extra starts (degrees) of a fitted field of view; ``rounds``: robust re-weighting rounds."""
     from generator.pane_fit import PaneModelAD, gauss_newton
+    from reconstruct.selfcal import block_orientation_variance
 
     s4, q = of["s4"], of["q"]
     coherent = np.abs(s4) > coherence_sigmas * np.sqrt(0.5 * np.maximum(q, 1e-300))

@@ -396,7 +396,7 @@ def test_block_orientation_variance_matches_the_monte_carlo_spread_of_psi():
     """The scatter of a block's pixel sums perpendicular to its direction gives the noise variance of psi_b = arg(s4_b) / 4
     (oracle: the spread of psi_b over independent noise draws); q / (32 |s4|^2), the pure-noise scale, overstates it
     where the block modulates.  A block whose signal sits in one pixel has an effective pixel count of 1."""
-    from polspike.pipeline.calibrate_pane import block_orientation_variance
+    from reconstruct.selfcal import block_orientation_variance
 
     rng = np.random.default_rng(5)
     b, hb, wb, sig = 4, 3, 5, 0.4

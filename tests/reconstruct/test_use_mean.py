@@ -176,5 +176,12 @@ def test_anchored_base_network_starts_as_the_anchored_solver():
     torch.testing.assert_close(f.zeta_used[0], zg[0])
     torch.testing.assert_close(f.zeta_used[1], zg[1] * 1.5)
     assert f.zeta_gt is zg
+    zv = 0.1 + 0.2 * torch.rand(o.zeta_hat.shape, generator=torch.Generator().manual_seed(3))  # a modulating zeta
+    with torch.no_grad():
+        f = net(I, phi, zeta_gt=zv, alpha=1.0, I_mean=Im, zeta_scale=torch.tensor([1.0, 1.5]), zeta_shape=torch.tensor([0.5, 1.2]))
+    m = zv.mean(1, keepdim=True)  # the shape factor scales the modulation about the window mean, then the scale applies
+    torch.testing.assert_close(f.zeta_used[0], (m + 0.5 * (zv - m))[0])
+    torch.testing.assert_close(f.zeta_used[1], (1.5 * (m + 1.2 * (zv - m)))[1].clamp(0, 1))
+    assert f.zeta_gt is zv
     with pytest.raises(ShapeError, match="use_mean"):
         PolSpikeNet(dataclasses.replace(SMALL, base="anchored"))(I, phi)
