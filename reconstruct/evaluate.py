@@ -95,7 +95,7 @@ class EvalConfig:
     net_tile: int = opt(256, "method full: network tile size in pixels (bounded memory; 0 = whole frame)", lo=0, hi=100000)
     net_solver: str = opt("", "method full: physics solver before the network's refinement instead of the trained one (supp. Table 3); empty = as trained", choices=("", "ls", "ridge", "irls", "rwps"))
     net_zeta: str = opt("", "method full: zeta of the network's solver and refinement: learned (its parameter branch), self, gt, physics, or none (zeta = 0: no separable reflection, T is the whole light); empty = self when zeta is self, else learned", choices=("", "learned", "self", "gt", "physics", "none"))
-    net_fallback: str = opt("none", "method full with net zeta self, where the stream does not self-calibrate: none (zeta = 0, T is the whole light; measured better, docs/MODEL_CARD.md) or learned (the network's own zeta)", choices=("none", "learned"))
+    net_fallback: str = opt("auto", "method full with net zeta self, where the stream does not self-calibrate: auto (learned where the refused calibration still shows >= 5 % of pixels modulating, else none; reconstruct.net_zeta.fallback_for), none (zeta = 0, T is the whole light) or learned (the network's own zeta)", choices=("auto", "none", "learned"))
     anchor: str = opt("none", "mean: also score each method anchored to the 17.5 ms spike mean, T = 2 I_mean - zbar (R^ - T^), R = T + (R^ - T^) (rows '<method>+mean'; stored groups only)", choices=("none", "mean"))
 
 
@@ -395,7 +395,12 @@ def evaluate_groups(
         Znet = None  # the network's zeta when not its own (None: learned)
         if net_rows and nz != "learned":
             Znet = None if nz == "none" else (Z if nz == cfg.zeta else group_zeta(g, dataclasses.replace(cfg, zeta=nz)))
-            if nz == "none" or (Znet is None and nz == "self" and cfg.net_fallback == "none"):
+            if Znet is None and nz == "self":
+                from reconstruct.net_zeta import fallback_for
+                from reconstruct.selfcal import group_self_zeta
+
+                fb = fallback_for(getattr(group_self_zeta, "last", None), cfg.net_fallback)  # learned: Znet stays None
+            if nz == "none" or (Znet is None and nz == "self" and fb == "none"):
                 Znet = np.zeros(g.I.shape, np.float64)  # no separable reflection: zeta = 0, T is the whole light
         share = share_context(g, cfg)
         t["zeta"] += time.perf_counter() - t0

@@ -5,8 +5,9 @@ The network's parameter branch estimates zeta (and the reliability weights w) pe
 same fit the physics methods use) and that zeta (paper Eq. (2), window-averaged) replaces the
 learned one in the network's solver and refinement: ``model(I, phi, zeta_gt=zeta, alpha=1)``
 (the teacher-forcing path of :class:`reconstruct.network.PolSpikeNet`); w stays learned.  Where
-nothing modulates (no pane can be fitted) the network runs on zeta = 0 (:data:`NET_FALLBACK_ZETA`:
-no separable reflection, T is the whole light) or, asked for, on its own zeta; the info says which.
+nothing modulates (no pane can be fitted) the network runs on zeta = 0 (no separable reflection, T is the whole
+light) or, where the refused stream still modulates (:data:`NET_FALLBACK_ZETA` ``auto``), on its own zeta; the info
+says which.
 
 :class:`MapsZetaNet` follows the model protocol of :func:`reconstruct.video.run_model_on_windows`
 and of the stream's feature cache, so :func:`reconstruct.video.reconstruct_stream` runs it as it
@@ -26,7 +27,7 @@ from polinfra.errors import ConfigError
 
 from reconstruct.zeta_source import PaneMaps, zeta_from_maps
 
-__all__ = ["MapsZetaNet", "ZeroZetaNet", "NET_ZETA_SOURCES", "NET_DEFAULT_ZETA", "NET_FALLBACK_ZETA", "build_net_zeta_model"]
+__all__ = ["MapsZetaNet", "ZeroZetaNet", "NET_ZETA_SOURCES", "NET_DEFAULT_ZETA", "NET_FALLBACK_ZETA", "NET_FALLBACKS", "FALLBACK_LEARNED_PX", "fallback_for", "build_net_zeta_model"]
 
 log = logging.getLogger(__name__)
 
@@ -42,12 +43,33 @@ set self beats learned on every regime level (docs/MODEL_CARD.md).  Where the st
 modulates, or shorter than half a polarizer turn) the network runs on :data:`NET_FALLBACK_ZETA`, and the run's info
 says so."""
 
-NET_FALLBACK_ZETA = "none"
-"""The network's zeta where ``self`` cannot calibrate the stream: ``none`` (zeta = 0).  Measured against the learned
-zeta on the streams that do not calibrate: the real recordings without a polarizer (the REDS stream's 48 px crops:
-T within 30.3 dB of the TFP image against 20.3 with the learned zeta) and the stress groups that refuse
-(docs/MODEL_CARD.md).  Nothing modulating means the spikes cannot separate a reflection; a learned zeta then
-invents one."""
+NET_FALLBACK_ZETA = "auto"
+"""The network's zeta where ``self`` cannot calibrate the stream (:func:`fallback_for`): ``auto`` takes its learned
+zeta where the refused calibration still shows polarization (at least :data:`FALLBACK_LEARNED_PX` of the pixels
+modulating above noise: a pane the planar fit cannot follow, e.g. under a camera pan) and zeta = 0 elsewhere
+(``none``: nothing modulates, so the spikes cannot separate a reflection and a learned zeta invents one; T is the
+whole light).  Measured (docs/MODEL_CARD.md): on the real recordings without a polarizer zeta = 0 is far better
+(the REDS stream's 48 px crops: T within 30.3 dB of the TFP image against 20.3), on the validation groups whose
+calibration fails under a camera pan (17-18 % of pixels modulating) the learned zeta is (T +2.7 and +5.2 dB)."""
+
+FALLBACK_LEARNED_PX = 0.05
+"""``auto`` fallback: share of pixels modulating above noise (``SelfCalResult.diagnostics["modulating_px"]``) from
+which a refused stream runs on the learned zeta rather than zeta = 0 (the refusing groups measured: 0-1.7 % where
+zeta = 0 is as good or better, 17-18 % where the learned zeta is better)."""
+
+NET_FALLBACKS = ("auto", "none", "learned")
+"""Choices of the network's fallback zeta (``--zeta-fallback``)."""
+
+
+def fallback_for(result, fallback: str = NET_FALLBACK_ZETA) -> str:
+    """The zeta source (``none`` or ``learned``) the network falls back to where the self-calibration ``result``
+    (a :class:`reconstruct.selfcal.SelfCalResult`, or None where none was possible) refused."""
+    if fallback not in NET_FALLBACKS:
+        raise ConfigError(f"zeta fallback {fallback!r}: choose one of {', '.join(NET_FALLBACKS)}")
+    if fallback != "auto":
+        return fallback
+    px = None if result is None else (result.diagnostics or {}).get("modulating_px")
+    return "learned" if (px is not None and px >= FALLBACK_LEARNED_PX) else "none"
 
 
 class _ExternalZetaNet:
@@ -128,8 +150,8 @@ def build_net_zeta_model(net, zeta: str, source, *, group_dir=None, window_steps
     """
     if zeta not in NET_ZETA_SOURCES:
         raise ConfigError(f"--zeta {zeta!r} for the network: choose one of {', '.join(NET_ZETA_SOURCES)}")
-    if fallback not in ("none", "learned"):
-        raise ConfigError(f"zeta fallback {fallback!r}: choose none or learned")
+    if fallback not in NET_FALLBACKS:
+        raise ConfigError(f"zeta fallback {fallback!r}: choose one of {', '.join(NET_FALLBACKS)}")
     info: dict = {"zeta": zeta, "selfcal": None}
     if zeta == "learned":
         return net, info
@@ -138,17 +160,18 @@ def build_net_zeta_model(net, zeta: str, source, *, group_dir=None, window_steps
     from reconstruct.physics_video import calibrate_stream
     from reconstruct.selfcal import StreamTooShortError
 
-    def fall(why: str):
-        info["zeta"] = f"{fallback} (no self-calibration: {why})"
-        return (ZeroZetaNet(net) if fallback == "none" else net), info
+    def fall(why: str, res=None):
+        fb = fallback_for(res, fallback)
+        info["zeta"] = f"{fb} (no self-calibration: {why})"
+        return (ZeroZetaNet(net) if fb == "none" else net), info
 
     try:
         res = calibrate_stream(source, group_dir, window_steps, exposure, None, pane_n, pane_model)
-    except StreamTooShortError as e:  # e.g. a 15 ms .dat at 30 rev/s: as where nothing modulates
-        log.warning("%s; the network runs on zeta %s", e, fallback)
+    except StreamTooShortError as e:  # e.g. a 15 ms .dat at 30 rev/s: nothing measured, as where nothing modulates
+        log.warning("%s; the network runs on zeta %s", e, fallback_for(None, fallback))
         return fall("the stream is shorter than half a polarizer turn")
     info["selfcal"] = res.summary()
     if not res.ok:
-        return fall(res.reason.split(":")[0])
+        return fall(res.reason.split(":")[0], res)
     span = 2 * math.pi * source.polarizer_rev_s * window_steps / source.rate_hz
     return MapsZetaNet(net, res.maps, span), info

@@ -105,7 +105,7 @@ def reconstruct_cmd(
     method: str = typer.Option("net", "--method", help="net (the network) | ls | ridge | irls | rwps (a physics solver alone: no checkpoint unless --zeta learned)"),
     anchor: str = typer.Option("none", "--anchor", help="physics methods: mean = anchor each frame to the 17.5 ms spike mean (T = 2 I_mean - zbar (R - T): the level from ~27x more spikes, only R - T from the 7 windows; motion blurs the mean) | none"),
     zeta: Optional[str] = typer.Option(None, "--zeta", help="self (pane fitted to the stream) | learned (the network's parameter branch) | none (the network on zeta = 0: no separable reflection, T is the whole light) | physics | gt (physics methods, group stores only) [default: self (reconstruct.net_zeta.NET_DEFAULT_ZETA)]"),
-    zeta_fallback: str = typer.Option("none", "--zeta-fallback", help="the network's zeta where --zeta self cannot calibrate the stream (nothing modulates, or shorter than half a polarizer turn): none (zeta = 0) | learned"),
+    zeta_fallback: str = typer.Option("auto", "--zeta-fallback", help="the network's zeta where --zeta self cannot calibrate the stream: auto (learned where >= 5 % of pixels still modulate, e.g. under a camera pan, else none) | none (zeta = 0: T is the whole light) | learned"),
     precision: str = typer.Option("float32", "--precision", help="float32 | bfloat16 (autocast of the network; the solver stays float32)"),
 ) -> None:
     """Turn a spike group or a .dat into reflection-free T and R video at the output cadence (~343 FPS)."""
@@ -129,8 +129,8 @@ def reconstruct_cmd(
         raise ConfigError(f"--zeta {zeta} needs a physics --method (ls, ridge, irls, rwps); the network takes --zeta self, learned or none")
     if method != "net" and zeta == "none":
         raise ConfigError("--zeta none is for the network (--method net): a physics solver cannot separate anything on zeta = 0")
-    if zeta_fallback not in ("none", "learned"):
-        raise ConfigError(f"--zeta-fallback {zeta_fallback!r}: choose none or learned")
+    if zeta_fallback not in ("auto", "none", "learned"):
+        raise ConfigError(f"--zeta-fallback {zeta_fallback!r}: choose auto, none or learned")
     if zeta in ("gt", "physics") and input.suffix.lower() == ".dat":
         raise ConfigError(f"--zeta {zeta} needs a stored group's pane maps; a raw .dat has none: use --zeta self or learned")
     if anchor not in ("none", "mean"):

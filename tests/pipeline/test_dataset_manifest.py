@@ -270,6 +270,20 @@ def test_reduced_manifests_are_papers_groups(paper, name, split, size, duration)
         assert {k: v for k, v in g.spike_sim.items() if k not in ("width", "height")} == {k: v for k, v in src[g.name].spike_sim.items() if k not in ("width", "height")}
 
 
+def test_eval_paper_val_is_paper_vals_groups_reduced():
+    """eval_paper_val: paper_val.toml's 12 groups (the validation split) at 200 x 125 and 0.1 s, nothing else changed."""
+    m = load_manifest(MANIFESTS_DIR / "eval_paper_val.toml")
+    src = {g.name: g for g in load_manifest(MANIFESTS_DIR / "paper_val.toml").groups}
+    assert [g.name for g in m.groups] == list(src) and len(src) == 12
+    for g in m.groups:
+        a, b = dict(g.scene), dict(src[g.name].scene)
+        assert (a["camera"]["width"], a["camera"]["height"]) == (200, 125) and g.duration_s == 0.1
+        a["camera"] = {k: v for k, v in a["camera"].items() if k not in ("width", "height")}
+        b["camera"] = {k: v for k, v in b["camera"].items() if k not in ("width", "height")}
+        a.pop("render"), b.pop("render")
+        assert a == b and g.seed == src[g.name].seed
+
+
 def test_stress_manifest_is_a_named_grid_of_regimes():
     from polspike.pipeline.sampler import STRESS_LEVELS, stress_manifest_text
     from reconstruct.evaluate import REGIME_FACTORS, regime_of

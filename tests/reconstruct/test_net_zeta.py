@@ -135,7 +135,7 @@ def test_a_stream_shorter_than_half_a_turn_falls_back_to_zero_zeta_or_the_learne
     sp = (np.random.default_rng(0).random((200, 16, 24)) < 0.1).astype(np.uint8)  # 10 ms at 30 rev/s: 15 frames < 26
     net = _tiny_net()
     m, info = build_net_zeta_model(net, "self", array_source(sp, 0.0, 30.0))
-    assert NET_FALLBACK_ZETA == "none" and isinstance(m, ZeroZetaNet) and m.net is net
+    assert NET_FALLBACK_ZETA == "auto" and isinstance(m, ZeroZetaNet) and m.net is net  # auto: nothing measured -> none
     assert info["zeta"].startswith("none (no self-calibration: the stream is shorter")
     m, info = build_net_zeta_model(net, "self", array_source(sp, 0.0, 30.0), fallback="learned")
     assert m is net and info["zeta"].startswith("learned (no self-calibration: the stream is shorter")
@@ -203,3 +203,20 @@ def test_a_stream_without_polarizer_does_not_self_calibrate(shared_data):
     assert r.diagnostics["modulating_blocks"] < SelfCalConfig().min_modulating_blocks and r.diagnostics["z"] > SelfCalConfig().z_min
     r0 = calibrate_stream(src, None, 13, exp, dataclasses.replace(SelfCalConfig(), min_modulating_blocks=0.0), 1.5, "single")
     assert r0.ok  # the gate, not another test, refuses it
+
+
+def test_fallback_for_follows_the_refused_calibrations_modulation():
+    """auto: the learned zeta where a refused calibration still shows >= FALLBACK_LEARNED_PX of the pixels modulating
+    (polarization the planar fit could not follow), zeta = 0 where nothing modulates or nothing was measured; the
+    explicit choices pass through; anything else is a one-line ConfigError."""
+    from types import SimpleNamespace
+
+    from polinfra.errors import ConfigError
+    from reconstruct.net_zeta import FALLBACK_LEARNED_PX, fallback_for
+
+    res = lambda px: SimpleNamespace(ok=False, diagnostics={"modulating_px": px})  # noqa: E731
+    assert fallback_for(res(0.18)) == "learned" and fallback_for(res(FALLBACK_LEARNED_PX)) == "learned"
+    assert fallback_for(res(0.0)) == "none" and fallback_for(res(0.017)) == "none" and fallback_for(None) == "none"
+    assert fallback_for(res(0.18), "none") == "none" and fallback_for(res(0.0), "learned") == "learned"
+    with pytest.raises(ConfigError, match="fallback"):
+        fallback_for(None, "gt")
