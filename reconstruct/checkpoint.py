@@ -54,7 +54,7 @@ def save_checkpoint(path: str | os.PathLike, model: PolSpikeNet, *, extra: dict[
         "net": to_dict(model.cfg),
         "solver": to_dict(model.solver_cfg_in),
         "state_dict": {k: v.detach().cpu() for k, v in model.state_dict().items()},
-        "param_count": count_parameters(model),
+        "param_count": sum(p.numel() for p in model.parameters()),  # all of them, also those a run froze (trainable)
     }
     if extra:
         data.update(extra)

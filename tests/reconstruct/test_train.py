@@ -285,6 +285,9 @@ def test_trainable_freezes_every_other_weight(tmp_path, sets):
     a, b = read_checkpoint(init)["state_dict"], read_checkpoint(tmp_path / "r" / "last.pt")["state_dict"]
     moved = {k for k in a if not torch.equal(a[k], b[k])}
     assert moved and all(k.startswith("refine.dec_r") for k in moved), moved
+    # the checkpoint counts every parameter, also the frozen ones (the shipped-checkpoint pin compares with it)
+    assert read_checkpoint(tmp_path / "r" / "last.pt")["param_count"] == read_checkpoint(init)["param_count"] == sum(
+        t.numel() for k, t in b.items() if t.dtype.is_floating_point)
     with pytest.raises(ConfigError, match="trainable"):
         train(dataclasses.replace(cfg, trainable=("refine.nothing",)), tr, va, tmp_path / "bad")
 
