@@ -86,6 +86,7 @@ class NetConfig:
     base: str = opt("solver", "what the refinement's Delta_t, Delta_r are added to: solver (T^, R^, paper Sec. 3.3) | anchored (T^, R^ anchored to the long spike mean, reconstruct.solvers.anchor_to_mean; needs use_mean): the untrained refinement then returns the anchored physics", choices=("solver", "anchored"))
     anchor_zbar: str = opt("window", "zbar of the anchor: window (mean of zeta over the N windows, what polspike_v2_mean.pt was trained with) | harmonic (the first-harmonic level of zeta over the window's angles, reconstruct.solvers.zbar_of: the half-turn mean paper Eq. (1) needs)", choices=("window", "harmonic"))
     solver_method: str = opt("rwps", "physics solver run on the predicted zeta and w", choices=("ls", "ridge", "irls", "rwps"))
+    r_level_px: float = opt(0.0, "R's level from the base, its structure from the refinement: R = R_ref + G_s * (R_base - R_ref), G_s a Gaussian blur of this sigma in pixels (0 = off, the refined R). The refinement shrinks R's level where the spikes do not identify it; the base (the anchored physics with base = anchored) keeps it; no weights, only inference", lo=0.0, hi=256.0)
     span_rad: float = opt(math.radians(7.02), "polarizer rotation inside one aggregation window (0.65 ms at 30 rev/s), rad; recorded with the weights, not used by the layers", lo=0.0, hi=math.pi)
 
 
@@ -452,7 +453,25 @@ class PolSpikeNet(nn.Module):
             raise ShapeError("base = anchored needs a use_mean network (the anchor is the long spike mean)", actual_shape=None, expected_shape="use_mean = true")
         x = torch.stack(ch, 1)
         dT, dR = self.refine(x)
-        return NetOutput(T=Tb + dT, R=Rb + dR, T_base=T0, R_base=R0, zeta_hat=zeta_hat, zeta_used=zeta_used, weights=w, conf=res.conf, res=resid, I=I, zeta_gt=zeta_gt)
+        R = Rb + dR
+        if self.cfg.r_level_px > 0:
+            R = R + gaussian_blur(Rb - R, self.cfg.r_level_px)  # the base's level, the refinement's structure
+        return NetOutput(T=Tb + dT, R=R, T_base=T0, R_base=R0, zeta_hat=zeta_hat, zeta_used=zeta_used, weights=w, conf=res.conf, res=resid, I=I, zeta_gt=zeta_gt)
+
+
+def gaussian_blur(x: torch.Tensor, sigma: float) -> torch.Tensor:
+    """Separable Gaussian blur of (B, H, W) maps (kernel radius 3 sigma, reflected borders; replicated where the map is
+    narrower than the radius)."""
+    r = max(1, int(math.ceil(3.0 * sigma)))
+    t = torch.arange(-r, r + 1, dtype=x.dtype, device=x.device)
+    k = torch.exp(-0.5 * (t / sigma) ** 2)
+    k = k / k.sum()
+    y = x.unsqueeze(1)
+    H, W = x.shape[-2:]
+    mode = "reflect" if (H > r and W > r) else "replicate"
+    y = F.conv2d(F.pad(y, (r, r, 0, 0), mode=mode), k.view(1, 1, 1, -1))
+    y = F.conv2d(F.pad(y, (0, 0, r, r), mode=mode), k.view(1, 1, -1, 1))
+    return y.squeeze(1)
 
 
 def count_parameters(model: nn.Module) -> int:

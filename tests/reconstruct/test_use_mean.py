@@ -185,3 +185,32 @@ def test_anchored_base_network_starts_as_the_anchored_solver():
     assert f.zeta_gt is zv
     with pytest.raises(ShapeError, match="use_mean"):
         PolSpikeNet(dataclasses.replace(SMALL, base="anchored"))(I, phi)
+
+
+def test_r_level_takes_rs_level_from_the_base_and_its_structure_from_the_refinement():
+    """r_level_px > 0: R = R_ref + G_s * (R_base - R_ref). A refinement that only shifts R's level (Delta_r = c) is
+    undone exactly (R = the anchored base), while without it R = base + c; T is untouched. gaussian_blur equals
+    scipy's mirrored Gaussian filter (truncated at 3 sigma)."""
+    from scipy.ndimage import gaussian_filter
+
+    from reconstruct.network import gaussian_blur
+    from reconstruct.solvers import anchor_to_mean, zbar_of
+
+    x = torch.rand(2, 40, 50, dtype=torch.float64, generator=torch.Generator().manual_seed(0))
+    ref = np.stack([gaussian_filter(a, 3.0, mode="mirror", truncate=3.0) for a in x.numpy()])
+    np.testing.assert_allclose(gaussian_blur(x, 3.0).numpy(), ref, atol=1e-12)
+    outs = {}
+    for s in (0.0, 8.0):
+        cfg = dataclasses.replace(SMALL, use_mean=True, base="anchored", anchor_zbar="harmonic", r_level_px=s)
+        net = init_weights(PolSpikeNet(cfg), torch.Generator().manual_seed(1)).eval()
+        with torch.no_grad():
+            net.refine.dec_r.out.weight.zero_()
+            net.refine.dec_r.out.bias.fill_(0.05)  # Delta_r = 0.05 everywhere: a pure level shift
+        I, phi, Im = _window()
+        with torch.no_grad():
+            outs[s] = net(I, phi, I_mean=Im)
+    o0, o8 = outs[0.0], outs[8.0]
+    Ta, Ra = anchor_to_mean(o0.T_base, o0.R_base, Im, zbar_of(o0.zeta_used, phi))
+    torch.testing.assert_close(o0.R, Ra + 0.05, rtol=0, atol=1e-5)
+    torch.testing.assert_close(o8.R, Ra, rtol=0, atol=1e-5)
+    torch.testing.assert_close(o8.T, o0.T, rtol=0, atol=0)
