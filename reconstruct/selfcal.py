@@ -82,7 +82,8 @@ fitted pane explains the orientation field less than ``z_min`` noise standard
 deviations above chance, or makes fewer than ``min_modulating_blocks`` of the 4 x 4
 blocks modulate above noise: a scene moving in a stream without a polarizer), or where the cone cannot refute the twin either, the
 result carries ``ok = False`` and a reason, a warning is logged, and the
-callers fall back to the learned zeta.  ``diagnostics["modulating_px"]`` reports
+callers fall back (the physics solvers to the learned zeta, the network to zeta = 0 or its learned zeta,
+:func:`reconstruct.net_zeta.fallback_for`).  ``diagnostics["modulating_px"]`` reports
 the share of pixels modulating above noise (:func:`modulating_fraction`).
 
 T depends on zeta's *shape* (phi_perp and DoP_R = (R_perp - R_par) / (R_perp + R_par)),
