@@ -65,3 +65,33 @@ def test_v1_refuses_a_scale():
     I, phi = _frame(32, 32)
     with pytest.raises(ShapeError, match="v2 option"):
         net(torch.as_tensor(I), torch.as_tensor(phi), scale=torch.ones(1))
+
+
+def test_tiles_keep_the_r_level_blur_inside_their_margin():
+    """A model whose R is a Gaussian blur of its input (as r_level_px blurs R - R_base) gives, tiled, the whole frame's R
+    away from the frame's border: run_model_on_windows widens the tiles' margin to the blur's 3-sigma radius."""
+    import types
+
+    import numpy as np
+    import torch
+
+    from reconstruct.network import gaussian_blur
+    from reconstruct.video import run_model_on_windows
+
+    sigma = 8.0
+
+    class Blur:
+        cfg = types.SimpleNamespace(n_obs=3, r_level_px=sigma, arch="v1")
+        pad_multiple = 4
+
+        def __call__(self, I, phi, **kw):
+            T = I[:, 0]
+            return types.SimpleNamespace(T=T, R=gaussian_blur(T, sigma), T_base=T, R_base=T)
+
+    rng = np.random.default_rng(0)
+    I = rng.random((1, 3, 96, 120)).astype(np.float32)
+    phi = np.zeros((1, 3), np.float32)
+    whole = run_model_on_windows(Blur(), I, phi, tile=0)["R"][0]
+    tiled = run_model_on_windows(Blur(), I, phi, tile=32, margin=4)["R"][0]
+    r = 24  # near the frame's border the tiles see replicated, the whole frame reflected pixels
+    np.testing.assert_allclose(tiled[r:-r, r:-r], whole[r:-r, r:-r], atol=1e-5)
