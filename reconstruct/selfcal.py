@@ -351,6 +351,12 @@ def _phi_perp_grid(camera, normal: np.ndarray) -> np.ndarray:
     return incidence_geometry(camera, Plane(camera.position + camera.forward, normal))["phi_perp"]
 
 
+def _pane_phi_perp(width: int, height: int, tilt: float, az: float, fov_deg: float) -> np.ndarray:
+    """phi_perp (height, width) of the pane with normal (tilt, az) on a width x height grid seen with horizontal fov fov_deg."""
+    cam = camera_for(width, height, fov_deg)
+    return _phi_perp_grid(cam, normal_from_angles(tilt, az, cam))
+
+
 def fit_normal(s4: np.ndarray, q: np.ndarray, width_blocks: int, height_blocks: int, fov_deg: float | None, fov_init_deg: float = 60.0) -> dict:
     """Fit the pane normal (and optionally the field of view) to a block-grid orientation field.
 
@@ -382,8 +388,7 @@ def fit_normal(s4: np.ndarray, q: np.ndarray, width_blocks: int, height_blocks: 
     fov0 = float(fov_deg) if fov_deg else float(fov_init_deg)
 
     def phis(tilt, az, fov):
-        cam = camera_for(width_blocks, height_blocks, fov)
-        return _phi_perp_grid(cam, normal_from_angles(tilt, az, cam)).ravel()
+        return _pane_phi_perp(width_blocks, height_blocks, tilt, az, fov).ravel()
 
     def score(tilt, az, fov):
         return float(np.sum(mag * np.cos(ang4 - 4.0 * phis(tilt, az, fov))))
@@ -507,9 +512,7 @@ def polish_geometry(of: dict, block: int, tilt: float, az: float, fov_deg: float
     top = v <= np.quantile(v, 0.25)
 
     def pp(x):
-        f = x[2] if fit_fov else fov_deg
-        cam = camera_for(w, h, f)
-        return _phi_perp_grid(cam, normal_from_angles(x[0], x[1], cam))[mask]
+        return _pane_phi_perp(w, h, x[0], x[1], x[2] if fit_fov else fov_deg)[mask]
 
     x = np.array([tilt, az] + ([fov_deg] if fit_fov else []), np.float64)
     lb = [0.0, az - math.pi] + ([5.0] if fit_fov else [])
@@ -699,8 +702,7 @@ def valley_candidates(s4: np.ndarray, width_blocks: int, height_blocks: int, see
     sw = np.sqrt(2.0 * mag / tot)
 
     def phis(tilt, az, fov):
-        cam = camera_for(width_blocks, height_blocks, fov)
-        return _phi_perp_grid(cam, normal_from_angles(tilt, az, cam)).ravel()
+        return _pane_phi_perp(width_blocks, height_blocks, tilt, az, fov).ravel()
 
     def at_tilt(t, a_seed, f_seed):
         if fov_deg:
@@ -993,8 +995,7 @@ def self_calibrate(I: np.ndarray, phi: np.ndarray, cfg: SelfCalConfig = SelfCalC
         # weighted median orientation residual over the coherent blocks (a report, not a gate)
         if not mask.any():
             return None
-        cam_b = camera_for(w, h, fit["fov_deg"])
-        d = f["psi"] - _phi_perp_grid(cam_b, normal_from_angles(fit["tilt"], fit["azimuth"], cam_b))
+        d = f["psi"] - _pane_phi_perp(w, h, fit["tilt"], fit["azimuth"], fit["fov_deg"])
         d = np.abs(np.mod(d + math.pi / 4, math.pi / 2) - math.pi / 4)[mask]
         wv = np.abs(f["s4"])[mask]
         o = np.argsort(d)
@@ -1042,10 +1043,8 @@ def self_calibrate(I: np.ndarray, phi: np.ndarray, cfg: SelfCalConfig = SelfCalC
         # geometry is the scatter-weighted fit from there, kept in the chosen family (a local move, no 90 deg flip)
         pol = polish_geometry(f, s, fit["tilt"], fit["azimuth"], fit["fov_deg"], fov_given is None and "cone" not in diag)  # the cone chose along the tilt-fov valley: keep its fov
         if pol is not None:
-            cam_b = camera_for(w, h, fit["fov_deg"])
-            pp0 = _phi_perp_grid(cam_b, normal_from_angles(fit["tilt"], fit["azimuth"], cam_b))
-            cam_p = camera_for(w, h, pol["fov_deg"])
-            pp1 = _phi_perp_grid(cam_p, normal_from_angles(pol["tilt"], pol["azimuth"], cam_p))
+            pp0 = _pane_phi_perp(w, h, fit["tilt"], fit["azimuth"], fit["fov_deg"])
+            pp1 = _pane_phi_perp(w, h, pol["tilt"], pol["azimuth"], pol["fov_deg"])
             a4 = np.abs(f["s4"])
             same = float(np.sum(a4 * np.cos(2.0 * (pp1 - pp0))) / max(float(a4.sum()), 1e-300))
             moved = math.degrees(_sep(fit["tilt"], fit["azimuth"], pol["tilt"], pol["azimuth"]))
