@@ -459,10 +459,15 @@ class PolSpikeNet(nn.Module):
         return NetOutput(T=Tb + dT, R=R, T_base=T0, R_base=R0, zeta_hat=zeta_hat, zeta_used=zeta_used, weights=w, conf=res.conf, res=resid, I=I, zeta_gt=zeta_gt)
 
 
+def gaussian_radius(sigma: float) -> int:
+    """Kernel radius (pixels) of :func:`gaussian_blur`: 3 sigma, at least 1 (0 for sigma 0: no blur)."""
+    return max(1, int(math.ceil(3.0 * sigma))) if sigma > 0 else 0
+
+
 def gaussian_blur(x: torch.Tensor, sigma: float) -> torch.Tensor:
-    """Separable Gaussian blur of (B, H, W) maps (kernel radius 3 sigma, reflected borders; replicated where the map is
-    narrower than the radius)."""
-    r = max(1, int(math.ceil(3.0 * sigma)))
+    """Separable Gaussian blur of (B, H, W) maps (kernel radius :func:`gaussian_radius`, reflected borders; replicated
+    where the map is narrower than the radius)."""
+    r = gaussian_radius(sigma)
     t = torch.arange(-r, r + 1, dtype=x.dtype, device=x.device)
     k = torch.exp(-0.5 * (t / sigma) ** 2)
     k = k / k.sum()

@@ -209,7 +209,9 @@ def run_model_on_windows(model, I: np.ndarray, phi: np.ndarray, device: str | to
             outs = [model(xp[i : i + max_batch], p[i : i + max_batch], **zkw(zp, i, mp)) for i in range(0, B, max_batch)]
             return {k: torch.cat([getattr(o, k) for o in outs])[..., :H, :W].float().cpu().numpy() for k in _KEYS}
         # a network that blurs its output (r_level_px: R's level from the base) needs that blur's radius inside the margin
-        margin = max(margin, int(math.ceil(3.0 * float(getattr(getattr(model, "cfg", None), "r_level_px", 0.0) or 0.0))))
+        from reconstruct.network import gaussian_radius
+
+        margin = max(margin, gaussian_radius(float(getattr(getattr(model, "cfg", None), "r_level_px", 0.0) or 0.0)))
         ts = tile + 2 * margin
         ts += (-ts) % mult
         ny, nx = -(-H // tile), -(-W // tile)
