@@ -59,6 +59,7 @@ from polinfra.errors import ConfigError, DataFormatError
 from reconstruct.groups import EvalGroup
 from reconstruct.identifiability import SHARE_MIN, bound_psnr, ls_layer_variance, reflected_share, window_mean_variance
 from reconstruct.metrics import LPIPS_NA, lpips_status, masked_psnr, masked_score, psnr, score
+from reconstruct.net_zeta import NET_FALLBACKS, fallback_for
 from reconstruct.rir import RirConfig, estimate_shifts, warp
 from reconstruct.solvers import PHYSICS_SOLVER_CONFIG, SOLVERS, SolverConfig, anchor_to_mean, solve, zbar_of
 from reconstruct.zeta_source import ZETA_SOURCES, PaneMaps, zeta_from_maps, zeta_learned
@@ -95,8 +96,16 @@ class EvalConfig:
     net_tile: int = opt(256, "method full: network tile size in pixels (bounded memory; 0 = whole frame)", lo=0, hi=100000)
     net_solver: str = opt("", "method full: physics solver before the network's refinement instead of the trained one (supp. Table 3); empty = as trained", choices=("", "ls", "ridge", "irls", "rwps"))
     net_zeta: str = opt("", "method full: zeta of the network's solver and refinement: learned (its parameter branch), self, gt, physics, or none (zeta = 0: no separable reflection, T is the whole light); empty = self when zeta is self, else learned", choices=("", "learned", "self", "gt", "physics", "none"))
-    net_fallback: str = opt("auto", "method full with net zeta self, where the stream does not self-calibrate: auto (learned where the refused calibration still shows >= 5 % of pixels modulating, else none; reconstruct.net_zeta.fallback_for), none (zeta = 0, T is the whole light) or learned (the network's own zeta)", choices=("auto", "none", "learned"))
+    net_fallback: str = opt("auto", "method full with net zeta self, where the stream does not self-calibrate: auto (learned where the refused calibration still shows >= 5 % of pixels modulating, else none; reconstruct.net_zeta.fallback_for), none (zeta = 0, T is the whole light) or learned (the network's own zeta)", choices=NET_FALLBACKS)
     anchor: str = opt("none", "mean: also score each method anchored to the 17.5 ms spike mean, T = 2 I_mean - zbar (R^ - T^), R = T + (R^ - T^) (rows '<method>+mean'; stored groups only)", choices=("none", "mean"))
+
+
+def _refused_fallback(cfg: EvalConfig) -> str:
+    """The network's zeta (none or learned) for the group whose self-calibration just refused
+    (:func:`reconstruct.net_zeta.fallback_for` of that calibration, ``cfg.net_fallback``)."""
+    from reconstruct.selfcal import group_self_zeta
+
+    return fallback_for(getattr(group_self_zeta, "last", None), cfg.net_fallback)
 
 
 def net_zeta_of(cfg: EvalConfig) -> str:
@@ -393,15 +402,10 @@ def evaluate_groups(
         if Z is None and model is None:  # --zeta self found nothing modulating: the learned zeta instead
             model, net_info = load_network(cfg)
         Znet = None  # the network's zeta when not its own (None: learned)
-        if net_rows and nz != "learned":
-            Znet = None if nz == "none" else (Z if nz == cfg.zeta else group_zeta(g, dataclasses.replace(cfg, zeta=nz)))
-            if Znet is None and nz == "self":
-                from reconstruct.net_zeta import fallback_for
-                from reconstruct.selfcal import group_self_zeta
-
-                fb = fallback_for(getattr(group_self_zeta, "last", None), cfg.net_fallback)  # learned: Znet stays None
-            if nz == "none" or (Znet is None and nz == "self" and fb == "none"):
-                Znet = np.zeros(g.I.shape, np.float64)  # no separable reflection: zeta = 0, T is the whole light
+        if net_rows and nz not in ("learned", "none"):
+            Znet = Z if nz == cfg.zeta else group_zeta(g, dataclasses.replace(cfg, zeta=nz))
+        if net_rows and Znet is None and (nz == "none" or (nz == "self" and _refused_fallback(cfg) == "none")):
+            Znet = np.zeros(g.I.shape, np.float64)  # no separable reflection: zeta = 0, T is the whole light
         share = share_context(g, cfg)
         t["zeta"] += time.perf_counter() - t0
         M = g.I.shape[0]

@@ -196,13 +196,13 @@ def evaluate_real_cmd(
     from polinfra.progress import rich_progress
     from polspike.pipeline.real_eval import default_real_dir, evaluate_real, real_markdown
 
-    from reconstruct.net_zeta import NET_DEFAULT_ZETA
+    from reconstruct.net_zeta import NET_DEFAULT_ZETA, NET_ZETA_SOURCES
 
     if threads > 0:
         torch.set_num_threads(threads)
     zeta = zeta or NET_DEFAULT_ZETA
-    if zeta not in ("learned", "self", "none"):
-        raise ConfigError(f"--zeta {zeta!r}: choose self, learned or none")
+    if zeta not in NET_ZETA_SOURCES:
+        raise ConfigError(f"--zeta {zeta!r}: choose {', '.join(NET_ZETA_SOURCES)}")
     if max_frames < 1:
         raise ConfigError(f"--max-frames {max_frames}: must be >= 1 (a bounded run)")
     folder = folder or default_real_dir()

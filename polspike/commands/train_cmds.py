@@ -125,12 +125,14 @@ def reconstruct_cmd(
         raise ConfigError(f"--method {method!r}: choose net or one of {', '.join(PHYSICS_METHODS)}")
     if zeta is not None and zeta not in (*STREAM_ZETA_SOURCES, "none"):
         raise ConfigError(f"--zeta {zeta!r}: choose one of {', '.join(STREAM_ZETA_SOURCES)}, none")
-    if method == "net" and zeta not in (None, "learned", "self", "none"):
-        raise ConfigError(f"--zeta {zeta} needs a physics --method (ls, ridge, irls, rwps); the network takes --zeta self, learned or none")
+    from reconstruct.net_zeta import NET_FALLBACKS, NET_ZETA_SOURCES
+
+    if method == "net" and zeta not in (None, *NET_ZETA_SOURCES):
+        raise ConfigError(f"--zeta {zeta} needs a physics --method (ls, ridge, irls, rwps); the network takes --zeta {', '.join(NET_ZETA_SOURCES)}")
     if method != "net" and zeta == "none":
         raise ConfigError("--zeta none is for the network (--method net): a physics solver cannot separate anything on zeta = 0")
-    if zeta_fallback not in ("auto", "none", "learned"):
-        raise ConfigError(f"--zeta-fallback {zeta_fallback!r}: choose auto, none or learned")
+    if zeta_fallback not in NET_FALLBACKS:
+        raise ConfigError(f"--zeta-fallback {zeta_fallback!r}: choose {', '.join(NET_FALLBACKS)}")
     if zeta in ("gt", "physics") and input.suffix.lower() == ".dat":
         raise ConfigError(f"--zeta {zeta} needs a stored group's pane maps; a raw .dat has none: use --zeta self or learned")
     if anchor not in ("none", "mean"):

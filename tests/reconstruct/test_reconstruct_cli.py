@@ -193,3 +193,19 @@ def test_batched_tiles_match_whole_frame_inside():
     xp = F.pad(torch.from_numpy(I), (16, 16 + 64 - 56, 16, 16 + 48 - 40), mode="replicate").numpy()
     one = run_model_on_windows(m, xp[:, :, 16:64, 16:64], phi, tile=0)  # tile (row 1, col 1) with its margins
     np.testing.assert_allclose(tiled["T"][:, 16:32, 16:32], one["T"][:, 16:32, 16:32], atol=1e-5)
+
+
+def test_cli_zeta_fallback_and_zeta_none_errors(tmp_path, polspike_cli, polspike_main):
+    """Through the installed console script: an unknown --zeta-fallback, and --zeta none for a physics solver (zeta = 0
+    separates nothing), are one-line usage errors with exit 2 and nothing written; so is an unknown --net-fallback of
+    evaluate."""
+    f = tmp_path / "x.dat"
+    f.write_bytes(bytes(8 * 16 * 20))
+    geo = ("--height", 16, "--width", 20, "--phi0-deg", 0, "--rev-per-s", 30)
+    r = polspike_cli("reconstruct", f, *geo, "--zeta-fallback", "gt", "--out", tmp_path / "o")
+    polspike_cli.one_line_exit_2(r, "--zeta-fallback", "auto", "none", "learned")
+    r = polspike_cli("reconstruct", f, *geo, "--method", "rwps", "--zeta", "none", "--out", tmp_path / "o")
+    polspike_cli.one_line_exit_2(r, "--zeta none", "--method net")
+    assert not (tmp_path / "o").exists()
+    r = polspike_main("evaluate", tmp_path, "--method", "full", "--net-fallback", "zero", "--out", tmp_path / "e")
+    polspike_main.one_line_exit_2(r, "net_fallback")
