@@ -639,14 +639,13 @@ def calibrate_frames(I: np.ndarray, phi: np.ndarray, cfg: CalibratePaneConfig = 
     t0 = time.perf_counter()
     sc_cfg = SelfCalConfig(span_s=max(cfg.span_s, 0.001), block_px=cfg.block_px, fov_deg=cfg.fov_deg, n=fixed_n or cfg.prior_n, model=forced_model or cfg.prior_model)
     init = self_calibrate(I, phi, sc_cfg, name=name)
-    ambiguous = False
+    amb_reason = None  # the self-calibration's "ambiguous" reason where the twin is left to the cone below
     if not init.ok and init.reason.startswith("ambiguous") and cfg.twin_delta_chi2 > 0:
         # the orientation field (mod 90 deg) cannot tell the pane from its 90 deg twin; the modulation depth
         # can (R and T swap sides of the cone, and DoP_R > DoP_T): take the best, find its twin, let the cone decide
         init2 = self_calibrate(I, phi, dc.replace(sc_cfg, max_twin_ratio=10.0), name=name)
         if init2.ok:
-            amb_reason = init.reason
-            init, ambiguous = init2, True
+            amb_reason, init = init.reason, init2
     timings["selfcal_s"] = time.perf_counter() - t0
     report: dict = {"input": name, "frames": int(M), "size": [int(W), int(H)], "config": dc.asdict(cfg), "init": init.summary()}
     if not init.ok:
@@ -668,7 +667,7 @@ def calibrate_frames(I: np.ndarray, phi: np.ndarray, cfg: CalibratePaneConfig = 
     else:
         models = ("single", "thin_slab")
     pre = None
-    if ambiguous:
+    if amb_reason is not None:
         if progress:
             progress("90 deg twin")
         t0 = time.perf_counter()
