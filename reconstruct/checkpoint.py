@@ -24,7 +24,7 @@ from polinfra.atomic import atomic_path
 from polinfra.config import from_dict, to_dict
 from polinfra.errors import CheckpointError, ConfigError
 
-from reconstruct.network import NetConfig, PolSpikeNet, count_parameters
+from reconstruct.network import NetConfig, PolSpikeNet
 from reconstruct.solvers import SolverConfig
 
 __all__ = ["CKPT_FORMAT", "DEFAULT_WEIGHTS", "V1_WEIGHTS", "V2_WEIGHTS", "V2_MEAN_WEIGHTS", "V3_WEIGHTS", "V4_WEIGHTS", "save_checkpoint", "read_checkpoint", "load_model", "export_weights"]
