@@ -337,3 +337,73 @@ def net_table(res: dict) -> str:
             lines.append("")
             lines.append(f"{n} by variant, frames/s (CPU-s per frame): " + ", ".join(f"{k} {x:.3f} ({vc.get(k, float('nan')):.2f})" if isinstance(x, float) else f"{k} {x}" for k, x in v.items()))
     return "\n".join(lines) + "\n"
+
+
+ENSEMBLE_METRICS = ("psnr_T", "ssim_T", "psnr_R", "ssim_R")
+
+
+def bench_ensemble(groups, cfg, sizes: tuple[int, ...] = (1, 2, 4, 8), progress=None) -> dict:
+    """Quality and cost of the network's test-time self-ensemble (:class:`reconstruct.network.SymmetryEnsemble`).
+
+    Every size runs the network (method full, ``cfg``'s zeta) on the same ``groups`` and frames; the result gives
+    T and R PSNR / SSIM (overall rows of :func:`reconstruct.evaluate.evaluate_groups`), the network's seconds per
+    output frame and its ratio to size 1, measured in the same run (size 1 is always run first).
+    """
+    import dataclasses
+
+    from reconstruct.evaluate import evaluate_groups, net_zeta_of
+
+    sizes = tuple(dict.fromkeys((1, *sizes)))
+    groups = list(groups)
+    rows = []
+    for j, size in enumerate(sizes):
+        c = dataclasses.replace(cfg, methods="full", net_ensemble=size, figure_frames=0)
+        rep = evaluate_groups(groups, c)
+        nz = net_zeta_of(c)
+        label = rep.config["network"]["label"] + ("" if nz == "learned" else f"@{nz}")
+        o = next(r for r in rep.rows if r["group"] == "overall" and r["method"] == label)
+        n = int(o["n_frames"])
+        rows.append({"ensemble": size, **{k: o.get(k) for k in ENSEMBLE_METRICS}, "n_frames": n, "s_per_frame": rep.timings.get("network", 0.0) / max(n, 1)})
+        if progress is not None:
+            progress(j + 1, len(sizes))
+    ref = rows[0]["s_per_frame"]
+    for r in rows:
+        r["time_ratio"] = r["s_per_frame"] / ref if ref > 0 else None
+    return {"rows": rows, "config": {"n_obs": cfg.n_obs, "dt_ms": cfg.dt_ms, "zeta": cfg.zeta, "net_zeta": net_zeta_of(cfg), "max_frames": cfg.max_frames,
+                                      "groups": [g.name for g in groups], "threads": torch.get_num_threads(), "machine": platform.machine()}}
+
+
+def ensemble_table(res: dict) -> str:
+    """Markdown table of :func:`bench_ensemble`."""
+    md = "| ensemble | PSNR T | SSIM T | PSNR R | SSIM R | s / frame | time vs 1 |\n|---:|---:|---:|---:|---:|---:|---:|\n"
+    f = lambda v, p: "n/a" if v is None else f"{v:.{p}f}"  # noqa: E731
+    for r in res["rows"]:
+        md += f"| {r['ensemble']} | {f(r['psnr_T'], 2)} | {f(r['ssim_T'], 3)} | {f(r['psnr_R'], 2)} | {f(r['ssim_R'], 3)} | {r['s_per_frame']:.3f} | {f(r['time_ratio'], 2)}x |\n"
+    return md
+
+
+def ensemble_figure(res: dict, path) -> None:
+    """Quality against cost of :func:`bench_ensemble`: T PSNR and SSIM over the time ratio, one point per size."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from polinfra.atomic import atomic_path
+
+    rows = res["rows"]
+    x = [r["time_ratio"] or 0.0 for r in rows]
+    fig, axes = plt.subplots(1, 2, figsize=(9, 3.4))
+    for ax, key, name in ((axes[0], "psnr_T", "T PSNR (dB)"), (axes[1], "ssim_T", "T SSIM")):
+        y = [r[key] if r[key] is not None else np.nan for r in rows]
+        ax.plot(x, y, "o-")
+        for xi, yi, r in zip(x, y, rows):
+            ax.annotate(f"x{r['ensemble']}", (xi, yi), textcoords="offset points", xytext=(4, -10))
+        ax.set_xlabel("network time vs ensemble 1")
+        ax.set_ylabel(name)
+        ax.grid(alpha=0.3)
+    fig.suptitle(f"test-time self-ensemble ({len(res['config']['groups'])} groups, zeta {res['config']['net_zeta']})")
+    fig.tight_layout()
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=110, format="png")
+    plt.close(fig)

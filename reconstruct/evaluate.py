@@ -96,6 +96,7 @@ class EvalConfig:
     net_tile: int = opt(256, "method full: network tile size in pixels (bounded memory; 0 = whole frame)", lo=0, hi=100000)
     net_solver: str = opt("", "method full: physics solver before the network's refinement instead of the trained one (supp. Table 3); empty = as trained", choices=("", "ls", "ridge", "irls", "rwps"))
     net_zeta: str = opt("", "method full: zeta of the network's solver and refinement: learned (its parameter branch), self, gt, physics, or none (zeta = 0: no separable reflection, T is the whole light); empty = self when zeta is self, else learned", choices=("", "learned", "self", "gt", "physics", "none"))
+    net_ensemble: int = opt(1, "method full: test-time self-ensemble over 1, 2, 4 or 8 symmetries of the image (reconstruct.network.SymmetryEnsemble; that many forward passes)", choices=(1, 2, 4, 8))
     net_fallback: str = opt("auto", "method full with net zeta self, where the stream does not self-calibrate: auto (learned where the refused calibration still shows >= 5 % of pixels modulating, else none; reconstruct.net_zeta.fallback_for), none (zeta = 0, T is the whole light) or learned (the network's own zeta)", choices=NET_FALLBACKS)
     anchor: str = opt("none", "mean: also score each method anchored to the 17.5 ms spike mean, T = 2 I_mean - zbar (R^ - T^), R = T + (R^ - T^) (rows '<method>+mean'; stored groups only)", choices=("none", "mean"))
 
@@ -181,7 +182,11 @@ def load_network(cfg: EvalConfig) -> tuple[torch.nn.Module, dict]:
     label = NET_METHOD + "".join(f"-no{n}" for n, k in (("rir", "use_rir"), ("att", "use_attention"), ("conf", "use_conf")) if not used[k])
     if "solver_method" in overrides:
         label += f"-{overrides['solver_method']}"
-    info = {"path": str(path), "label": label, "trained": trained, "overrides": overrides, "step": data.get("step")}
+    info = {"path": str(path), "label": label, "trained": trained, "overrides": overrides, "step": data.get("step"), "ensemble": cfg.net_ensemble}
+    if cfg.net_ensemble > 1:
+        from reconstruct.network import SymmetryEnsemble
+
+        model = SymmetryEnsemble(model, cfg.net_ensemble).eval()
     return model, info
 
 

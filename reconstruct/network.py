@@ -55,7 +55,7 @@ from polinfra.errors import ShapeError
 
 from reconstruct.solvers import SolverConfig, anchor_to_mean, solve, zbar_of
 
-__all__ = ["NetConfig", "NetOutput", "AngleAttention", "ParameterBranch", "LowResParameterBranch", "Refinement", "window_scale", "PolSpikeNet", "count_parameters", "init_weights", "predict_parameters"]
+__all__ = ["NetConfig", "NetOutput", "AngleAttention", "ParameterBranch", "LowResParameterBranch", "Refinement", "window_scale", "PolSpikeNet", "count_parameters", "init_weights", "predict_parameters", "SYMMETRY_CODES", "symmetry_image", "symmetry_angles", "SymmetryEnsemble"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -513,3 +513,86 @@ def predict_parameters(model: PolSpikeNet, I: torch.Tensor, phi: torch.Tensor) -
     """
     zeta, w, _ = model.param(I.to(next(model.parameters()).dtype), phi)
     return zeta, w
+
+
+SYMMETRY_CODES = {1: (0,), 2: (0, 3), 4: (0, 1, 2, 3), 8: tuple(range(8))}
+"""Symmetries averaged by :class:`SymmetryEnsemble` for each ensemble size (codes of
+:func:`reconstruct.onthefly.flip_item`: 3 = rotation by 180 deg, 0-3 the mirrors, 4-7 with the transpose)."""
+
+
+def symmetry_image(x: torch.Tensor, code: int, inverse: bool = False) -> torch.Tensor:
+    """Apply symmetry ``code`` (bit 0 mirror left-right, bit 1 mirror up-down, bit 2 transpose; in that order, as
+    :func:`reconstruct.onthefly.flip_item`) to the last two dims of ``x``; ``inverse`` undoes it."""
+    def mirrors(y):
+        dims = [d for bit, d in ((1, -1), (2, -2)) if code & bit]
+        return torch.flip(y, dims) if dims else y
+
+    if inverse:
+        return mirrors(x.transpose(-1, -2) if code & 4 else x)
+    y = mirrors(x)
+    return y.transpose(-1, -2) if code & 4 else y
+
+
+def symmetry_angles(phi: torch.Tensor, code: int) -> torch.Tensor:
+    """Polarizer angles (B, N) seen through symmetry ``code``: a mirror maps a -> -a, the transpose a -> pi/2 - a (the
+    angles of :func:`reconstruct.onthefly.flip_item`); each window's centre angle is brought back into [0, pi)."""
+    sign, offset = 1.0, 0.0
+    for bit in (1, 2):
+        if code & bit:
+            sign, offset = -sign, -offset
+    if code & 4:
+        sign, offset = -sign, math.pi / 2 - offset
+    a = sign * phi.double() + offset
+    c = a[:, a.shape[1] // 2 : a.shape[1] // 2 + 1]
+    return (a - torch.floor(c / math.pi) * math.pi).to(phi.dtype)
+
+
+class SymmetryEnsemble(nn.Module):
+    """Test-time self-ensemble of a :class:`PolSpikeNet` over symmetries of the image (``size`` 1, 2, 4 or 8).
+
+    Each member sees the window mirrored / transposed with its polarizer angles carried along
+    (:func:`symmetry_angles`; an external zeta moves with its pixels, paper Eq. (2) keeps its values), the outputs
+    are mapped back and averaged.  The network was trained on all 8 symmetries (``[window] flips``), so each
+    member is an equally valid estimate whose noise differs; the per-pixel solver outputs (T_base, R_base) are the
+    same for every member given an external zeta.  Costs ``size`` forward passes; no feature cache.
+    """
+
+    def __init__(self, net: PolSpikeNet, size: int = 8):
+        super().__init__()
+        if size not in SYMMETRY_CODES:
+            raise ShapeError(f"ensemble size {size}: choose one of {', '.join(map(str, SYMMETRY_CODES))}", actual_shape=None, expected_shape=tuple(SYMMETRY_CODES))
+        self.net, self.codes, self.cfg = net, SYMMETRY_CODES[size], net.cfg
+
+    @property
+    def pad_multiple(self) -> int:
+        return self.net.pad_multiple
+
+    @property
+    def cacheable(self) -> bool:
+        return False
+
+    @property
+    def param(self) -> nn.Module:
+        """The network's parameter branch (the ``learned`` zeta source reads one member: zeta needs no ensemble)."""
+        return self.net.param
+
+    def encode_obs(self, I: torch.Tensor, scale: torch.Tensor):
+        return self.net.encode_obs(I, scale)
+
+    def forward(self, I: torch.Tensor, phi: torch.Tensor, zeta_gt: torch.Tensor | None = None, alpha: float = 0.0, feats=None, **kw) -> NetOutput:
+        if feats is not None:
+            raise ShapeError("a symmetry ensemble takes no precomputed features", actual_shape=None, expected_shape="feats=None")
+        acc: dict[str, torch.Tensor] = {}
+        for code in self.codes:
+            def fw(t):
+                return None if t is None else symmetry_image(t, code)
+
+            o = self.net(fw(I), symmetry_angles(phi, code), fw(zeta_gt), alpha, **{k: (fw(v) if k == "I_mean" else v) for k, v in kw.items()})
+            for f in dataclasses.fields(NetOutput):
+                v = getattr(o, f.name)
+                if f.name in ("I", "zeta_gt") or v is None:
+                    continue
+                v = symmetry_image(v, code, inverse=True)
+                acc[f.name] = v if f.name not in acc else acc[f.name] + v
+        n = len(self.codes)
+        return NetOutput(**{k: v / n for k, v in acc.items()}, I=I, zeta_gt=zeta_gt)

@@ -84,7 +84,7 @@ class TrainConfig:
     force_prob: float = opt(0.0, "probability that a step (after the curriculum's alpha = 1 phase) feeds the solver the true zeta (alpha = 1) times a per-item factor exp(N(0, zeta_jitter)), instead of the curriculum's alpha: trains the refinement for an external, imperfect zeta (--zeta self); drawn from the seed and the step (resumable)", lo=0.0, hi=1.0)
     zeta_jitter: float = opt(0.0, "std of the per-item log factor on the forced zeta (force_prob)", lo=0.0, hi=2.0)
     zeta_shape_jitter: float = opt(0.0, "std of the per-item log factor on the forced zeta's modulation about its window mean (force_prob): the degree of polarization a wrong index or pane model gives the self-calibrated zeta", lo=0.0, hi=2.0)
-    val_select: str = opt("learned", "validation score that picks best.pt: learned (psnr_T, the network on its own zeta) | mean (the mean of that and psnr_T_forced, the network on the true zeta: a network run with --zeta self where the stream calibrates) | r_share (the mean of psnrrefl_R and psnrrefl_R_forced: R over the pixels where the reflection carries >= 20 % of the light, for an R-only run with trainable)", choices=("learned", "mean", "r_share"))
+    val_select: str = opt("learned", "validation score that picks best.pt: learned (psnr_T, the network on its own zeta) | mean (the mean of that and psnr_T_forced, the network on the true zeta: a network run with --zeta self where the stream calibrates) | r_share (the mean of psnrrefl_R and psnrrefl_R_forced: R over the pixels where the reflection carries >= 20 % of the light, for an R-only run with trainable) | ssim (the mean of ssim_T and ssim_T_forced, T's structure on both zetas; needs val_ssim)", choices=("learned", "mean", "r_share", "ssim"))
     init_zero: tuple[str, ...] = opt((), "parameter-name prefixes set to zero after init_from (e.g. refine.dec_t.out to restart a decoder's output as zero: the network starts as its base)")
     trainable: tuple[str, ...] = opt((), "parameter-name prefixes that train (e.g. refine.dec_r: the R decoder alone, every T output stays exactly as init_from's); the others are frozen; empty = all")
     init_from: str = opt("", "start from these weights (a checkpoint or exported .pt of the same [net] architecture; path relative to the working directory) instead of a random initialisation: fine-tuning")
@@ -203,6 +203,8 @@ def val_score(metrics: dict[str, float], select: str) -> float:
         return metrics["psnr_T"]
     if select == "mean":
         return 0.5 * (metrics["psnr_T"] + metrics["psnr_T_forced"])
+    if select == "ssim":
+        return 0.5 * (metrics["ssim_T"] + metrics["ssim_T_forced"])
     # r_share: R where the reflection carries >= REFL_SHARE of the light (whole-frame R where no pixel does)
     return 0.5 * (metrics.get("psnrrefl_R", metrics["psnr_R"]) + metrics.get("psnrrefl_R_forced", metrics["psnr_R_forced"]))
 
@@ -440,7 +442,7 @@ def train(
             row = {"step": step, "epoch": epoch + 1, "alpha": alpha, **{k: f"{v:.6g}" for k, v in parts.items()}, "seconds": f"{time.perf_counter() - t0:.1f}"}
         val_now = (cfg.val_every and step % cfg.val_every == 0) or (not cfg.val_every and step % spe == 0) or step == total
         if val_now and val_set is not None and len(val_set):
-            metrics = evaluate_model(model, val_set, cfg.batch_size, dev, forced=cfg.val_select != "learned", ssim=cfg.val_ssim)
+            metrics = evaluate_model(model, val_set, cfg.batch_size, dev, forced=cfg.val_select != "learned", ssim=cfg.val_ssim or cfg.val_select == "ssim")
             metrics["score"] = val_score(metrics, cfg.val_select)
             row = row or {"step": step, "epoch": epoch + 1, "alpha": alpha, "seconds": f"{time.perf_counter() - t0:.1f}"}
             row.update({f"val_{k}": f"{v:.4f}" for k, v in metrics.items()})

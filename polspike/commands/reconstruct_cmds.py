@@ -36,6 +36,7 @@ def evaluate_cmd(
     net: bool = typer.Option(True, "--net/--no-net", help="--by-regime: include the network (full) column"),
     net_zeta: str = typer.Option("", "--net-zeta", help="full: zeta of the network's solver and refinement: learned (its own), self, gt, physics or none (zeta = 0) [default: self with --zeta self, else learned]"),
     net_fallback: str = typer.Option("auto", "--net-fallback", help="full with net zeta self: the zeta where a group does not self-calibrate: auto (learned where >= 5 % of pixels still modulate, else none) | none (zeta = 0, T is the whole light) | learned"),
+    net_ensemble: int = typer.Option(1, "--net-ensemble", help="full: average the network over 1, 2, 4 or 8 mirror / transpose symmetries of each window (test-time self-ensemble; that many forward passes)"),
     net_zetas: str = typer.Option("learned", "--net-zetas", help="--by-regime: comma-separated zeta sources of the network columns (learned -> net, self -> net@self, none -> net@none)"),
     lambda_map: str = typer.Option("adaptive", "--lambda-map", help="rwps Conf -> lambda: adaptive (fitted physics default) or fixed (the original mapping)"),
     anchor: str = typer.Option("none", "--anchor", help="mean: also score every method anchored to the 17.5 ms spike mean (rows and columns '+mean'; T = 2 I_mean - zbar (R^ - T^)); none: off"),
@@ -57,7 +58,7 @@ def evaluate_cmd(
     cfg = from_dict(
         EvalConfig,
         {"n_obs": n_obs, "dt_ms": dt_ms, "stride_deg": stride_deg, "methods": method, "zeta": zeta, "rir": rir, "max_frames": max_frames, "pane_n": pane_n, "pane_model": pane_model, "dtype": dtype, "device": device,
-         "checkpoint": str(checkpoint or ""), "no_attention": no_attention, "no_conf": no_conf, "net_tile": net_tile, "net_zeta": net_zeta, "net_fallback": net_fallback, "anchor": anchor},
+         "checkpoint": str(checkpoint or ""), "no_attention": no_attention, "no_conf": no_conf, "net_tile": net_tile, "net_zeta": net_zeta, "net_fallback": net_fallback, "net_ensemble": net_ensemble, "anchor": anchor},
         where="command line",
     )
     try:
@@ -117,6 +118,7 @@ def evaluate_paper_cmd(
     dt_ms: float = typer.Option(0.65, "--dt-ms", help="aggregation window, milliseconds"),
     max_frames: int = typer.Option(0, "--max-frames", help="at most this many output frames per group (0 = all)"),
     net_tile: int = typer.Option(256, "--net-tile", help="network tile size in pixels (0 = whole frame)"),
+    net_ensemble: int = typer.Option(1, "--net-ensemble", help="average every network column over 1, 2, 4 or 8 mirror / transpose symmetries of each window (test-time self-ensemble; that many forward passes)"),
     device: str = typer.Option("cpu", "--device", help="cpu, cuda or auto"),
     threads: int = typer.Option(0, "--threads", help="torch CPU threads (0 = torch default)"),
     synthetic_groups: int = typer.Option(4, "--synthetic-groups", help="synthetic: number of groups"),
@@ -146,7 +148,7 @@ def evaluate_paper_cmd(
     from polinfra.errors import ConfigError
     from reconstruct.synthetic import SyntheticConfig
 
-    cfg = from_dict(EvalConfig, {"n_obs": n_obs, "dt_ms": dt_ms, "zeta": zeta, "max_frames": max_frames, "net_tile": net_tile, "device": device}, where="command line")
+    cfg = from_dict(EvalConfig, {"n_obs": n_obs, "dt_ms": dt_ms, "zeta": zeta, "max_frames": max_frames, "net_tile": net_tile, "net_ensemble": net_ensemble, "device": device}, where="command line")
     try:
         w, h = (int(x) for x in synthetic_size.lower().split("x"))
     except ValueError:
@@ -228,6 +230,57 @@ def evaluate_real_cmd(
     con.print(f"[green]wrote[/] {out / 'real.md'}, {out / 'real.csv'}, {out / 'real.json'}, {out / 'real.png'}")
     if not all(r.get("finite") for r in res["rows"]):
         raise typer.Exit(1)
+
+
+@bench_app.command("ensemble")
+def bench_ensemble_cmd(
+    dataset: str = typer.Argument(..., help="dataset directory (dataset.json + group stores), e.g. out/datasets/eval_paper_val, or 'synthetic[:SEED]'"),
+    split: str = typer.Option("test", "--split", help="split listed in dataset.json"),
+    sizes: str = typer.Option("1,2,4,8", "--sizes", help="comma-separated ensemble sizes (1, 2, 4, 8); 1 is always run, as the reference"),
+    zeta: str = typer.Option("self", "--zeta", help="the network's zeta: self (fitted to each group's stream, as polspike reconstruct) | learned | gt"),
+    checkpoint: Optional[Path] = typer.Option(None, "--checkpoint", help="network checkpoint [default: the shipped default]"),
+    max_frames: int = typer.Option(3, "--max-frames", help="output frames per group (0 = all)"),
+    threads: int = typer.Option(1, "--threads", help="torch CPU threads"),
+    out: Path = typer.Option(Path("out/bench/ensemble"), "--out", help="output folder (ensemble.json, ensemble.md, ensemble.png)"),
+    quiet: bool = typer.Option(False, "--quiet", help="no progress bar"),
+) -> None:
+    """The network's test-time self-ensemble: T / R quality and network time per output frame for each size, time as a ratio to size 1 in the same run."""
+    import torch
+    from rich.console import Console
+
+    from polinfra.atomic import write_json, write_text
+    from polinfra.config import from_dict
+    from polinfra.errors import ConfigError
+    from polinfra.progress import rich_progress
+    from reconstruct.bench import bench_ensemble, ensemble_figure, ensemble_table
+    from reconstruct.evaluate import EvalConfig, load_groups
+    from reconstruct.network import SYMMETRY_CODES
+    from reconstruct.synthetic import SyntheticConfig
+
+    try:
+        sz = tuple(int(x) for x in sizes.split(",") if x.strip())
+    except ValueError:
+        raise ConfigError(f"--sizes {sizes!r}: write comma-separated integers, e.g. 1,2,4,8") from None
+    bad = [x for x in sz if x not in SYMMETRY_CODES]
+    if bad or not sz:
+        raise ConfigError(f"--sizes {sizes!r}: each size must be one of {', '.join(map(str, SYMMETRY_CODES))}")
+    if zeta not in ("self", "learned", "gt"):
+        raise ConfigError(f"--zeta {zeta!r}: choose self, learned or gt")
+    if threads > 0:
+        torch.set_num_threads(threads)
+    cfg = from_dict(EvalConfig, {"zeta": zeta, "net_zeta": zeta, "rir": False, "max_frames": max_frames, "checkpoint": str(checkpoint or "")}, where="command line")
+    with rich_progress("load groups", enabled=not quiet) as cb:
+        groups = load_groups(dataset, split, cfg, SyntheticConfig(), progress=cb)
+    with rich_progress("ensemble sizes", enabled=not quiet) as cb:
+        res = bench_ensemble(groups, cfg, sz, progress=cb)
+    res["config"]["dataset"], res["config"]["split"] = dataset, split
+    md = ensemble_table(res)
+    write_json(out / "ensemble.json", res)
+    write_text(out / "ensemble.md", md)
+    ensemble_figure(res, out / "ensemble.png")
+    con = Console()
+    con.print(md)
+    con.print(f"[green]wrote[/] {out / 'ensemble.json'}, {out / 'ensemble.md'}, {out / 'ensemble.png'}")
 
 
 @bench_app.command("exposure")

@@ -107,6 +107,7 @@ def reconstruct_cmd(
     zeta: Optional[str] = typer.Option(None, "--zeta", help="self (pane fitted to the stream) | learned (the network's parameter branch) | none (the network on zeta = 0: no separable reflection, T is the whole light) | physics | gt (physics methods, group stores only) [default: self (reconstruct.net_zeta.NET_DEFAULT_ZETA)]"),
     zeta_fallback: str = typer.Option("auto", "--zeta-fallback", help="the network's zeta where --zeta self cannot calibrate the stream: auto (learned where >= 5 % of pixels still modulate, e.g. under a camera pan, else none) | none (zeta = 0: T is the whole light) | learned"),
     precision: str = typer.Option("float32", "--precision", help="float32 | bfloat16 (autocast of the network; the solver stays float32)"),
+    ensemble: int = typer.Option(1, "--ensemble", help="the network averaged over 1, 2, 4 or 8 mirror / transpose symmetries of each window (test-time self-ensemble: that many forward passes, no feature cache; measured by polspike bench ensemble)"),
 ) -> None:
     """Turn a spike group or a .dat into reflection-free T and R video at the output cadence (~343 FPS)."""
     import dataclasses
@@ -142,6 +143,12 @@ def reconstruct_cmd(
     dev = "cuda" if device == "auto" and torch.cuda.is_available() else ("cpu" if device == "auto" else device)
     if precision not in ("float32", "bfloat16"):
         raise ConfigError(f"--precision {precision!r}: choose float32 or bfloat16")
+    from reconstruct.network import SYMMETRY_CODES
+
+    if ensemble not in SYMMETRY_CODES:
+        raise ConfigError(f"--ensemble {ensemble}: choose one of {', '.join(map(str, SYMMETRY_CODES))}")
+    if ensemble > 1 and method != "net":
+        raise ConfigError("--ensemble is for the network (--method net); a physics solver is per pixel, mirrors change nothing")
     if exposure is not None and not exposure > 0:
         raise ConfigError(f"--exposure {exposure}: must be > 0 (thresholds per step per unit radiance)")
     cfg = ReconstructConfig(window_steps=window_steps, stride_deg=stride_deg, exposure=exposure or 1.0, frames=frames, max_frames=max_frames, precision=precision)
@@ -156,6 +163,10 @@ def reconstruct_cmd(
         raise ConfigError(f"input {input} is neither a .dat file nor a spike group directory")
     load = lambda: load_model(weights or DEFAULT_WEIGHTS, dev, **({} if rir is None else {"use_rir": rir}))[0]  # noqa: E731
     net_model = load() if method == "net" else None  # a bad checkpoint is reported before the stream is read
+    if net_model is not None and ensemble > 1:
+        from reconstruct.network import SymmetryEnsemble
+
+        net_model = SymmetryEnsemble(net_model, ensemble).eval()
     exposure_info = {"exposure_source": "stored in the group" if src.exposure is not None and exposure is None else "--exposure"}
     if exposure is not None:
         src = dataclasses.replace(src, exposure=None)  # --exposure forces the value, also over a group's stored one
@@ -182,7 +193,7 @@ def reconstruct_cmd(
         model, info = build_physics_model(method, zeta or "self", src, group_dir=None if input.suffix.lower() == ".dat" else input, window_steps=window_steps,
                                           exposure=None if src.exposure is not None else cfg.exposure, rir=True if rir is None else rir, load_learned=load, anchor=anchor)
     with rich_progress("reconstruct", enabled=not quiet) as cb:
-        s = reconstruct_stream(src, model, out, cfg, device=dev, progress=cb, meta={**exposure_info, "method": method, "anchor": anchor, "zeta": info["zeta"] if info is not None else "learned"})
+        s = reconstruct_stream(src, model, out, cfg, device=dev, progress=cb, meta={**exposure_info, "method": method, "anchor": anchor, "ensemble": ensemble, "zeta": info["zeta"] if info is not None else "learned"})
     c = Console()
     if info is not None:
         from polinfra.atomic import write_json

@@ -1,0 +1,128 @@
+"""Test-time self-ensemble (reconstruct.network.SymmetryEnsemble): its symmetries are flip_item's (which is checked
+against paper Eq. (2) on mirrored scenes), and averaging over a group of symmetries makes any network equivariant."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from polinfra.errors import ShapeError
+from reconstruct.network import SYMMETRY_CODES, NetConfig, PolSpikeNet, SymmetryEnsemble, init_weights, symmetry_angles, symmetry_image
+from reconstruct.onthefly import flip_item
+
+
+def _net(seed=0, **kw):
+    cfg = NetConfig(arch="v2", use_rir=False, lr_ch=8, w_ch=4, ref_ch=(8, 8, 8), dec_ch=(8, 8, 8), **kw)
+    return init_weights(PolSpikeNet(cfg), torch.Generator().manual_seed(seed)).eval()
+
+
+def _window(B=2, H=16, W=24, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    I = 0.05 + 0.4 * torch.rand(B, 7, H, W, generator=g)
+    phi = 2.0 + (torch.arange(7) - 3) * math.radians(31.5) + torch.rand(B, 1, generator=g)
+    return I, phi.float()
+
+
+@pytest.mark.parametrize("code", range(8))
+def test_symmetries_are_flip_items(code):
+    """Per window, symmetry_image / symmetry_angles move the frames and the polarizer angles as flip_item moves a
+    training item (same pixels, same angles mod pi, centre angle in [0, pi))."""
+    I, phi = _window(H=12, W=12, seed=code)
+    for b in range(I.shape[0]):
+        it = flip_item({"I": I[b], "phi": phi[b]}, code)
+        torch.testing.assert_close(symmetry_image(I, code)[b], it["I"], rtol=0, atol=0)
+        a = symmetry_angles(phi, code)[b]
+        d = torch.remainder(a - it["phi"] + math.pi / 2, math.pi) - math.pi / 2
+        assert float(d.abs().max()) < 1e-5
+        assert 0 <= float(a[3]) < math.pi
+
+
+@pytest.mark.parametrize("code", range(8))
+def test_inverse_undoes_the_symmetry_on_non_square_maps(code):
+    x = torch.arange(2 * 3 * 5 * 7, dtype=torch.float32).reshape(2, 3, 5, 7)
+    y = symmetry_image(x, code)
+    assert y.shape[-2:] == ((7, 5) if code & 4 else (5, 7))
+    torch.testing.assert_close(symmetry_image(y, code, inverse=True), x, rtol=0, atol=0)
+
+
+def _act(x, code):
+    return None if x is None else symmetry_image(x, code)
+
+
+@pytest.mark.parametrize("size,codes", [(8, range(8)), (4, range(4)), (2, (3,))])
+@pytest.mark.parametrize("external_zeta", [False, True])
+def test_ensemble_is_equivariant(size, codes, external_zeta):
+    """Averaging over a group of symmetries makes the output of a random (not equivariant) network commute with
+    every symmetry of that group: E(g x) = g E(x), on the learned and on an external zeta.  A wrong angle map
+    (members that disagree with the group law) breaks it, and so does the bare network."""
+    net = _net(1)
+    I, phi = _window()
+    zeta = (0.2 + 0.3 * torch.rand(I.shape, generator=torch.Generator().manual_seed(5))) if external_zeta else None
+    kw = {"zeta_gt": zeta, "alpha": 1.0} if external_zeta else {}
+    ens = SymmetryEnsemble(net, size)
+    with torch.no_grad():
+        base = ens(I, phi, **kw)
+        for g in codes:
+            kg = {"zeta_gt": _act(zeta, g), "alpha": 1.0} if external_zeta else {}
+            out = ens(symmetry_image(I, g), symmetry_angles(phi, g), **kg)
+            for k in ("T", "R"):
+                torch.testing.assert_close(out.__dict__[k], symmetry_image(base.__dict__[k], g), rtol=1e-4, atol=1e-5)
+        if size == 8:  # the bare network is not equivariant: the property above is the ensemble's
+            o1 = net(symmetry_image(I, 1), symmetry_angles(phi, 1), **({"zeta_gt": _act(zeta, 1), "alpha": 1.0} if external_zeta else {}))
+            o0 = net(I, phi, **kw)
+            assert float((o1.T - symmetry_image(o0.T, 1)).abs().max()) > 1e-4
+
+
+def test_wrong_angles_break_equivariance(monkeypatch):
+    """The oracle has teeth: members that move the frames but not their polarizer angles disagree with the
+    mirrored window (frames and angles moved, as flip_item moves them): E(g x) != g E(x)."""
+    import reconstruct.network as network
+
+    net = _net(2)
+    I, phi = _window(seed=3)
+    moved = symmetry_angles(phi, 1)
+    monkeypatch.setattr(network, "symmetry_angles", lambda p, code: p)
+    ens = SymmetryEnsemble(net, 8)
+    with torch.no_grad():
+        base = ens(I, phi)
+        out = ens(symmetry_image(I, 1), moved)
+    assert float((out.T - symmetry_image(base.T, 1)).abs().max()) > 1e-4
+
+
+def test_size_one_is_the_network_and_outputs_average():
+    net = _net(3, use_mean=True)
+    I, phi = _window(seed=4)
+    Im = I.mean(1)
+    with torch.no_grad():
+        a, b = net(I, phi, I_mean=Im), SymmetryEnsemble(net, 1)(I, phi, I_mean=Im)
+        torch.testing.assert_close(a.T, b.T, rtol=0, atol=0)
+        two = SymmetryEnsemble(net, 2)(I, phi, I_mean=Im)
+        r = net(symmetry_image(I, 3), symmetry_angles(phi, 3), I_mean=symmetry_image(Im, 3))
+        torch.testing.assert_close(two.T, 0.5 * (a.T + symmetry_image(r.T, 3, inverse=True)), rtol=1e-5, atol=1e-6)
+    assert SYMMETRY_CODES[2] == (0, 3)
+
+
+def test_bad_size_and_features_are_errors():
+    with pytest.raises(ShapeError, match="ensemble size 3"):
+        SymmetryEnsemble(_net(), 3)
+    ens = SymmetryEnsemble(_net(), 2)
+    assert not ens.cacheable and ens.pad_multiple == ens.net.pad_multiple
+    I, phi = _window()
+    with pytest.raises(ShapeError, match="precomputed features"):
+        ens(I, phi, feats=(torch.zeros(1), torch.zeros(1)))
+
+
+def test_ensemble_runs_in_the_video_path():
+    """run_model_on_windows with tiles: the ensemble goes through the tiled path (tiles are square or not) and its
+    T stays close to the single network's (same weights, averaged members)."""
+    from reconstruct.video import run_model_on_windows
+
+    net = _net(4)
+    I, phi = _window(B=1, H=40, W=56, seed=6)
+    one = run_model_on_windows(net, I.numpy(), phi.numpy(), tile=16, margin=16)
+    ens = run_model_on_windows(SymmetryEnsemble(net, 4), I.numpy(), phi.numpy(), tile=16, margin=16)
+    assert ens["T"].shape == one["T"].shape and np.isfinite(ens["T"]).all()
+    assert np.abs(ens["T"] - one["T"]).mean() < 0.5 * np.abs(one["T"]).mean()
