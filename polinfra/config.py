@@ -52,7 +52,7 @@ def opt(
         doc: one-line meaning, with units (shown in errors and ``--help``).
         lo, hi: inclusive numeric bounds (exclusive when ``lo_open`` / ``hi_open``);
             applied to every element of a tuple/list value.
-        choices: allowed values (for strings, compared exactly).
+        choices: allowed values (strings and integers, compared exactly).
         factory: default factory for mutable defaults or nested dataclasses.
         omit_if_default: :func:`to_dict` leaves the field out while it holds its default
             (an optional section added later keeps the plain data, and hashes, of
@@ -151,6 +151,9 @@ def _coerce(tp: Any, val: Any, key: str, where: str, md: dict) -> Any:
         if isinstance(val, bool) or not isinstance(val, int):
             raise ConfigError(f"{where}: {key} = {val!r} must be an integer")
         _check_range(val, md, key, where)
+        ch = md.get("choices")
+        if ch is not None and val not in ch:
+            raise ConfigError(f"{where}: {key} = {val!r} is not allowed; choose one of {list(ch)}")
         return val
     if tp is bool:
         if not isinstance(val, bool):

@@ -60,6 +60,7 @@ from reconstruct.groups import EvalGroup
 from reconstruct.identifiability import SHARE_MIN, bound_psnr, ls_layer_variance, reflected_share, window_mean_variance
 from reconstruct.metrics import LPIPS_NA, lpips_status, masked_psnr, masked_score, psnr, score
 from reconstruct.net_zeta import NET_FALLBACKS, fallback_for
+from reconstruct.network import SYMMETRY_CODES
 from reconstruct.rir import RirConfig, estimate_shifts, warp
 from reconstruct.solvers import PHYSICS_SOLVER_CONFIG, SOLVERS, SolverConfig, anchor_to_mean, solve, zbar_of
 from reconstruct.zeta_source import ZETA_SOURCES, PaneMaps, zeta_from_maps, zeta_learned
@@ -96,7 +97,7 @@ class EvalConfig:
     net_tile: int = opt(256, "method full: network tile size in pixels (bounded memory; 0 = whole frame)", lo=0, hi=100000)
     net_solver: str = opt("", "method full: physics solver before the network's refinement instead of the trained one (supp. Table 3); empty = as trained", choices=("", "ls", "ridge", "irls", "rwps"))
     net_zeta: str = opt("", "method full: zeta of the network's solver and refinement: learned (its parameter branch), self, gt, physics, or none (zeta = 0: no separable reflection, T is the whole light); empty = self when zeta is self, else learned", choices=("", "learned", "self", "gt", "physics", "none"))
-    net_ensemble: int = opt(1, "method full: test-time self-ensemble over 1, 2, 4 or 8 symmetries of the image (reconstruct.network.SymmetryEnsemble; that many forward passes)", choices=(1, 2, 4, 8))
+    net_ensemble: int = opt(1, "method full: test-time self-ensemble over 1, 2, 4 or 8 symmetries of the image (reconstruct.network.SymmetryEnsemble; that many forward passes)", choices=tuple(SYMMETRY_CODES))
     net_fallback: str = opt("auto", "method full with net zeta self, where the stream does not self-calibrate: auto (learned where the refused calibration still shows >= 5 % of pixels modulating, else none; reconstruct.net_zeta.fallback_for), none (zeta = 0, T is the whole light) or learned (the network's own zeta)", choices=NET_FALLBACKS)
     anchor: str = opt("none", "mean: also score each method anchored to the 17.5 ms spike mean, T = 2 I_mean - zbar (R^ - T^), R = T + (R^ - T^) (rows '<method>+mean'; stored groups only)", choices=("none", "mean"))
 

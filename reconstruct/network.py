@@ -51,11 +51,11 @@ import torch.nn as nn
 import torch.nn.functional as F
 
 from polinfra.config import opt
-from polinfra.errors import ShapeError
+from polinfra.errors import ConfigError, ShapeError
 
 from reconstruct.solvers import SolverConfig, anchor_to_mean, solve, zbar_of
 
-__all__ = ["NetConfig", "NetOutput", "AngleAttention", "ParameterBranch", "LowResParameterBranch", "Refinement", "window_scale", "PolSpikeNet", "count_parameters", "init_weights", "predict_parameters", "SYMMETRY_CODES", "symmetry_image", "symmetry_angles", "SymmetryEnsemble"]
+__all__ = ["NetConfig", "NetOutput", "AngleAttention", "ParameterBranch", "LowResParameterBranch", "Refinement", "window_scale", "PolSpikeNet", "count_parameters", "init_weights", "predict_parameters", "SYMMETRY_CODES", "check_ensemble_size", "symmetry_image", "symmetry_angles", "SymmetryEnsemble"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -520,6 +520,13 @@ SYMMETRY_CODES = {1: (0,), 2: (0, 3), 4: (0, 1, 2, 3), 8: tuple(range(8))}
 :func:`reconstruct.onthefly.flip_item`: 3 = rotation by 180 deg, 0-3 the mirrors, 4-7 with the transpose)."""
 
 
+def check_ensemble_size(size: int, what: str = "ensemble size") -> int:
+    """``size`` if it is an ensemble size of :data:`SYMMETRY_CODES`; else a :class:`ConfigError` naming ``what``."""
+    if size not in SYMMETRY_CODES:
+        raise ConfigError(f"{what} {size}: choose one of {', '.join(map(str, SYMMETRY_CODES))}")
+    return int(size)
+
+
 def symmetry_image(x: torch.Tensor, code: int, inverse: bool = False) -> torch.Tensor:
     """Apply symmetry ``code`` (bit 0 mirror left-right, bit 1 mirror up-down, bit 2 transpose; in that order, as
     :func:`reconstruct.onthefly.flip_item`) to the last two dims of ``x``; ``inverse`` undoes it."""
@@ -559,9 +566,7 @@ class SymmetryEnsemble(nn.Module):
 
     def __init__(self, net: PolSpikeNet, size: int = 8):
         super().__init__()
-        if size not in SYMMETRY_CODES:
-            raise ShapeError(f"ensemble size {size}: choose one of {', '.join(map(str, SYMMETRY_CODES))}", actual_shape=None, expected_shape=tuple(SYMMETRY_CODES))
-        self.net, self.codes, self.cfg = net, SYMMETRY_CODES[size], net.cfg
+        self.net, self.codes, self.cfg = net, SYMMETRY_CODES[check_ensemble_size(size)], net.cfg
 
     @property
     def pad_multiple(self) -> int:

@@ -182,6 +182,7 @@ def evaluate_real_cmd(
     zeta: Optional[str] = typer.Option(None, "--zeta", help="the network's zeta: self, learned or none [default: reconstruct.net_zeta.NET_DEFAULT_ZETA, self: the pane fitted to each recording; where it does not calibrate, zeta = 0 or the learned zeta (reconstruct.net_zeta.fallback_for)]"),
     device: str = typer.Option("cpu", "--device", help="cpu or cuda"),
     threads: int = typer.Option(0, "--threads", help="torch CPU threads (0 = torch default)"),
+    ensemble: int = typer.Option(1, "--ensemble", help="the network averaged over 1, 2, 4 or 8 mirror / transpose symmetries (test-time self-ensemble, as polspike reconstruct --ensemble)"),
     quiet: bool = typer.Option(False, "--quiet", help="no progress bar"),
 ) -> None:
     """Reconstruct each real recording (no polarizer) on a few frames: no crash, no NaN, PSNR of T against the TFP image and the spike mean; table + figure.
@@ -207,13 +208,16 @@ def evaluate_real_cmd(
         raise ConfigError(f"--zeta {zeta!r}: choose {', '.join(NET_ZETA_SOURCES)}")
     if max_frames < 1:
         raise ConfigError(f"--max-frames {max_frames}: must be >= 1 (a bounded run)")
+    from reconstruct.network import check_ensemble_size
+
+    check_ensemble_size(ensemble, "--ensemble")
     folder = folder or default_real_dir()
     if not folder.is_dir():
         raise ConfigError(f"real recordings folder {folder} not found")
     if checkpoint is not None and not checkpoint.is_file():
         raise CheckpointError(f"checkpoint not found: {checkpoint}")
     with rich_progress("real recordings", enabled=not quiet) as cb:
-        res = evaluate_real(out, folder, weights=checkpoint, max_frames=max_frames, crop=crop, zeta=zeta, device=device, progress=cb)
+        res = evaluate_real(out, folder, weights=checkpoint, max_frames=max_frames, crop=crop, zeta=zeta, device=device, progress=cb, ensemble=ensemble)
     if not res["rows"]:
         raise ConfigError(f"no known recording in {folder} (expected {', '.join(r.file for r in __import__('polspike.pipeline.real_eval', fromlist=['RECORDINGS']).RECORDINGS)})")
     md = real_markdown(res)
@@ -254,16 +258,17 @@ def bench_ensemble_cmd(
     from polinfra.progress import rich_progress
     from reconstruct.bench import bench_ensemble, ensemble_figure, ensemble_table
     from reconstruct.evaluate import EvalConfig, load_groups
-    from reconstruct.network import SYMMETRY_CODES
+    from reconstruct.network import check_ensemble_size
     from reconstruct.synthetic import SyntheticConfig
 
     try:
         sz = tuple(int(x) for x in sizes.split(",") if x.strip())
     except ValueError:
         raise ConfigError(f"--sizes {sizes!r}: write comma-separated integers, e.g. 1,2,4,8") from None
-    bad = [x for x in sz if x not in SYMMETRY_CODES]
-    if bad or not sz:
-        raise ConfigError(f"--sizes {sizes!r}: each size must be one of {', '.join(map(str, SYMMETRY_CODES))}")
+    if not sz:
+        raise ConfigError(f"--sizes {sizes!r}: give at least one size, e.g. 1,2,4,8")
+    for x in sz:
+        check_ensemble_size(x, "--sizes:")
     if zeta not in ("self", "learned", "gt"):
         raise ConfigError(f"--zeta {zeta!r}: choose self, learned or gt")
     if threads > 0:

@@ -143,10 +143,9 @@ def reconstruct_cmd(
     dev = "cuda" if device == "auto" and torch.cuda.is_available() else ("cpu" if device == "auto" else device)
     if precision not in ("float32", "bfloat16"):
         raise ConfigError(f"--precision {precision!r}: choose float32 or bfloat16")
-    from reconstruct.network import SYMMETRY_CODES
+    from reconstruct.network import check_ensemble_size
 
-    if ensemble not in SYMMETRY_CODES:
-        raise ConfigError(f"--ensemble {ensemble}: choose one of {', '.join(map(str, SYMMETRY_CODES))}")
+    check_ensemble_size(ensemble, "--ensemble")
     if ensemble > 1 and method != "net":
         raise ConfigError("--ensemble is for the network (--method net); a physics solver is per pixel, mirrors change nothing")
     if exposure is not None and not exposure > 0:

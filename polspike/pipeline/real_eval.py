@@ -92,7 +92,7 @@ def _psnr_peak(est: np.ndarray, ref: np.ndarray) -> float:
 
 
 def evaluate_real(out: str | Path, folder: str | Path | None = None, *, weights: str | Path | None = None, max_frames: int = 3, crop: int = 0,
-                  zeta: str = "learned", device: str = "cpu", recordings=RECORDINGS, progress=None) -> dict[str, Any]:
+                  zeta: str = "learned", device: str = "cpu", recordings=RECORDINGS, progress=None, ensemble: int = 1) -> dict[str, Any]:
     """Reconstruct every recording present in ``folder`` (module docstring) -> {"rows": [...], "config": {...}}.
 
     A recording that raises is reported (``status`` "error: ...") and the others still run."""
@@ -107,6 +107,10 @@ def evaluate_real(out: str | Path, folder: str | Path | None = None, *, weights:
     folder = Path(folder) if folder is not None else default_real_dir()
     out = ensure_dir(out)
     net = load_model(weights or DEFAULT_WEIGHTS, device)[0]
+    if ensemble > 1:  # test-time self-ensemble (reconstruct.network.SymmetryEnsemble)
+        from reconstruct.network import SymmetryEnsemble
+
+        net = SymmetryEnsemble(net, ensemble).eval()
     N = net.cfg.n_obs
     rows, images = [], []
     present = [r for r in recordings if (folder / r.file).is_file()]
@@ -148,7 +152,7 @@ def evaluate_real(out: str | Path, folder: str | Path | None = None, *, weights:
         rows.append(row)
         if progress:
             progress(j + 1, len(present))
-    conf = {"folder": str(folder), "weights": str(weights or DEFAULT_WEIGHTS), "max_frames": max_frames, "crop": crop, "zeta": zeta, "n_obs": N,
+    conf = {"folder": str(folder), "weights": str(weights or DEFAULT_WEIGHTS), "max_frames": max_frames, "crop": crop, "zeta": zeta, "ensemble": ensemble, "n_obs": N,
             "missing": [r.file for r in recordings if r not in present]}
     res = {"rows": rows, "config": conf}
     _figure(images, out / "real.png")

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 
-from polinfra.errors import ShapeError
+from polinfra.errors import ConfigError, ShapeError
 from reconstruct.network import SYMMETRY_CODES, NetConfig, PolSpikeNet, SymmetryEnsemble, init_weights, symmetry_angles, symmetry_image
 from reconstruct.onthefly import flip_item
 
@@ -106,7 +106,7 @@ def test_size_one_is_the_network_and_outputs_average():
 
 
 def test_bad_size_and_features_are_errors():
-    with pytest.raises(ShapeError, match="ensemble size 3"):
+    with pytest.raises(ConfigError, match="ensemble size 3: choose one of 1, 2, 4, 8"):
         SymmetryEnsemble(_net(), 3)
     ens = SymmetryEnsemble(_net(), 2)
     assert not ens.cacheable and ens.pad_multiple == ens.net.pad_multiple
@@ -126,3 +126,63 @@ def test_ensemble_runs_in_the_video_path():
     ens = run_model_on_windows(SymmetryEnsemble(net, 4), I.numpy(), phi.numpy(), tile=16, margin=16)
     assert ens["T"].shape == one["T"].shape and np.isfinite(ens["T"]).all()
     assert np.abs(ens["T"] - one["T"]).mean() < 0.5 * np.abs(one["T"]).mean()
+
+
+def test_cli_ensemble_usage_errors(tmp_path, polspike_cli, polspike_main):
+    """Through the installed console script: an ensemble size outside 1, 2, 4, 8, and an ensemble for a physics
+    solver, are one-line usage errors (exit 2), nothing written; the same for evaluate, evaluate-real and the bench."""
+    f = tmp_path / "x.dat"
+    f.write_bytes(bytes(8 * 16 * 20))
+    geo = ("--height", 16, "--width", 20, "--phi0-deg", 0, "--rev-per-s", 30)
+    r = polspike_cli("reconstruct", f, *geo, "--ensemble", 3, "--out", tmp_path / "o")
+    polspike_cli.one_line_exit_2(r, "--ensemble 3", "1, 2, 4, 8")
+    r = polspike_cli("reconstruct", f, *geo, "--method", "rwps", "--ensemble", 2, "--out", tmp_path / "o")
+    polspike_cli.one_line_exit_2(r, "--ensemble", "--method net")
+    assert not (tmp_path / "o").exists()
+    r = polspike_main("evaluate", tmp_path, "--method", "full", "--net-ensemble", 5, "--out", tmp_path / "e")
+    polspike_main.one_line_exit_2(r, "net_ensemble")
+    r = polspike_main("evaluate-real", tmp_path, "--ensemble", 6, "--out", tmp_path / "e")
+    polspike_main.one_line_exit_2(r, "--ensemble 6")
+    r = polspike_main("bench", "ensemble", "synthetic", "--sizes", "1,3", "--out", tmp_path / "b")
+    polspike_main.one_line_exit_2(r, "--sizes: 3")
+    assert not (tmp_path / "e").exists() and not (tmp_path / "b").exists()
+
+
+def test_bench_ensemble_rows(tmp_path):
+    """bench_ensemble: size 1 always runs first and is the evaluation's own network row; every size scores finite
+    numbers; the table and the figure are written."""
+    import dataclasses
+
+    from reconstruct.bench import bench_ensemble, ensemble_figure, ensemble_table
+    from reconstruct.checkpoint import V1_WEIGHTS
+    from reconstruct.evaluate import EvalConfig, evaluate_groups
+    from reconstruct.synthetic import SyntheticConfig, make_group
+
+    if not V1_WEIGHTS.is_file():
+        pytest.skip("shipped v1 checkpoint not present")
+    torch.set_num_threads(1)
+    syn = SyntheticConfig(width=24, height=16, n_groups=1, n_frames=9, seed=4)
+    groups = [make_group(syn, 0)]
+    cfg = EvalConfig(zeta="gt", net_zeta="gt", rir=False, max_frames=1, checkpoint=str(V1_WEIGHTS))
+    res = bench_ensemble(groups, cfg, (2,))
+    assert [r["ensemble"] for r in res["rows"]] == [1, 2]
+    rep = evaluate_groups(groups, dataclasses.replace(cfg, methods="full", figure_frames=0))
+    own = next(r for r in rep.rows if r["group"] == "overall" and r["method"].startswith("full") and not r["method"].endswith(":solver"))
+    assert res["rows"][0]["psnr_T"] == pytest.approx(own["psnr_T"]) and res["rows"][0]["time_ratio"] == pytest.approx(1.0)
+    assert all(np.isfinite(r["psnr_T"]) and np.isfinite(r["ssim_T"]) and r["s_per_frame"] > 0 for r in res["rows"])
+    md = ensemble_table(res)
+    assert md.count("\n") == 4 and "| 2 |" in md
+    ensemble_figure(res, tmp_path / "e.png")
+    assert (tmp_path / "e.png").stat().st_size > 1000
+
+
+def test_integer_choices_are_enforced_by_the_config_layer():
+    """opt(choices=...) holds for integers as for strings (EvalConfig.net_ensemble, NetConfig.down)."""
+    from polinfra.config import from_dict
+    from reconstruct.evaluate import EvalConfig
+
+    assert from_dict(EvalConfig, {"net_ensemble": 4}).net_ensemble == 4
+    with pytest.raises(ConfigError, match=r"net_ensemble = 3 is not allowed; choose one of \[1, 2, 4, 8\]"):
+        from_dict(EvalConfig, {"net_ensemble": 3})
+    with pytest.raises(ConfigError, match="down = 3 is not allowed"):
+        from_dict(NetConfig, {"down": 3})
