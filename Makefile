@@ -42,6 +42,8 @@ bench: install  # every benchmark, JSON + table each under out/bench/ (tens of m
 	$(BIN)/polspike bench reconstruct-net --threads 2 --json out/bench/reconstruct_net.json
 	$(BIN)/polspike bench dataset --out out/bench/dataset
 	$(BIN)/polspike bench tradeoff --out out/bench/tradeoff
+	[ -f out/datasets/eval_paper_val/dataset.json ] || $(BIN)/polspike dataset build datasets/manifests/eval_paper_val.toml --out out/datasets/eval_paper_val
+	$(BIN)/polspike bench ensemble out/datasets/eval_paper_val --split train --out out/bench/ensemble
 
 clean:
 	rm -rf out build *.egg-info
