@@ -54,8 +54,9 @@ from polinfra.config import opt
 from polinfra.errors import ConfigError, ShapeError
 
 from reconstruct.solvers import SolverConfig, anchor_to_mean, solve, zbar_of
+from reconstruct.symmetry import symmetry_angles, symmetry_image
 
-__all__ = ["NetConfig", "NetOutput", "AngleAttention", "ParameterBranch", "LowResParameterBranch", "Refinement", "window_scale", "PolSpikeNet", "count_parameters", "init_weights", "predict_parameters", "SYMMETRY_CODES", "check_ensemble_size", "symmetry_image", "symmetry_angles", "SymmetryEnsemble"]
+__all__ = ["NetConfig", "NetOutput", "AngleAttention", "ParameterBranch", "LowResParameterBranch", "Refinement", "window_scale", "PolSpikeNet", "count_parameters", "init_weights", "predict_parameters", "SYMMETRY_CODES", "check_ensemble_size", "SymmetryEnsemble"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -516,8 +517,8 @@ def predict_parameters(model: PolSpikeNet, I: torch.Tensor, phi: torch.Tensor) -
 
 
 SYMMETRY_CODES = {1: (0,), 2: (0, 3), 4: (0, 1, 2, 3), 8: tuple(range(8))}
-"""Symmetries averaged by :class:`SymmetryEnsemble` for each ensemble size (codes of
-:func:`reconstruct.onthefly.flip_item`: 3 = rotation by 180 deg, 0-3 the mirrors, 4-7 with the transpose)."""
+"""Symmetries averaged by :class:`SymmetryEnsemble` for each ensemble size (codes of :mod:`reconstruct.symmetry`:
+3 = rotation by 180 deg, 0-3 the mirrors, 4-7 with the transpose)."""
 
 
 def check_ensemble_size(size: int, what: str = "ensemble size") -> int:
@@ -525,33 +526,6 @@ def check_ensemble_size(size: int, what: str = "ensemble size") -> int:
     if size not in SYMMETRY_CODES:
         raise ConfigError(f"{what} {size}: choose one of {', '.join(map(str, SYMMETRY_CODES))}")
     return int(size)
-
-
-def symmetry_image(x: torch.Tensor, code: int, inverse: bool = False) -> torch.Tensor:
-    """Apply symmetry ``code`` (bit 0 mirror left-right, bit 1 mirror up-down, bit 2 transpose; in that order, as
-    :func:`reconstruct.onthefly.flip_item`) to the last two dims of ``x``; ``inverse`` undoes it."""
-    def mirrors(y):
-        dims = [d for bit, d in ((1, -1), (2, -2)) if code & bit]
-        return torch.flip(y, dims) if dims else y
-
-    if inverse:
-        return mirrors(x.transpose(-1, -2) if code & 4 else x)
-    y = mirrors(x)
-    return y.transpose(-1, -2) if code & 4 else y
-
-
-def symmetry_angles(phi: torch.Tensor, code: int) -> torch.Tensor:
-    """Polarizer angles (B, N) seen through symmetry ``code``: a mirror maps a -> -a, the transpose a -> pi/2 - a (the
-    angles of :func:`reconstruct.onthefly.flip_item`); each window's centre angle is brought back into [0, pi)."""
-    sign, offset = 1.0, 0.0
-    for bit in (1, 2):
-        if code & bit:
-            sign, offset = -sign, -offset
-    if code & 4:
-        sign, offset = -sign, math.pi / 2 - offset
-    a = sign * phi.double() + offset
-    c = a[:, a.shape[1] // 2 : a.shape[1] // 2 + 1]
-    return (a - torch.floor(c / math.pi) * math.pi).to(phi.dtype)
 
 
 class SymmetryEnsemble(nn.Module):

@@ -37,6 +37,7 @@ from polinfra.config import opt
 from polinfra.errors import ConfigError, ShapeError
 
 from reconstruct.groups import spike_mean_span
+from reconstruct.symmetry import angle_map, symmetry_image
 
 __all__ = ["WindowConfig", "ITEM_KEYS", "WindowSource", "window_centres", "item_from_stream", "OnTheFlyWindows", "flip_item"]
 
@@ -158,32 +159,19 @@ _ANGLE_KEYS = ("phi", "phi_perp")
 
 
 def flip_item(item: dict[str, torch.Tensor], code: int) -> dict[str, torch.Tensor]:
-    """One of the 8 symmetries of a square crop applied to an item, angles carried along.
-
-    ``code`` in 0..7: bit 0 = mirror left-right, bit 1 = mirror up-down, bit 2 = transpose
-    (applied in that order).  A mirror maps every image-plane direction at angle a to -a
-    (mod pi, the period of linear polarization: both the polarizer angles ``phi`` and the
-    plane-of-incidence map ``phi_perp``); a transpose maps a to pi/2 - a.  paper Eq. (2)
-    depends on phi_k - phi_perp only through cos 2(phi_k - phi_perp), which both maps keep,
-    so zeta, T and R are the same numbers at the moved pixels (tested against Eq. (2)).
-    """
+    """One of the 8 symmetries of a square crop applied to an item, angles carried along (:mod:`reconstruct.symmetry`:
+    ``code`` in 0..7, bit 0 = mirror left-right, bit 1 = mirror up-down, bit 2 = transpose).  Both the polarizer
+    angles ``phi`` and the plane-of-incidence map ``phi_perp`` move with the image, so zeta, T and R are the same
+    numbers at the moved pixels (tested against Eq. (2))."""
     if not 0 <= code < 8:
         raise ConfigError(f"flip code {code} must be in 0..7")
     if code == 0:
         return item
     out = dict(item)
-    sign, offset = 1.0, 0.0
-    for bit, dims in ((1, (-1,)), (2, (-2,))):
-        if code & bit:
-            for k in _IMAGE_KEYS:
-                if k in out:
-                    out[k] = torch.flip(out[k], dims)
-            sign, offset = -sign, -offset
-    if code & 4:
-        for k in _IMAGE_KEYS:
-            if k in out:
-                out[k] = out[k].transpose(-1, -2).contiguous()
-        sign, offset = -sign, math.pi / 2 - offset
+    for k in _IMAGE_KEYS:
+        if k in out:
+            out[k] = symmetry_image(out[k], code).contiguous()
+    sign, offset = angle_map(code)
     for k in _ANGLE_KEYS:
         if k in out:
             a = sign * out[k].double() + offset

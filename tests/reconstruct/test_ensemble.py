@@ -10,7 +10,8 @@ import pytest
 import torch
 
 from polinfra.errors import ConfigError, ShapeError
-from reconstruct.network import SYMMETRY_CODES, NetConfig, PolSpikeNet, SymmetryEnsemble, init_weights, symmetry_angles, symmetry_image
+from reconstruct.network import SYMMETRY_CODES, NetConfig, PolSpikeNet, SymmetryEnsemble, init_weights
+from reconstruct.symmetry import symmetry_angles, symmetry_image
 from reconstruct.onthefly import flip_item
 
 
@@ -84,7 +85,7 @@ def test_wrong_angles_break_equivariance(monkeypatch):
     net = _net(2)
     I, phi = _window(seed=3)
     moved = symmetry_angles(phi, 1)
-    monkeypatch.setattr(network, "symmetry_angles", lambda p, code: p)
+    monkeypatch.setattr(network, "symmetry_angles", lambda p, code: p)  # the name SymmetryEnsemble calls
     ens = SymmetryEnsemble(net, 8)
     with torch.no_grad():
         base = ens(I, phi)
