@@ -187,3 +187,21 @@ def test_integer_choices_are_enforced_by_the_config_layer():
         from_dict(EvalConfig, {"net_ensemble": 3})
     with pytest.raises(ConfigError, match="down = 3 is not allowed"):
         from_dict(NetConfig, {"down": 3})
+
+
+def test_cli_bench_ensemble_writes_json_table_and_plot(tmp_path, polspike_main):
+    """`polspike bench ensemble` end to end on the closed-form set with the v1 checkpoint (no long-mean input):
+    rows for 1 (the reference, always run) and 2, the table and the plot written."""
+    import json
+
+    from reconstruct.checkpoint import V1_WEIGHTS
+
+    if not V1_WEIGHTS.is_file():
+        pytest.skip("shipped v1 checkpoint not present")
+    out = tmp_path / "b"
+    r = polspike_main("bench", "ensemble", "synthetic:3", "--sizes", "2", "--zeta", "gt", "--checkpoint", V1_WEIGHTS, "--max-frames", 1, "--quiet", "--out", out)
+    assert r.returncode == 0, r.stderr[-2000:]
+    res = json.loads((out / "ensemble.json").read_text())
+    assert [row["ensemble"] for row in res["rows"]] == [1, 2]
+    assert res["rows"][0]["time_ratio"] == pytest.approx(1.0) and res["rows"][1]["time_ratio"] > 0
+    assert "| 2 |" in (out / "ensemble.md").read_text() and (out / "ensemble.png").stat().st_size > 1000
