@@ -294,10 +294,11 @@ def test_trainable_freezes_every_other_weight(tmp_path, sets):
 
 def test_val_score_of_each_selection():
     """val_select: learned = psnr_T; mean = the mean over both zeta paths; r_share = R over the reflection pixels
-    (both paths), whole-frame R where a validation set has none."""
+    (both paths), whole-frame R where a validation set has none; ssim = T's SSIM over both paths."""
     from reconstruct.train import val_score
 
     m = {"psnr_T": 30.0, "psnr_T_forced": 34.0, "psnr_R": 18.0, "psnr_R_forced": 20.0, "psnrrefl_R": 12.0, "psnrrefl_R_forced": 16.0}
     assert val_score(m, "learned") == 30.0 and val_score(m, "mean") == 32.0 and val_score(m, "r_share") == 14.0
     m2 = {k: v for k, v in m.items() if not k.startswith("psnrrefl")}
     assert val_score(m2, "r_share") == 19.0
+    assert val_score({**m, "ssim_T": 0.90, "ssim_T_forced": 0.94}, "ssim") == pytest.approx(0.92)  # ssim: both zeta paths
