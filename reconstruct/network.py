@@ -376,6 +376,7 @@ class PolSpikeNet(nn.Module):
         I_mean: torch.Tensor | None = None,
         zeta_scale: torch.Tensor | None = None,
         zeta_shape: torch.Tensor | None = None,
+        zeta_feed: torch.Tensor | None = None,
     ) -> NetOutput:
         """Reconstruct the centre frame of each window.
 
@@ -397,6 +398,9 @@ class PolSpikeNet(nn.Module):
             zeta_shape: optional (B,) factors on the modulation of that fed zeta about its window mean,
                 zeta' = m + f (zeta - m), m = mean over the N observations (applied before ``zeta_scale``): the
                 degree of polarization an assumed index or pane model gets wrong.
+            zeta_feed: optional (B, N, H, W) zeta fed to the solver in place of ``zeta_gt`` (teacher forcing; before
+                ``zeta_shape`` / ``zeta_scale``), the losses still comparing with ``zeta_gt``: e.g. the window's zeta under
+                the glass the self-calibration assumes (``window.assumed_n``).
 
         Returns:
             :class:`NetOutput`.
@@ -423,10 +427,12 @@ class PolSpikeNet(nn.Module):
             zeta_hat, w, _ = self.param(I, phi, feats, scale)
         zeta_hat, w = zeta_hat.float(), w.float()  # the solver runs in float32 (also under bf16 autocast)
         I = I.float()
-        z_force = zeta_gt
+        if zeta_feed is not None and (zeta_gt is None or zeta_feed.shape != zeta_gt.shape):
+            raise ShapeError("zeta_feed needs zeta_gt of its shape (the losses compare with zeta_gt)", actual_shape=tuple(zeta_feed.shape), expected_shape=None if zeta_gt is None else tuple(zeta_gt.shape))
+        z_force = zeta_gt if zeta_feed is None else zeta_feed
         if zeta_gt is not None and zeta_shape is not None:
-            zm = zeta_gt.mean(1, keepdim=True)
-            z_force = zm + zeta_shape.reshape(-1, 1, 1, 1).to(zeta_gt.dtype) * (zeta_gt - zm)
+            zm = z_force.mean(1, keepdim=True)
+            z_force = zm + zeta_shape.reshape(-1, 1, 1, 1).to(zeta_gt.dtype) * (z_force - zm)
         if zeta_gt is not None and zeta_scale is not None:
             z_force = z_force * zeta_scale.reshape(-1, 1, 1, 1).to(zeta_gt.dtype)
         if z_force is not zeta_gt:

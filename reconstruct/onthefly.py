@@ -59,6 +59,7 @@ class WindowConfig:
     exposure_source: str = opt("range", "on-the-fly: range = exposure drawn from exposure_range; group = the manifest group's own exposure (its light level) times a log-uniform factor in exposure_jitter", choices=("range", "group"))
     exposure_jitter: tuple[float, float] = opt((1.0, 1.0), "on-the-fly, exposure_source = group: range of the log-uniform factor on the group's exposure", lo=1e-3, hi=1000.0)
     mean_steps: int = opt(0, "steps of the long spike mean I_mean given to a use_mean network, centred on the output frame (350 = 17.5 ms at 20 kHz, about half a polarizer turn); 0 = none", lo=0, hi=100001)
+    assumed_n: float = opt(0.0, "also give each item the window's zeta under an assumed glass of this index (the self-calibration's prior, 1.5) for each pane model it can assume, zeta_a_single and zeta_a_thin_slab (paper Eq. (2) from the maps' theta and phi_perp): training for the errors of --zeta self, whose index and model are assumed where the spikes do not identify them; 0 = off", lo=0.0, hi=4.0)
     flips: bool = opt(False, "on-the-fly: random mirror / transpose of each item (one of the 8 symmetries of the square crop; polarizer and phi_perp angles mirrored with the image, so the physics stays exact)")
 
     def __post_init__(self) -> None:
@@ -139,8 +140,11 @@ def item_from_stream(
     C = sinc * np.cos(2 * pt).mean(1)
     Sn = sinc * np.sin(2 * pt).mean(1)
     Rp, Rs, pp = (np.asarray(maps[k], np.float32).astype(np.float64) for k in ("R_perp", "R_par", "phi_perp"))
-    # paper Eq. (2) averaged over each window at the true per-step angles: mean + amp <cos 2(phi - phi_perp)>
-    zeta = 0.5 * (Rp + Rs)[None] + 0.5 * (Rp - Rs)[None] * (C[:, None, None] * np.cos(2 * pp)[None] + Sn[:, None, None] * np.sin(2 * pp)[None])
+
+    def eq2(rp, rs):  # paper Eq. (2) averaged over each window at the true per-step angles: mean + amp <cos 2(phi - phi_perp)>
+        return 0.5 * (rp + rs)[None] + 0.5 * (rp - rs)[None] * (C[:, None, None] * np.cos(2 * pp)[None] + Sn[:, None, None] * np.sin(2 * pp)[None])
+
+    zeta = eq2(Rp, Rs)
     Tp = np.asarray(maps["T_perp"], np.float32) if "T_perp" in maps else (1.0 - Rp).astype(np.float32)
     Ts = np.asarray(maps["T_par"], np.float32) if "T_par" in maps else (1.0 - Rs).astype(np.float32)
     T_, R_ = (np.asarray(x, np.float16).astype(np.float64) for x in gt)
@@ -148,13 +152,26 @@ def item_from_stream(
         "I": _t(I), "phi": _t(phi), "T": _t(T_), "R": _t(R_), "zeta": _t(zeta), "R_perp": _t(Rp), "R_par": _t(Rs), "phi_perp": _t(pp),
         "T_perp": _t(Tp), "T_par": _t(Ts), "exposure": torch.tensor(float(exposure), dtype=torch.float32),
     }
+    if cfg.assumed_n > 0:
+        if "theta" not in maps:
+            raise ConfigError("window.assumed_n needs the maps' incidence angle theta; this source gives none")
+        from polphysics.fresnel import pane_coefficients
+
+        th = np.asarray(maps["theta"], np.float64)
+        for model in ASSUMED_MODELS:
+            co = pane_coefficients(th, cfg.assumed_n, model=model)
+            item[f"zeta_a_{model}"] = _t(eq2(np.asarray(co["R_perp"], np.float64), np.asarray(co["R_par"], np.float64)))
     if cfg.mean_steps:  # the long spike mean around the centre frame, clipped to the stream
         a, b = (int(v) for v in spike_mean_span(int(ck[len(ck) // 2]), cfg.mean_steps, spikes.shape[0]))
         item["I_mean"] = _t(spikes[a:b].sum(0, dtype=np.int64) / ((b - a) * exposure))
     return item
 
 
-_IMAGE_KEYS = ("I", "T", "R", "zeta", "R_perp", "R_par", "phi_perp", "T_perp", "T_par", "I_mean")
+ASSUMED_MODELS = ("single", "thin_slab")
+"""Pane models whose zeta under the assumed index an item carries (window.assumed_n): the self-calibration's
+(:data:`reconstruct.selfcal.CONE_MODELS`)."""
+
+_IMAGE_KEYS = ("I", "T", "R", "zeta", "R_perp", "R_par", "phi_perp", "T_perp", "T_par", "I_mean", *(f"zeta_a_{m}" for m in ASSUMED_MODELS))
 _ANGLE_KEYS = ("phi", "phi_perp")
 
 

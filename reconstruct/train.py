@@ -84,6 +84,8 @@ class TrainConfig:
     force_prob: float = opt(0.0, "probability that a step (after the curriculum's alpha = 1 phase) feeds the solver the true zeta (alpha = 1) times a per-item factor exp(N(0, zeta_jitter)), instead of the curriculum's alpha: trains the refinement for an external, imperfect zeta (--zeta self); drawn from the seed and the step (resumable)", lo=0.0, hi=1.0)
     zeta_jitter: float = opt(0.0, "std of the per-item log factor on the forced zeta (force_prob)", lo=0.0, hi=2.0)
     zeta_shape_jitter: float = opt(0.0, "std of the per-item log factor on the forced zeta's modulation about its window mean (force_prob): the degree of polarization a wrong index or pane model gives the self-calibrated zeta", lo=0.0, hi=2.0)
+    assumed_prob: float = opt(0.0, "probability that an item of a forced step (force_prob) is fed its zeta under the assumed glass (window.assumed_n) instead of the jittered true zeta: the model the self-calibration would pick (the one whose zeta is closer in scale to the true, with probability assumed_right) or the other one; the losses still compare with the true zeta", lo=0.0, hi=1.0)
+    assumed_right: float = opt(0.7, "probability that an assumed-glass item takes the pane model closer in scale to the truth (the self-calibration's model is right where it claims one or the prior holds)", lo=0.0, hi=1.0)
     val_select: str = opt("learned", "validation score that picks best.pt: learned (psnr_T, the network on its own zeta) | mean (the mean of that and psnr_T_forced, the network on the true zeta: a network run with --zeta self where the stream calibrates) | r_share (the mean of psnrrefl_R and psnrrefl_R_forced: R over the pixels where the reflection carries >= 20 % of the light, for an R-only run with trainable) | ssim (the mean of ssim_T and ssim_T_forced, T's structure on both zetas; SSIM is then scored whatever val_ssim says)", choices=("learned", "mean", "r_share", "ssim"))
     init_zero: tuple[str, ...] = opt((), "parameter-name prefixes set to zero after init_from (e.g. refine.dec_t.out to restart a decoder's output as zero: the network starts as its base)")
     trainable: tuple[str, ...] = opt((), "parameter-name prefixes that train (e.g. refine.dec_r: the R decoder alone, every T output stays exactly as init_from's); the others are frozen; empty = all")
@@ -195,6 +197,32 @@ def evaluate_model(model: PolSpikeNet, dataset, batch_size: int = 8, device: tor
         for name, v in sq.items():
             res[f"psnrrefl_{name}"] = float(-10 * np.log10(max(sum(v) / n_refl, 1e-10)))
     return res
+
+
+def assumed_glass_feed(batch: dict[str, torch.Tensor], zeta: torch.Tensor, scale: torch.Tensor, cfg: "TrainConfig", g: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
+    """The forced zeta of a batch with assumed-glass items (:attr:`TrainConfig.assumed_prob`) -> (zeta_feed, scale).
+
+    Each item is, with probability ``assumed_prob``, fed its zeta under the assumed glass (``zeta_a_<model>``,
+    ``window.assumed_n``): with probability ``assumed_right`` the model whose mean zeta is closer to the true one in
+    log scale (what a right claim or prior gives), else the other; such an item's scale jitter is reset to 1 (its
+    error is the glass').  Other items keep the true zeta and their jitter."""
+    from reconstruct.onthefly import ASSUMED_MODELS
+
+    keys = [f"zeta_a_{m}" for m in ASSUMED_MODELS]
+    if any(k not in batch for k in keys):
+        raise ConfigError("assumed_prob > 0 needs items with the assumed-glass zeta: set [window] assumed_n (e.g. 1.5)")
+    B = zeta.shape[0]
+    use = torch.rand(B, generator=g) < cfg.assumed_prob
+    right = torch.rand(B, generator=g) < cfg.assumed_right
+    cand = torch.stack([batch[k].to(zeta.device, zeta.dtype) for k in keys], 1)  # (B, M, N, H, W)
+    err = (torch.log(cand.mean((2, 3, 4)).clamp_min(1e-9)) - torch.log(zeta.mean((1, 2, 3)).clamp_min(1e-9))[:, None]).abs()  # (B, M)
+    closest = err.argmin(1)
+    pick = torch.where(right.to(closest.device), closest, 1 - closest) if len(keys) == 2 else closest
+    chosen = cand[torch.arange(B), pick]
+    m = use.to(zeta.device)
+    feed = torch.where(m[:, None, None, None], chosen, zeta)
+    scale = torch.where(m, torch.ones_like(scale), scale)
+    return feed, scale
 
 
 def val_score(metrics: dict[str, float], select: str) -> float:
@@ -417,7 +445,7 @@ def train(
         epoch = step // spe
         alpha = alpha_at(epoch, cfg)
         I, phi, T, R, z = (b[k].to(dev) for k in ("I", "phi", "T", "R", "zeta"))
-        scale = shape = None
+        scale = shape = feed = None
         if cfg.force_prob > 0 and alpha < 1.0:
             g = torch.Generator().manual_seed(cfg.seed * 1_000_003 + step)
             if float(torch.rand((), generator=g)) < cfg.force_prob:
@@ -425,7 +453,9 @@ def train(
                 scale = torch.exp(cfg.zeta_jitter * torch.randn(I.shape[0], generator=g)).to(dev)
                 if cfg.zeta_shape_jitter > 0:  # drawn after scale: configs without it keep their trajectory
                     shape = torch.exp(cfg.zeta_shape_jitter * torch.randn(I.shape[0], generator=g)).to(dev)
-        out = model(I, phi, zeta_gt=z, alpha=alpha, I_mean=b["I_mean"].to(dev) if "I_mean" in b else None, zeta_scale=scale, zeta_shape=shape)
+                if cfg.assumed_prob > 0:  # drawn last, for the same reason
+                    feed, scale = assumed_glass_feed(b, z, scale, cfg, g)
+        out = model(I, phi, zeta_gt=z, alpha=alpha, I_mean=b["I_mean"].to(dev) if "I_mean" in b else None, zeta_scale=scale, zeta_shape=shape, zeta_feed=feed)
         loss, parts = total_loss(out, T, R, alpha, cfg.loss)
         if not math.isfinite(parts["loss"]):
             raise FloatingPointError(f"non-finite loss at step {step}: {parts}")
