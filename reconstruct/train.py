@@ -218,7 +218,7 @@ def assumed_glass_feed(batch: dict[str, torch.Tensor], zeta: torch.Tensor, scale
     err = (torch.log(cand.mean((2, 3, 4)).clamp_min(1e-9)) - torch.log(zeta.mean((1, 2, 3)).clamp_min(1e-9))[:, None]).abs()  # (B, M)
     closest = err.argmin(1)
     pick = torch.where(right.to(closest.device), closest, 1 - closest) if len(keys) == 2 else closest
-    chosen = cand[torch.arange(B), pick]
+    chosen = cand[torch.arange(B, device=pick.device), pick]
     m = use.to(zeta.device)
     feed = torch.where(m[:, None, None, None], chosen, zeta)
     scale = torch.where(m, torch.ones_like(scale), scale)
