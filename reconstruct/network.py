@@ -534,6 +534,10 @@ def check_ensemble_size(size: int, what: str = "ensemble size") -> int:
     return int(size)
 
 
+_IMAGE_KWARGS = ("I_mean", "zeta_feed")
+"""Keyword inputs of :meth:`PolSpikeNet.forward` that are maps (moved with the image by each ensemble member)."""
+
+
 class SymmetryEnsemble(nn.Module):
     """Test-time self-ensemble of a :class:`PolSpikeNet` over symmetries of the image (``size`` 1, 2, 4 or 8).
 
@@ -572,7 +576,7 @@ class SymmetryEnsemble(nn.Module):
             def fw(t):
                 return None if t is None else symmetry_image(t, code)
 
-            o = self.net(fw(I), symmetry_angles(phi, code), fw(zeta_gt), alpha, **{k: (fw(v) if k == "I_mean" else v) for k, v in kw.items()})
+            o = self.net(fw(I), symmetry_angles(phi, code), fw(zeta_gt), alpha, **{k: (fw(v) if k in _IMAGE_KWARGS else v) for k, v in kw.items()})
             for f in dataclasses.fields(NetOutput):
                 v = getattr(o, f.name)
                 if f.name in ("I", "zeta_gt") or v is None:

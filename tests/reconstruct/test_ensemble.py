@@ -205,3 +205,15 @@ def test_cli_bench_ensemble_writes_json_table_and_plot(tmp_path, polspike_main):
     assert [row["ensemble"] for row in res["rows"]] == [1, 2]
     assert res["rows"][0]["time_ratio"] == pytest.approx(1.0) and res["rows"][1]["time_ratio"] > 0
     assert "| 2 |" in (out / "ensemble.md").read_text() and (out / "ensemble.png").stat().st_size > 1000
+
+
+def test_ensemble_moves_a_fed_zeta_with_the_image():
+    """zeta_feed is a map like zeta_gt: the ensemble of a network fed zeta_gt itself equals the ensemble fed nothing."""
+    net = _net(5)
+    I, phi = _window(seed=7)
+    z = 0.2 + 0.3 * torch.rand(I.shape, generator=torch.Generator().manual_seed(8))
+    ens = SymmetryEnsemble(net, 4)
+    with torch.no_grad():
+        a = ens(I, phi, zeta_gt=z, alpha=1.0)
+        b = ens(I, phi, zeta_gt=z, alpha=1.0, zeta_feed=z)
+    torch.testing.assert_close(a.T, b.T, rtol=0, atol=1e-6)
