@@ -141,9 +141,12 @@ class MapsZetaNet(_ExternalZetaNet):
         return Z
 
 
-def build_net_zeta_model(net, zeta: str, source, *, group_dir=None, window_steps: int = 13, exposure: float | None = None, pane_n: float = 1.5, pane_model: str = "single",
-                         fallback: str = NET_FALLBACK_ZETA):
+def build_net_zeta_model(net, zeta: str, source, *, group_dir=None, window_steps: int = 13, exposure: float | None = None, pane_n: float | None = None,
+                         pane_model: str | None = None, fallback: str = NET_FALLBACK_ZETA):
     """The network on zeta source ``zeta`` (:data:`NET_ZETA_SOURCES`) for this stream -> (model, info).
+
+    ``pane_n`` / ``pane_model``: the pane's index and model where known (None or "auto": fitted where the data
+    constrain them, else n 1.5 and a thin slab; :func:`reconstruct.physics_video.calibrate_stream`).
 
     info = {"zeta": source used, "selfcal": summary or None}; ``self`` falls back to ``fallback``
     (:data:`NET_FALLBACK_ZETA`, or ``learned``) when the pane cannot be fitted (info["zeta"] says why).

@@ -133,17 +133,23 @@ class PhysicsModel:
 
 
 def calibrate_stream(source, group_dir=None, window_steps: int = 13, exposure: float | None = None, selfcal: SelfCalConfig | None = None,
-                     pane_n: float = 1.5, pane_model: str = "single") -> SelfCalResult:
+                     pane_n: float | None = None, pane_model: str | None = None) -> SelfCalResult:
     """:func:`calibrate_source` with the settings a stream's caller has: the field of view from the stored group's
-    scene when ``selfcal`` does not give one, and the index / pane model to assume."""
+    scene when ``selfcal`` does not give one, and a known index / pane model (None: ``selfcal``'s, by default the
+    index and model fitted where the data constrain them, else n 1.5 and a thin slab: what the evaluation measures,
+    :func:`reconstruct.selfcal.group_self_zeta`)."""
     sc = selfcal or SelfCalConfig()
+    if pane_n is not None:
+        sc = dataclasses.replace(sc, n=float(pane_n))
+    if pane_model is not None and pane_model != "auto":
+        sc = dataclasses.replace(sc, model=pane_model)
     if not sc.fov_deg and group_dir is not None:
         from reconstruct.selfcal import fov_from_group_dir
 
         fov = fov_from_group_dir(group_dir)
         if fov:
             sc = dataclasses.replace(sc, fov_deg=fov)
-    return calibrate_source(source, window_steps, exposure, dataclasses.replace(sc, n=pane_n, model=pane_model))
+    return calibrate_source(source, window_steps, exposure, sc)
 
 
 def calibrate_source(source, window_steps: int = 13, exposure: float | None = None, cfg: SelfCalConfig = SelfCalConfig()) -> SelfCalResult:
@@ -208,8 +214,8 @@ def build_physics_model(
     rir: bool = True,
     load_learned=None,
     selfcal: SelfCalConfig | None = None,
-    pane_n: float = 1.5,
-    pane_model: str = "single",
+    pane_n: float | None = None,
+    pane_model: str | None = None,
     anchor: str = "none",
 ) -> tuple[PhysicsModel, dict]:
     """A :class:`PhysicsModel` for ``method`` on zeta source ``zeta`` for this stream (``anchor``: as the model's).
@@ -223,7 +229,8 @@ def build_physics_model(
         rir: RIR alignment per window.
         load_learned: callable () -> network, for ``learned`` and for the ``self`` fallback.
         selfcal: self-calibration settings (``self``); its field of view defaults to the group's scene.
-        pane_n, pane_model: calibrated index and pane model (``physics``, ``self``).
+        pane_n, pane_model: the pane's index and model where known. ``physics``: default 1.5 and single; ``self``:
+            default fitted where the data constrain them (:func:`calibrate_stream`); ``pane_model`` "auto" = not given.
 
     Returns:
         (model, info) with info = {"zeta": source used, "selfcal": summary or None}.
@@ -240,7 +247,8 @@ def build_physics_model(
     if zeta == "learned":
         return PhysicsModel(method, n_obs, learned_model=_need(load_learned), rir=rir, anchor=anchor), info
     if zeta in ("gt", "physics"):
-        return PhysicsModel(method, n_obs, maps=group_pane_maps(group_dir, zeta, pane_n, pane_model), span_rad=span, rir=rir, anchor=anchor), info
+        pm = "single" if pane_model in (None, "auto") else pane_model
+        return PhysicsModel(method, n_obs, maps=group_pane_maps(group_dir, zeta, 1.5 if pane_n is None else pane_n, pm), span_rad=span, rir=rir, anchor=anchor), info
     res = calibrate_stream(source, group_dir, window_steps, exposure, selfcal, pane_n, pane_model)
     info["selfcal"] = res.summary()
     if res.ok:

@@ -107,6 +107,8 @@ def reconstruct_cmd(
     zeta: Optional[str] = typer.Option(None, "--zeta", help="self (pane fitted to the stream) | learned (the network's parameter branch) | none (the network on zeta = 0: no separable reflection, T is the whole light) | physics | gt (physics methods, group stores only) [default: self (reconstruct.net_zeta.NET_DEFAULT_ZETA)]"),
     zeta_fallback: str = typer.Option("auto", "--zeta-fallback", help="the network's zeta where --zeta self cannot calibrate the stream: auto (learned where >= 5 % of pixels still modulate, e.g. under a camera pan, else none) | none (zeta = 0: T is the whole light) | learned"),
     precision: str = typer.Option("float32", "--precision", help="float32 | bfloat16 (autocast of the network; the solver stays float32)"),
+    pane_n: Optional[float] = typer.Option(None, "--pane-n", help="the pane's refractive index where known (e.g. from polspike calibrate-pane) [default: --zeta self fits it where the spikes constrain it, else 1.5; --zeta physics: 1.5]"),
+    pane_model: str = typer.Option("auto", "--pane-model", help="the pane model where known: single, thin_slab or thick_slab [default auto: --zeta self fits it where the spikes constrain it, else thin_slab; --zeta physics: single]"),
     ensemble: int = typer.Option(1, "--ensemble", help="the network averaged over 1, 2, 4 or 8 mirror / transpose symmetries of each window (test-time self-ensemble: that many forward passes, no feature cache; measured by polspike bench ensemble)"),
 ) -> None:
     """Turn a spike group or a .dat into reflection-free T and R video at the output cadence (~343 FPS)."""
@@ -148,6 +150,10 @@ def reconstruct_cmd(
     check_ensemble_size(ensemble, "--ensemble")
     if ensemble > 1 and method != "net":
         raise ConfigError("--ensemble is for the network (--method net); a physics solver is per pixel, mirrors change nothing")
+    if pane_model not in ("auto", "single", "thin_slab", "thick_slab"):
+        raise ConfigError(f"--pane-model {pane_model!r}: choose auto, single, thin_slab or thick_slab")
+    if pane_n is not None and not 1.0 < pane_n <= 4.0:
+        raise ConfigError(f"--pane-n {pane_n}: a pane's refractive index lies in (1, 4]")
     if exposure is not None and not exposure > 0:
         raise ConfigError(f"--exposure {exposure}: must be > 0 (thresholds per step per unit radiance)")
     cfg = ReconstructConfig(window_steps=window_steps, stride_deg=stride_deg, exposure=exposure or 1.0, frames=frames, max_frames=max_frames, precision=precision)
@@ -185,12 +191,13 @@ def reconstruct_cmd(
             from reconstruct.net_zeta import build_net_zeta_model
 
             model, info = build_net_zeta_model(model, zeta, src, group_dir=None if input.suffix.lower() == ".dat" else input, window_steps=window_steps,
-                                               exposure=None if src.exposure is not None else cfg.exposure, fallback=zeta_fallback)
+                                               exposure=None if src.exposure is not None else cfg.exposure, fallback=zeta_fallback, pane_n=pane_n, pane_model=pane_model)
     else:
         from reconstruct.physics_video import build_physics_model
 
         model, info = build_physics_model(method, zeta or "self", src, group_dir=None if input.suffix.lower() == ".dat" else input, window_steps=window_steps,
-                                          exposure=None if src.exposure is not None else cfg.exposure, rir=True if rir is None else rir, load_learned=load, anchor=anchor)
+                                          exposure=None if src.exposure is not None else cfg.exposure, rir=True if rir is None else rir, load_learned=load, anchor=anchor,
+                                          pane_n=pane_n, pane_model=pane_model)
     with rich_progress("reconstruct", enabled=not quiet) as cb:
         s = reconstruct_stream(src, model, out, cfg, device=dev, progress=cb, meta={**exposure_info, "method": method, "anchor": anchor, "ensemble": ensemble, "zeta": info["zeta"] if info is not None else "learned"})
     c = Console()
@@ -200,7 +207,7 @@ def reconstruct_cmd(
         write_json(out / ("zeta.json" if method == "net" else "physics.json"), {"method": method, **info})
         sc = info["selfcal"]
         if sc and sc["ok"]:
-            c.print(f"{method} on self-calibrated zeta: pane tilt {sc['tilt_deg']:.1f} deg, azimuth {sc['azimuth_deg']:.1f} deg, fov {sc['fov_deg']:.1f} deg{' (fitted)' if sc['fov_fitted'] else ''}")
+            c.print(f"{method} on self-calibrated zeta: pane tilt {sc['tilt_deg']:.1f} deg, azimuth {sc['azimuth_deg']:.1f} deg, fov {sc['fov_deg']:.1f} deg{' (fitted)' if sc['fov_fitted'] else ''}, {sc['model']} n {sc['n']:g}")
         else:
             c.print(f"{method} on zeta: {info['zeta']}" + (f" ({sc['reason']})" if sc else ""))
     if exposure_info["exposure_source"] == "estimated":
