@@ -62,10 +62,10 @@ from reconstruct.metrics import LPIPS_NA, lpips_status, masked_psnr, masked_scor
 from reconstruct.net_zeta import NET_FALLBACKS, fallback_for
 from reconstruct.network import SYMMETRY_CODES
 from reconstruct.rir import RirConfig, estimate_shifts, warp
-from reconstruct.solvers import PHYSICS_SOLVER_CONFIG, SOLVERS, SolverConfig, anchor_to_mean, solve, zbar_of
+from reconstruct.solvers import PHYSICS_SOLVER_CONFIG, SOLVERS, SolverConfig, anchor_to_mean, long_span_separation, solve, zbar_of
 from reconstruct.zeta_source import ZETA_SOURCES, PaneMaps, zeta_from_maps, zeta_learned
 
-__all__ = ["BOUND_GOAL_DB", "SHARE_KEYS", "SHARE_FRAME_KEYS", "group_noise", "share_context", "share_scores", "net_zeta_of", "REGIME_FACTORS", "regime_of", "evaluate_by_regime", "regime_markdown", "regime_report", "REGIME_TABLES", "EvalConfig", "EvalReport", "finite_means", "BASELINES", "ANCHOR_SUFFIX", "NET_METHOD", "load_network", "group_zeta", "evaluate_groups", "write_report", "parse_methods", "load_groups", "window_sweep", "markdown_table", "sweep_markdown"]
+__all__ = ["BOUND_GOAL_DB", "SHARE_KEYS", "SHARE_FRAME_KEYS", "group_noise", "share_context", "share_scores", "net_zeta_of", "REGIME_FACTORS", "regime_of", "evaluate_by_regime", "regime_markdown", "regime_report", "REGIME_TABLES", "EvalConfig", "EvalReport", "finite_means", "BASELINES", "ANCHOR_SUFFIX", "SPAN_METHOD", "NET_METHOD", "load_network", "group_zeta", "evaluate_groups", "write_report", "parse_methods", "load_groups", "window_sweep", "markdown_table", "sweep_markdown"]
 
 log = logging.getLogger(__name__)
 
@@ -99,7 +99,7 @@ class EvalConfig:
     net_zeta: str = opt("", "method full: zeta of the network's solver and refinement: learned (its parameter branch), self, gt, physics, or none (zeta = 0: no separable reflection, T is the whole light); empty = self when zeta is self, else learned", choices=("", "learned", "self", "gt", "physics", "none"))
     net_ensemble: int = opt(1, "method full: test-time self-ensemble over 1, 2, 4 or 8 symmetries of the image (reconstruct.network.SymmetryEnsemble; that many forward passes)", choices=tuple(SYMMETRY_CODES))
     net_fallback: str = opt("auto", "method full with net zeta self, where the stream does not self-calibrate: auto (learned where the refused calibration still shows >= 5 % of pixels modulating, else none; reconstruct.net_zeta.fallback_for), none (zeta = 0, T is the whole light) or learned (the network's own zeta)", choices=NET_FALLBACKS)
-    anchor: str = opt("none", "mean: also score each method anchored to the 17.5 ms spike mean, T = 2 I_mean - zbar (R^ - T^), R = T + (R^ - T^) (rows '<method>+mean'; stored groups only)", choices=("none", "mean"))
+    anchor: str = opt("none", "mean: also score each method anchored to the 17.5 ms spike mean, T = 2 I_mean - zbar (R^ - T^), R = T + (R^ - T^) (rows '<method>+mean'), and the physics of the whole span's first harmonic on the solvers' zeta (row 'span'; reconstruct.solvers.long_span_separation); stored groups only", choices=("none", "mean"))
 
 
 def _refused_fallback(cfg: EvalConfig) -> str:
@@ -454,7 +454,10 @@ def evaluate_groups(
                 use_mean = getattr(model.cfg, "use_mean", False)
                 if use_mean and Im is None:
                     raise ConfigError(f"group {g.name}: the network takes the long spike mean, which only stored groups (spikes.h5) give; evaluate it on a built dataset")
-                o = run_model_on_windows(model, raw.float().cpu().numpy(), Pw.float().cpu().numpy(), device=next(model.parameters()).device, tile=cfg.net_tile, zeta=zn, I_mean=Im if use_mean else None)
+                Ih = np.stack([g.I_harm[i] for i in cb]) if (getattr(model.cfg, "use_harm", False) and g.I_harm is not None) else None
+                if getattr(model.cfg, "use_harm", False) and Ih is None:
+                    raise ConfigError(f"group {g.name}: the network takes the long span's first harmonic, which only stored groups (spikes.h5) and synthetic groups give")
+                o = run_model_on_windows(model, raw.float().cpu().numpy(), Pw.float().cpu().numpy(), device=next(model.parameters()).device, tile=cfg.net_tile, zeta=zn, I_mean=Im if use_mean else None, I_harm=Ih)
                 est[net_rows[0]] = (o["T"], o["R"])
                 est[net_rows[1]] = (o["T_base"], o["R_base"])
                 t["network"] += time.perf_counter() - t0
@@ -466,6 +469,9 @@ def evaluate_groups(
                 for m, zz in zbars.items():
                     if zz is not None:
                         est[m + ANCHOR_SUFFIX] = anchor_to_mean(*est[m], Im, zbar_of(zz, Pw).float().cpu().numpy())
+                if solvers and Zw is not None and g.I_harm is not None:  # every spike of the span (physics, the solvers' zeta)
+                    Ts, Rs = long_span_separation(torch.as_tensor(Im, dtype=torch.float64), torch.as_tensor(np.stack([g.I_harm[i] for i in cb]), dtype=torch.float64), Zw.double().cpu(), Pw.double().cpu())
+                    est[SPAN_METHOD] = (Ts.float().numpy(), Rs.float().numpy())
             t0 = time.perf_counter()
             tfp = (2.0 * raw.mean(1)).cpu().numpy()
             raw_np = (2.0 * raw).cpu().numpy()
@@ -493,7 +499,7 @@ def evaluate_groups(
         if progress is not None:
             progress(gi + 1, len(groups))
     keys = ("psnr_T", "ssim_T", "psnr_R", "ssim_R", *SHARE_KEYS)
-    order = [*BASELINES, *[x for m in [*solvers, *net_rows] for x in (m, m + ANCHOR_SUFFIX)]]
+    order = [*BASELINES, *[x for m in [*solvers, *net_rows] for x in (m, m + ANCHOR_SUFFIX)], SPAN_METHOD]
     rows = []
     by = defaultdict(list)
     for f in frames:
@@ -515,6 +521,11 @@ def evaluate_groups(
 
 ANCHOR_SUFFIX = "+mean"
 """Row-name suffix of a method anchored to the spike mean (:func:`reconstruct.solvers.anchor_to_mean`)."""
+
+SPAN_METHOD = "span"
+"""Row of ``--anchor mean`` (with a physics solver): the layers from the first harmonic of the whole 17.5 ms span of
+spikes on the solvers' zeta (:func:`reconstruct.solvers.long_span_separation`): physics from every spike of the span,
+not only the N windows'."""
 
 
 def _fmt(v, nd=3) -> str:

@@ -32,7 +32,7 @@ from polinfra.errors import DataFormatError
 
 from reconstruct.zeta_source import PaneMaps
 
-__all__ = ["EvalGroup", "list_groups", "load_store_group", "window_steps_from_ms", "spike_mean_frames", "SpikeMeanSums", "SPIKE_MEAN_MS", "spike_mean_steps", "spike_mean_span"]
+__all__ = ["EvalGroup", "list_groups", "load_store_group", "window_steps_from_ms", "spike_mean_frames", "SpikeMeanSums", "SPIKE_MEAN_MS", "spike_mean_steps", "spike_mean_span", "span_harmonic", "HARMONIC_RIDGE"]
 
 log = logging.getLogger(__name__)
 
@@ -69,6 +69,9 @@ class EvalGroup:
     I_mean: np.ndarray | None = None
     """(M, H, W) the plain spike mean: spikes per step / exposure over :data:`SPIKE_MEAN_MS` centred on each
     frame (clipped to the stream), the "doing nothing" baseline of issue 16 (2 x it estimates T + zbar (R - T))"""
+    I_harm: np.ndarray | None = None
+    """(M, 2, H, W) the first harmonic (cos 2 phi, sin 2 phi) of the spikes over the same spans, radiance units
+    (:func:`span_harmonic`; a ``use_harm`` network's input)"""
 
 
 SPIKE_MEAN_MS = 17.5
@@ -93,15 +96,35 @@ class SpikeMeanSums:
     fed in order (from any step up to the first boundary; earlier steps are skipped) and each boundary's running
     count is snapshotted once: a stream reconstructor (:func:`reconstruct.video.reconstruct_stream`) and a stored
     group (:func:`spike_mean_frames`) share this one count.
+
+    Given the per-step polarizer angles ``phi_step`` (radians, the reconstructor's nominal ones), the sums weighted
+    by cos 2 phi and sin 2 phi are kept too, and :meth:`harmonic` gives the first harmonic of each span's spikes
+    (:func:`span_harmonic`; :func:`reconstruct.solvers.long_span_separation` reads it).
     """
 
-    def __init__(self, centres: np.ndarray, steps: int, n_steps: int, shape: tuple[int, int]):
+    def __init__(self, centres: np.ndarray, steps: int, n_steps: int, shape: tuple[int, int], phi_step: np.ndarray | None = None):
         self.lo, self.hi = spike_mean_span(np.asarray(centres, np.int64), steps, n_steps)
         self.want = sorted(set(self.lo.tolist()) | set(self.hi.tolist()))
         self.snap: dict[int, np.ndarray] = {}
-        self.acc = np.zeros(shape, np.int64)
+        self.phi = None if phi_step is None else np.asarray(phi_step, np.float64)
+        if self.phi is not None and self.phi.size < n_steps:
+            raise DataFormatError(f"phi_step has {self.phi.size} angles for a stream of {n_steps} steps")
+        self.acc = np.zeros(shape if self.phi is None else (3, *shape), np.float64 if self.phi is not None else np.int64)
         self.pos = self.want[0] if self.want else 0  # acc = spikes of steps [first boundary, pos)
         self.wi = 0
+
+    def _add(self, s0: int, part: np.ndarray) -> None:
+        """Add the spikes of steps s0 .. s0 + len(part) to the running sums."""
+        if self.phi is None:
+            self.acc += part.sum(0, dtype=np.int64)
+            return
+        if not part.shape[0]:
+            return
+        for a in range(0, part.shape[0], 256):  # bounded float32 copies
+            q = part[a : a + 256]
+            p = 2.0 * self.phi[s0 + a : s0 + a + q.shape[0]]
+            X = np.stack([np.ones_like(p), np.cos(p), np.sin(p)]).astype(np.float32)  # (3, t)
+            self.acc += np.tensordot(X, q.astype(np.float32), axes=(1, 0))
 
     def feed(self, s0: int, chunk: np.ndarray) -> None:
         """The next chunk of spikes (steps s0 .. s0 + len); chunks arrive in order without gaps."""
@@ -114,42 +137,90 @@ class SpikeMeanSums:
         end = s0 + chunk.shape[0]
         while self.wi < len(self.want) and self.want[self.wi] <= end:
             b = self.want[self.wi]
-            self.acc += chunk[self.pos - s0 : b - s0].sum(0, dtype=np.int64)
+            self._add(self.pos, chunk[self.pos - s0 : b - s0])
             self.pos = b
             self.snap[b] = self.acc.copy()
             self.wi += 1
-        self.acc += chunk[self.pos - s0 :].sum(0, dtype=np.int64)
+        self._add(self.pos, chunk[self.pos - s0 :])
         self.pos = end
 
-    def mean(self, j: int, exposure: float = 1.0) -> np.ndarray:
-        """Spikes per step / exposure around frame j (frames taken in order); frees older snapshots."""
+    def _span(self, j: int) -> tuple[int, int, np.ndarray]:
         lo, hi = int(self.lo[j]), int(self.hi[j])
         if hi not in self.snap:  # the stream ended early or is not fed that far yet: up to where it is
             hi = self.pos
             self.snap[hi] = self.acc.copy()
-        m = (self.snap[hi] - self.snap[lo]) / np.float32(max(hi - lo, 1) * exposure)
+        return lo, hi, self.snap[hi] - self.snap[lo]
+
+    def _free(self, lo: int) -> None:
         for k in [k for k in self.snap if k < lo]:
             del self.snap[k]
+
+    def mean(self, j: int, exposure: float = 1.0) -> np.ndarray:
+        """Spikes per step / exposure around frame j (frames taken in order); frees older snapshots."""
+        lo, hi, d = self._span(j)
+        m = (d if self.phi is None else d[0]) / np.float32(max(hi - lo, 1) * exposure)
+        self._free(lo)
         return m.astype(np.float32)
 
+    def harmonic(self, j: int, exposure: float = 1.0) -> np.ndarray:
+        """(2, H, W) first-harmonic coefficients of the spikes around frame j (:func:`span_harmonic`); call before
+        :meth:`mean` of the same frame (which frees older snapshots); needs ``phi_step``."""
+        if self.phi is None:
+            raise DataFormatError("SpikeMeanSums.harmonic needs the per-step angles (phi_step)")
+        lo, hi, d = self._span(j)
+        return span_harmonic(d, self.phi[lo:hi], exposure)
 
-def spike_mean_frames(g, centres: np.ndarray, span_steps: int, exposure: float, chunk_steps: int = 2048) -> np.ndarray:
+
+HARMONIC_RIDGE = 1e-6
+"""Ridge (relative to the span's steps) on the cos / sin coefficients of :func:`span_harmonic`: a span too short to
+see the harmonic (a still polarizer) gets b = c = 0."""
+
+
+def span_harmonic(sums: np.ndarray, phi: np.ndarray, exposure: float = 1.0) -> np.ndarray:
+    """First harmonic of a span's spikes: the least-squares (b, c) of s_t ~ a + b cos 2 phi_t + c sin 2 phi_t per pixel.
+
+    Args:
+        sums: (3, H, W) the span's spike sums weighted by 1, cos 2 phi_t, sin 2 phi_t.
+        phi: (t,) the span's per-step angles (radians).
+        exposure: the stream's exposure (the result is in radiance units, as I_mean).
+
+    Returns:
+        (2, H, W) float32 (b, c).
+    """
+    p = 2.0 * np.asarray(phi, np.float64)
+    X = np.stack([np.ones_like(p), np.cos(p), np.sin(p)], 1)
+    G = X.T @ X + HARMONIC_RIDGE * max(p.size, 1) * np.diag([0.0, 1.0, 1.0])
+    if p.size == 0:
+        return np.zeros((2, *sums.shape[1:]), np.float32)
+    coef = np.linalg.solve(G, sums.reshape(3, -1)).reshape(sums.shape)
+    return (coef[1:] / exposure).astype(np.float32)
+
+
+def spike_mean_frames(g, centres: np.ndarray, span_steps: int, exposure: float, chunk_steps: int = 2048, harmonic: bool = False):
     """Spikes per step / exposure over ``span_steps`` steps centred on each of ``centres`` (ascending), clipped to
     the stream, of an open ``spike_sim.store`` group: :class:`SpikeMeanSums` fed with the steps from the first
-    frame's span to the last's, each read once; a mean is taken as soon as its span is read."""
-    sums = SpikeMeanSums(centres, span_steps, g.n_steps, (g.height, g.width))
+    frame's span to the last's, each read once; a mean is taken as soon as its span is read.  ``harmonic``: also
+    the spans' first harmonics at the group's nominal angles, returning (means (M, H, W), harmonics (M, 2, H, W))."""
+    sums = SpikeMeanSums(centres, span_steps, g.n_steps, (g.height, g.width), g.phi_nominal_rad if harmonic else None)
     out = np.zeros((len(centres), g.height, g.width), np.float32)
+    harm = np.zeros((len(centres), 2, g.height, g.width), np.float32) if harmonic else None
     j = 0
+
+    def take(j):
+        if harm is not None:
+            harm[j] = sums.harmonic(j, exposure)
+        out[j] = sums.mean(j, exposure)
+
     if sums.want:
         for n0 in range(sums.want[0], sums.want[-1], chunk_steps):
             sums.feed(n0, g.read(n0, min(sums.want[-1], n0 + chunk_steps)))
             while j < len(centres) and sums.hi[j] <= sums.pos:
-                out[j] = sums.mean(j, exposure)
+                take(j)
                 j += 1
     while j < len(centres):  # empty spans only (a frame at the stream's very edge)
-        out[j] = sums.mean(j, exposure)
+        take(j)
         j += 1
-    return out
+    return (out, harm) if harmonic else out
 
 
 def window_steps_from_ms(dt_ms: float, rate_hz: float) -> int:
@@ -263,7 +334,7 @@ def load_store_group(
             if not has.any():
                 log.warning("%s: no frame centre matches a stored GT output step; choose the group's own stride/window", path)
         span_mean = spike_mean_steps(g.rate_hz)
-        I_mean = spike_mean_frames(g, c, span_mean, exposure)
+        I_mean, I_harm = spike_mean_frames(g, c, span_mean, exposure, harmonic=True)
         mp = g.maps()
         maps = None
         if {"R_perp", "R_par", "phi_perp"} <= set(mp):
@@ -283,4 +354,5 @@ def load_store_group(
             fov_deg=fov_from_group_dir(path),
             source_dir=str(path),
             I_mean=I_mean,
+            I_harm=I_harm,
         )

@@ -53,8 +53,8 @@ import torch.nn.functional as F
 from polinfra.config import opt
 from polinfra.errors import ConfigError, ShapeError
 
-from reconstruct.solvers import SolverConfig, anchor_to_mean, solve, zbar_of
-from reconstruct.symmetry import symmetry_angles, symmetry_image
+from reconstruct.solvers import SolverConfig, anchor_to_mean, long_span_separation, solve, zbar_of
+from reconstruct.symmetry import symmetry_angles, symmetry_harmonic, symmetry_image
 
 __all__ = ["NetConfig", "NetOutput", "AngleAttention", "ParameterBranch", "LowResParameterBranch", "Refinement", "window_scale", "PolSpikeNet", "count_parameters", "init_weights", "predict_parameters", "SYMMETRY_CODES", "check_ensemble_size", "SymmetryEnsemble"]
 
@@ -87,6 +87,7 @@ class NetConfig:
     base: str = opt("solver", "what the refinement's Delta_t, Delta_r are added to: solver (T^, R^, paper Sec. 3.3) | anchored (T^, R^ anchored to the long spike mean, reconstruct.solvers.anchor_to_mean; needs use_mean): the untrained refinement then returns the anchored physics", choices=("solver", "anchored"))
     anchor_zbar: str = opt("window", "zbar of the anchor: window (mean of zeta over the N windows, what polspike_v2_mean.pt was trained with) | harmonic (the first-harmonic level of zeta over the window's angles, reconstruct.solvers.zbar_of: the half-turn mean paper Eq. (1) needs)", choices=("window", "harmonic"))
     solver_method: str = opt("rwps", "physics solver run on the predicted zeta and w", choices=("ls", "ridge", "irls", "rwps"))
+    use_harm: bool = opt(False, "the refinement also sees T and R separated from the first harmonic of the whole long span of spikes (I_harm; reconstruct.solvers.long_span_separation): about 4x the spikes of the N windows for the difference R - T; needs use_mean")
     r_level_px: float = opt(0.0, "R's level from the base, its structure from the refinement: R = R_ref + G_s * (R_base - R_ref), G_s a Gaussian blur of this sigma in pixels (0 = off, the refined R). The refinement shrinks R's level where the spikes do not identify it; the base (the anchored physics with base = anchored) keeps it; no weights, only inference", lo=0.0, hi=256.0)
     span_rad: float = opt(math.radians(7.02), "polarizer rotation inside one aggregation window (0.65 ms at 30 rev/s), rad; recorded with the weights, not used by the layers", lo=0.0, hi=math.pi)
 
@@ -289,7 +290,7 @@ class Refinement(nn.Module):
     def __init__(self, cfg: NetConfig):
         super().__init__()
         c1, c2, c3 = cfg.ref_ch
-        self.e1 = nn.Sequential(ConvBlock(self.IN_CH + (2 if cfg.use_mean else 0), c1), ConvBlock(c1, c1))
+        self.e1 = nn.Sequential(ConvBlock(self.IN_CH + (2 if cfg.use_mean else 0) + (2 if cfg.use_harm else 0), c1), ConvBlock(c1, c1))
         self.e2 = nn.Sequential(ConvBlock(c1, c2, stride=2), ConvBlock(c2, c2))
         self.e3 = nn.Sequential(ConvBlock(c2, c3, stride=2), ConvBlock(c3, c3))
         self.dec_t = _Decoder(cfg.ref_ch, cfg.dec_ch)
@@ -377,6 +378,7 @@ class PolSpikeNet(nn.Module):
         zeta_scale: torch.Tensor | None = None,
         zeta_shape: torch.Tensor | None = None,
         zeta_feed: torch.Tensor | None = None,
+        I_harm: torch.Tensor | None = None,
     ) -> NetOutput:
         """Reconstruct the centre frame of each window.
 
@@ -401,6 +403,8 @@ class PolSpikeNet(nn.Module):
             zeta_feed: optional (B, N, H, W) zeta fed to the solver in place of ``zeta_gt`` (teacher forcing; before
                 ``zeta_shape`` / ``zeta_scale``), the losses still comparing with ``zeta_gt``: e.g. the window's zeta under
                 the glass the self-calibration assumes (``window.assumed_n``).
+            I_harm: (B, 2, H, W) the first harmonic (cos 2 phi, sin 2 phi) of the spikes over I_mean's span, radiance
+                units; required by a ``use_harm`` network, ignored otherwise.
 
         Returns:
             :class:`NetOutput`.
@@ -454,10 +458,16 @@ class PolSpikeNet(nn.Module):
             zbar = zeta_used.mean(1) if self.cfg.anchor_zbar == "window" else zbar_of(zeta_used, phi)
             Ta, Ra = anchor_to_mean(T0, R0, I_mean, zbar)
             ch += [2 * I_mean, Ta]  # the spike mean and T anchored to it
+            if self.cfg.use_harm:
+                if I_harm is None or I_harm.shape != (I_c.shape[0], 2, *I_c.shape[1:]):
+                    raise ShapeError(f"a use_harm network needs I_harm {(I_c.shape[0], 2, *I_c.shape[1:])} (the long span's first harmonic)", actual_shape=None if I_harm is None else tuple(I_harm.shape), expected_shape=(I_c.shape[0], 2, *I_c.shape[1:]))
+                Tl, Rl = long_span_separation(I_mean, I_harm.float(), zeta_used, phi)
+                lim = 50.0 * I_mean.abs() + 0.05  # per pixel (tiles agree): bounded inputs where noise is divided by a weak modulation
+                ch += [torch.maximum(torch.minimum(Tl, lim), -lim), torch.maximum(torch.minimum(Rl, lim), -lim)]
             if self.cfg.base == "anchored":
                 Tb, Rb = Ta, Ra
-        elif self.cfg.base == "anchored":
-            raise ShapeError("base = anchored needs a use_mean network (the anchor is the long spike mean)", actual_shape=None, expected_shape="use_mean = true")
+        elif self.cfg.base == "anchored" or self.cfg.use_harm:
+            raise ShapeError("base = anchored and use_harm need a use_mean network (the anchor is the long spike mean)", actual_shape=None, expected_shape="use_mean = true")
         x = torch.stack(ch, 1)
         dT, dR = self.refine(x)
         R = Rb + dR
@@ -534,7 +544,7 @@ def check_ensemble_size(size: int, what: str = "ensemble size") -> int:
     return int(size)
 
 
-_IMAGE_KWARGS = ("I_mean", "zeta_feed")
+_IMAGE_KWARGS = ("I_mean", "zeta_feed", "I_harm")
 """Keyword inputs of :meth:`PolSpikeNet.forward` that are maps (moved with the image by each ensemble member)."""
 
 
@@ -576,7 +586,12 @@ class SymmetryEnsemble(nn.Module):
             def fw(t):
                 return None if t is None else symmetry_image(t, code)
 
-            o = self.net(fw(I), symmetry_angles(phi, code), fw(zeta_gt), alpha, **{k: (fw(v) if k in _IMAGE_KWARGS else v) for k, v in kw.items()})
+            def fk(k, v):
+                if v is None or k not in _IMAGE_KWARGS:
+                    return v
+                return symmetry_harmonic(v, code) if k == "I_harm" else fw(v)
+
+            o = self.net(fw(I), symmetry_angles(phi, code), fw(zeta_gt), alpha, **{k: fk(k, v) for k, v in kw.items()})
             for f in dataclasses.fields(NetOutput):
                 v = getattr(o, f.name)
                 if f.name in ("I", "zeta_gt") or v is None:

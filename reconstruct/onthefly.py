@@ -15,6 +15,8 @@ reads a stored group:
 ``exposure``  ()        float32  thresholds per step per unit radiance of the stream
 ``I_mean``    (H, W)    float32  only with ``WindowConfig.mean_steps``: spikes per step / exposure over that many
                                  steps centred on the output frame (the long spike mean, a use_mean network's input)
+``I_harm``    (2, H, W) float32  with ``I_mean``: the first harmonic (cos 2 phi, sin 2 phi) of the same span's spikes
+                                 at the nominal angles (:func:`reconstruct.groups.span_harmonic`; a use_harm network's input)
 
 On-the-fly items come from a :data:`WindowSource` callable ``(seed, index) ->
 item``.  ``reconstruct`` never imports ``generator``: the CLI
@@ -36,8 +38,8 @@ import torch
 from polinfra.config import opt
 from polinfra.errors import ConfigError, ShapeError
 
-from reconstruct.groups import spike_mean_span
-from reconstruct.symmetry import angle_map, symmetry_image
+from reconstruct.groups import span_harmonic, spike_mean_span
+from reconstruct.symmetry import angle_map, symmetry_harmonic, symmetry_image
 
 __all__ = ["WindowConfig", "ITEM_KEYS", "WindowSource", "window_centres", "item_from_stream", "OnTheFlyWindows", "flip_item"]
 
@@ -164,6 +166,9 @@ def item_from_stream(
     if cfg.mean_steps:  # the long spike mean around the centre frame, clipped to the stream
         a, b = (int(v) for v in spike_mean_span(int(ck[len(ck) // 2]), cfg.mean_steps, spikes.shape[0]))
         item["I_mean"] = _t(spikes[a:b].sum(0, dtype=np.int64) / ((b - a) * exposure))
+        p2 = 2.0 * phi_nom[a:b]  # the span's first harmonic at the nominal angles, as a stored group's (I_harm)
+        X = np.stack([np.ones_like(p2), np.cos(p2), np.sin(p2)])
+        item["I_harm"] = _t(span_harmonic(np.tensordot(X, spikes[a:b].astype(np.float64), axes=(1, 0)), phi_nom[a:b], exposure))
     return item
 
 
@@ -188,6 +193,8 @@ def flip_item(item: dict[str, torch.Tensor], code: int) -> dict[str, torch.Tenso
     for k in _IMAGE_KEYS:
         if k in out:
             out[k] = symmetry_image(out[k], code).contiguous()
+    if "I_harm" in out:  # a first harmonic of the angle: moved, and its coefficients change sign with the angles
+        out["I_harm"] = symmetry_harmonic(out["I_harm"], code).contiguous()
     sign, offset = angle_map(code)
     for k in _ANGLE_KEYS:
         if k in out:

@@ -94,6 +94,9 @@ from polinfra.errors import ConfigError, ShapeError
 __all__ = [
     "SOLVERS",
     "anchor_to_mean",
+    "harmonic_of",
+    "long_span_separation",
+    "HARMONIC_FLOOR",
     "zbar_of",
     "PHYSICS_SOLVER_CONFIG",
     "adaptive_confidence",
@@ -422,25 +425,65 @@ def solve(
     return SolverResult(R=R, T=T, conf=conf, weights=w, lam=lam)
 
 
-def zbar_of(zeta, phi, ridge: float = 1e-6):
-    """The polarizer-cycle mean of zeta from its values at a window's angles, (..., N, H, W), (..., N) -> (..., H, W).
+def harmonic_of(zeta, phi, ridge: float = 1e-6):
+    """The first harmonic (a, b, c) of zeta(phi) = a + b cos 2 phi + c sin 2 phi from its values at a window's angles,
+    (..., N, H, W), (..., N) -> three (..., H, W) maps (least squares over the N observations).
 
-    Paper Eq. (2) makes zeta a first harmonic of the polarizer angle, zeta(phi) = a + b cos 2 phi + c sin 2 phi
-    (window averaging scales b and c, never a), so a least-squares fit of (a, b, c) over the N observations gives
-    the mean a = zbar over a half turn, the zbar of :func:`anchor_to_mean`.  The plain mean over the N windows is
-    not it: the N = 7, 0.65 ms windows cover ~84 deg of 2 phi, so their mean is a + ~0.8 b' (b' the amplitude at
-    the window's angle), off by up to the whole modulation depth (at Brewster's angle that is zbar itself).
-    A tiny ridge on (b, c) keeps a degenerate angle set (a still polarizer) at the plain mean.  A zeta that is not
-    a first harmonic (the network's sigmoid, supp. Eq. (19)) gets its best first-harmonic level.  numpy or torch.
+    Paper Eq. (2) makes zeta a first harmonic of the polarizer angle (window averaging scales b and c, never a).  A
+    tiny ridge on (b, c) keeps a degenerate angle set (a still polarizer) at the plain mean with b = c = 0.  A zeta
+    that is not a first harmonic (the network's sigmoid, supp. Eq. (19)) gets its best first-harmonic fit.  numpy or
+    torch (returned like ``zeta``).
     """
     is_t = torch.is_tensor(zeta)
     z = zeta.double() if is_t else torch.as_tensor(np.asarray(zeta, np.float64))
     p = (phi.double() if torch.is_tensor(phi) else torch.as_tensor(np.asarray(phi, np.float64))).to(z.device)
     A = torch.stack([torch.ones_like(p), torch.cos(2 * p), torch.sin(2 * p)], -1)  # (..., N, 3)
     G = A.transpose(-1, -2) @ A + ridge * A.shape[-2] * torch.diag(torch.tensor([0.0, 1.0, 1.0], dtype=A.dtype, device=A.device))
-    row0 = torch.linalg.solve(G, A.transpose(-1, -2))[..., 0, :]  # (..., N): weights giving a
-    zb = (row0[..., :, None, None] * z).sum(-3)
-    return zb.to(zeta.dtype) if is_t else zb.numpy().astype(np.asarray(zeta).dtype)
+    rows = torch.linalg.solve(G, A.transpose(-1, -2))  # (..., 3, N): weights giving (a, b, c)
+    out = [(rows[..., j, :, None, None] * z).sum(-3) for j in range(3)]
+    return tuple(o.to(zeta.dtype) for o in out) if is_t else tuple(o.numpy().astype(np.asarray(zeta).dtype) for o in out)
+
+
+def zbar_of(zeta, phi, ridge: float = 1e-6):
+    """The polarizer-cycle mean of zeta from its values at a window's angles, (..., N, H, W), (..., N) -> (..., H, W).
+
+    The level a of :func:`harmonic_of`, the zbar of :func:`anchor_to_mean`.  The plain mean over the N windows is
+    not it: the N = 7, 0.65 ms windows cover ~84 deg of 2 phi, so their mean is a + ~0.8 b' (b' the amplitude at
+    the window's angle), off by up to the whole modulation depth (at Brewster's angle that is zbar itself).
+    """
+    return harmonic_of(zeta, phi, ridge)[0]
+
+
+HARMONIC_FLOOR = 1e-5
+"""Floor added to zeta's squared first-harmonic amplitude b^2 + c^2 in :func:`long_span_separation`: where the pane
+barely modulates (|zeta's modulation| below ~0.003, near-normal incidence) the long span's difference shrinks toward
+0 instead of dividing noise by nothing."""
+
+
+def long_span_separation(I_mean, I_harm, zeta, phi, floor: float = HARMONIC_FLOOR):
+    """Separate the layers from the first harmonic of the whole long span of spikes (torch tensors).
+
+    Over the span of the long spike mean (17.5 ms, about half a polarizer turn; the N windows sit inside it and use
+    about a quarter of its spikes) paper Eq. (1)-(2) give per pixel I(t) = 1/2 [T + zeta(phi_t) D], D = R - T, so
+    the spikes' first harmonic (b_I, c_I) (``I_harm``, radiance units: :class:`reconstruct.groups.SpikeMeanSums`)
+    equals D / 2 times zeta's (b, c) (:func:`harmonic_of` of ``zeta`` at the windows' angles ``phi``).  Projected on
+    zeta's, D = 2 (b_I b + c_I c) / (b^2 + c^2 + floor), and T = 2 I_mean - a D as in :func:`anchor_to_mean`.  For a
+    static scene every spike of the span counts (about 4x those of the N windows); motion blurs it as it blurs
+    I_mean.
+
+    Args:
+        I_mean: (B, H, W) the long spike mean.
+        I_harm: (B, 2, H, W) the spikes' first-harmonic coefficients over the same span (cos 2 phi, sin 2 phi).
+        zeta: (B, N, H, W) zeta at the windows' angles; phi: (B, N).
+        floor: :data:`HARMONIC_FLOOR`.
+
+    Returns:
+        (T, R) each (B, H, W).
+    """
+    a, b, c = harmonic_of(zeta, phi)
+    D = 2.0 * (I_harm[:, 0] * b + I_harm[:, 1] * c) / (b * b + c * c + floor)
+    T = 2.0 * I_mean - a * D
+    return T, T + D
 
 
 def anchor_to_mean(T, R, I_mean, zbar):

@@ -146,6 +146,14 @@ def make_group(cfg: SyntheticConfig, index: int) -> EvalGroup:
         if cfg.noise in ("poisson", "integrate_fire"):
             m_ = rng.poisson(np.clip(m_, 0, None) * L) / L
         Im.append(m_)
+    # its first harmonic: fitted to the neighbouring noisy frames at their angles (the windows stand in for the span)
+    from reconstruct.solvers import harmonic_of
+
+    Ih = []
+    for i in range(M):
+        js = list(range(max(0, i - half), min(M, i + half + 1)))
+        _, hb, hc = harmonic_of(np.stack([Is[j] for j in js]), phi[js])
+        Ih.append(np.stack([hb, hc]))
     f32 = lambda a: np.asarray(a, np.float32)  # noqa: E731
     return EvalGroup(
         name=f"synthetic-{cfg.seed}-{index:03d}",
@@ -160,6 +168,7 @@ def make_group(cfg: SyntheticConfig, index: int) -> EvalGroup:
         has_gt=np.ones(M, bool),
         gt_zeta=f32(Zs),
         I_mean=f32(Im),
+        I_harm=f32(Ih),
         fov_deg=60.0,
     )
 

@@ -165,7 +165,7 @@ def auto_tile(model, device: str | torch.device = "cpu") -> int:
 
 
 def run_model_on_windows(model, I: np.ndarray, phi: np.ndarray, device: str | torch.device = "cpu", tile: int = 128, margin: int = 16, *, precision: str = "float32", max_batch: int = 4,
-                         zeta: np.ndarray | None = None, I_mean: np.ndarray | None = None) -> dict[str, np.ndarray]:
+                         zeta: np.ndarray | None = None, I_mean: np.ndarray | None = None, I_harm: np.ndarray | None = None) -> dict[str, np.ndarray]:
     """Network on windows I (B, N, H, W) radiance units, phi (B, N) -> dict of (B, H, W) T, R, T_base, R_base.
 
     ``model`` is any object with ``cfg.n_obs`` that maps ``(I (B, N, H, W), phi (B, N))`` float32
@@ -180,7 +180,8 @@ def run_model_on_windows(model, I: np.ndarray, phi: np.ndarray, device: str | to
     (``--zeta self``: the pane fitted to the stream); the network's solver and refinement then run
     on them (``model(I, phi, zeta_gt=zeta, alpha=1)``; its reliability weights stay learned).
     ``I_mean``: optional (B, H, W) long spike mean around each window's centre frame, passed on as
-    ``model(..., I_mean=...)`` (required by a ``use_mean`` network), tiled like the frames.
+    ``model(..., I_mean=...)`` (required by a ``use_mean`` network), tiled like the frames; ``I_harm``: likewise
+    the (B, 2, H, W) first harmonic of the same spans (a ``use_harm`` network).
     """
     dev = torch.device(device)
     x = torch.as_tensor(I, dtype=torch.float32, device=dev)
@@ -195,10 +196,16 @@ def run_model_on_windows(model, I: np.ndarray, phi: np.ndarray, device: str | to
     if m_ is not None and m_.shape != (B, 1, H, W):
         raise ConfigError(f"I_mean must be (B, H, W) = {(B, H, W)}; got {tuple(I_mean.shape)}")
 
-    def zkw(zz, i, mm=None):
+    h_ = None if I_harm is None else torch.as_tensor(I_harm, dtype=torch.float32, device=dev)
+    if h_ is not None and h_.shape != (B, 2, H, W):
+        raise ConfigError(f"I_harm must be (B, 2, H, W) = {(B, 2, H, W)}; got {tuple(h_.shape)}")
+
+    def zkw(zz, i, mm=None, hh=None):
         kw = {} if zz is None else {"zeta_gt": zz[i : i + max_batch], "alpha": 1.0}
         if mm is not None:
             kw["I_mean"] = mm[i : i + max_batch, 0]
+        if hh is not None:
+            kw["I_harm"] = hh[i : i + max_batch]
         return kw
 
     with torch.inference_mode(), _autocast(dev, precision):
@@ -206,7 +213,8 @@ def run_model_on_windows(model, I: np.ndarray, phi: np.ndarray, device: str | to
             xp, _ = _pad4(x, mult)
             zp = None if z is None else _pad4(z, mult)[0]
             mp = None if m_ is None else _pad4(m_, mult)[0]
-            outs = [model(xp[i : i + max_batch], p[i : i + max_batch], **zkw(zp, i, mp)) for i in range(0, B, max_batch)]
+            hp = None if h_ is None else _pad4(h_, mult)[0]
+            outs = [model(xp[i : i + max_batch], p[i : i + max_batch], **zkw(zp, i, mp, hp)) for i in range(0, B, max_batch)]
             return {k: torch.cat([getattr(o, k) for o in outs])[..., :H, :W].float().cpu().numpy() for k in _KEYS}
         # a network that blurs its output (r_level_px: R's level from the base) needs that blur's radius inside the margin
         from reconstruct.network import gaussian_radius
@@ -228,6 +236,10 @@ def run_model_on_windows(model, I: np.ndarray, phi: np.ndarray, device: str | to
         if m_ is not None:
             mpad = F.pad(m_, padding, mode="replicate")
             mtiles = torch.stack([mpad[..., y0 : y0 + ts, x0 : x0 + ts] for (y0, x0) in pos], 1).reshape(B * len(pos), 1, ts, ts)
+        htiles = None
+        if h_ is not None:
+            hpad = F.pad(h_, padding, mode="replicate")
+            htiles = torch.stack([hpad[..., y0 : y0 + ts, x0 : x0 + ts] for (y0, x0) in pos], 1).reshape(B * len(pos), 2, ts, ts)
         pt = p.repeat_interleave(len(pos), 0)
         # a v2 network normalises brightness by the window's scale: give every tile the whole frame's
         kw = {}
@@ -237,7 +249,7 @@ def run_model_on_windows(model, I: np.ndarray, phi: np.ndarray, device: str | to
             kw = {"scale": window_scale(_pad4(x, mult)[0]).reshape(B).repeat_interleave(len(pos), 0)}
         res = {k: [] for k in _KEYS}
         for i in range(0, tiles.shape[0], max_batch):
-            o = model(tiles[i : i + max_batch], pt[i : i + max_batch], **{k: v[i : i + max_batch] for k, v in kw.items()}, **zkw(ztiles, i, mtiles))
+            o = model(tiles[i : i + max_batch], pt[i : i + max_batch], **{k: v[i : i + max_batch] for k, v in kw.items()}, **zkw(ztiles, i, mtiles, htiles))
             for k in _KEYS:
                 res[k].append(getattr(o, k)[:, margin : margin + tile, margin : margin + tile].float())
         out = {}
@@ -263,9 +275,9 @@ class FeatureCache:
         self.encoded = 0
         self.reused = 0
 
-    def run(self, I: np.ndarray, phi: np.ndarray, idx: np.ndarray, I_mean: np.ndarray | None = None) -> dict[str, np.ndarray]:
-        """Windows I (B, N, H, W), phi (B, N), frame indices idx (B, N) -> dict of (B, H, W) maps (``I_mean``: as
-        :func:`run_model_on_windows`)."""
+    def run(self, I: np.ndarray, phi: np.ndarray, idx: np.ndarray, I_mean: np.ndarray | None = None, I_harm: np.ndarray | None = None) -> dict[str, np.ndarray]:
+        """Windows I (B, N, H, W), phi (B, N), frame indices idx (B, N) -> dict of (B, H, W) maps (``I_mean``,
+        ``I_harm``: as :func:`run_model_on_windows`)."""
         from reconstruct.network import window_scale
 
         dev = self.device
@@ -302,6 +314,8 @@ class FeatureCache:
                     gs.append(g_)
             self.reused += B * N - len(need)
             mk = {} if I_mean is None else {"I_mean": _pad4(torch.as_tensor(I_mean, dtype=torch.float32, device=dev)[:, None], _multiple(self.model))[0][:, 0]}
+            if I_harm is not None:
+                mk["I_harm"] = _pad4(torch.as_tensor(I_harm, dtype=torch.float32, device=dev), _multiple(self.model))[0]
             out = self.model(xp, p, feats=(torch.stack(fs), torch.stack(gs)), **mk)
             res = {k: getattr(out, k)[..., :H, :W].float().cpu().numpy() for k in _KEYS}
         lo = int(idx[:, 0].max()) + 1  # windows advance: the next one starts after this batch's last first frame
@@ -495,7 +509,8 @@ def reconstruct_stream(
     tail_start = 0
 
     mean_steps = spike_mean_steps(source.rate_hz) if getattr(model.cfg, "use_mean", False) else 0
-    prefix = SpikeMeanSums(centres, mean_steps, source.phi_step_rad.size, (source.height, source.width)) if mean_steps else None
+    use_harm = bool(getattr(model.cfg, "use_harm", False))
+    prefix = SpikeMeanSums(centres, mean_steps, source.phi_step_rad.size, (source.height, source.width), source.phi_step_rad if use_harm else None) if mean_steps else None
     tile = auto_tile(model, device) if cfg.tile < 0 else cfg.tile
     cache = FeatureCache(model, device, cfg.precision) if (cfg.cache and tile == 0 and getattr(model, "cacheable", False)) else None
 
@@ -506,10 +521,11 @@ def reconstruct_stream(
         I = np.stack([p[0] for p in pending])
         ph = np.stack([p[1] for p in pending])
         im = np.stack([p[3] for p in pending]) if prefix is not None else None
+        ih = np.stack([p[4] for p in pending]) if use_harm else None
         if cache is not None:
-            res = cache.run(I, ph, np.stack([p[2] for p in pending]), I_mean=im)
+            res = cache.run(I, ph, np.stack([p[2] for p in pending]), I_mean=im, I_harm=ih)
         else:
-            res = run_model_on_windows(model, I, ph, device, tile, precision=cfg.precision, I_mean=im)
+            res = run_model_on_windows(model, I, ph, device, tile, precision=cfg.precision, I_mean=im, I_harm=ih)
         for b in range(I.shape[0]):
             T, R = res["T"][b], res["R"][b]
             if not (np.isfinite(T).all() and np.isfinite(R).all()):
@@ -536,7 +552,9 @@ def reconstruct_stream(
                 frames_I.append(buf[c - half : c + half + 1].sum(0, dtype=np.int32).astype(np.float32) / (cfg.window_steps * exposure))  # Eq. (3), radiance units
                 next_c += 1
                 if len(frames_I) == N:
-                    pending.append((np.stack(frames_I), phi_i[next_c - N : next_c], np.arange(next_c - N, next_c), prefix.mean(next_c - 1 - K, exposure) if prefix is not None else None))
+                    j = next_c - 1 - K
+                    hj = prefix.harmonic(j, exposure) if use_harm else None  # before mean(j), which frees older sums
+                    pending.append((np.stack(frames_I), phi_i[next_c - N : next_c], np.arange(next_c - N, next_c), prefix.mean(j, exposure) if prefix is not None else None, hj))
                     if len(pending) >= cfg.batch:
                         flush(writers)
             if done + len(pending) >= n_out:
@@ -581,12 +599,15 @@ def bench_full_network(model, height: int = 250, width: int = 400, frames: int =
     N = model.cfg.n_obs
     I = (0.1 + 0.3 * g.random((1, N, height, width))).astype(np.float32)
     phi = (np.arange(N, dtype=np.float32) - N // 2)[None] * np.float32(math.radians(31.5))
-    run_model_on_windows(model, I, phi, device, tile)
+    kw = {"I_mean": 0.5 * I.mean(1)} if getattr(model.cfg, "use_mean", False) else {}  # the long span's stand-ins
+    if getattr(model.cfg, "use_harm", False):
+        kw["I_harm"] = np.full((1, 2, height, width), 0.01, np.float32)
+    run_model_on_windows(model, I, phi, device, tile, **kw)
     if str(device).startswith("cuda"):
         torch.cuda.synchronize()
     t0 = time.perf_counter()
     for _ in range(frames):
-        run_model_on_windows(model, I, phi, device, tile)
+        run_model_on_windows(model, I, phi, device, tile, **kw)
     if str(device).startswith("cuda"):
         torch.cuda.synchronize()
     dt = (time.perf_counter() - t0) / frames

@@ -39,7 +39,7 @@ def evaluate_cmd(
     net_ensemble: int = typer.Option(1, "--net-ensemble", help="full: average the network over 1, 2, 4 or 8 mirror / transpose symmetries of each window (test-time self-ensemble; that many forward passes)"),
     net_zetas: str = typer.Option("learned", "--net-zetas", help="--by-regime: comma-separated zeta sources of the network columns (learned -> net, self -> net@self, none -> net@none)"),
     lambda_map: str = typer.Option("adaptive", "--lambda-map", help="rwps Conf -> lambda: adaptive (fitted physics default) or fixed (the original mapping)"),
-    anchor: str = typer.Option("none", "--anchor", help="mean: also score every method anchored to the 17.5 ms spike mean (rows and columns '+mean'; T = 2 I_mean - zbar (R^ - T^)); none: off"),
+    anchor: str = typer.Option("none", "--anchor", help="mean: also score every method anchored to the 17.5 ms spike mean (rows and columns '+mean'; T = 2 I_mean - zbar (R^ - T^)) and the physics of the whole span's first harmonic (row 'span'); none: off"),
     synthetic_groups: int = typer.Option(4, "--synthetic-groups", help="synthetic: number of groups"),
     synthetic_frames: int = typer.Option(20, "--synthetic-frames", help="synthetic: frames per group"),
     synthetic_noise: str = typer.Option("poisson", "--synthetic-noise", help="synthetic: poisson, integrate_fire or none"),

@@ -1,0 +1,238 @@
+"""The long span's first harmonic (net.use_harm, issue 16): the spikes of the whole 17.5 ms span of the long spike
+mean, not only the N windows', give R - T.  Checked against closed forms (a first harmonic, paper Eq. (1)-(2) on a
+static scene), a direct least-squares fit of the raw spikes, the sign rule of the image symmetries, and the
+stream / store / training-item paths agreeing with each other."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import types
+
+import numpy as np
+import pytest
+import torch
+
+from polinfra.errors import ShapeError
+from reconstruct.groups import SpikeMeanSums, span_harmonic, spike_mean_span
+from reconstruct.network import NetConfig, PolSpikeNet, SymmetryEnsemble, init_weights
+from reconstruct.solvers import HARMONIC_FLOOR, harmonic_of, long_span_separation, zbar_of
+from reconstruct.symmetry import angle_map, harmonic_signs, symmetry_angles, symmetry_harmonic, symmetry_image
+from reconstruct.train import _widened
+from reconstruct.zeta_source import PaneMaps, zeta_from_maps
+
+SMALL = NetConfig(arch="v2", feat_ch=8, lr_ch=8, w_ch=4, ref_ch=(8, 8, 8), dec_ch=(8, 8, 8), use_rir=False, use_mean=True)
+
+
+def _direct_fit(spikes: np.ndarray, phi: np.ndarray) -> np.ndarray:
+    """(b, c) of s_t ~ a + b cos 2 phi_t + c sin 2 phi_t by numpy's lstsq on the raw spikes (the oracle)."""
+    X = np.stack([np.ones_like(phi), np.cos(2 * phi), np.sin(2 * phi)], 1)
+    coef = np.linalg.lstsq(X, spikes.reshape(len(phi), -1).astype(np.float64), rcond=None)[0]
+    return coef[1:].reshape(2, *spikes.shape[1:])
+
+
+def test_harmonic_of_recovers_a_first_harmonic_and_zbar_is_its_level():
+    rng = np.random.default_rng(0)
+    a, b, c = (rng.uniform(-1, 1, (2, 5, 6)) for _ in range(3))
+    phi = 0.3 + np.arange(7) * math.radians(31.5) + rng.uniform(0, 0.1, (2, 7))
+    z = a[:, None] + b[:, None] * np.cos(2 * phi)[..., None, None] + c[:, None] * np.sin(2 * phi)[..., None, None]
+    got = harmonic_of(torch.from_numpy(z), torch.from_numpy(phi))
+    for g, want in zip(got, (a, b, c)):
+        np.testing.assert_allclose(g.numpy(), want, atol=1e-5)
+    np.testing.assert_allclose(zbar_of(z, phi), a, atol=1e-5)  # numpy in, numpy out
+
+
+@pytest.mark.parametrize("chunk", [1, 37, 5000])
+def test_streamed_span_harmonic_is_the_direct_fit_of_the_raw_spikes(chunk):
+    """SpikeMeanSums fed in chunks of any size gives each frame's span mean and first harmonic exactly as a direct
+    least-squares fit of that span's raw spikes (numpy lstsq), spans clipped at the stream's ends included."""
+    rng = np.random.default_rng(1)
+    n, H, W = 1500, 4, 5
+    phi = 0.2 + np.cumsum(rng.uniform(0.009, 0.010, n))  # ~30 rev/s at 20 kHz, with jitter
+    spikes = (rng.random((n, H, W)) < 0.3 + 0.2 * np.cos(2 * phi - 0.4)[:, None, None]).astype(np.uint8)
+    centres = np.array([100, 400, 700, 1000, 1450])
+    sums = SpikeMeanSums(centres, 351, n, (H, W), phi)
+    for s0 in range(0, n, chunk):
+        sums.feed(s0, spikes[s0 : s0 + chunk])
+    for j, c in enumerate(centres):
+        lo, hi = spike_mean_span(c, 351, n)
+        np.testing.assert_allclose(sums.harmonic(j, 0.5), _direct_fit(spikes[lo:hi], phi[lo:hi]) / 0.5, atol=2e-5)
+        np.testing.assert_allclose(sums.mean(j, 0.5), spikes[lo:hi].sum(0) / ((hi - lo) * 0.5), rtol=1e-6)
+
+
+def test_spike_mean_sums_without_angles_has_no_harmonic_and_the_same_mean():
+    from polinfra.errors import DataFormatError
+
+    rng = np.random.default_rng(2)
+    spikes = (rng.random((800, 3, 3)) < 0.4).astype(np.uint8)
+    a = SpikeMeanSums(np.array([400]), 351, 800, (3, 3))
+    b = SpikeMeanSums(np.array([400]), 351, 800, (3, 3), np.linspace(0, 8, 800))
+    a.feed(0, spikes)
+    b.feed(0, spikes)
+    with pytest.raises(DataFormatError, match="phi_step"):
+        a.harmonic(0)
+    np.testing.assert_allclose(a.mean(0), b.mean(0), rtol=0, atol=1e-7)
+
+
+def test_a_span_too_short_to_see_the_harmonic_gives_none():
+    """A still polarizer (every step at one angle) cannot tell the harmonic: b = c = 0, not a division by zero."""
+    sums = np.stack([np.full((2, 2), 10.0), np.full((2, 2), 10.0), np.zeros((2, 2))])
+    out = span_harmonic(sums, np.zeros(10))
+    assert np.isfinite(out).all() and float(np.abs(out).max()) < 1e-3
+    assert span_harmonic(np.zeros((3, 2, 2)), np.zeros(0)).shape == (2, 2, 2)
+
+
+def _static_scene(seed=3, H=6, W=7):
+    rng = np.random.default_rng(seed)
+    T = rng.uniform(0.05, 0.6, (H, W))
+    R = rng.uniform(0.05, 0.9, (H, W))
+    maps = PaneMaps(R_perp=rng.uniform(0.08, 0.3, (H, W)), R_par=rng.uniform(0.0, 0.05, (H, W)), phi_perp=rng.uniform(0, math.pi, (H, W)))
+    return T, R, maps
+
+
+def test_long_span_separation_is_exact_on_a_static_scene():
+    """Paper Eq. (1)-(2) per step over a 351-step span (a static scene, no noise): the span's mean and first harmonic
+    give T and R = T + D, D shrunk only by the documented floor b^2 / (b^2 + floor)."""
+    T, R, maps = _static_scene()
+    phi_t = 0.7 + np.arange(351) * 2 * math.pi * 30 / 20000  # 30 rev/s at 20 kHz
+    z_t = zeta_from_maps(maps, phi_t, dtype=torch.float64).numpy()  # (351, H, W), per step
+    I_t = 0.5 * (z_t * R + (1 - z_t) * T)  # paper Eq. (1)
+    X = np.stack([np.ones_like(phi_t), np.cos(2 * phi_t), np.sin(2 * phi_t)])
+    harm = span_harmonic(np.tensordot(X, I_t, axes=(1, 0)), phi_t)  # sums of the intensity itself: no noise
+    # the span's plain mean of I is 1/2 [T + zbar_span D]; long_span_separation reads it as the harmonic level a,
+    # which is exact where the span is a whole number of half turns of 2 phi: take such a span for the mean
+    Im = I_t[: int(round(20000 / 60))].mean(0)  # half a polarizer turn (2 phi: one full cycle)
+    win = 175 + (np.arange(7) - 3) * 58
+    phi_w = torch.from_numpy(phi_t[win])[None]
+    Zw = zeta_from_maps(maps, phi_w, dtype=torch.float64)
+    Tl, Rl = long_span_separation(torch.from_numpy(Im)[None], torch.from_numpy(harm.astype(np.float64))[None], Zw, phi_w)
+    B2 = (0.5 * (maps.R_perp - maps.R_par)) ** 2
+    D = (R - T) * B2 / (B2 + HARMONIC_FLOOR)
+    a = 0.5 * (maps.R_perp + maps.R_par)
+    np.testing.assert_allclose(Rl[0].numpy() - Tl[0].numpy(), D, rtol=2e-3, atol=1e-4)
+    np.testing.assert_allclose(Tl[0].numpy(), T + a * (R - T) - a * D, rtol=2e-3, atol=5e-4)
+
+
+@pytest.mark.parametrize("code", range(8))
+def test_symmetry_harmonic_is_the_fit_at_the_moved_angles(code):
+    """The first harmonic of a pixel's spikes seen through a symmetry (the pixels moved, every angle a -> s a + o)
+    equals the direct fit at the moved angles: (b, c) -> (e b, e s c) (harmonic_signs)."""
+    rng = np.random.default_rng(code)
+    n, H, W = 400, 3, 4
+    phi = np.cumsum(rng.uniform(0.008, 0.011, n))
+    spikes = (rng.random((n, H, W)) < rng.uniform(0.1, 0.6, (1, H, W)) + 0.2 * np.cos(2 * phi - 1.0)[:, None, None] * rng.uniform(0, 1, (1, H, W))).astype(np.uint8)
+    base = torch.from_numpy(_direct_fit(spikes, phi))
+    sign, offset = angle_map(code)
+    moved = symmetry_image(torch.from_numpy(spikes.astype(np.float64)), code).numpy()
+    want = _direct_fit(moved, sign * phi + offset)
+    torch.testing.assert_close(symmetry_harmonic(base, code), torch.from_numpy(want), rtol=0, atol=1e-9)
+    e, es = harmonic_signs(code)
+    assert {abs(e), abs(es)} == {1.0}
+
+
+def test_onthefly_item_harmonic_is_the_direct_fit_and_flips_with_the_angles():
+    from reconstruct.onthefly import WindowConfig, flip_item, item_from_stream
+
+    rng = np.random.default_rng(4)
+    spikes = (rng.random((900, 8, 8)) < 0.2).astype(np.uint8)
+    ck = 300 + np.arange(7) * 58
+    phi = np.linspace(0, 5, 900)
+    maps = {"R_perp": np.full((8, 8), 0.1), "R_par": np.full((8, 8), 0.01), "phi_perp": np.zeros((8, 8))}
+    it = item_from_stream(spikes, ck, phi, phi, (np.zeros((8, 8)),) * 2, maps, 0.7, WindowConfig(crop=8, mean_steps=350))
+    lo, hi = spike_mean_span(ck[3], 350, 900)
+    np.testing.assert_allclose(it["I_harm"].numpy(), _direct_fit(spikes[lo:hi], phi[lo:hi]) / 0.7, atol=1e-5)
+    f = flip_item(it, 5)
+    torch.testing.assert_close(f["I_harm"], symmetry_harmonic(it["I_harm"], 5))
+
+
+def _window(seed=0, B=2, H=16, W=16):
+    g = torch.Generator().manual_seed(seed)
+    I = 0.05 + 0.4 * torch.rand(B, 7, H, W, generator=g)
+    phi = (2.0 + (torch.arange(7) - 3) * math.radians(31.5) + torch.rand(B, 1, generator=g)).float()
+    Im = 0.5 * I.mean(1)
+    Ih = 0.02 * torch.randn(B, 2, H, W, generator=g)
+    return I, phi, Im, Ih
+
+
+def test_widened_harmonic_network_starts_as_the_mean_network_and_needs_the_harmonic():
+    base = init_weights(PolSpikeNet(SMALL), torch.Generator().manual_seed(1)).eval()
+    for p in base.refine.parameters():  # non-zero decoders, so the refinement's input matters
+        torch.nn.init.normal_(p, 0, 0.05)
+    wide = PolSpikeNet(dataclasses.replace(SMALL, use_harm=True)).eval()
+    wide.load_state_dict(_widened(base.state_dict(), wide.state_dict()))
+    I, phi, Im, Ih = _window()
+    with torch.no_grad():
+        a, b = base(I, phi, I_mean=Im), wide(I, phi, I_mean=Im, I_harm=Ih)
+    torch.testing.assert_close(a.T, b.T, rtol=0, atol=1e-6)
+    torch.testing.assert_close(a.R, b.R, rtol=0, atol=1e-6)
+    with torch.no_grad():  # once the new weights move, the harmonic changes the output
+        for n, v in wide.named_parameters():
+            if n.startswith("refine.e1.0") and v.dim() == 4:
+                v[:, 8:] = 0.1
+        c, d = wide(I, phi, I_mean=Im, I_harm=Ih), wide(I, phi, I_mean=Im, I_harm=-Ih)
+    assert float((c.T - d.T).abs().max()) > 1e-4
+    with pytest.raises(ShapeError, match="I_harm"):
+        wide(I, phi, I_mean=Im)
+    with pytest.raises(ShapeError, match="use_mean"):
+        PolSpikeNet(dataclasses.replace(SMALL, use_mean=False, base="solver", use_harm=True))(I, phi)
+
+
+@pytest.mark.parametrize("size", [8, 4])
+def test_ensemble_with_the_harmonic_is_equivariant(size):
+    """The ensemble moves I_harm with the image and flips its signs with the angles: averaged over a group of
+    symmetries a random harmonic network commutes with each of them.  Moving it as a plain image breaks that."""
+    net = init_weights(PolSpikeNet(dataclasses.replace(SMALL, use_harm=True)), torch.Generator().manual_seed(2)).eval()
+    with torch.no_grad():
+        for n, v in net.named_parameters():
+            if n.startswith("refine.e1.0") and v.dim() == 4:
+                v[:, 8:] = 0.3  # the harmonic inputs matter
+    I, phi, Im, Ih = _window(1, W=20)
+    ens = SymmetryEnsemble(net, size)
+    with torch.no_grad():
+        base = ens(I, phi, I_mean=Im, I_harm=Ih)
+        for g in range(size if size == 4 else 8):
+            out = ens(symmetry_image(I, g), symmetry_angles(phi, g), I_mean=symmetry_image(Im, g), I_harm=symmetry_harmonic(Ih, g))
+            torch.testing.assert_close(out.T, symmetry_image(base.T, g), rtol=1e-4, atol=1e-5)
+        wrong = ens(symmetry_image(I, 1), symmetry_angles(phi, 1), I_mean=symmetry_image(Im, 1), I_harm=symmetry_image(Ih, 1))
+    assert float((wrong.T - symmetry_image(base.T, 1)).abs().max()) > 1e-4
+
+
+class _Recorder(torch.nn.Module):
+    """Stands in for a use_harm network: records the I_harm it is given."""
+
+    def __init__(self):
+        super().__init__()
+        self.cfg = types.SimpleNamespace(n_obs=7, use_mean=True, use_harm=True, arch="v1")
+        self.seen: list[np.ndarray] = []
+
+    def forward(self, I, phi, I_mean=None, I_harm=None, **kw):
+        self.seen.append(I_harm.numpy().copy())
+        T = 2 * I_mean
+        return types.SimpleNamespace(T=T, R=T, T_base=T, R_base=T)
+
+
+@pytest.mark.parametrize("chunk", [37, 2000])
+def test_stream_gives_the_network_the_store_harmonic(tmp_path, chunk):
+    """reconstruct_stream (chunked) hands a use_harm network the same first harmonic per output frame as the stored
+    group's own (load_store_group), both fitted from the raw spikes."""
+    from spike_sim.aggregate import AggregateConfig, frame_centres
+    from spike_sim.store import open_group
+
+    from reconstruct.groups import load_store_group
+    from reconstruct.video import ReconstructConfig, group_source, reconstruct_stream
+    from tests.reconstruct.test_windows import make_group
+
+    make_group(tmp_path / "g", seed=3, duration=0.04)
+    rec = _Recorder()
+    src = group_source(tmp_path / "g", chunk_steps=chunk)
+    s = reconstruct_stream(src, rec, tmp_path / "out", ReconstructConfig(video=False, chunk_steps=chunk, batch=2, tile=0, cache=False))
+    got = np.concatenate(rec.seen)
+    assert got.shape[0] == s["frames"] >= 3
+    g = load_store_group(tmp_path / "g")
+    np.testing.assert_allclose(got, g.I_harm[3 : 3 + got.shape[0]], rtol=1e-5, atol=1e-6)
+    with open_group(tmp_path / "g") as sg:  # and both are the direct fit of the raw spikes (exposure 1 here or not)
+        c, _ = frame_centres(sg.phi_nominal_rad, AggregateConfig())
+        lo, hi = spike_mean_span(int(c[3]), 350, sg.n_steps)
+        raw = sg.read(lo, hi)
+        phi = sg.phi_nominal_rad[lo:hi]
+    np.testing.assert_allclose(got[0], _direct_fit(raw, phi) / src.exposure, atol=1e-5)
