@@ -457,7 +457,11 @@ def evaluate_groups(
                 Ih = np.stack([g.I_harm[i] for i in cb]) if (getattr(model.cfg, "use_harm", False) and g.I_harm is not None) else None
                 if getattr(model.cfg, "use_harm", False) and Ih is None:
                     raise ConfigError(f"group {g.name}: the network takes the long span's first harmonic, which only stored groups (spikes.h5) and synthetic groups give")
-                o = run_model_on_windows(model, raw.float().cpu().numpy(), Pw.float().cpu().numpy(), device=next(model.parameters()).device, tile=cfg.net_tile, zeta=zn, I_mean=Im if use_mean else None, I_harm=Ih)
+                use_wide = getattr(model.cfg, "use_wide", False)
+                if use_wide and g.I_wide is None:
+                    raise ConfigError(f"group {g.name}: the network takes the observations over the wide window, which only stored groups (spikes.h5) and synthetic groups give")
+                Iwd = np.stack([g.I_wide[i - K : i + K + 1] for i in cb]) if use_wide else None
+                o = run_model_on_windows(model, raw.float().cpu().numpy(), Pw.float().cpu().numpy(), device=next(model.parameters()).device, tile=cfg.net_tile, zeta=zn, I_mean=Im if use_mean else None, I_harm=Ih, I_wide=Iwd)
                 est[net_rows[0]] = (o["T"], o["R"])
                 est[net_rows[1]] = (o["T_base"], o["R_base"])
                 t["network"] += time.perf_counter() - t0

@@ -23,6 +23,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import logging
+import math
 import os
 from pathlib import Path
 
@@ -32,7 +33,7 @@ from polinfra.errors import DataFormatError
 
 from reconstruct.zeta_source import PaneMaps
 
-__all__ = ["EvalGroup", "list_groups", "load_store_group", "window_steps_from_ms", "spike_mean_frames", "SpikeMeanSums", "SPIKE_MEAN_MS", "spike_mean_steps", "spike_mean_span", "span_harmonic", "HARMONIC_RIDGE"]
+__all__ = ["EvalGroup", "list_groups", "load_store_group", "window_steps_from_ms", "spike_mean_frames", "SpikeMeanSums", "SPIKE_MEAN_MS", "spike_mean_steps", "spike_mean_span", "span_harmonic", "HARMONIC_RIDGE", "wide_window_steps", "wide_frames"]
 
 log = logging.getLogger(__name__)
 
@@ -69,6 +70,9 @@ class EvalGroup:
     I_mean: np.ndarray | None = None
     """(M, H, W) the plain spike mean: spikes per step / exposure over :data:`SPIKE_MEAN_MS` centred on each
     frame (clipped to the stream), the "doing nothing" baseline of issue 16 (2 x it estimates T + zbar (R - T))"""
+    I_wide: np.ndarray | None = None
+    """(M, H, W) Eq. (3) frames at the same centres over the wide window (:func:`wide_window_steps`: the whole
+    stride, so the N windows of an output tile its span), radiance units; a ``use_wide`` network's input"""
     I_harm: np.ndarray | None = None
     """(M, 2, H, W) the first harmonic (cos 2 phi, sin 2 phi) of the spikes over the same spans, radiance units
     (:func:`span_harmonic`; a ``use_harm`` network's input)"""
@@ -76,6 +80,27 @@ class EvalGroup:
 
 SPIKE_MEAN_MS = 17.5
 """Span of the plain spike-mean baseline (about half a polarizer turn at 30 rev/s: the modulation averages out)."""
+
+
+def wide_window_steps(rate_hz: float, rev_per_s: float, stride_deg: float) -> int:
+    """Steps of the wide window: the largest odd count within one stride between output frames (57 at 20 kHz,
+    30 rev/s, 31.5 deg), so the N wide windows of an output use every spike between their centres without overlap
+    (1 for a still polarizer or a stride shorter than two steps)."""
+    if rev_per_s <= 0:
+        return 1
+    s = int(math.floor(stride_deg / 360.0 / rev_per_s * rate_hz))
+    return max(1, s if s % 2 else s - 1)
+
+
+def wide_frames(read, centres: np.ndarray, steps: int, n_steps: int, exposure: float) -> np.ndarray:
+    """Spikes per step / exposure over ``steps`` (odd) steps centred on each of ``centres``, clipped to a stream of
+    ``n_steps`` (the count divided by the clipped length): ``read(n0, n1)`` returns the (n1 - n0, H, W) spikes."""
+    h = steps // 2
+    out = []
+    for c in np.asarray(centres, np.int64):
+        lo, hi = max(0, int(c) - h), min(n_steps, int(c) + h + 1)
+        out.append(read(lo, hi).sum(0, dtype=np.int32) / np.float32(max(hi - lo, 1) * exposure))
+    return np.asarray(out, np.float32)
 
 
 def spike_mean_steps(rate_hz: float) -> int:
@@ -335,6 +360,7 @@ def load_store_group(
                 log.warning("%s: no frame centre matches a stored GT output step; choose the group's own stride/window", path)
         span_mean = spike_mean_steps(g.rate_hz)
         I_mean, I_harm = spike_mean_frames(g, c, span_mean, exposure, harmonic=True)
+        I_wide = wide_frames(g.read, c, wide_window_steps(g.rate_hz, pol_rate, stride_deg), g.n_steps, exposure)
         mp = g.maps()
         maps = None
         if {"R_perp", "R_par", "phi_perp"} <= set(mp):
@@ -355,4 +381,5 @@ def load_store_group(
             source_dir=str(path),
             I_mean=I_mean,
             I_harm=I_harm,
+            I_wide=I_wide,
         )

@@ -88,6 +88,7 @@ class NetConfig:
     anchor_zbar: str = opt("window", "zbar of the anchor: window (mean of zeta over the N windows, what polspike_v2_mean.pt was trained with) | harmonic (the first-harmonic level of zeta over the window's angles, reconstruct.solvers.zbar_of: the half-turn mean paper Eq. (1) needs)", choices=("window", "harmonic"))
     solver_method: str = opt("rwps", "physics solver run on the predicted zeta and w", choices=("ls", "ridge", "irls", "rwps"))
     use_harm: bool = opt(False, "the refinement also sees T and R separated from the first harmonic of the whole long span of spikes (I_harm; reconstruct.solvers.long_span_separation): about 4x the spikes of the N windows for the difference R - T; needs use_mean")
+    use_wide: bool = opt(False, "the refinement also sees T and R from the solver on the N observations over the wide window (I_wide: the whole stride, every spike between the windows' centres, ~4x the spikes of the 0.65 ms windows), anchored to I_mean as the base; needs use_mean")
     r_level_px: float = opt(0.0, "R's level from the base, its structure from the refinement: R = R_ref + G_s * (R_base - R_ref), G_s a Gaussian blur of this sigma in pixels (0 = off, the refined R). The refinement shrinks R's level where the spikes do not identify it; the base (the anchored physics with base = anchored) keeps it; no weights, only inference", lo=0.0, hi=256.0)
     span_rad: float = opt(math.radians(7.02), "polarizer rotation inside one aggregation window (0.65 ms at 30 rev/s), rad; recorded with the weights, not used by the layers", lo=0.0, hi=math.pi)
 
@@ -290,7 +291,7 @@ class Refinement(nn.Module):
     def __init__(self, cfg: NetConfig):
         super().__init__()
         c1, c2, c3 = cfg.ref_ch
-        self.e1 = nn.Sequential(ConvBlock(self.IN_CH + (2 if cfg.use_mean else 0) + (2 if cfg.use_harm else 0), c1), ConvBlock(c1, c1))
+        self.e1 = nn.Sequential(ConvBlock(self.IN_CH + (2 if cfg.use_mean else 0) + (2 if cfg.use_harm else 0) + (2 if cfg.use_wide else 0), c1), ConvBlock(c1, c1))
         self.e2 = nn.Sequential(ConvBlock(c1, c2, stride=2), ConvBlock(c2, c2))
         self.e3 = nn.Sequential(ConvBlock(c2, c3, stride=2), ConvBlock(c3, c3))
         self.dec_t = _Decoder(cfg.ref_ch, cfg.dec_ch)
@@ -379,6 +380,7 @@ class PolSpikeNet(nn.Module):
         zeta_shape: torch.Tensor | None = None,
         zeta_feed: torch.Tensor | None = None,
         I_harm: torch.Tensor | None = None,
+        I_wide: torch.Tensor | None = None,
     ) -> NetOutput:
         """Reconstruct the centre frame of each window.
 
@@ -405,6 +407,9 @@ class PolSpikeNet(nn.Module):
                 the glass the self-calibration assumes (``window.assumed_n``).
             I_harm: (B, 2, H, W) the first harmonic (cos 2 phi, sin 2 phi) of the spikes over I_mean's span, radiance
                 units; required by a ``use_harm`` network, ignored otherwise.
+            I_wide: (B, N, H, W) the observations over the wide window (same centres and angles as ``I``), radiance
+                units; required by a ``use_wide`` network, ignored otherwise.  Its solver takes zeta as given for
+                the narrow windows (the wide window's averaging lowers zeta's modulation by ~5 % at 57 steps).
 
         Returns:
             :class:`NetOutput`.
@@ -464,10 +469,16 @@ class PolSpikeNet(nn.Module):
                 Tl, Rl = long_span_separation(I_mean, I_harm.float(), zeta_used, phi)
                 lim = 50.0 * I_mean.abs() + 0.05  # per pixel (tiles agree): bounded inputs where noise is divided by a weak modulation
                 ch += [torch.maximum(torch.minimum(Tl, lim), -lim), torch.maximum(torch.minimum(Rl, lim), -lim)]
+            if self.cfg.use_wide:
+                if I_wide is None or I_wide.shape != I.shape:
+                    raise ShapeError(f"a use_wide network needs I_wide {tuple(I.shape)} (the observations over the wide window)", actual_shape=None if I_wide is None else tuple(I_wide.shape), expected_shape=tuple(I.shape))
+                with torch.no_grad():  # an input like I_mean: no gradient into zeta through this second solve (its
+                    rw = solve(self.cfg.solver_method, zeta_used.detach(), I_wide.float(), None, self.solver_cfg)  # Poisson weights' backward overflows)
+                    ch += list(anchor_to_mean(rw.T, rw.R, I_mean, zbar.detach()))
             if self.cfg.base == "anchored":
                 Tb, Rb = Ta, Ra
-        elif self.cfg.base == "anchored" or self.cfg.use_harm:
-            raise ShapeError("base = anchored and use_harm need a use_mean network (the anchor is the long spike mean)", actual_shape=None, expected_shape="use_mean = true")
+        elif self.cfg.base == "anchored" or self.cfg.use_harm or self.cfg.use_wide:
+            raise ShapeError("base = anchored, use_harm and use_wide need a use_mean network (the anchor is the long spike mean)", actual_shape=None, expected_shape="use_mean = true")
         x = torch.stack(ch, 1)
         dT, dR = self.refine(x)
         R = Rb + dR
@@ -544,7 +555,7 @@ def check_ensemble_size(size: int, what: str = "ensemble size") -> int:
     return int(size)
 
 
-_IMAGE_KWARGS = ("I_mean", "zeta_feed", "I_harm")
+_IMAGE_KWARGS = ("I_mean", "zeta_feed", "I_harm", "I_wide")
 """Keyword inputs of :meth:`PolSpikeNet.forward` that are maps (moved with the image by each ensemble member)."""
 
 

@@ -15,6 +15,7 @@ reads a stored group:
 ``exposure``  ()        float32  thresholds per step per unit radiance of the stream
 ``I_mean``    (H, W)    float32  only with ``WindowConfig.mean_steps``: spikes per step / exposure over that many
                                  steps centred on the output frame (the long spike mean, a use_mean network's input)
+``I_wide``    (N, H, W) float32  with ``WindowConfig.wide_steps``: the observations over the wide window (a use_wide network's input)
 ``I_harm``    (2, H, W) float32  with ``I_mean``: the first harmonic (cos 2 phi, sin 2 phi) of the same span's spikes
                                  at the nominal angles (:func:`reconstruct.groups.span_harmonic`; a use_harm network's input)
 
@@ -38,7 +39,7 @@ import torch
 from polinfra.config import opt
 from polinfra.errors import ConfigError, ShapeError
 
-from reconstruct.groups import span_harmonic, spike_mean_span
+from reconstruct.groups import span_harmonic, spike_mean_span, wide_frames
 from reconstruct.symmetry import angle_map, symmetry_harmonic, symmetry_image
 
 __all__ = ["WindowConfig", "ITEM_KEYS", "WindowSource", "window_centres", "item_from_stream", "OnTheFlyWindows", "flip_item"]
@@ -61,6 +62,7 @@ class WindowConfig:
     exposure_source: str = opt("range", "on-the-fly: range = exposure drawn from exposure_range; group = the manifest group's own exposure (its light level) times a log-uniform factor in exposure_jitter", choices=("range", "group"))
     exposure_jitter: tuple[float, float] = opt((1.0, 1.0), "on-the-fly, exposure_source = group: range of the log-uniform factor on the group's exposure", lo=1e-3, hi=1000.0)
     mean_steps: int = opt(0, "steps of the long spike mean I_mean given to a use_mean network, centred on the output frame (350 = 17.5 ms at 20 kHz, about half a polarizer turn); 0 = none", lo=0, hi=100001)
+    wide_steps: int = opt(0, "also give each item its N observations over the wide window of this many steps (odd; 57 = the whole 31.5 deg stride at 20 kHz and 30 rev/s, reconstruct.groups.wide_window_steps): a use_wide network's input I_wide; 0 = none", lo=0, hi=10001)
     assumed_n: float = opt(0.0, "also give each item the window's zeta under an assumed glass of this index (the self-calibration's prior, 1.5) for each pane model it can assume, zeta_a_single and zeta_a_thin_slab (paper Eq. (2) from the maps' theta and phi_perp): training for the errors of --zeta self, whose index and model are assumed where the spikes do not identify them; 0 = off", lo=0.0, hi=4.0)
     flips: bool = opt(False, "on-the-fly: random mirror / transpose of each item (one of the 8 symmetries of the square crop; polarizer and phi_perp angles mirrored with the image, so the physics stays exact)")
 
@@ -69,6 +71,8 @@ class WindowConfig:
             raise ConfigError(f"window.n_obs = {self.n_obs} must be odd (N = 2K + 1); use {self.n_obs + 1}")
         if self.window_steps % 2 == 0:
             raise ConfigError(f"window.window_steps = {self.window_steps} must be odd (centred windows); use {self.window_steps + 1}")
+        if self.wide_steps and self.wide_steps % 2 == 0:
+            raise ConfigError(f"window.wide_steps = {self.wide_steps} must be odd (centred windows); use {self.wide_steps - 1}")
         if self.exposure_jitter[0] > self.exposure_jitter[1]:
             raise ConfigError(f"window.exposure_jitter = {list(self.exposure_jitter)} must be [low, high] with low <= high")
         if (self.sim_preset == "group") != (self.exposure_source == "group"):
@@ -163,6 +167,8 @@ def item_from_stream(
         for model in ASSUMED_MODELS:
             co = pane_coefficients(th, cfg.assumed_n, model=model)
             item[f"zeta_a_{model}"] = _t(eq2(np.asarray(co["R_perp"], np.float64), np.asarray(co["R_par"], np.float64)))
+    if cfg.wide_steps:  # the same observations over the wide window, clipped to the stream
+        item["I_wide"] = _t(wide_frames(lambda a, b: spikes[a:b], ck, cfg.wide_steps, spikes.shape[0], exposure))
     if cfg.mean_steps:  # the long spike mean around the centre frame, clipped to the stream
         a, b = (int(v) for v in spike_mean_span(int(ck[len(ck) // 2]), cfg.mean_steps, spikes.shape[0]))
         item["I_mean"] = _t(spikes[a:b].sum(0, dtype=np.int64) / ((b - a) * exposure))
@@ -176,7 +182,7 @@ ASSUMED_MODELS = ("single", "thin_slab")
 """Pane models whose zeta under the assumed index an item carries (window.assumed_n): the self-calibration's
 (:data:`reconstruct.selfcal.CONE_MODELS`)."""
 
-_IMAGE_KEYS = ("I", "T", "R", "zeta", "R_perp", "R_par", "phi_perp", "T_perp", "T_par", "I_mean", *(f"zeta_a_{m}" for m in ASSUMED_MODELS))
+_IMAGE_KEYS = ("I", "T", "R", "zeta", "R_perp", "R_par", "phi_perp", "T_perp", "T_par", "I_mean", "I_wide", *(f"zeta_a_{m}" for m in ASSUMED_MODELS))
 _ANGLE_KEYS = ("phi", "phi_perp")
 
 

@@ -28,7 +28,7 @@ import numpy as np
 
 from polinfra.config import opt
 
-from reconstruct.groups import EvalGroup, spike_mean_steps
+from reconstruct.groups import EvalGroup, spike_mean_steps, wide_window_steps
 from reconstruct.zeta_source import PaneMaps
 
 __all__ = ["SyntheticConfig", "make_group", "make_groups", "PICTURES"]
@@ -117,22 +117,27 @@ def make_group(cfg: SyntheticConfig, index: int) -> EvalGroup:
     vR = rng.normal(0, 1, 2)
     vR *= cfg.motion_px_per_frame / max(np.linalg.norm(vR), 1e-12)
     sinc = np.sin(span) / span if span > 0 else 1.0
-    Ts, Rs, Is, Zs = [], [], [], []
+    Ts, Rs, Is, Zs, Iws = [], [], [], [], []
     steps = cfg.window_steps * cfg.exposure
+    steps_w = wide_window_steps(cfg.rate_hz, cfg.polarizer_rate_hz, cfg.stride_deg) * cfg.exposure
     for i in range(M):
         Ti = _shifted(T0, *(vT * (i - M / 2)))
         Ri = _shifted(R0, *(vR * (i - M / 2)))
         d = phi[i] - maps.phi_perp
         z = 0.5 * (maps.R_perp + maps.R_par) + 0.5 * (maps.R_perp - maps.R_par) * sinc * np.cos(2 * d)  # paper Eq. (2), window mean
         Ii = 0.5 * (z * Ri + (1 - z) * Ti)  # paper Eq. (1)
+        Iw = Ii  # the wide window (the whole stride): the same light with the noise of its steps (zeta's averaging kept)
         if cfg.noise == "poisson":
             Ii = rng.poisson(np.clip(Ii, 0, None) * steps) / steps  # paper Eq. (3): counts / dt, radiance units
+            Iw = rng.poisson(np.clip(Iw, 0, None) * steps_w) / steps_w
         elif cfg.noise == "integrate_fire":
             acc0 = rng.uniform(0.0, 1.0, Ii.shape)  # accumulator phase at the window start
             Ii = (np.floor(acc0 + np.clip(Ii, 0, None) * steps) - 0.0) / steps
+            Iw = np.floor(rng.uniform(0.0, 1.0, Iw.shape) + np.clip(Iw, 0, None) * steps_w) / steps_w
         Ts.append(Ti)
         Rs.append(Ri)
         Is.append(Ii)
+        Iws.append(Iw)
         Zs.append(z)
     # the long spike mean (17.5 ms, ~6 strides: about half a polarizer turn): the light averaged over the neighbouring
     # frames with the turn's mean zeta (the modulation averages out, motion blurs), noise of its 350 steps
@@ -169,6 +174,7 @@ def make_group(cfg: SyntheticConfig, index: int) -> EvalGroup:
         gt_zeta=f32(Zs),
         I_mean=f32(Im),
         I_harm=f32(Ih),
+        I_wide=f32(Iws),
         fov_deg=60.0,
     )
 

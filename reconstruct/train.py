@@ -170,11 +170,12 @@ def evaluate_model(model: PolSpikeNet, dataset, batch_size: int = 8, device: tor
         I, phi, T, R, z = (b[k].to(device) for k in ("I", "phi", "T", "R", "zeta"))
         Im = b["I_mean"].to(device) if "I_mean" in b else None
         Ih = b["I_harm"].to(device) if "I_harm" in b else None
-        out = model(I, phi, I_mean=Im, I_harm=Ih)
+        Iw = b["I_wide"].to(device) if "I_wide" in b else None
+        out = model(I, phi, I_mean=Im, I_harm=Ih, I_wide=Iw)
         orc = solve("rwps", z, I, None, model.solver_cfg_in)
         ests = {"T": out.T, "T_base": out.T_base, "T_oracle": orc.T, "T_tfp": 2.0 * I.mean(1), "R": out.R, "R_base": out.R_base, "R_oracle": orc.R}
         if forced:
-            fo = model(I, phi, zeta_gt=z, alpha=1.0, I_mean=Im, I_harm=Ih)
+            fo = model(I, phi, zeta_gt=z, alpha=1.0, I_mean=Im, I_harm=Ih, I_wide=Iw)
             ests.update({"T_forced": fo.T, "R_forced": fo.R})
         zc = z[:, z.shape[1] // 2]
         share = zc * R / (zc * R + (1 - zc) * T + 1e-6)
@@ -456,7 +457,7 @@ def train(
                     shape = torch.exp(cfg.zeta_shape_jitter * torch.randn(I.shape[0], generator=g)).to(dev)
                 if cfg.assumed_prob > 0:  # drawn last, for the same reason
                     feed, scale = assumed_glass_feed(b, z, scale, cfg, g)
-        out = model(I, phi, zeta_gt=z, alpha=alpha, I_mean=b["I_mean"].to(dev) if "I_mean" in b else None, I_harm=b["I_harm"].to(dev) if "I_harm" in b else None, zeta_scale=scale, zeta_shape=shape, zeta_feed=feed)
+        out = model(I, phi, zeta_gt=z, alpha=alpha, I_mean=b["I_mean"].to(dev) if "I_mean" in b else None, I_harm=b["I_harm"].to(dev) if "I_harm" in b else None, I_wide=b["I_wide"].to(dev) if "I_wide" in b else None, zeta_scale=scale, zeta_shape=shape, zeta_feed=feed)
         loss, parts = total_loss(out, T, R, alpha, cfg.loss)
         if not math.isfinite(parts["loss"]):
             raise FloatingPointError(f"non-finite loss at step {step}: {parts}")

@@ -45,7 +45,7 @@ from polinfra.atomic import atomic_path, ensure_dir, write_json
 from polinfra.config import opt
 from polinfra.errors import ConfigError, DataFormatError
 
-from reconstruct.groups import SpikeMeanSums, spike_mean_steps
+from reconstruct.groups import SpikeMeanSums, spike_mean_steps, wide_window_steps
 
 __all__ = ["DISPLAY_CLIP_FRACTION", "DisplayHistogram", "display_gain", "ReconstructConfig", "SpikeSource", "FeatureCache", "auto_tile", "dat_source", "group_source", "reconstruct_stream", "run_model_on_windows"]
 
@@ -165,7 +165,8 @@ def auto_tile(model, device: str | torch.device = "cpu") -> int:
 
 
 def run_model_on_windows(model, I: np.ndarray, phi: np.ndarray, device: str | torch.device = "cpu", tile: int = 128, margin: int = 16, *, precision: str = "float32", max_batch: int = 4,
-                         zeta: np.ndarray | None = None, I_mean: np.ndarray | None = None, I_harm: np.ndarray | None = None) -> dict[str, np.ndarray]:
+                         zeta: np.ndarray | None = None, I_mean: np.ndarray | None = None, I_harm: np.ndarray | None = None,
+                         I_wide: np.ndarray | None = None) -> dict[str, np.ndarray]:
     """Network on windows I (B, N, H, W) radiance units, phi (B, N) -> dict of (B, H, W) T, R, T_base, R_base.
 
     ``model`` is any object with ``cfg.n_obs`` that maps ``(I (B, N, H, W), phi (B, N))`` float32
@@ -181,7 +182,8 @@ def run_model_on_windows(model, I: np.ndarray, phi: np.ndarray, device: str | to
     on them (``model(I, phi, zeta_gt=zeta, alpha=1)``; its reliability weights stay learned).
     ``I_mean``: optional (B, H, W) long spike mean around each window's centre frame, passed on as
     ``model(..., I_mean=...)`` (required by a ``use_mean`` network), tiled like the frames; ``I_harm``: likewise
-    the (B, 2, H, W) first harmonic of the same spans (a ``use_harm`` network).
+    the (B, 2, H, W) first harmonic of the same spans (a ``use_harm`` network); ``I_wide``: the (B, N, H, W)
+    observations over the wide window (a ``use_wide`` network), tiled like the frames.
     """
     dev = torch.device(device)
     x = torch.as_tensor(I, dtype=torch.float32, device=dev)
@@ -200,8 +202,14 @@ def run_model_on_windows(model, I: np.ndarray, phi: np.ndarray, device: str | to
     if h_ is not None and h_.shape != (B, 2, H, W):
         raise ConfigError(f"I_harm must be (B, 2, H, W) = {(B, 2, H, W)}; got {tuple(h_.shape)}")
 
-    def zkw(zz, i, mm=None, hh=None):
+    w_ = None if I_wide is None else torch.as_tensor(I_wide, dtype=torch.float32, device=dev)
+    if w_ is not None and w_.shape != x.shape:
+        raise ConfigError(f"I_wide must have the windows' shape {tuple(x.shape)}; got {tuple(w_.shape)}")
+
+    def zkw(zz, i, mm=None, hh=None, ww=None):
         kw = {} if zz is None else {"zeta_gt": zz[i : i + max_batch], "alpha": 1.0}
+        if ww is not None:
+            kw["I_wide"] = ww[i : i + max_batch]
         if mm is not None:
             kw["I_mean"] = mm[i : i + max_batch, 0]
         if hh is not None:
@@ -214,7 +222,8 @@ def run_model_on_windows(model, I: np.ndarray, phi: np.ndarray, device: str | to
             zp = None if z is None else _pad4(z, mult)[0]
             mp = None if m_ is None else _pad4(m_, mult)[0]
             hp = None if h_ is None else _pad4(h_, mult)[0]
-            outs = [model(xp[i : i + max_batch], p[i : i + max_batch], **zkw(zp, i, mp, hp)) for i in range(0, B, max_batch)]
+            wp = None if w_ is None else _pad4(w_, mult)[0]
+            outs = [model(xp[i : i + max_batch], p[i : i + max_batch], **zkw(zp, i, mp, hp, wp)) for i in range(0, B, max_batch)]
             return {k: torch.cat([getattr(o, k) for o in outs])[..., :H, :W].float().cpu().numpy() for k in _KEYS}
         # a network that blurs its output (r_level_px: R's level from the base) needs that blur's radius inside the margin
         from reconstruct.network import gaussian_radius
@@ -240,6 +249,10 @@ def run_model_on_windows(model, I: np.ndarray, phi: np.ndarray, device: str | to
         if h_ is not None:
             hpad = F.pad(h_, padding, mode="replicate")
             htiles = torch.stack([hpad[..., y0 : y0 + ts, x0 : x0 + ts] for (y0, x0) in pos], 1).reshape(B * len(pos), 2, ts, ts)
+        wtiles = None
+        if w_ is not None:
+            wpad = F.pad(w_, padding, mode="replicate")
+            wtiles = torch.stack([wpad[..., y0 : y0 + ts, x0 : x0 + ts] for (y0, x0) in pos], 1).reshape(B * len(pos), N, ts, ts)
         pt = p.repeat_interleave(len(pos), 0)
         # a v2 network normalises brightness by the window's scale: give every tile the whole frame's
         kw = {}
@@ -249,7 +262,7 @@ def run_model_on_windows(model, I: np.ndarray, phi: np.ndarray, device: str | to
             kw = {"scale": window_scale(_pad4(x, mult)[0]).reshape(B).repeat_interleave(len(pos), 0)}
         res = {k: [] for k in _KEYS}
         for i in range(0, tiles.shape[0], max_batch):
-            o = model(tiles[i : i + max_batch], pt[i : i + max_batch], **{k: v[i : i + max_batch] for k, v in kw.items()}, **zkw(ztiles, i, mtiles, htiles))
+            o = model(tiles[i : i + max_batch], pt[i : i + max_batch], **{k: v[i : i + max_batch] for k, v in kw.items()}, **zkw(ztiles, i, mtiles, htiles, wtiles))
             for k in _KEYS:
                 res[k].append(getattr(o, k)[:, margin : margin + tile, margin : margin + tile].float())
         out = {}
@@ -275,9 +288,10 @@ class FeatureCache:
         self.encoded = 0
         self.reused = 0
 
-    def run(self, I: np.ndarray, phi: np.ndarray, idx: np.ndarray, I_mean: np.ndarray | None = None, I_harm: np.ndarray | None = None) -> dict[str, np.ndarray]:
+    def run(self, I: np.ndarray, phi: np.ndarray, idx: np.ndarray, I_mean: np.ndarray | None = None, I_harm: np.ndarray | None = None,
+            I_wide: np.ndarray | None = None) -> dict[str, np.ndarray]:
         """Windows I (B, N, H, W), phi (B, N), frame indices idx (B, N) -> dict of (B, H, W) maps (``I_mean``,
-        ``I_harm``: as :func:`run_model_on_windows`)."""
+        ``I_harm``, ``I_wide``: as :func:`run_model_on_windows`)."""
         from reconstruct.network import window_scale
 
         dev = self.device
@@ -316,6 +330,8 @@ class FeatureCache:
             mk = {} if I_mean is None else {"I_mean": _pad4(torch.as_tensor(I_mean, dtype=torch.float32, device=dev)[:, None], _multiple(self.model))[0][:, 0]}
             if I_harm is not None:
                 mk["I_harm"] = _pad4(torch.as_tensor(I_harm, dtype=torch.float32, device=dev), _multiple(self.model))[0]
+            if I_wide is not None:
+                mk["I_wide"] = _pad4(torch.as_tensor(I_wide, dtype=torch.float32, device=dev), _multiple(self.model))[0]
             out = self.model(xp, p, feats=(torch.stack(fs), torch.stack(gs)), **mk)
             res = {k: getattr(out, k)[..., :H, :W].float().cpu().numpy() for k in _KEYS}
         lo = int(idx[:, 0].max()) + 1  # windows advance: the next one starts after this batch's last first frame
@@ -501,6 +517,11 @@ def reconstruct_stream(
     half = agg.half
     t0 = time.perf_counter()
     frames_I: deque[np.ndarray] = deque(maxlen=N)
+    use_wide = bool(getattr(model.cfg, "use_wide", False))
+    n_total = source.phi_step_rad.size
+    wide_half = wide_window_steps(source.rate_hz, source.polarizer_rev_s, cfg.stride_deg) // 2 if use_wide else 0
+    reach = max(half, wide_half)  # steps a frame needs on each side of its centre
+    frames_W: deque[np.ndarray] = deque(maxlen=N)
     pending: list[tuple[np.ndarray, np.ndarray]] = []
     stats = {"nan_frames": 0, "tfp_corr": [], "tfp_psnr": []}
     done = 0
@@ -522,10 +543,11 @@ def reconstruct_stream(
         ph = np.stack([p[1] for p in pending])
         im = np.stack([p[3] for p in pending]) if prefix is not None else None
         ih = np.stack([p[4] for p in pending]) if use_harm else None
+        iw = np.stack([p[5] for p in pending]) if use_wide else None
         if cache is not None:
-            res = cache.run(I, ph, np.stack([p[2] for p in pending]), I_mean=im, I_harm=ih)
+            res = cache.run(I, ph, np.stack([p[2] for p in pending]), I_mean=im, I_harm=ih, I_wide=iw)
         else:
-            res = run_model_on_windows(model, I, ph, device, tile, precision=cfg.precision, I_mean=im, I_harm=ih)
+            res = run_model_on_windows(model, I, ph, device, tile, precision=cfg.precision, I_mean=im, I_harm=ih, I_wide=iw)
         for b in range(I.shape[0]):
             T, R = res["T"][b], res["R"][b]
             if not (np.isfinite(T).all() and np.isfinite(R).all()):
@@ -547,19 +569,23 @@ def reconstruct_stream(
             b1 = b0 + buf.shape[0]
             if prefix is not None:
                 prefix.feed(s0, chunk)
-            while next_c < centres.size and centres[next_c] + half < b1 and done + len(pending) < n_out:
+            while next_c < centres.size and min(int(centres[next_c]) + reach, n_total - 1) < b1 and done + len(pending) < n_out:
                 c = int(centres[next_c]) - b0
                 frames_I.append(buf[c - half : c + half + 1].sum(0, dtype=np.int32).astype(np.float32) / (cfg.window_steps * exposure))  # Eq. (3), radiance units
+                if use_wide:  # the wide window, clipped to the stream as a stored group's (reconstruct.groups.wide_frames)
+                    lo, hi = max(0, c + b0 - wide_half), min(n_total, c + b0 + wide_half + 1)
+                    frames_W.append(buf[lo - b0 : hi - b0].sum(0, dtype=np.int32).astype(np.float32) / np.float32(max(hi - lo, 1) * exposure))
                 next_c += 1
                 if len(frames_I) == N:
                     j = next_c - 1 - K
                     hj = prefix.harmonic(j, exposure) if use_harm else None  # before mean(j), which frees older sums
-                    pending.append((np.stack(frames_I), phi_i[next_c - N : next_c], np.arange(next_c - N, next_c), prefix.mean(j, exposure) if prefix is not None else None, hj))
+                    pending.append((np.stack(frames_I), phi_i[next_c - N : next_c], np.arange(next_c - N, next_c), prefix.mean(j, exposure) if prefix is not None else None, hj,
+                                    np.stack(frames_W) if use_wide else None))
                     if len(pending) >= cfg.batch:
                         flush(writers)
             if done + len(pending) >= n_out:
                 break
-            keep = b1 - (int(centres[next_c]) - half) if next_c < centres.size else 0
+            keep = b1 - max(0, int(centres[next_c]) - reach) if next_c < centres.size else 0
             keep = max(0, min(keep, buf.shape[0]))
             tail = buf[buf.shape[0] - keep :] if keep else np.zeros((0, source.height, source.width), np.uint8)
             tail_start = b1 - keep
@@ -602,6 +628,8 @@ def bench_full_network(model, height: int = 250, width: int = 400, frames: int =
     kw = {"I_mean": 0.5 * I.mean(1)} if getattr(model.cfg, "use_mean", False) else {}  # the long span's stand-ins
     if getattr(model.cfg, "use_harm", False):
         kw["I_harm"] = np.full((1, 2, height, width), 0.01, np.float32)
+    if getattr(model.cfg, "use_wide", False):
+        kw["I_wide"] = I
     run_model_on_windows(model, I, phi, device, tile, **kw)
     if str(device).startswith("cuda"):
         torch.cuda.synchronize()

@@ -236,3 +236,140 @@ def test_stream_gives_the_network_the_store_harmonic(tmp_path, chunk):
         raw = sg.read(lo, hi)
         phi = sg.phi_nominal_rad[lo:hi]
     np.testing.assert_allclose(got[0], _direct_fit(raw, phi) / src.exposure, atol=1e-5)
+
+
+def test_evaluate_scores_the_span_physics_row():
+    """evaluate --anchor mean adds the row 'span' (long_span_separation on the solvers' zeta); on a static, noise-free
+    synthetic group with the true zeta it is exact up to the floor, far above the plain spike mean."""
+    from reconstruct.evaluate import SPAN_METHOD, EvalConfig, evaluate_groups
+    from reconstruct.synthetic import SyntheticConfig, make_group as synth
+
+    g = synth(SyntheticConfig(width=24, height=16, n_groups=1, n_frames=11, noise="none", motion_px_per_frame=0.0), 0)
+    rep = evaluate_groups([g], EvalConfig(methods="ls", zeta="gt", rir=False, anchor="mean", max_frames=2))
+    rows = {r["method"]: r for r in rep.rows if r["group"] == "overall"}
+    assert SPAN_METHOD in rows and rows[SPAN_METHOD]["psnr_T"] > 40 and rows[SPAN_METHOD]["psnr_T"] > rows["spike_mean"]["psnr_T"] + 10
+    assert SPAN_METHOD not in {r["method"] for r in evaluate_groups([g], EvalConfig(methods="ls", zeta="gt", rir=False, max_frames=2)).rows}
+
+
+# --------------------------------------------------------------------------- the wide window (net.use_wide)
+def test_wide_window_is_the_largest_odd_count_within_a_stride():
+    from reconstruct.groups import wide_window_steps
+
+    assert wide_window_steps(20000.0, 30.0, 31.5) == 57  # 58.3 steps per stride
+    assert wide_window_steps(20000.0, 25.0, 31.5) == 69  # 70.0 -> 69
+    assert wide_window_steps(40000.0, 30.0, 31.5) == 115  # 116.7 -> 116 -> 115
+    assert wide_window_steps(20000.0, 0.0, 31.5) == 1  # a still polarizer: no stride to fill
+
+
+def test_wide_frames_are_the_clipped_window_means():
+    from reconstruct.groups import wide_frames
+
+    rng = np.random.default_rng(5)
+    spikes = (rng.random((300, 3, 4)) < 0.3).astype(np.uint8)
+    got = wide_frames(lambda a, b: spikes[a:b], np.array([10, 150, 295]), 57, 300, 0.5)
+    np.testing.assert_allclose(got[0], spikes[0:39].sum(0) / (39 * 0.5), rtol=1e-6)  # clipped at the start
+    np.testing.assert_allclose(got[1], spikes[122:179].sum(0) / (57 * 0.5), rtol=1e-6)
+    np.testing.assert_allclose(got[2], spikes[267:300].sum(0) / (33 * 0.5), rtol=1e-6)  # and at the end
+
+
+def test_onthefly_item_wide_windows_are_the_raw_window_sums_and_flip_with_the_image():
+    from reconstruct.onthefly import WindowConfig, flip_item, item_from_stream
+
+    rng = np.random.default_rng(6)
+    spikes = (rng.random((900, 8, 8)) < 0.2).astype(np.uint8)
+    ck = 300 + np.arange(7) * 58
+    phi = np.linspace(0, 5, 900)
+    maps = {"R_perp": np.full((8, 8), 0.1), "R_par": np.full((8, 8), 0.01), "phi_perp": np.zeros((8, 8))}
+    it = item_from_stream(spikes, ck, phi, phi, (np.zeros((8, 8)),) * 2, maps, 0.7, WindowConfig(crop=8, mean_steps=350, wide_steps=57))
+    want = np.stack([spikes[c - 28 : c + 29].sum(0) / (57 * 0.7) for c in ck])
+    np.testing.assert_allclose(it["I_wide"].numpy(), want, rtol=1e-6)
+    torch.testing.assert_close(flip_item(it, 6)["I_wide"], symmetry_image(it["I_wide"], 6))
+    assert "I_wide" not in item_from_stream(spikes, ck, phi, phi, (np.zeros((8, 8)),) * 2, maps, 0.7, WindowConfig(crop=8))
+    from polinfra.errors import ConfigError
+
+    with pytest.raises(ConfigError, match="wide_steps"):
+        WindowConfig(wide_steps=58)
+
+
+def test_widened_wide_network_starts_as_the_mean_network_and_needs_the_wide_windows():
+    base = init_weights(PolSpikeNet(SMALL), torch.Generator().manual_seed(3)).eval()
+    for p in base.refine.parameters():
+        torch.nn.init.normal_(p, 0, 0.05)
+    wide = PolSpikeNet(dataclasses.replace(SMALL, use_wide=True)).eval()
+    wide.load_state_dict(_widened(base.state_dict(), wide.state_dict()))
+    I, phi, Im, _ = _window(4)
+    Iw = I * 0.9 + 0.02
+    with torch.no_grad():
+        a, b = base(I, phi, I_mean=Im), wide(I, phi, I_mean=Im, I_wide=Iw)
+    torch.testing.assert_close(a.T, b.T, rtol=0, atol=1e-6)
+    with torch.no_grad():
+        for n, v in wide.named_parameters():
+            if n.startswith("refine.e1.0") and v.dim() == 4:
+                v[:, 8:] = 0.1
+        c, d = wide(I, phi, I_mean=Im, I_wide=Iw), wide(I, phi, I_mean=Im, I_wide=I)
+    assert float((c.T - d.T).abs().max()) > 1e-4
+    with pytest.raises(ShapeError, match="I_wide"):
+        wide(I, phi, I_mean=Im)
+
+
+def test_ensemble_with_the_wide_windows_is_equivariant():
+    net = init_weights(PolSpikeNet(dataclasses.replace(SMALL, use_wide=True)), torch.Generator().manual_seed(4)).eval()
+    with torch.no_grad():
+        for n, v in net.named_parameters():
+            if n.startswith("refine.e1.0") and v.dim() == 4:
+                v[:, 8:] = 0.3
+    I, phi, Im, _ = _window(2, W=20)
+    Iw = 0.8 * I + 0.05 * torch.rand(I.shape, generator=torch.Generator().manual_seed(9))
+    ens = SymmetryEnsemble(net, 8)
+    with torch.no_grad():
+        base = ens(I, phi, I_mean=Im, I_wide=Iw)
+        for g in (1, 5, 7):
+            out = ens(symmetry_image(I, g), symmetry_angles(phi, g), I_mean=symmetry_image(Im, g), I_wide=symmetry_image(Iw, g))
+            torch.testing.assert_close(out.T, symmetry_image(base.T, g), rtol=1e-4, atol=1e-5)
+
+
+class _WideRecorder(torch.nn.Module):
+    """Stands in for a use_wide network: records the I_wide it is given."""
+
+    def __init__(self):
+        super().__init__()
+        self.cfg = types.SimpleNamespace(n_obs=7, use_mean=True, use_wide=True, arch="v1")
+        self.seen: list[np.ndarray] = []
+
+    def forward(self, I, phi, I_mean=None, I_wide=None, **kw):
+        self.seen.append(I_wide.numpy().copy())
+        T = 2 * I_mean
+        return types.SimpleNamespace(T=T, R=T, T_base=T, R_base=T)
+
+
+@pytest.mark.parametrize("chunk", [37, 2000])
+def test_stream_gives_the_network_the_store_wide_windows(tmp_path, chunk):
+    """reconstruct_stream (chunked) hands a use_wide network each output's N wide windows exactly as the stored
+    group's (load_store_group: counts over the clipped wide window / its length / exposure)."""
+    from reconstruct.groups import load_store_group
+    from reconstruct.video import ReconstructConfig, group_source, reconstruct_stream
+    from tests.reconstruct.test_windows import make_group
+
+    make_group(tmp_path / "g", seed=4, duration=0.04)
+    rec = _WideRecorder()
+    src = group_source(tmp_path / "g", chunk_steps=chunk)
+    s = reconstruct_stream(src, rec, tmp_path / "out", ReconstructConfig(video=False, chunk_steps=chunk, batch=2, tile=0, cache=False))
+    got = np.concatenate(rec.seen)
+    assert got.shape[0] == s["frames"] >= 3
+    g = load_store_group(tmp_path / "g")
+    want = np.stack([g.I_wide[i - 3 : i + 4] for i in range(3, 3 + got.shape[0])])
+    np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-6)
+    assert float(np.abs(g.I_wide - g.I).mean()) > 0  # not the narrow windows
+
+
+def test_synthetic_wide_windows_carry_the_noise_of_their_steps():
+    """The closed-form synthetic set's wide windows: the same light as the narrow ones, with the Poisson noise of 57
+    steps instead of 13 (variance ratio 13 / 57 against the noiseless frames)."""
+    from reconstruct.synthetic import SyntheticConfig, make_group as synth
+
+    kw = dict(width=48, height=40, n_groups=1, n_frames=9, motion_px_per_frame=0.0)
+    clean = synth(SyntheticConfig(noise="none", **kw), 0)
+    noisy = synth(SyntheticConfig(**kw), 0)
+    np.testing.assert_allclose(clean.I_wide, clean.I, atol=1e-6)
+    ratio = float(((noisy.I_wide - clean.I) ** 2).mean() / ((noisy.I - clean.I) ** 2).mean())
+    assert abs(ratio - 13 / 57) < 0.05
