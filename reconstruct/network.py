@@ -89,6 +89,8 @@ class NetConfig:
     solver_method: str = opt("rwps", "physics solver run on the predicted zeta and w", choices=("ls", "ridge", "irls", "rwps"))
     use_harm: bool = opt(False, "the refinement also sees T and R separated from the first harmonic of the whole long span of spikes (I_harm; reconstruct.solvers.long_span_separation): about 4x the spikes of the N windows for the difference R - T; needs use_mean")
     use_wide: bool = opt(False, "the refinement also sees T and R from the solver on the N observations over the wide window (I_wide: the whole stride, every spike between the windows' centres, ~4x the spikes of the 0.65 ms windows), anchored to I_mean as the base; needs use_mean")
+    t_level_px: float = opt(0.0, "T's level from the wide windows' anchored physics: T += G_s * (T_wide - T_base), G_s a Gaussian blur of this sigma in pixels (0 = off; needs use_wide): the refinement follows its base's low frequencies, whose noise the wide windows' ~4x spikes lower; no weights, only inference", lo=0.0, hi=256.0)
+    r_level_from: str = opt("base", "where r_level_px takes R's level: base (the anchored physics on the N windows) | wide (the same on the wide windows, ~4x the spikes; needs use_wide)", choices=("base", "wide"))
     r_level_px: float = opt(0.0, "R's level from the base, its structure from the refinement: R = R_ref + G_s * (R_base - R_ref), G_s a Gaussian blur of this sigma in pixels (0 = off, the refined R). The refinement shrinks R's level where the spikes do not identify it; the base (the anchored physics with base = anchored) keeps it; no weights, only inference", lo=0.0, hi=256.0)
     span_rad: float = opt(math.radians(7.02), "polarizer rotation inside one aggregation window (0.65 ms at 30 rev/s), rad; recorded with the weights, not used by the layers", lo=0.0, hi=math.pi)
 
@@ -456,6 +458,7 @@ class PolSpikeNet(nn.Module):
         conf = res.conf if self.cfg.use_conf else torch.zeros_like(res.conf)
         ch = [T0, R0, 2 * I_c, 2 * I.min(1).values, conf, 2 * resid]
         Tb, Rb = T0, R0
+        Rlev = None
         if self.cfg.use_mean:
             if I_mean is None or I_mean.shape != I_c.shape:
                 raise ShapeError(f"a use_mean network needs I_mean {tuple(I_c.shape)} (the long spike mean around the centre frame)", actual_shape=None if I_mean is None else tuple(I_mean.shape), expected_shape=tuple(I_c.shape))
@@ -472,19 +475,29 @@ class PolSpikeNet(nn.Module):
             if self.cfg.use_wide:
                 if I_wide is None or I_wide.shape != I.shape:
                     raise ShapeError(f"a use_wide network needs I_wide {tuple(I.shape)} (the observations over the wide window)", actual_shape=None if I_wide is None else tuple(I_wide.shape), expected_shape=tuple(I.shape))
-                with torch.no_grad():  # an input like I_mean: no gradient into zeta through this second solve (its
-                    rw = solve(self.cfg.solver_method, zeta_used.detach(), I_wide.float(), None, self.solver_cfg)  # Poisson weights' backward overflows)
-                    ch += list(anchor_to_mean(rw.T, rw.R, I_mean, zbar.detach()))
+                # an input like I_mean: no gradient into zeta through this second solve (its Poisson weights' backward overflows)
+                with torch.no_grad():
+                    rw = solve(self.cfg.solver_method, zeta_used.detach(), I_wide.float(), None, self.solver_cfg)
+                    Tw, Rw = anchor_to_mean(rw.T, rw.R, I_mean, zbar.detach())
+                ch += [Tw, Rw]
+                if self.cfg.r_level_from == "wide":
+                    Rlev = Rw
             if self.cfg.base == "anchored":
                 Tb, Rb = Ta, Ra
         elif self.cfg.base == "anchored" or self.cfg.use_harm or self.cfg.use_wide:
             raise ShapeError("base = anchored, use_harm and use_wide need a use_mean network (the anchor is the long spike mean)", actual_shape=None, expected_shape="use_mean = true")
+        if (self.cfg.r_level_from == "wide" or self.cfg.t_level_px > 0) and not self.cfg.use_wide:
+            raise ShapeError("r_level_from = wide and t_level_px need a use_wide network", actual_shape=None, expected_shape="use_wide = true")
         x = torch.stack(ch, 1)
         dT, dR = self.refine(x)
         R = Rb + dR
+        Rlev = Rb if Rlev is None else Rlev
         if self.cfg.r_level_px > 0:
-            R = R + gaussian_blur(Rb - R, self.cfg.r_level_px)  # the base's level, the refinement's structure
-        return NetOutput(T=Tb + dT, R=R, T_base=T0, R_base=R0, zeta_hat=zeta_hat, zeta_used=zeta_used, weights=w, conf=res.conf, res=resid, I=I, zeta_gt=zeta_gt)
+            R = R + gaussian_blur(Rlev - R, self.cfg.r_level_px)  # the base's level, the refinement's structure
+        T = Tb + dT
+        if self.cfg.t_level_px > 0:
+            T = T + gaussian_blur(Tw - Tb, self.cfg.t_level_px)
+        return NetOutput(T=T, R=R, T_base=T0, R_base=R0, zeta_hat=zeta_hat, zeta_used=zeta_used, weights=w, conf=res.conf, res=resid, I=I, zeta_gt=zeta_gt)
 
 
 def gaussian_radius(sigma: float) -> int:

@@ -61,6 +61,7 @@ class TrainConfig:
     lr: float = opt(3e-4, "Adam learning rate (paper: 3e-4)", lo=1e-8, hi=1.0)
     lr_schedule: str = opt("constant", "learning rate over the run: constant, or cosine (from lr down to lr_min at the last step; a function of the step, so resuming keeps it)", choices=("constant", "cosine"))
     lr_min: float = opt(0.0, "final learning rate of the cosine schedule", lo=0.0, hi=1.0)
+    warmup_steps: int = opt(0, "steps over which the learning rate ramps up linearly from 0 to the schedule's (fine-tuning: a fresh Adam moves every weight by about lr per step whatever its gradient, so a converged network drifts before the moments settle); 0 = none", lo=0, hi=10_000_000)
     grad_clip: float = opt(1.0, "gradient-norm clip (0 = off)", lo=0.0, hi=1e6)
     curriculum_fracs: tuple[float, float] = opt((5 / 60, 15 / 60), "end of the alpha=1.0 and alpha=0.5 phases as fractions of the epochs (paper: 5/60, 15/60)", lo=0.0, hi=1.0)
     curriculum_alphas: tuple[float, float, float] = opt((1.0, 0.5, 0.0), "teacher-forcing ratio in the three phases (paper: 1.0, 0.5, 0.0)", lo=0.0, hi=1.0)
@@ -110,10 +111,11 @@ def alpha_at(epoch: int, cfg: TrainConfig) -> float:
 
 def lr_at(step: int, total: int, cfg: TrainConfig) -> float:
     """Learning rate of the optimizer step that follows ``step`` done steps (``cfg.lr_schedule``)."""
+    ramp = min(1.0, (step + 1) / cfg.warmup_steps) if cfg.warmup_steps > 0 else 1.0
     if cfg.lr_schedule == "constant" or total <= 1:
-        return cfg.lr
+        return cfg.lr * ramp
     f = min(max(step / (total - 1), 0.0), 1.0)
-    return cfg.lr_min + 0.5 * (cfg.lr - cfg.lr_min) * (1.0 + math.cos(math.pi * f))
+    return ramp * (cfg.lr_min + 0.5 * (cfg.lr - cfg.lr_min) * (1.0 + math.cos(math.pi * f)))
 
 
 def collate(items: list[dict[str, torch.Tensor]]) -> dict[str, torch.Tensor]:

@@ -228,7 +228,8 @@ def run_model_on_windows(model, I: np.ndarray, phi: np.ndarray, device: str | to
         # a network that blurs its output (r_level_px: R's level from the base) needs that blur's radius inside the margin
         from reconstruct.network import gaussian_radius
 
-        margin = max(margin, gaussian_radius(float(getattr(getattr(model, "cfg", None), "r_level_px", 0.0) or 0.0)))
+        mc = getattr(model, "cfg", None)
+        margin = max(margin, *(gaussian_radius(float(getattr(mc, k, 0.0) or 0.0)) for k in ("r_level_px", "t_level_px")))
         ts = tile + 2 * margin
         ts += (-ts) % mult
         ny, nx = -(-H // tile), -(-W // tile)

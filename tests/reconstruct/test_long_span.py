@@ -373,3 +373,34 @@ def test_synthetic_wide_windows_carry_the_noise_of_their_steps():
     np.testing.assert_allclose(clean.I_wide, clean.I, atol=1e-6)
     ratio = float(((noisy.I_wide - clean.I) ** 2).mean() / ((noisy.I - clean.I) ** 2).mean())
     assert abs(ratio - 13 / 57) < 0.05
+
+
+def test_wide_levels_move_only_low_frequencies_whatever_the_refinement():
+    """t_level_px / r_level_from = wide replace the base's low frequencies by the wide windows' (inference only): the
+    change of T (R) is G_s * (T_wide - T_base) (R likewise), the same for any refinement weights, and smooth."""
+    from reconstruct.network import gaussian_blur
+
+    cfg0 = dataclasses.replace(SMALL, use_wide=True, base="anchored", anchor_zbar="harmonic", r_level_px=4.0)
+    I, phi, Im, _ = _window(7, H=32, W=32)
+    Iw = 0.9 * I + 0.03 * torch.rand(I.shape, generator=torch.Generator().manual_seed(1))
+    zeta = 0.05 + 0.1 * torch.rand(I.shape, generator=torch.Generator().manual_seed(2))
+    diffs = []
+    for seed in (1, 2):
+        nets = {}
+        for name, kw in {"off": {}, "on": {"t_level_px": 3.0, "r_level_from": "wide"}}.items():
+            n = init_weights(PolSpikeNet(dataclasses.replace(cfg0, **kw)), torch.Generator().manual_seed(0)).eval()
+            with torch.no_grad():
+                for pn, p in n.refine.named_parameters():  # the refinement differs between seeds, the rest does not
+                    p.copy_(0.05 * torch.randn(p.shape, generator=torch.Generator().manual_seed(seed * 100 + len(pn))))
+            nets[name] = n
+        with torch.no_grad():
+            a = nets["off"](I, phi, zeta_gt=zeta, alpha=1.0, I_mean=Im, I_wide=Iw)
+            b = nets["on"](I, phi, zeta_gt=zeta, alpha=1.0, I_mean=Im, I_wide=Iw)
+        diffs.append((b.T - a.T, b.R - a.R))
+        assert float((a.T - b.T).abs().max()) > 1e-4
+    torch.testing.assert_close(diffs[0][0], diffs[1][0], rtol=0, atol=1e-5)
+    torch.testing.assert_close(diffs[0][1], diffs[1][1], rtol=0, atol=1e-5)
+    dT = diffs[0][0]
+    assert float((dT - gaussian_blur(dT, 1.0)).abs().max()) < 0.2 * float(dT.abs().max())  # smooth at 1 px
+    with pytest.raises(ShapeError, match="use_wide"):
+        PolSpikeNet(dataclasses.replace(SMALL, t_level_px=2.0))(I, phi, I_mean=Im)

@@ -250,6 +250,9 @@ def test_cosine_schedule_closed_form_and_resume(tmp_path, sets):
     assert lr_at(4, total, cfg) == pytest.approx(0.5 * (1e-3 + 1e-5))
     assert all(lr_at(k + 1, total, cfg) < lr_at(k, total, cfg) for k in range(total - 1))
     assert lr_at(3, total, TINY) == TINY.lr  # constant
+    warm = dataclasses.replace(cfg, warmup_steps=4)  # a linear ramp times the schedule, then the schedule itself
+    assert [lr_at(k, total, warm) / lr_at(k, total, cfg) for k in range(5)] == pytest.approx([0.25, 0.5, 0.75, 1.0, 1.0])
+    assert lr_at(1, total, dataclasses.replace(TINY, warmup_steps=2)) == TINY.lr
     tr, va = sets
     train(cfg, tr, va, tmp_path / "whole")
     train(cfg, tr, va, tmp_path / "pieces", stop_after=3)
