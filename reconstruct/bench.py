@@ -128,7 +128,7 @@ def count_flops(model, height: int = 250, width: int = 400) -> float:
     kw = {"I_mean": 0.5 * I.mean(1)} if getattr(model.cfg, "use_mean", False) else {}  # the long spike mean's stand-in
     if getattr(model.cfg, "use_harm", False):
         kw["I_harm"] = 0.01 * torch.ones(1, 2, H, W)  # its first harmonic's stand-in
-    if getattr(model.cfg, "use_wide", False):
+    if getattr(model.cfg, "wide_input", False):
         kw["I_wide"] = I  # the wide window's stand-in
     with torch.inference_mode(), fc:
         model(I, phi, **kw)
@@ -144,7 +144,7 @@ def _frame_fps(model, height: int, width: int, frames: int, tile: int, precision
     phi = ((np.arange(N) - N // 2) * np.radians(31.5))[None].astype(np.float32)
     im = 0.5 * I.mean(1) if getattr(model.cfg, "use_mean", False) else None  # the long spike mean's stand-in
     ih = np.full((1, 2, height, width), 0.01, np.float32) if getattr(model.cfg, "use_harm", False) else None  # its first harmonic's
-    iw = I if getattr(model.cfg, "use_wide", False) else None  # the wide window's
+    iw = I if getattr(model.cfg, "wide_input", False) else None  # the wide window's
     run_model_on_windows(model, I, phi, device, tile, precision=precision, I_mean=im, I_harm=ih, I_wide=iw)  # warm-up
     best = float("inf")
     cpu = float("inf")

@@ -457,7 +457,7 @@ def evaluate_groups(
                 Ih = np.stack([g.I_harm[i] for i in cb]) if (getattr(model.cfg, "use_harm", False) and g.I_harm is not None) else None
                 if getattr(model.cfg, "use_harm", False) and Ih is None:
                     raise ConfigError(f"group {g.name}: the network takes the long span's first harmonic, which only stored groups (spikes.h5) and synthetic groups give")
-                use_wide = getattr(model.cfg, "use_wide", False)
+                use_wide = getattr(model.cfg, "wide_input", False)
                 if use_wide and g.I_wide is None:
                     raise ConfigError(f"group {g.name}: the network takes the observations over the wide window, which only stored groups (spikes.h5) and synthetic groups give")
                 Iwd = np.stack([g.I_wide[i - K : i + K + 1] for i in cb]) if use_wide else None

@@ -89,10 +89,16 @@ class NetConfig:
     solver_method: str = opt("rwps", "physics solver run on the predicted zeta and w", choices=("ls", "ridge", "irls", "rwps"))
     use_harm: bool = opt(False, "the refinement also sees T and R separated from the first harmonic of the whole long span of spikes (I_harm; reconstruct.solvers.long_span_separation): about 4x the spikes of the N windows for the difference R - T; needs use_mean")
     use_wide: bool = opt(False, "the refinement also sees T and R from the solver on the N observations over the wide window (I_wide: the whole stride, every spike between the windows' centres, ~4x the spikes of the 0.65 ms windows), anchored to I_mean as the base; needs use_mean")
-    t_level_px: float = opt(0.0, "T's level from the wide windows' anchored physics: T += G_s * (T_wide - T_base), G_s a Gaussian blur of this sigma in pixels (0 = off; needs use_wide): the refinement follows its base's low frequencies, whose noise the wide windows' ~4x spikes lower; no weights, only inference", lo=0.0, hi=256.0)
-    r_level_from: str = opt("base", "where r_level_px takes R's level: base (the anchored physics on the N windows) | wide (the same on the wide windows, ~4x the spikes; needs use_wide)", choices=("base", "wide"))
+    t_level_px: float = opt(0.0, "T's level from the wide windows' anchored physics: T += G_s * (T_wide - T_base), G_s a Gaussian blur of this sigma in pixels (0 = off; the network then reads I_wide; needs use_mean): the refinement follows its base's low frequencies, whose noise the wide windows' ~4x spikes lower; no weights, only inference", lo=0.0, hi=256.0)
+    r_level_from: str = opt("base", "where r_level_px takes R's level: base (the anchored physics on the N windows) | wide (the same on the wide windows, ~4x the spikes; the network then reads I_wide)", choices=("base", "wide"))
     r_level_px: float = opt(0.0, "R's level from the base, its structure from the refinement: R = R_ref + G_s * (R_base - R_ref), G_s a Gaussian blur of this sigma in pixels (0 = off, the refined R). The refinement shrinks R's level where the spikes do not identify it; the base (the anchored physics with base = anchored) keeps it; no weights, only inference", lo=0.0, hi=256.0)
     span_rad: float = opt(math.radians(7.02), "polarizer rotation inside one aggregation window (0.65 ms at 30 rev/s), rad; recorded with the weights, not used by the layers", lo=0.0, hi=math.pi)
+
+    @property
+    def wide_input(self) -> bool:
+        """Whether the network reads the wide windows ``I_wide``: as refinement inputs (``use_wide``) or for T's / R's
+        levels (``t_level_px``, ``r_level_from = wide``)."""
+        return bool(self.use_wide or self.t_level_px > 0 or self.r_level_from == "wide")
 
 
 @dataclasses.dataclass
@@ -472,22 +478,21 @@ class PolSpikeNet(nn.Module):
                 Tl, Rl = long_span_separation(I_mean, I_harm.float(), zeta_used, phi)
                 lim = 50.0 * I_mean.abs() + 0.05  # per pixel (tiles agree): bounded inputs where noise is divided by a weak modulation
                 ch += [torch.maximum(torch.minimum(Tl, lim), -lim), torch.maximum(torch.minimum(Rl, lim), -lim)]
-            if self.cfg.use_wide:
+            if self.cfg.wide_input:
                 if I_wide is None or I_wide.shape != I.shape:
-                    raise ShapeError(f"a use_wide network needs I_wide {tuple(I.shape)} (the observations over the wide window)", actual_shape=None if I_wide is None else tuple(I_wide.shape), expected_shape=tuple(I.shape))
+                    raise ShapeError(f"this network (use_wide, t_level_px or r_level_from = wide) needs I_wide {tuple(I.shape)} (the observations over the wide window)", actual_shape=None if I_wide is None else tuple(I_wide.shape), expected_shape=tuple(I.shape))
                 # an input like I_mean: no gradient into zeta through this second solve (its Poisson weights' backward overflows)
                 with torch.no_grad():
                     rw = solve(self.cfg.solver_method, zeta_used.detach(), I_wide.float(), None, self.solver_cfg)
                     Tw, Rw = anchor_to_mean(rw.T, rw.R, I_mean, zbar.detach())
-                ch += [Tw, Rw]
+                if self.cfg.use_wide:
+                    ch += [Tw, Rw]
                 if self.cfg.r_level_from == "wide":
                     Rlev = Rw
             if self.cfg.base == "anchored":
                 Tb, Rb = Ta, Ra
-        elif self.cfg.base == "anchored" or self.cfg.use_harm or self.cfg.use_wide:
-            raise ShapeError("base = anchored, use_harm and use_wide need a use_mean network (the anchor is the long spike mean)", actual_shape=None, expected_shape="use_mean = true")
-        if (self.cfg.r_level_from == "wide" or self.cfg.t_level_px > 0) and not self.cfg.use_wide:
-            raise ShapeError("r_level_from = wide and t_level_px need a use_wide network", actual_shape=None, expected_shape="use_wide = true")
+        elif self.cfg.base == "anchored" or self.cfg.use_harm or self.cfg.wide_input:
+            raise ShapeError("base = anchored, use_harm, use_wide, t_level_px and r_level_from = wide need a use_mean network (the anchor is the long spike mean)", actual_shape=None, expected_shape="use_mean = true")
         x = torch.stack(ch, 1)
         dT, dR = self.refine(x)
         R = Rb + dR

@@ -518,7 +518,7 @@ def reconstruct_stream(
     half = agg.half
     t0 = time.perf_counter()
     frames_I: deque[np.ndarray] = deque(maxlen=N)
-    use_wide = bool(getattr(model.cfg, "use_wide", False))
+    use_wide = bool(getattr(model.cfg, "wide_input", False))
     n_total = source.phi_step_rad.size
     wide_half = wide_window_steps(source.rate_hz, source.polarizer_rev_s, cfg.stride_deg) // 2 if use_wide else 0
     reach = max(half, wide_half)  # steps a frame needs on each side of its centre
@@ -629,7 +629,7 @@ def bench_full_network(model, height: int = 250, width: int = 400, frames: int =
     kw = {"I_mean": 0.5 * I.mean(1)} if getattr(model.cfg, "use_mean", False) else {}  # the long span's stand-ins
     if getattr(model.cfg, "use_harm", False):
         kw["I_harm"] = np.full((1, 2, height, width), 0.01, np.float32)
-    if getattr(model.cfg, "use_wide", False):
+    if getattr(model.cfg, "wide_input", False):
         kw["I_wide"] = I
     run_model_on_windows(model, I, phi, device, tile, **kw)
     if str(device).startswith("cuda"):

@@ -176,7 +176,7 @@ def reconstruct_and_score(group_dir: Path, figs: Path, n_frames: int, crop: int)
     ih = np.stack([g.I_harm[i][:, sl[0], sl[1]] for i in idx]) if model.cfg.use_harm else None  # its first harmonic, likewise
     zw = None if Z is None else np.stack([Z[i - K : i + K + 1][:, sl[0], sl[1]] for i in idx]).astype(np.float32)
     with torch.no_grad():
-        iw = np.stack([g.I_wide[i - K : i + K + 1][:, sl[0], sl[1]] for i in idx]) if model.cfg.use_wide else None  # the wide windows, likewise
+        iw = np.stack([g.I_wide[i - K : i + K + 1][:, sl[0], sl[1]] for i in idx]) if model.cfg.wide_input else None  # the wide windows, likewise
         res = run_model_on_windows(model, I, phi, I_mean=im, I_harm=ih, I_wide=iw, zeta=zw)
     est = {"TFP (window mean)": (2 * I.mean(1), None), "RWPS only": (res["T_base"], res["R_base"]), "full network": (res["T"], res["R"])}
     rows = []

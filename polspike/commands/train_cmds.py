@@ -228,12 +228,26 @@ def heldout_mean_steps() -> int:
     return spike_mean_steps(preset("default").rate_hz)
 
 
-def heldout_test_set(crop: int = 64, items: int = 96, seed: int = 20_000, manifest: str = "", scenes: int = 10, scene_seed: int = 0, light: str = "range", mean_steps: int = 0):
+def heldout_wide_steps() -> int:
+    """Steps of the wide window a ``use_wide`` network is given in the held-out windows (as trained: the default
+    sensor's rate, 30 rev/s, 31.5 deg; 57 at 20 kHz)."""
+    from reconstruct.groups import wide_window_steps
+    from spike_sim.config import preset
+
+    return wide_window_steps(preset("default").rate_hz, 30.0, 31.5)
+
+
+def heldout_inputs(model) -> dict:
+    """The long-span keywords of :func:`heldout_test_set` a network takes (``mean_steps``, ``wide_steps``)."""
+    return {"mean_steps": heldout_mean_steps() if model.cfg.use_mean else 0, "wide_steps": heldout_wide_steps() if getattr(model.cfg, "wide_input", False) else 0}
+
+
+def heldout_test_set(crop: int = 64, items: int = 96, seed: int = 20_000, manifest: str = "", scenes: int = 10, scene_seed: int = 0, light: str = "range", mean_steps: int = 0, wide_steps: int = 0):
     """The model card's test set: on-the-fly windows of the test groups of ``manifest`` (else of ``scenes`` sampled test scenes).
 
     ``light``: "range" = the exposure drawn from the default range (the shipped v1/v2 scores), "group" = each manifest
     group's own sensor and light level (paper.toml's dim-to-bright range).  ``mean_steps``: also the long spike mean
-    (a ``use_mean`` network's input).
+    (a ``use_mean`` network's input); ``wide_steps``: also the wide windows (a ``use_wide`` network's).
     """
     from polinfra.errors import ConfigError
     from polspike.pipeline.train_windows import GeneratorWindows, manifest_scenes, scene_pool
@@ -245,10 +259,10 @@ def heldout_test_set(crop: int = 64, items: int = 96, seed: int = 20_000, manife
         if not manifest:
             raise ConfigError("light = group takes each manifest group's sensor: give a manifest")
         sc, sims = manifest_scenes(manifest, "test", with_sensor=True)
-        w = WindowConfig(crop=crop, sim_preset="group", exposure_source="group", mean_steps=mean_steps)
+        w = WindowConfig(crop=crop, sim_preset="group", exposure_source="group", mean_steps=mean_steps, wide_steps=wide_steps)
         return OnTheFlyWindows(GeneratorWindows(sc, w, sims=sims), length=items, seed=seed)
     sc = manifest_scenes(manifest, "test") if manifest else scene_pool(scenes, scene_seed, "test")
-    return OnTheFlyWindows(GeneratorWindows(sc, WindowConfig(crop=crop, mean_steps=mean_steps)), length=items, seed=seed)
+    return OnTheFlyWindows(GeneratorWindows(sc, WindowConfig(crop=crop, mean_steps=mean_steps, wide_steps=wide_steps)), length=items, seed=seed)
 
 
 @app_typer.command("evaluate-checkpoint")
@@ -279,7 +293,7 @@ def evaluate_checkpoint_cmd(
     dev = "cuda" if device == "auto" and torch.cuda.is_available() else ("cpu" if device == "auto" else device)
     over = ({} if rir is None else {"use_rir": rir}) | ({} if solver is None else {"solver_method": solver})
     model, data = load_model(weights or DEFAULT_WEIGHTS, dev, **over)
-    ds = heldout_test_set(crop, items, seed, manifest, light=light, mean_steps=heldout_mean_steps() if model.cfg.use_mean else 0)
+    ds = heldout_test_set(crop, items, seed, manifest, light=light, **heldout_inputs(model))
     m = evaluate_model(model, ds, batch_size=8, device=dev, ssim=True)
     rows = [
         ("T: full network", "T"), ("T: RWPS-only, learned zeta and w (T^)", "T_base"), ("T: RWPS, ground-truth zeta (oracle)", "T_oracle"), ("T: TFP, 2 x window mean", "T_tfp"),

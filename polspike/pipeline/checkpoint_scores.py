@@ -51,7 +51,7 @@ def evaluate_setting(weights: str | os.PathLike, setting: dict[str, Any], thread
     """PSNR / SSIM of ``weights`` on the held-out test set of ``setting`` (CPU, ``threads`` torch threads, as trained)."""
     import torch
 
-    from polspike.commands.train_cmds import heldout_mean_steps, heldout_test_set
+    from polspike.commands.train_cmds import heldout_inputs, heldout_test_set
     from reconstruct.checkpoint import load_model
     from reconstruct.train import evaluate_model
 
@@ -59,7 +59,7 @@ def evaluate_setting(weights: str | os.PathLike, setting: dict[str, Any], thread
     torch.set_num_threads(max(1, int(threads)))
     try:
         model, _ = load_model(weights, "cpu")
-        ds = heldout_test_set(setting["crop"], setting["items"], setting["seed"], setting["manifest"], light=setting.get("light", "range"), mean_steps=heldout_mean_steps() if model.cfg.use_mean else 0)
+        ds = heldout_test_set(setting["crop"], setting["items"], setting["seed"], setting["manifest"], light=setting.get("light", "range"), **heldout_inputs(model))
         with torch.no_grad():
             return evaluate_model(model, ds, batch_size=8, device="cpu", ssim=True)
     finally:

@@ -333,7 +333,7 @@ class _WideRecorder(torch.nn.Module):
 
     def __init__(self):
         super().__init__()
-        self.cfg = types.SimpleNamespace(n_obs=7, use_mean=True, use_wide=True, arch="v1")
+        self.cfg = types.SimpleNamespace(n_obs=7, use_mean=True, use_wide=True, wide_input=True, arch="v1")
         self.seen: list[np.ndarray] = []
 
     def forward(self, I, phi, I_mean=None, I_wide=None, **kw):
