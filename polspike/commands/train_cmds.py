@@ -361,11 +361,12 @@ def bench_reconstruct_net_cmd(
         name = f"{model.cfg.arch} ({Path(path).name})"
         models[name] = model
         base = from_dict(TrainConfig, load_toml(Path(__file__).resolve().parents[2] / "reconstruct" / "configs" / f"cpu_{model.cfg.arch}.toml"))
-        train_cfgs[name] = dataclasses.replace(base, net=model.cfg, seed=0)
+        # the items a network reads: the long spike mean / wide windows where its config takes them
+        train_cfgs[name] = dataclasses.replace(base, net=model.cfg, seed=0, window=dataclasses.replace(base.window, **heldout_inputs(model)))
     names = list(models)
     train_set = None
     if train_steps > 0:
-        train_set, _ = on_the_fly_sets(next(iter(train_cfgs.values())))
+        train_set, _ = on_the_fly_sets(train_cfgs[names[-1]])  # the network under test's items (a superset of v1's)
         for j in range(len(train_set.source.scenes)):  # build every scene's maps once, before timing (workers fork with them)
             train_set.source._scene(j)
     res = bench_reconstruct_net(

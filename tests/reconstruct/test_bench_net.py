@@ -43,3 +43,18 @@ def test_two_model_run_gives_ratios_and_a_table(tmp_path):
     assert r2["reconstruct"]["frames"] == 2 and r2["reconstruct"]["feature_cache"]["encoded_frames"] == 2 + 6
     t = net_table(res)
     assert "GFLOP / frame" in t and f"{r1['parameters']:,}" in t and "v2 vs v1" in t
+
+
+def test_cli_bench_with_the_shipped_default_times_its_training(tmp_path, polspike_cli):
+    """`polspike bench reconstruct-net` on the shipped default (a network that reads the long spike mean and the wide
+    windows) against v1: its training items carry what each network reads (before session 9 the run stopped with
+    "a use_mean network needs I_mean"); tiny frames, a few steps."""
+    import json
+
+    out = tmp_path / "bn.json"
+    r = polspike_cli("bench", "reconstruct-net", "--height", "24", "--width", "40", "--frames", "1", "--stream-frames", "2", "--train-steps", "3",
+                     "--no-variants", "--threads", "1", "--json", out, timeout=900)
+    assert r.returncode == 0, r.stderr[-2000:]
+    res = json.loads(out.read_text())
+    new = [m for name, m in res["models"].items() if "v1" not in name][0]
+    assert new["train_1thr"] and new["reconstruct"] and new["gflop_per_frame"] > 0
