@@ -130,15 +130,22 @@ def test_symmetry_harmonic_is_the_fit_at_the_moved_angles(code):
     assert {abs(e), abs(es)} == {1.0}
 
 
-def test_onthefly_item_harmonic_is_the_direct_fit_and_flips_with_the_angles():
-    from reconstruct.onthefly import WindowConfig, flip_item, item_from_stream
+def _item(seed: int, **window):
+    """(training item of a random 900-step 8 x 8 stream at exposure 0.7, its spikes, centres, angles)."""
+    from reconstruct.onthefly import WindowConfig, item_from_stream
 
-    rng = np.random.default_rng(4)
+    rng = np.random.default_rng(seed)
     spikes = (rng.random((900, 8, 8)) < 0.2).astype(np.uint8)
     ck = 300 + np.arange(7) * 58
     phi = np.linspace(0, 5, 900)
     maps = {"R_perp": np.full((8, 8), 0.1), "R_par": np.full((8, 8), 0.01), "phi_perp": np.zeros((8, 8))}
-    it = item_from_stream(spikes, ck, phi, phi, (np.zeros((8, 8)),) * 2, maps, 0.7, WindowConfig(crop=8, mean_steps=350))
+    return item_from_stream(spikes, ck, phi, phi, (np.zeros((8, 8)),) * 2, maps, 0.7, WindowConfig(crop=8, **window)), spikes, ck, phi
+
+
+def test_onthefly_item_harmonic_is_the_direct_fit_and_flips_with_the_angles():
+    from reconstruct.onthefly import flip_item
+
+    it, spikes, ck, phi = _item(4, mean_steps=350)
     lo, hi = spike_mean_span(ck[3], 350, 900)
     np.testing.assert_allclose(it["I_harm"].numpy(), _direct_fit(spikes[lo:hi], phi[lo:hi]) / 0.7, atol=1e-5)
     f = flip_item(it, 5)
@@ -198,17 +205,33 @@ def test_ensemble_with_the_harmonic_is_equivariant(size):
 
 
 class _Recorder(torch.nn.Module):
-    """Stands in for a use_harm network: records the I_harm it is given."""
+    """Stands in for a network that reads the long-span input ``key`` (I_harm or I_wide): records what it is given."""
 
-    def __init__(self):
+    def __init__(self, key: str, **cfg):
         super().__init__()
-        self.cfg = types.SimpleNamespace(n_obs=7, use_mean=True, use_harm=True, arch="v1")
+        self.key = key
+        self.cfg = types.SimpleNamespace(n_obs=7, use_mean=True, arch="v1", **cfg)
         self.seen: list[np.ndarray] = []
 
-    def forward(self, I, phi, I_mean=None, I_harm=None, **kw):
-        self.seen.append(I_harm.numpy().copy())
+    def forward(self, I, phi, I_mean=None, **kw):
+        self.seen.append(kw[self.key].numpy().copy())
         T = 2 * I_mean
         return types.SimpleNamespace(T=T, R=T, T_base=T, R_base=T)
+
+
+def _streamed(tmp_path, chunk: int, seed: int, rec: _Recorder):
+    """(what ``rec`` was given per output frame, the stream source, the stored group) for a tiny group streamed in
+    chunks of ``chunk`` steps."""
+    from reconstruct.groups import load_store_group
+    from reconstruct.video import ReconstructConfig, group_source, reconstruct_stream
+    from tests.reconstruct.test_windows import make_group
+
+    make_group(tmp_path / "g", seed=seed, duration=0.04)
+    src = group_source(tmp_path / "g", chunk_steps=chunk)
+    s = reconstruct_stream(src, rec, tmp_path / "out", ReconstructConfig(video=False, chunk_steps=chunk, batch=2, tile=0, cache=False))
+    got = np.concatenate(rec.seen)
+    assert got.shape[0] == s["frames"] >= 3
+    return got, src, load_store_group(tmp_path / "g")
 
 
 @pytest.mark.parametrize("chunk", [37, 2000])
@@ -218,17 +241,7 @@ def test_stream_gives_the_network_the_store_harmonic(tmp_path, chunk):
     from spike_sim.aggregate import AggregateConfig, frame_centres
     from spike_sim.store import open_group
 
-    from reconstruct.groups import load_store_group
-    from reconstruct.video import ReconstructConfig, group_source, reconstruct_stream
-    from tests.reconstruct.test_windows import make_group
-
-    make_group(tmp_path / "g", seed=3, duration=0.04)
-    rec = _Recorder()
-    src = group_source(tmp_path / "g", chunk_steps=chunk)
-    s = reconstruct_stream(src, rec, tmp_path / "out", ReconstructConfig(video=False, chunk_steps=chunk, batch=2, tile=0, cache=False))
-    got = np.concatenate(rec.seen)
-    assert got.shape[0] == s["frames"] >= 3
-    g = load_store_group(tmp_path / "g")
+    got, src, g = _streamed(tmp_path, chunk, 3, _Recorder("I_harm", use_harm=True))
     np.testing.assert_allclose(got, g.I_harm[3 : 3 + got.shape[0]], rtol=1e-5, atol=1e-6)
     with open_group(tmp_path / "g") as sg:  # and both are the direct fit of the raw spikes (exposure 1 here or not)
         c, _ = frame_centres(sg.phi_nominal_rad, AggregateConfig())
@@ -273,18 +286,13 @@ def test_wide_frames_are_the_clipped_window_means():
 
 
 def test_onthefly_item_wide_windows_are_the_raw_window_sums_and_flip_with_the_image():
-    from reconstruct.onthefly import WindowConfig, flip_item, item_from_stream
+    from reconstruct.onthefly import WindowConfig, flip_item
 
-    rng = np.random.default_rng(6)
-    spikes = (rng.random((900, 8, 8)) < 0.2).astype(np.uint8)
-    ck = 300 + np.arange(7) * 58
-    phi = np.linspace(0, 5, 900)
-    maps = {"R_perp": np.full((8, 8), 0.1), "R_par": np.full((8, 8), 0.01), "phi_perp": np.zeros((8, 8))}
-    it = item_from_stream(spikes, ck, phi, phi, (np.zeros((8, 8)),) * 2, maps, 0.7, WindowConfig(crop=8, mean_steps=350, wide_steps=57))
+    it, spikes, ck, phi = _item(6, mean_steps=350, wide_steps=57)
     want = np.stack([spikes[c - 28 : c + 29].sum(0) / (57 * 0.7) for c in ck])
     np.testing.assert_allclose(it["I_wide"].numpy(), want, rtol=1e-6)
     torch.testing.assert_close(flip_item(it, 6)["I_wide"], symmetry_image(it["I_wide"], 6))
-    assert "I_wide" not in item_from_stream(spikes, ck, phi, phi, (np.zeros((8, 8)),) * 2, maps, 0.7, WindowConfig(crop=8))
+    assert "I_wide" not in _item(6)[0]
     from polinfra.errors import ConfigError
 
     with pytest.raises(ConfigError, match="wide_steps"):
@@ -328,35 +336,11 @@ def test_ensemble_with_the_wide_windows_is_equivariant():
             torch.testing.assert_close(out.T, symmetry_image(base.T, g), rtol=1e-4, atol=1e-5)
 
 
-class _WideRecorder(torch.nn.Module):
-    """Stands in for a use_wide network: records the I_wide it is given."""
-
-    def __init__(self):
-        super().__init__()
-        self.cfg = types.SimpleNamespace(n_obs=7, use_mean=True, use_wide=True, wide_input=True, arch="v1")
-        self.seen: list[np.ndarray] = []
-
-    def forward(self, I, phi, I_mean=None, I_wide=None, **kw):
-        self.seen.append(I_wide.numpy().copy())
-        T = 2 * I_mean
-        return types.SimpleNamespace(T=T, R=T, T_base=T, R_base=T)
-
-
 @pytest.mark.parametrize("chunk", [37, 2000])
 def test_stream_gives_the_network_the_store_wide_windows(tmp_path, chunk):
     """reconstruct_stream (chunked) hands a use_wide network each output's N wide windows exactly as the stored
     group's (load_store_group: counts over the clipped wide window / its length / exposure)."""
-    from reconstruct.groups import load_store_group
-    from reconstruct.video import ReconstructConfig, group_source, reconstruct_stream
-    from tests.reconstruct.test_windows import make_group
-
-    make_group(tmp_path / "g", seed=4, duration=0.04)
-    rec = _WideRecorder()
-    src = group_source(tmp_path / "g", chunk_steps=chunk)
-    s = reconstruct_stream(src, rec, tmp_path / "out", ReconstructConfig(video=False, chunk_steps=chunk, batch=2, tile=0, cache=False))
-    got = np.concatenate(rec.seen)
-    assert got.shape[0] == s["frames"] >= 3
-    g = load_store_group(tmp_path / "g")
+    got, _, g = _streamed(tmp_path, chunk, 4, _Recorder("I_wide", use_wide=True, wide_input=True))
     want = np.stack([g.I_wide[i - 3 : i + 4] for i in range(3, 3 + got.shape[0])])
     np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-6)
     assert float(np.abs(g.I_wide - g.I).mean()) > 0  # not the narrow windows
