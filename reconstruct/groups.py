@@ -213,10 +213,10 @@ def span_harmonic(sums: np.ndarray, phi: np.ndarray, exposure: float = 1.0) -> n
         (2, H, W) float32 (b, c).
     """
     p = 2.0 * np.asarray(phi, np.float64)
-    X = np.stack([np.ones_like(p), np.cos(p), np.sin(p)], 1)
-    G = X.T @ X + HARMONIC_RIDGE * max(p.size, 1) * np.diag([0.0, 1.0, 1.0])
     if p.size == 0:
         return np.zeros((2, *sums.shape[1:]), np.float32)
+    X = np.stack([np.ones_like(p), np.cos(p), np.sin(p)], 1)
+    G = X.T @ X + HARMONIC_RIDGE * p.size * np.diag([0.0, 1.0, 1.0])
     coef = np.linalg.solve(G, sums.reshape(3, -1)).reshape(sums.shape)
     return (coef[1:] / exposure).astype(np.float32)
 
