@@ -313,3 +313,19 @@ def test_stress_manifest_is_a_named_grid_of_regimes():
         assert not (content_keys(g.scene) & train)
         for lay in g.scene["layers"].values():
             assert lay["source"] in CONTENT_POOLS["test"]["images"] or lay["source"] == "procedural:noise"
+
+
+def test_eval_fresh_val_is_the_sampler_at_its_seed():
+    """eval_fresh_val (a second validation build, session 9): exactly `polspike dataset new` at seed 90909, 16 groups,
+    200 x 125, 0.1 s, no test split; none of its groups is a paper.toml group."""
+    from polspike.pipeline.sampler import sample_manifest_text
+
+    def body(text: str) -> str:  # from the format line on (the committed file adds its own header comments)
+        return text[text.index('format = "'):]
+
+    want = sample_manifest_text(16, 90909, name="eval_fresh_val", test_fraction=0.0, width=200, height=125, duration_s=0.1)
+    assert body((MANIFESTS_DIR / "eval_fresh_val.toml").read_text()) == body(want)
+    m = load_manifest(MANIFESTS_DIR / "eval_fresh_val.toml")
+    assert len(m.groups) == 16 and {g.split for g in m.groups} == {"train"}
+    paper = {g.seed for g in load_manifest(MANIFESTS_DIR / "paper.toml").groups} | {g.seed for g in load_manifest(MANIFESTS_DIR / "paper_val.toml").groups}
+    assert not paper & {g.seed for g in m.groups}
