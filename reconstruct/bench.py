@@ -125,32 +125,27 @@ def count_flops(model, height: int = 250, width: int = 400) -> float:
     I = 0.1 + 0.3 * torch.rand(1, model.cfg.n_obs, H, W, generator=torch.Generator().manual_seed(0))
     phi = (torch.arange(model.cfg.n_obs, dtype=torch.float32) - model.cfg.n_obs // 2)[None] * 0.55
     fc = FlopCounterMode(display=False)
-    kw = {"I_mean": 0.5 * I.mean(1)} if getattr(model.cfg, "use_mean", False) else {}  # the long spike mean's stand-in
-    if getattr(model.cfg, "use_harm", False):
-        kw["I_harm"] = 0.01 * torch.ones(1, 2, H, W)  # its first harmonic's stand-in
-    if getattr(model.cfg, "wide_input", False):
-        kw["I_wide"] = I  # the wide window's stand-in
+    from reconstruct.video import standin_inputs
+
     with torch.inference_mode(), fc:
-        model(I, phi, **kw)
+        model(I, phi, **standin_inputs(model, I))
     return float(fc.get_total_flops())
 
 
 def _frame_fps(model, height: int, width: int, frames: int, tile: int, precision: str = "float32", device: str = "cpu") -> float:
-    from reconstruct.video import run_model_on_windows
+    from reconstruct.video import run_model_on_windows, standin_inputs
 
     g = np.random.default_rng(0)
     N = model.cfg.n_obs
     I = (0.1 + 0.3 * g.random((1, N, height, width))).astype(np.float32)
     phi = ((np.arange(N) - N // 2) * np.radians(31.5))[None].astype(np.float32)
-    im = 0.5 * I.mean(1) if getattr(model.cfg, "use_mean", False) else None  # the long spike mean's stand-in
-    ih = np.full((1, 2, height, width), 0.01, np.float32) if getattr(model.cfg, "use_harm", False) else None  # its first harmonic's
-    iw = I if getattr(model.cfg, "wide_input", False) else None  # the wide window's
-    run_model_on_windows(model, I, phi, device, tile, precision=precision, I_mean=im, I_harm=ih, I_wide=iw)  # warm-up
+    kw = standin_inputs(model, I)
+    run_model_on_windows(model, I, phi, device, tile, precision=precision, **kw)  # warm-up
     best = float("inf")
     cpu = float("inf")
     for _ in range(frames):
         t0, c0 = time.perf_counter(), time.process_time()
-        run_model_on_windows(model, I, phi, device, tile, precision=precision, I_mean=im, I_harm=ih, I_wide=iw)  # returns numpy: synchronised
+        run_model_on_windows(model, I, phi, device, tile, precision=precision, **kw)  # returns numpy: synchronised
         best = min(best, time.perf_counter() - t0)
         cpu = min(cpu, time.process_time() - c0)
     _frame_fps.last_cpu_s = cpu  # CPU seconds of the best pass (all threads): robust to other processes' load

@@ -454,12 +454,11 @@ def evaluate_groups(
                 use_mean = getattr(model.cfg, "use_mean", False)
                 if use_mean and Im is None:
                     raise ConfigError(f"group {g.name}: the network takes the long spike mean, which only stored groups (spikes.h5) give; evaluate it on a built dataset")
-                Ih = np.stack([g.I_harm[i] for i in cb]) if (getattr(model.cfg, "use_harm", False) and g.I_harm is not None) else None
-                if getattr(model.cfg, "use_harm", False) and Ih is None:
-                    raise ConfigError(f"group {g.name}: the network takes the long span's first harmonic, which only stored groups (spikes.h5) and synthetic groups give")
-                use_wide = getattr(model.cfg, "wide_input", False)
-                if use_wide and g.I_wide is None:
-                    raise ConfigError(f"group {g.name}: the network takes the observations over the wide window, which only stored groups (spikes.h5) and synthetic groups give")
+                use_harm, use_wide = getattr(model.cfg, "use_harm", False), getattr(model.cfg, "wide_input", False)
+                for need, have, what in ((use_harm, g.I_harm, "the long span's first harmonic"), (use_wide, g.I_wide, "the observations over the wide window")):
+                    if need and have is None:
+                        raise ConfigError(f"group {g.name}: the network takes {what}, which only stored groups (spikes.h5) and synthetic groups give")
+                Ih = np.stack([g.I_harm[i] for i in cb]) if use_harm else None
                 Iwd = np.stack([g.I_wide[i - K : i + K + 1] for i in cb]) if use_wide else None
                 o = run_model_on_windows(model, raw.float().cpu().numpy(), Pw.float().cpu().numpy(), device=next(model.parameters()).device, tile=cfg.net_tile, zeta=zn, I_mean=Im if use_mean else None, I_harm=Ih, I_wide=Iwd)
                 est[net_rows[0]] = (o["T"], o["R"])

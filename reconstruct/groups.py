@@ -33,7 +33,7 @@ from polinfra.errors import DataFormatError
 
 from reconstruct.zeta_source import PaneMaps
 
-__all__ = ["EvalGroup", "list_groups", "load_store_group", "window_steps_from_ms", "spike_mean_frames", "SpikeMeanSums", "SPIKE_MEAN_MS", "spike_mean_steps", "spike_mean_span", "span_harmonic", "HARMONIC_RIDGE", "wide_window_steps", "wide_frames"]
+__all__ = ["EvalGroup", "list_groups", "load_store_group", "window_steps_from_ms", "spike_mean_frames", "SpikeMeanSums", "SPIKE_MEAN_MS", "spike_mean_steps", "spike_mean_span", "span_harmonic", "HARMONIC_RIDGE", "wide_window_steps", "window_means", "harmonic_design"]
 
 log = logging.getLogger(__name__)
 
@@ -72,7 +72,7 @@ class EvalGroup:
     frame (clipped to the stream), the "doing nothing" baseline of issue 16 (2 x it estimates T + zbar (R - T))"""
     I_wide: np.ndarray | None = None
     """(M, H, W) Eq. (3) frames at the same centres over the wide window (:func:`wide_window_steps`: the whole
-    stride, so the N windows of an output tile its span), radiance units; a ``use_wide`` network's input"""
+    stride, so the N windows of an output tile its span), radiance units; read by a network with ``NetConfig.wide_input``"""
     I_harm: np.ndarray | None = None
     """(M, 2, H, W) the first harmonic (cos 2 phi, sin 2 phi) of the spikes over the same spans, radiance units
     (:func:`span_harmonic`; a ``use_harm`` network's input)"""
@@ -92,15 +92,22 @@ def wide_window_steps(rate_hz: float, rev_per_s: float, stride_deg: float) -> in
     return max(1, s if s % 2 else s - 1)
 
 
-def wide_frames(read, centres: np.ndarray, steps: int, n_steps: int, exposure: float) -> np.ndarray:
-    """Spikes per step / exposure over ``steps`` (odd) steps centred on each of ``centres``, clipped to a stream of
-    ``n_steps`` (the count divided by the clipped length): ``read(n0, n1)`` returns the (n1 - n0, H, W) spikes."""
-    h = steps // 2
-    out = []
+def window_means(read, centres: np.ndarray, widths: tuple[int, ...], n_steps: int, exposure: float) -> tuple[np.ndarray, ...]:
+    """For each odd width in ``widths``: spikes per step / exposure over that many steps centred on each of ``centres``,
+    clipped to a stream of ``n_steps`` (the count divided by the clipped length): paper Eq. (3) frames at the 0.65 ms
+    window and the wide window alike.  ``read(n0, n1)`` returns the (n1 - n0, H, W) spikes; each centre's widest
+    span is read once and the narrower windows are its centre slices."""
+    halves = [int(w) // 2 for w in widths]
+    reach = max(halves)
+    out: list[list[np.ndarray]] = [[] for _ in widths]
     for c in np.asarray(centres, np.int64):
-        lo, hi = max(0, int(c) - h), min(n_steps, int(c) + h + 1)
-        out.append(read(lo, hi).sum(0, dtype=np.int32) / np.float32(max(hi - lo, 1) * exposure))
-    return np.asarray(out, np.float32)
+        c = int(c)
+        lo0 = max(0, c - reach)
+        part = read(lo0, min(n_steps, c + reach + 1))
+        for o, h in zip(out, halves):
+            lo, hi = max(0, c - h), min(n_steps, c + h + 1)
+            o.append(part[lo - lo0 : hi - lo0].sum(0, dtype=np.int32) / np.float32(max(hi - lo, 1) * exposure))
+    return tuple(np.asarray(o, np.float32) for o in out)
 
 
 def spike_mean_steps(rate_hz: float) -> int:
@@ -147,8 +154,7 @@ class SpikeMeanSums:
             return
         for a in range(0, part.shape[0], 256):  # bounded float32 copies
             q = part[a : a + 256]
-            p = 2.0 * self.phi[s0 + a : s0 + a + q.shape[0]]
-            X = np.stack([np.ones_like(p), np.cos(p), np.sin(p)]).astype(np.float32)  # (3, t)
+            X = harmonic_design(self.phi[s0 + a : s0 + a + q.shape[0]]).astype(np.float32)
             self.acc += np.tensordot(X, q.astype(np.float32), axes=(1, 0))
 
     def feed(self, s0: int, chunk: np.ndarray) -> None:
@@ -196,6 +202,13 @@ class SpikeMeanSums:
         return span_harmonic(d, self.phi[lo:hi], exposure)
 
 
+def harmonic_design(phi: np.ndarray) -> np.ndarray:
+    """(3, t) rows 1, cos 2 phi, sin 2 phi of per-step angles ``phi`` (radians): the first-harmonic design whose
+    products with a span's spikes :func:`span_harmonic` takes."""
+    p = 2.0 * np.asarray(phi, np.float64)
+    return np.stack([np.ones_like(p), np.cos(p), np.sin(p)])
+
+
 HARMONIC_RIDGE = 1e-6
 """Ridge (relative to the span's steps) on the cos / sin coefficients of :func:`span_harmonic`: a span too short to
 see the harmonic (a still polarizer) gets b = c = 0."""
@@ -212,11 +225,10 @@ def span_harmonic(sums: np.ndarray, phi: np.ndarray, exposure: float = 1.0) -> n
     Returns:
         (2, H, W) float32 (b, c).
     """
-    p = 2.0 * np.asarray(phi, np.float64)
-    if p.size == 0:
+    X = harmonic_design(phi)
+    if X.shape[1] == 0:
         return np.zeros((2, *sums.shape[1:]), np.float32)
-    X = np.stack([np.ones_like(p), np.cos(p), np.sin(p)], 1)
-    G = X.T @ X + HARMONIC_RIDGE * p.size * np.diag([0.0, 1.0, 1.0])
+    G = X @ X.T + HARMONIC_RIDGE * X.shape[1] * np.diag([0.0, 1.0, 1.0])
     coef = np.linalg.solve(G, sums.reshape(3, -1)).reshape(sums.shape)
     return (coef[1:] / exposure).astype(np.float32)
 
@@ -340,9 +352,8 @@ def load_store_group(
         h = cfg.half
         csum = np.concatenate([[0.0], np.cumsum(phi_tr)])
         phi_t = (csum[c + h + 1] - csum[c - h]) / window_steps
-        I = np.zeros((c.size, g.height, g.width), np.float32)
-        for m, cc in enumerate(c):
-            I[m] = g.read(cc - h, cc + h + 1).sum(0, dtype=np.int32) / np.float32(window_steps * exposure)  # Eq. (3)
+        # Eq. (3) frames and the wide windows at the same centres, each centre's spikes read once
+        I, I_wide = window_means(g.read, c, (window_steps, wide_window_steps(g.rate_hz, pol_rate, stride_deg)), g.n_steps, exposure)
         has = np.zeros(c.size, bool)
         T = R = Z = None
         if g.has("output/step_index") and g.has("gt/T"):
@@ -360,7 +371,6 @@ def load_store_group(
                 log.warning("%s: no frame centre matches a stored GT output step; choose the group's own stride/window", path)
         span_mean = spike_mean_steps(g.rate_hz)
         I_mean, I_harm = spike_mean_frames(g, c, span_mean, exposure, harmonic=True)
-        I_wide = wide_frames(g.read, c, wide_window_steps(g.rate_hz, pol_rate, stride_deg), g.n_steps, exposure)
         mp = g.maps()
         maps = None
         if {"R_perp", "R_par", "phi_perp"} <= set(mp):

@@ -416,7 +416,7 @@ class PolSpikeNet(nn.Module):
             I_harm: (B, 2, H, W) the first harmonic (cos 2 phi, sin 2 phi) of the spikes over I_mean's span, radiance
                 units; required by a ``use_harm`` network, ignored otherwise.
             I_wide: (B, N, H, W) the observations over the wide window (same centres and angles as ``I``), radiance
-                units; required by a ``use_wide`` network, ignored otherwise.  Its solver takes zeta as given for
+                units; required where ``NetConfig.wide_input`` (use_wide, t_level_px, r_level_from = wide), ignored otherwise.  Its solver takes zeta as given for
                 the narrow windows (the wide window's averaging lowers zeta's modulation by ~5 % at 57 steps).
 
         Returns:

@@ -15,7 +15,7 @@ reads a stored group:
 ``exposure``  ()        float32  thresholds per step per unit radiance of the stream
 ``I_mean``    (H, W)    float32  only with ``WindowConfig.mean_steps``: spikes per step / exposure over that many
                                  steps centred on the output frame (the long spike mean, a use_mean network's input)
-``I_wide``    (N, H, W) float32  with ``WindowConfig.wide_steps``: the observations over the wide window (a use_wide network's input)
+``I_wide``    (N, H, W) float32  with ``WindowConfig.wide_steps``: the observations over the wide window (the input of a network with NetConfig.wide_input)
 ``I_harm``    (2, H, W) float32  with ``I_mean``: the first harmonic (cos 2 phi, sin 2 phi) of the same span's spikes
                                  at the nominal angles (:func:`reconstruct.groups.span_harmonic`; a use_harm network's input)
 
@@ -39,7 +39,7 @@ import torch
 from polinfra.config import opt
 from polinfra.errors import ConfigError, ShapeError
 
-from reconstruct.groups import span_harmonic, spike_mean_span, wide_frames
+from reconstruct.groups import harmonic_design, span_harmonic, spike_mean_span, window_means
 from reconstruct.symmetry import angle_map, symmetry_harmonic, symmetry_image
 
 __all__ = ["WindowConfig", "ITEM_KEYS", "WindowSource", "window_centres", "item_from_stream", "OnTheFlyWindows", "flip_item"]
@@ -62,7 +62,7 @@ class WindowConfig:
     exposure_source: str = opt("range", "on-the-fly: range = exposure drawn from exposure_range; group = the manifest group's own exposure (its light level) times a log-uniform factor in exposure_jitter", choices=("range", "group"))
     exposure_jitter: tuple[float, float] = opt((1.0, 1.0), "on-the-fly, exposure_source = group: range of the log-uniform factor on the group's exposure", lo=1e-3, hi=1000.0)
     mean_steps: int = opt(0, "steps of the long spike mean I_mean given to a use_mean network, centred on the output frame (350 = 17.5 ms at 20 kHz, about half a polarizer turn); 0 = none", lo=0, hi=100001)
-    wide_steps: int = opt(0, "also give each item its N observations over the wide window of this many steps (odd; 57 = the whole 31.5 deg stride at 20 kHz and 30 rev/s, reconstruct.groups.wide_window_steps): a use_wide network's input I_wide; 0 = none", lo=0, hi=10001)
+    wide_steps: int = opt(0, "also give each item its N observations over the wide window of this many steps (odd; 57 = the whole 31.5 deg stride at 20 kHz and 30 rev/s, reconstruct.groups.wide_window_steps): the input I_wide of a network with NetConfig.wide_input; 0 = none", lo=0, hi=10001)
     assumed_n: float = opt(0.0, "also give each item the window's zeta under an assumed glass of this index (the self-calibration's prior, 1.5) for each pane model it can assume, zeta_a_single and zeta_a_thin_slab (paper Eq. (2) from the maps' theta and phi_perp): training for the errors of --zeta self, whose index and model are assumed where the spikes do not identify them; 0 = off", lo=0.0, hi=4.0)
     flips: bool = opt(False, "on-the-fly: random mirror / transpose of each item (one of the 8 symmetries of the square crop; polarizer and phi_perp angles mirrored with the image, so the physics stays exact)")
 
@@ -168,13 +168,12 @@ def item_from_stream(
             co = pane_coefficients(th, cfg.assumed_n, model=model)
             item[f"zeta_a_{model}"] = _t(eq2(np.asarray(co["R_perp"], np.float64), np.asarray(co["R_par"], np.float64)))
     if cfg.wide_steps:  # the same observations over the wide window, clipped to the stream
-        item["I_wide"] = _t(wide_frames(lambda a, b: spikes[a:b], ck, cfg.wide_steps, spikes.shape[0], exposure))
+        item["I_wide"] = _t(window_means(lambda a, b: spikes[a:b], ck, (cfg.wide_steps,), spikes.shape[0], exposure)[0])
     if cfg.mean_steps:  # the long spike mean around the centre frame, clipped to the stream
         a, b = (int(v) for v in spike_mean_span(int(ck[len(ck) // 2]), cfg.mean_steps, spikes.shape[0]))
         item["I_mean"] = _t(spikes[a:b].sum(0, dtype=np.int64) / ((b - a) * exposure))
-        p2 = 2.0 * phi_nom[a:b]  # the span's first harmonic at the nominal angles, as a stored group's (I_harm)
-        X = np.stack([np.ones_like(p2), np.cos(p2), np.sin(p2)])
-        item["I_harm"] = _t(span_harmonic(np.tensordot(X, spikes[a:b].astype(np.float64), axes=(1, 0)), phi_nom[a:b], exposure))
+        sums = np.tensordot(harmonic_design(phi_nom[a:b]), spikes[a:b].astype(np.float64), axes=(1, 0))
+        item["I_harm"] = _t(span_harmonic(sums, phi_nom[a:b], exposure))  # the span's first harmonic, as a stored group's
     return item
 
 

@@ -124,6 +124,15 @@ def collate(items: list[dict[str, torch.Tensor]]) -> dict[str, torch.Tensor]:
     return {k: torch.stack([it[k] for it in items]) for k in sorted(keys) if isinstance(items[0][k], torch.Tensor)}
 
 
+SPAN_KEYS = ("I_mean", "I_harm", "I_wide")
+"""Batch keys of the long span a network may read beside its windows (:class:`reconstruct.network.PolSpikeNet`)."""
+
+
+def span_inputs(b: dict[str, torch.Tensor], device) -> dict[str, torch.Tensor]:
+    """The :data:`SPAN_KEYS` a batch carries, on ``device``, as keyword inputs of the network."""
+    return {k: b[k].to(device) for k in SPAN_KEYS if k in b}
+
+
 def _device(name: str) -> torch.device:
     if name == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
@@ -170,14 +179,12 @@ def evaluate_model(model: PolSpikeNet, dataset, batch_size: int = 8, device: tor
     for s in range(0, len(dataset), batch_size):
         b = collate([dataset[i] for i in range(s, min(len(dataset), s + batch_size))])
         I, phi, T, R, z = (b[k].to(device) for k in ("I", "phi", "T", "R", "zeta"))
-        Im = b["I_mean"].to(device) if "I_mean" in b else None
-        Ih = b["I_harm"].to(device) if "I_harm" in b else None
-        Iw = b["I_wide"].to(device) if "I_wide" in b else None
-        out = model(I, phi, I_mean=Im, I_harm=Ih, I_wide=Iw)
+        span = span_inputs(b, device)
+        out = model(I, phi, **span)
         orc = solve("rwps", z, I, None, model.solver_cfg_in)
         ests = {"T": out.T, "T_base": out.T_base, "T_oracle": orc.T, "T_tfp": 2.0 * I.mean(1), "R": out.R, "R_base": out.R_base, "R_oracle": orc.R}
         if forced:
-            fo = model(I, phi, zeta_gt=z, alpha=1.0, I_mean=Im, I_harm=Ih, I_wide=Iw)
+            fo = model(I, phi, zeta_gt=z, alpha=1.0, **span)
             ests.update({"T_forced": fo.T, "R_forced": fo.R})
         zc = z[:, z.shape[1] // 2]
         share = zc * R / (zc * R + (1 - zc) * T + 1e-6)
@@ -459,7 +466,7 @@ def train(
                     shape = torch.exp(cfg.zeta_shape_jitter * torch.randn(I.shape[0], generator=g)).to(dev)
                 if cfg.assumed_prob > 0:  # drawn last, for the same reason
                     feed, scale = assumed_glass_feed(b, z, scale, cfg, g)
-        out = model(I, phi, zeta_gt=z, alpha=alpha, I_mean=b["I_mean"].to(dev) if "I_mean" in b else None, I_harm=b["I_harm"].to(dev) if "I_harm" in b else None, I_wide=b["I_wide"].to(dev) if "I_wide" in b else None, zeta_scale=scale, zeta_shape=shape, zeta_feed=feed)
+        out = model(I, phi, zeta_gt=z, alpha=alpha, **span_inputs(b, dev), zeta_scale=scale, zeta_shape=shape, zeta_feed=feed)
         loss, parts = total_loss(out, T, R, alpha, cfg.loss)
         if not math.isfinite(parts["loss"]):
             raise FloatingPointError(f"non-finite loss at step {step}: {parts}")

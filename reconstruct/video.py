@@ -47,7 +47,7 @@ from polinfra.errors import ConfigError, DataFormatError
 
 from reconstruct.groups import SpikeMeanSums, spike_mean_steps, wide_window_steps
 
-__all__ = ["DISPLAY_CLIP_FRACTION", "DisplayHistogram", "display_gain", "ReconstructConfig", "SpikeSource", "FeatureCache", "auto_tile", "dat_source", "group_source", "reconstruct_stream", "run_model_on_windows"]
+__all__ = ["DISPLAY_CLIP_FRACTION", "DisplayHistogram", "display_gain", "ReconstructConfig", "SpikeSource", "FeatureCache", "auto_tile", "dat_source", "group_source", "reconstruct_stream", "run_model_on_windows", "standin_inputs"]
 
 log = logging.getLogger(__name__)
 
@@ -183,7 +183,7 @@ def run_model_on_windows(model, I: np.ndarray, phi: np.ndarray, device: str | to
     ``I_mean``: optional (B, H, W) long spike mean around each window's centre frame, passed on as
     ``model(..., I_mean=...)`` (required by a ``use_mean`` network), tiled like the frames; ``I_harm``: likewise
     the (B, 2, H, W) first harmonic of the same spans (a ``use_harm`` network); ``I_wide``: the (B, N, H, W)
-    observations over the wide window (a ``use_wide`` network), tiled like the frames.
+    observations over the wide window (a network with ``cfg.wide_input``), tiled like the frames.
     """
     dev = torch.device(device)
     x = torch.as_tensor(I, dtype=torch.float32, device=dev)
@@ -518,9 +518,9 @@ def reconstruct_stream(
     half = agg.half
     t0 = time.perf_counter()
     frames_I: deque[np.ndarray] = deque(maxlen=N)
-    use_wide = bool(getattr(model.cfg, "wide_input", False))
+    wide = bool(getattr(model.cfg, "wide_input", False))
     n_total = source.phi_step_rad.size
-    wide_half = wide_window_steps(source.rate_hz, source.polarizer_rev_s, cfg.stride_deg) // 2 if use_wide else 0
+    wide_half = wide_window_steps(source.rate_hz, source.polarizer_rev_s, cfg.stride_deg) // 2 if wide else 0
     reach = max(half, wide_half)  # steps a frame needs on each side of its centre
     frames_W: deque[np.ndarray] = deque(maxlen=N)
     pending: list[tuple[np.ndarray, np.ndarray]] = []
@@ -544,7 +544,7 @@ def reconstruct_stream(
         ph = np.stack([p[1] for p in pending])
         im = np.stack([p[3] for p in pending]) if prefix is not None else None
         ih = np.stack([p[4] for p in pending]) if use_harm else None
-        iw = np.stack([p[5] for p in pending]) if use_wide else None
+        iw = np.stack([p[5] for p in pending]) if wide else None
         if cache is not None:
             res = cache.run(I, ph, np.stack([p[2] for p in pending]), I_mean=im, I_harm=ih, I_wide=iw)
         else:
@@ -573,7 +573,7 @@ def reconstruct_stream(
             while next_c < centres.size and min(int(centres[next_c]) + reach, n_total - 1) < b1 and done + len(pending) < n_out:
                 c = int(centres[next_c]) - b0
                 frames_I.append(buf[c - half : c + half + 1].sum(0, dtype=np.int32).astype(np.float32) / (cfg.window_steps * exposure))  # Eq. (3), radiance units
-                if use_wide:  # the wide window, clipped to the stream as a stored group's (reconstruct.groups.wide_frames)
+                if wide:  # the wide window, clipped to the stream as a stored group's (reconstruct.groups.window_means)
                     lo, hi = max(0, c + b0 - wide_half), min(n_total, c + b0 + wide_half + 1)
                     frames_W.append(buf[lo - b0 : hi - b0].sum(0, dtype=np.int32).astype(np.float32) / np.float32(max(hi - lo, 1) * exposure))
                 next_c += 1
@@ -581,7 +581,7 @@ def reconstruct_stream(
                     j = next_c - 1 - K
                     hj = prefix.harmonic(j, exposure) if use_harm else None  # before mean(j), which frees older sums
                     pending.append((np.stack(frames_I), phi_i[next_c - N : next_c], np.arange(next_c - N, next_c), prefix.mean(j, exposure) if prefix is not None else None, hj,
-                                    np.stack(frames_W) if use_wide else None))
+                                    np.stack(frames_W) if wide else None))
                     if len(pending) >= cfg.batch:
                         flush(writers)
             if done + len(pending) >= n_out:
@@ -616,6 +616,21 @@ def reconstruct_stream(
     return summary
 
 
+def standin_inputs(model, I) -> dict[str, Any]:
+    """Keyword inputs of the long span a network reads (``I_mean``, ``I_harm``, ``I_wide``), made up from its windows
+    ``I`` (B, N, H, W), numpy or torch alike, for timing and FLOP counts (the content does not change the cost)."""
+    cfg = getattr(model, "cfg", None)
+    kw: dict[str, Any] = {}
+    if getattr(cfg, "use_mean", False):
+        kw["I_mean"] = 0.5 * I.mean(1)
+    if getattr(cfg, "use_harm", False):
+        shape = (I.shape[0], 2, *I.shape[2:])
+        kw["I_harm"] = I.new_full(shape, 0.01) if torch.is_tensor(I) else np.full(shape, 0.01, np.float32)
+    if getattr(cfg, "wide_input", False):
+        kw["I_wide"] = I
+    return kw
+
+
 def bench_full_network(model, height: int = 250, width: int = 400, frames: int = 2, device: str | torch.device = "cpu", tile: int = 128, seed: int = 0) -> dict[str, Any]:
     """Output frames per second of the full network (RWPS + both branches) at height x width.
 
@@ -626,11 +641,7 @@ def bench_full_network(model, height: int = 250, width: int = 400, frames: int =
     N = model.cfg.n_obs
     I = (0.1 + 0.3 * g.random((1, N, height, width))).astype(np.float32)
     phi = (np.arange(N, dtype=np.float32) - N // 2)[None] * np.float32(math.radians(31.5))
-    kw = {"I_mean": 0.5 * I.mean(1)} if getattr(model.cfg, "use_mean", False) else {}  # the long span's stand-ins
-    if getattr(model.cfg, "use_harm", False):
-        kw["I_harm"] = np.full((1, 2, height, width), 0.01, np.float32)
-    if getattr(model.cfg, "wide_input", False):
-        kw["I_wide"] = I
+    kw = standin_inputs(model, I)
     run_model_on_windows(model, I, phi, device, tile, **kw)
     if str(device).startswith("cuda"):
         torch.cuda.synchronize()

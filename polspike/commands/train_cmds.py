@@ -229,7 +229,7 @@ def heldout_mean_steps() -> int:
 
 
 def heldout_wide_steps() -> int:
-    """Steps of the wide window a ``use_wide`` network is given in the held-out windows (as trained: the default
+    """Steps of the wide window a network with ``wide_input`` is given in the held-out windows (as trained: the default
     sensor's rate, 30 rev/s, 31.5 deg; 57 at 20 kHz)."""
     from reconstruct.groups import wide_window_steps
     from spike_sim.config import preset
@@ -247,7 +247,7 @@ def heldout_test_set(crop: int = 64, items: int = 96, seed: int = 20_000, manife
 
     ``light``: "range" = the exposure drawn from the default range (the shipped v1/v2 scores), "group" = each manifest
     group's own sensor and light level (paper.toml's dim-to-bright range).  ``mean_steps``: also the long spike mean
-    (a ``use_mean`` network's input); ``wide_steps``: also the wide windows (a ``use_wide`` network's).
+    (a ``use_mean`` network's input); ``wide_steps``: also the wide windows (a network with ``wide_input``).
     """
     from polinfra.errors import ConfigError
     from polspike.pipeline.train_windows import GeneratorWindows, manifest_scenes, scene_pool

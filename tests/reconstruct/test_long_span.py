@@ -274,12 +274,14 @@ def test_wide_window_is_the_largest_odd_count_within_a_stride():
     assert wide_window_steps(20000.0, 0.0, 31.5) == 1  # a still polarizer: no stride to fill
 
 
-def test_wide_frames_are_the_clipped_window_means():
-    from reconstruct.groups import wide_frames
+def test_window_means_are_the_clipped_window_means_at_every_width():
+    from reconstruct.groups import window_means
 
     rng = np.random.default_rng(5)
     spikes = (rng.random((300, 3, 4)) < 0.3).astype(np.uint8)
-    got = wide_frames(lambda a, b: spikes[a:b], np.array([10, 150, 295]), 57, 300, 0.5)
+    got, narrow = window_means(lambda a, b: spikes[a:b], np.array([10, 150, 295]), (57, 13), 300, 0.5)
+    np.testing.assert_allclose(narrow[1], spikes[144:157].sum(0) / (13 * 0.5), rtol=1e-6)  # the same centre's narrow window
+    np.testing.assert_allclose(narrow[0], spikes[4:17].sum(0) / (13 * 0.5), rtol=1e-6)
     np.testing.assert_allclose(got[0], spikes[0:39].sum(0) / (39 * 0.5), rtol=1e-6)  # clipped at the start
     np.testing.assert_allclose(got[1], spikes[122:179].sum(0) / (57 * 0.5), rtol=1e-6)
     np.testing.assert_allclose(got[2], spikes[267:300].sum(0) / (33 * 0.5), rtol=1e-6)  # and at the end
