@@ -76,6 +76,11 @@ class EvalGroup:
     I_harm: np.ndarray | None = None
     """(M, 2, H, W) the first harmonic (cos 2 phi, sin 2 phi) of the spikes over the same spans, radiance units
     (:func:`span_harmonic`; a ``use_harm`` network's input)"""
+    exposure: float | None = None
+    """the stream's exposure (spikes per step per unit radiance; I x exposure = spikes per step), when known"""
+    span_steps: int | None = None
+    """steps of I_mean's span (:func:`spike_mean_steps`), when known; with ``exposure``, the span's noise and
+    saturation a ``span_level`` network weighs"""
 
 
 SPIKE_MEAN_MS = 17.5
@@ -392,4 +397,6 @@ def load_store_group(
             I_mean=I_mean,
             I_harm=I_harm,
             I_wide=I_wide,
+            exposure=exposure,
+            span_steps=span_mean,
         )

@@ -53,7 +53,7 @@ import torch.nn.functional as F
 from polinfra.config import opt
 from polinfra.errors import ConfigError, ShapeError
 
-from reconstruct.solvers import SolverConfig, anchor_to_mean, long_span_separation, solve, zbar_of
+from reconstruct.solvers import SolverConfig, anchor_to_mean, gaussian_kernel, long_span_separation, separable_blur, solve, span_blend, span_weights, zbar_of
 from reconstruct.symmetry import symmetry_angles, symmetry_harmonic, symmetry_image
 
 __all__ = ["NetConfig", "NetOutput", "AngleAttention", "ParameterBranch", "LowResParameterBranch", "Refinement", "window_scale", "PolSpikeNet", "count_parameters", "init_weights", "predict_parameters", "SYMMETRY_CODES", "check_ensemble_size", "SymmetryEnsemble"]
@@ -92,6 +92,9 @@ class NetConfig:
     t_level_px: float = opt(0.0, "T's level from the wide windows' anchored physics: T += G_s * (T_wide - T_base), G_s a Gaussian blur of this sigma in pixels (0 = off; the network then reads I_wide; needs use_mean): the refinement follows its base's low frequencies, whose noise the wide windows' ~4x spikes lower; no weights, only inference", lo=0.0, hi=256.0)
     r_level_from: str = opt("base", "where r_level_px takes R's level: base (the anchored physics on the N windows) | wide (the same on the wide windows, ~4x the spikes; the network then reads I_wide)", choices=("base", "wide"))
     r_level_px: float = opt(0.0, "R's level from the base, its structure from the refinement: R = R_ref + G_s * (R_base - R_ref), G_s a Gaussian blur of this sigma in pixels (0 = off, the refined R). The refinement shrinks R's level where the spikes do not identify it; the base (the anchored physics with base = anchored) keeps it; no weights, only inference", lo=0.0, hi=256.0)
+    span_level: bool = opt(False, "D = R - T toward the long span's first harmonic where the span identifies it (reconstruct.solvers.span_blend with span_weights: inverse-variance, saturated pixels left out), keeping the long mean: every spike of 17.5 ms for the difference the refinement's spikes leave noisy or biased. Applied on an external zeta only (self-calibrated or given, fed with alpha = 1), never on the learned per-window zeta, whose orientation nothing checks over the span; the network then reads I_harm and needs the stream's exposure and span length; no weights, only inference; needs use_mean")
+    span_level_px: float = opt(2.0, "span_level: sigma in pixels of the normalised convolution of the span's correction (0 = per pixel)", lo=0.0, hi=256.0)
+    span_level_tol: float = opt(0.5, "span_level: the error of the refined D (radiance units) the span's noise is weighed against: its gain is tol^2 / (tol^2 + var)", lo=1e-6, hi=1e6)
     span_rad: float = opt(math.radians(7.02), "polarizer rotation inside one aggregation window (0.65 ms at 30 rev/s), rad; recorded with the weights, not used by the layers", lo=0.0, hi=math.pi)
 
     @property
@@ -99,6 +102,12 @@ class NetConfig:
         """Whether the network reads the wide windows ``I_wide``: as refinement inputs (``use_wide``) or for T's / R's
         levels (``t_level_px``, ``r_level_from = wide``)."""
         return bool(self.use_wide or self.t_level_px > 0 or self.r_level_from == "wide")
+
+    @property
+    def harm_input(self) -> bool:
+        """Whether the network reads the long span's first harmonic ``I_harm``: as refinement inputs (``use_harm``) or
+        for D's level (``span_level``, which also needs the stream's exposure and span length)."""
+        return bool(self.use_harm or self.span_level)
 
 
 @dataclasses.dataclass
@@ -389,6 +398,8 @@ class PolSpikeNet(nn.Module):
         zeta_feed: torch.Tensor | None = None,
         I_harm: torch.Tensor | None = None,
         I_wide: torch.Tensor | None = None,
+        exposure: float | None = None,
+        span_steps: int | None = None,
     ) -> NetOutput:
         """Reconstruct the centre frame of each window.
 
@@ -418,6 +429,8 @@ class PolSpikeNet(nn.Module):
             I_wide: (B, N, H, W) the observations over the wide window (same centres and angles as ``I``), radiance
                 units; required where ``NetConfig.wide_input`` (use_wide, t_level_px, r_level_from = wide), ignored otherwise.  Its solver takes zeta as given for
                 the narrow windows (the wide window's averaging lowers zeta's modulation by ~5 % at 57 steps).
+            exposure, span_steps: the stream's exposure (spikes per step per unit radiance) and the number of steps of
+                I_mean's span; required by a ``span_level`` network (the span's noise and saturation), ignored otherwise.
 
         Returns:
             :class:`NetOutput`.
@@ -491,8 +504,8 @@ class PolSpikeNet(nn.Module):
                     Rlev = Rw
             if self.cfg.base == "anchored":
                 Tb, Rb = Ta, Ra
-        elif self.cfg.base == "anchored" or self.cfg.use_harm or self.cfg.wide_input:
-            raise ShapeError("base = anchored, use_harm, use_wide, t_level_px and r_level_from = wide need a use_mean network (the anchor is the long spike mean)", actual_shape=None, expected_shape="use_mean = true")
+        elif self.cfg.base == "anchored" or self.cfg.harm_input or self.cfg.wide_input:
+            raise ShapeError("base = anchored, use_harm, use_wide, t_level_px, r_level_from = wide and span_level need a use_mean network (the anchor is the long spike mean)", actual_shape=None, expected_shape="use_mean = true")
         x = torch.stack(ch, 1)
         dT, dR = self.refine(x)
         R = Rb + dR
@@ -502,6 +515,17 @@ class PolSpikeNet(nn.Module):
         T = Tb + dT
         if self.cfg.t_level_px > 0:
             T = T + gaussian_blur(Tw - Tb, self.cfg.t_level_px)
+        if self.cfg.span_level and zeta_gt is not None and alpha >= 1.0:  # on an external zeta only (self-calibrated or given):
+            # the span's D is as right as zeta's orientation over the whole span, which the learned per-window zeta does not check
+            if I_harm is None or I_harm.shape != (I_c.shape[0], 2, *I_c.shape[1:]):
+                raise ShapeError(f"a span_level network needs I_harm {(I_c.shape[0], 2, *I_c.shape[1:])} (the long span's first harmonic)", actual_shape=None if I_harm is None else tuple(I_harm.shape), expected_shape=(I_c.shape[0], 2, *I_c.shape[1:]))
+            if exposure is None or span_steps is None:
+                raise ShapeError("a span_level network needs the stream's exposure and span_steps (the span's noise and saturation)", actual_shape=None, expected_shape="exposure, span_steps")
+            with torch.no_grad():  # inference only, like the other levels' inputs
+                peak = I.max(1).values if I_wide is None else torch.maximum(I.max(1).values, I_wide.float().max(1).values)
+                zs = zeta_used.detach()
+                wsp = span_weights(I_mean, zs, phi, exposure, span_steps, I_peak=peak)
+                T, R = span_blend(T, R, I_mean, I_harm, zs, phi, wsp, self.cfg.span_level_px, self.cfg.span_level_tol)
         return NetOutput(T=T, R=R, T_base=T0, R_base=R0, zeta_hat=zeta_hat, zeta_used=zeta_used, weights=w, conf=res.conf, res=resid, I=I, zeta_gt=zeta_gt)
 
 
@@ -512,17 +536,9 @@ def gaussian_radius(sigma: float) -> int:
 
 def gaussian_blur(x: torch.Tensor, sigma: float) -> torch.Tensor:
     """Separable Gaussian blur of (B, H, W) maps (kernel radius :func:`gaussian_radius`, reflected borders; replicated
-    where the map is narrower than the radius)."""
-    r = gaussian_radius(sigma)
-    t = torch.arange(-r, r + 1, dtype=x.dtype, device=x.device)
-    k = torch.exp(-0.5 * (t / sigma) ** 2)
-    k = k / k.sum()
-    y = x.unsqueeze(1)
-    H, W = x.shape[-2:]
-    mode = "reflect" if (H > r and W > r) else "replicate"
-    y = F.conv2d(F.pad(y, (r, r, 0, 0), mode=mode), k.view(1, 1, 1, -1))
-    y = F.conv2d(F.pad(y, (0, 0, r, r), mode=mode), k.view(1, 1, -1, 1))
-    return y.squeeze(1)
+    where the map is narrower than the radius): :func:`reconstruct.solvers.separable_blur` with
+    :func:`reconstruct.solvers.gaussian_kernel`."""
+    return separable_blur(x, gaussian_kernel(sigma, x.dtype, x.device))
 
 
 def count_parameters(model: nn.Module) -> int:

@@ -84,15 +84,22 @@ solution, or 0 when every weight is zero.
 from __future__ import annotations
 
 import dataclasses
+import math
 
 import numpy as np
 import torch
+import torch.nn.functional as F
 
 from polinfra.config import opt
 from polinfra.errors import ConfigError, ShapeError
 
 __all__ = [
     "SOLVERS",
+    "SPAN_SATURATION",
+    "span_weights",
+    "span_blend",
+    "separable_blur",
+    "gaussian_kernel",
     "anchor_to_mean",
     "harmonic_of",
     "long_span_separation",
@@ -484,6 +491,87 @@ def long_span_separation(I_mean, I_harm, zeta, phi, floor: float = HARMONIC_FLOO
     D = 2.0 * (I_harm[:, 0] * b + I_harm[:, 1] * c) / (b * b + c * c + floor)
     T = 2.0 * I_mean - a * D
     return T, T + D
+
+
+SPAN_SATURATION = 0.97
+"""Spikes per step at or above which a pixel counts as saturated in :func:`span_weights`: a spike-camera pixel fires
+at most once per step, so a window or span near that rate clips the light and its harmonic (the modulation is flattened
+where the light is brightest); such pixels get no weight."""
+
+
+def gaussian_kernel(sigma: float, dtype=torch.float64, device=None) -> torch.Tensor:
+    """Normalised 1-D Gaussian of ``sigma`` pixels on a radius of 3 sigma (at least 1 pixel)."""
+    r = max(1, int(math.ceil(3.0 * sigma)))
+    t = torch.arange(-r, r + 1, dtype=dtype, device=device)
+    k = torch.exp(-0.5 * (t / sigma) ** 2)
+    return k / k.sum()
+
+
+def separable_blur(x: torch.Tensor, k: torch.Tensor) -> torch.Tensor:
+    """(B, H, W) maps convolved with the separable kernel k (x) k (odd length), reflected borders (replicated where
+    the map is narrower than the kernel's radius)."""
+    r = k.numel() // 2
+    H, W = x.shape[-2:]
+    mode = "reflect" if (H > r and W > r) else "replicate"
+    y = x.unsqueeze(1)
+    k = k.to(x.dtype)
+    y = F.conv2d(F.pad(y, (r, r, 0, 0), mode=mode), k.view(1, 1, 1, -1))
+    y = F.conv2d(F.pad(y, (0, 0, r, r), mode=mode), k.view(1, 1, -1, 1))
+    return y.squeeze(1)
+
+
+def span_weights(I_mean, zeta, phi, exposure: float, span_steps: int, I_peak=None):
+    """Inverse variance of the long span's difference D = R - T (:func:`long_span_separation`) per pixel, (B, H, W).
+
+    Over ``span_steps`` steps a pixel firing with probability p = I exposure per step has a per-step variance
+    p (1 - p) (spikes); the least-squares first harmonic of a span that covers about one turn of 2 phi has
+    var(b_I) = var(c_I) = 2 p (1 - p) / (n exposure^2) in radiance units, so var(D) = 8 p (1 - p) / (n exposure^2
+    (b^2 + c^2)) with (b, c) zeta's first harmonic.  The weight is its inverse; 0 where the pixel is saturated
+    (:data:`SPAN_SATURATION`, on I_mean or on ``I_peak``, e.g. the largest of the windows' observations): the clipped
+    spikes there say nothing of the modulation.  The integrate-and-fire pixel is more regular than this Bernoulli
+    count, so the weights are conservative; :func:`span_blend`'s tolerance absorbs the scale.
+    """
+    n = float(span_steps)
+    e = float(exposure)
+    _, b, c = harmonic_of(zeta, phi)
+    p = (I_mean * e).clamp(0.5 / n, 1.0 - 0.5 / n)
+    w = n * e * e * (b * b + c * c) / (8.0 * p * (1.0 - p))
+    sat = I_mean * e >= SPAN_SATURATION
+    if I_peak is not None:
+        sat = sat | (I_peak * e >= SPAN_SATURATION)
+    return torch.where(sat, torch.zeros_like(w), w)
+
+
+def span_blend(T, R, I_mean, I_harm, zeta, phi, w, sigma: float, tol: float):
+    """Move a separation's difference D = R - T toward the long span's where the span identifies it (torch, (B, H, W)).
+
+    The span's D (:func:`long_span_separation`, every spike of 17.5 ms, unbiased) and the given separation's are two
+    estimates of one map.  Their difference is smoothed by normalised convolution with the span's weights ``w``
+    (:func:`span_weights`), c = G * (w (D_span - D)) / G * w, whose variance is (G^2 * w) / (G * w)^2; it is added
+    with the gain lam = tol^2 / (tol^2 + that variance): the inverse-variance combination of the two when the given D
+    errs by ``tol`` (at the scale ``sigma``), so the span takes over where its noise is below tol and leaves D where
+    the pane barely modulates, the pixel saturates or the light is dim.  ``sigma`` = 0: per pixel.  The change keeps
+    the long mean: T -= a dD, R += (1 - a) dD with a = zeta's half-turn mean (as :func:`anchor_to_mean`).
+
+    Returns:
+        (T, R) each (B, H, W), float like ``T``.
+    """
+    a, b, c = harmonic_of(zeta.double(), phi.double())
+    bI, cI = I_harm[:, 0].double(), I_harm[:, 1].double()
+    w = w.double()
+    wD = w * 2.0 * (bI * b + cI * c) / (b * b + c * c + HARMONIC_FLOOR)  # w D_span, finite where the modulation vanishes
+    wx = wD - w * (R - T).double()
+    t2 = tol * tol
+    if sigma > 0:
+        k = gaussian_kernel(sigma, torch.float64, T.device)
+        Gw = separable_blur(w, k)
+        corr = separable_blur(wx, k) / Gw.clamp_min(1e-300)
+        lam = t2 * Gw * Gw / (t2 * Gw * Gw + separable_blur(w, k * k) + 1e-300)  # tol^2 / (tol^2 + var), var = G^2 w / (G w)^2
+    else:
+        corr = wx / w.clamp_min(1e-300)
+        lam = t2 * w / (t2 * w + 1.0)  # var = 1 / w
+    dD = lam * corr
+    return (T - (a * dD).to(T.dtype)), (R + ((1.0 - a) * dD).to(R.dtype))
 
 
 def anchor_to_mean(T, R, I_mean, zbar):

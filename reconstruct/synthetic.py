@@ -176,6 +176,8 @@ def make_group(cfg: SyntheticConfig, index: int) -> EvalGroup:
         I_harm=f32(Ih),
         I_wide=f32(Iws),
         fov_deg=60.0,
+        exposure=float(cfg.exposure),
+        span_steps=spike_mean_steps(cfg.rate_hz),
     )
 
 

@@ -384,6 +384,8 @@ def train(
     Returns:
         dict with ``step``, ``total_steps``, ``param_count`` and the last validation metrics.
     """
+    if cfg.net.span_level:
+        raise ConfigError("[net] span_level is an inference-only level (no weights; training items carry no exposure): train with span_level = false and set it in the checkpoint's config")
     run = ensure_dir(run_dir)
     dev = _device(cfg.device)
     spe = cfg.steps_per_epoch or max(1, len(train_set) // cfg.batch_size)

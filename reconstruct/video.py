@@ -166,7 +166,7 @@ def auto_tile(model, device: str | torch.device = "cpu") -> int:
 
 def run_model_on_windows(model, I: np.ndarray, phi: np.ndarray, device: str | torch.device = "cpu", tile: int = 128, margin: int = 16, *, precision: str = "float32", max_batch: int = 4,
                          zeta: np.ndarray | None = None, I_mean: np.ndarray | None = None, I_harm: np.ndarray | None = None,
-                         I_wide: np.ndarray | None = None) -> dict[str, np.ndarray]:
+                         I_wide: np.ndarray | None = None, exposure: float | None = None, span_steps: int | None = None) -> dict[str, np.ndarray]:
     """Network on windows I (B, N, H, W) radiance units, phi (B, N) -> dict of (B, H, W) T, R, T_base, R_base.
 
     ``model`` is any object with ``cfg.n_obs`` that maps ``(I (B, N, H, W), phi (B, N))`` float32
@@ -183,7 +183,8 @@ def run_model_on_windows(model, I: np.ndarray, phi: np.ndarray, device: str | to
     ``I_mean``: optional (B, H, W) long spike mean around each window's centre frame, passed on as
     ``model(..., I_mean=...)`` (required by a ``use_mean`` network), tiled like the frames; ``I_harm``: likewise
     the (B, 2, H, W) first harmonic of the same spans (a ``use_harm`` network); ``I_wide``: the (B, N, H, W)
-    observations over the wide window (a network with ``cfg.wide_input``), tiled like the frames.
+    observations over the wide window (a network with ``cfg.wide_input``), tiled like the frames; ``exposure``,
+    ``span_steps``: the stream's exposure and I_mean's span in steps (a ``span_level`` network; passed on when given).
     """
     dev = torch.device(device)
     x = torch.as_tensor(I, dtype=torch.float32, device=dev)
@@ -206,8 +207,11 @@ def run_model_on_windows(model, I: np.ndarray, phi: np.ndarray, device: str | to
     if w_ is not None and w_.shape != x.shape:
         raise ConfigError(f"I_wide must have the windows' shape {tuple(x.shape)}; got {tuple(w_.shape)}")
 
+    span_kw = {k: v for k, v in (("exposure", exposure), ("span_steps", span_steps)) if v is not None}
+
     def zkw(zz, i, mm=None, hh=None, ww=None):
         kw = {} if zz is None else {"zeta_gt": zz[i : i + max_batch], "alpha": 1.0}
+        kw.update(span_kw)
         if ww is not None:
             kw["I_wide"] = ww[i : i + max_batch]
         if mm is not None:
@@ -229,7 +233,8 @@ def run_model_on_windows(model, I: np.ndarray, phi: np.ndarray, device: str | to
         from reconstruct.network import gaussian_radius
 
         mc = getattr(model, "cfg", None)
-        margin = max(margin, *(gaussian_radius(float(getattr(mc, k, 0.0) or 0.0)) for k in ("r_level_px", "t_level_px")))
+        margin = max(margin, *(gaussian_radius(float(getattr(mc, k, 0.0) or 0.0)) for k in ("r_level_px", "t_level_px")),
+                     gaussian_radius(float(mc.span_level_px)) if getattr(mc, "span_level", False) else 0)
         ts = tile + 2 * margin
         ts += (-ts) % mult
         ny, nx = -(-H // tile), -(-W // tile)
@@ -290,9 +295,9 @@ class FeatureCache:
         self.reused = 0
 
     def run(self, I: np.ndarray, phi: np.ndarray, idx: np.ndarray, I_mean: np.ndarray | None = None, I_harm: np.ndarray | None = None,
-            I_wide: np.ndarray | None = None) -> dict[str, np.ndarray]:
+            I_wide: np.ndarray | None = None, exposure: float | None = None, span_steps: int | None = None) -> dict[str, np.ndarray]:
         """Windows I (B, N, H, W), phi (B, N), frame indices idx (B, N) -> dict of (B, H, W) maps (``I_mean``,
-        ``I_harm``, ``I_wide``: as :func:`run_model_on_windows`)."""
+        ``I_harm``, ``I_wide``, ``exposure``, ``span_steps``: as :func:`run_model_on_windows`)."""
         from reconstruct.network import window_scale
 
         dev = self.device
@@ -333,6 +338,7 @@ class FeatureCache:
                 mk["I_harm"] = _pad4(torch.as_tensor(I_harm, dtype=torch.float32, device=dev), _multiple(self.model))[0]
             if I_wide is not None:
                 mk["I_wide"] = _pad4(torch.as_tensor(I_wide, dtype=torch.float32, device=dev), _multiple(self.model))[0]
+            mk.update({k: v for k, v in (("exposure", exposure), ("span_steps", span_steps)) if v is not None})
             out = self.model(xp, p, feats=(torch.stack(fs), torch.stack(gs)), **mk)
             res = {k: getattr(out, k)[..., :H, :W].float().cpu().numpy() for k in _KEYS}
         lo = int(idx[:, 0].max()) + 1  # windows advance: the next one starts after this batch's last first frame
@@ -531,7 +537,8 @@ def reconstruct_stream(
     tail_start = 0
 
     mean_steps = spike_mean_steps(source.rate_hz) if getattr(model.cfg, "use_mean", False) else 0
-    use_harm = bool(getattr(model.cfg, "use_harm", False))
+    use_harm = bool(getattr(model.cfg, "harm_input", False))
+    span_kw = {"exposure": exposure, "span_steps": mean_steps} if getattr(model.cfg, "span_level", False) else {}
     prefix = SpikeMeanSums(centres, mean_steps, source.phi_step_rad.size, (source.height, source.width), source.phi_step_rad if use_harm else None) if mean_steps else None
     tile = auto_tile(model, device) if cfg.tile < 0 else cfg.tile
     cache = FeatureCache(model, device, cfg.precision) if (cfg.cache and tile == 0 and getattr(model, "cacheable", False)) else None
@@ -546,9 +553,9 @@ def reconstruct_stream(
         ih = np.stack([p[4] for p in pending]) if use_harm else None
         iw = np.stack([p[5] for p in pending]) if wide else None
         if cache is not None:
-            res = cache.run(I, ph, np.stack([p[2] for p in pending]), I_mean=im, I_harm=ih, I_wide=iw)
+            res = cache.run(I, ph, np.stack([p[2] for p in pending]), I_mean=im, I_harm=ih, I_wide=iw, **span_kw)
         else:
-            res = run_model_on_windows(model, I, ph, device, tile, precision=cfg.precision, I_mean=im, I_harm=ih, I_wide=iw)
+            res = run_model_on_windows(model, I, ph, device, tile, precision=cfg.precision, I_mean=im, I_harm=ih, I_wide=iw, **span_kw)
         for b in range(I.shape[0]):
             T, R = res["T"][b], res["R"][b]
             if not (np.isfinite(T).all() and np.isfinite(R).all()):
@@ -617,17 +624,20 @@ def reconstruct_stream(
 
 
 def standin_inputs(model, I) -> dict[str, Any]:
-    """Keyword inputs of the long span a network reads (``I_mean``, ``I_harm``, ``I_wide``), made up from its windows
+    """Keyword inputs of the long span a network reads (``I_mean``, ``I_harm``, ``I_wide``, and for a ``span_level``
+    network the exposure and span length), made up from its windows
     ``I`` (B, N, H, W), numpy or torch alike, for timing and FLOP counts (the content does not change the cost)."""
     cfg = getattr(model, "cfg", None)
     kw: dict[str, Any] = {}
     if getattr(cfg, "use_mean", False):
         kw["I_mean"] = 0.5 * I.mean(1)
-    if getattr(cfg, "use_harm", False):
+    if getattr(cfg, "harm_input", False):
         shape = (I.shape[0], 2, *I.shape[2:])
         kw["I_harm"] = I.new_full(shape, 0.01) if torch.is_tensor(I) else np.full(shape, 0.01, np.float32)
     if getattr(cfg, "wide_input", False):
         kw["I_wide"] = I
+    if getattr(cfg, "span_level", False):
+        kw.update(exposure=1.0, span_steps=350)
     return kw
 
 

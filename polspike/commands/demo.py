@@ -173,11 +173,12 @@ def reconstruct_and_score(group_dir: Path, figs: Path, n_frames: int, crop: int)
     I = np.stack([g.I[i - K : i + K + 1][:, sl[0], sl[1]] for i in idx])
     phi = np.stack([g.phi_nominal[i - K : i + K + 1] for i in idx])
     im = np.stack([g.I_mean[i][sl] for i in idx]) if model.cfg.use_mean else None  # the long spike mean, when the net takes it
-    ih = np.stack([g.I_harm[i][:, sl[0], sl[1]] for i in idx]) if model.cfg.use_harm else None  # its first harmonic, likewise
+    ih = np.stack([g.I_harm[i][:, sl[0], sl[1]] for i in idx]) if model.cfg.harm_input else None  # its first harmonic, likewise
     zw = None if Z is None else np.stack([Z[i - K : i + K + 1][:, sl[0], sl[1]] for i in idx]).astype(np.float32)
     with torch.no_grad():
         iw = np.stack([g.I_wide[i - K : i + K + 1][:, sl[0], sl[1]] for i in idx]) if model.cfg.wide_input else None  # the wide windows, likewise
-        res = run_model_on_windows(model, I, phi, I_mean=im, I_harm=ih, I_wide=iw, zeta=zw)
+        span_kw = {"exposure": g.exposure, "span_steps": g.span_steps} if model.cfg.span_level else {}
+        res = run_model_on_windows(model, I, phi, I_mean=im, I_harm=ih, I_wide=iw, zeta=zw, **span_kw)
     est = {"TFP (window mean)": (2 * I.mean(1), None), "RWPS only": (res["T_base"], res["R_base"]), "full network": (res["T"], res["R"])}
     rows = []
     for name, (T, R) in est.items():
