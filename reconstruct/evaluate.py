@@ -454,7 +454,7 @@ def evaluate_groups(
                 use_mean = getattr(model.cfg, "use_mean", False)
                 if use_mean and Im is None:
                     raise ConfigError(f"group {g.name}: the network takes the long spike mean, which only stored groups (spikes.h5) give; evaluate it on a built dataset")
-                use_harm, use_wide = getattr(model.cfg, "harm_input", False), getattr(model.cfg, "wide_input", False)
+                use_harm, use_wide = getattr(model.cfg, "harm_input", False) or getattr(model.cfg, "use_harm", False), getattr(model.cfg, "wide_input", False)
                 span_level = getattr(model.cfg, "span_level", False)
                 for need, have, what in ((use_harm, g.I_harm, "the long span's first harmonic"), (use_wide, g.I_wide, "the observations over the wide window"),
                                          (span_level, g.exposure, "the stream's exposure"), (span_level, g.span_steps, "the long span's length")):

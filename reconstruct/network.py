@@ -92,7 +92,7 @@ class NetConfig:
     t_level_px: float = opt(0.0, "T's level from the wide windows' anchored physics: T += G_s * (T_wide - T_base), G_s a Gaussian blur of this sigma in pixels (0 = off; the network then reads I_wide; needs use_mean): the refinement follows its base's low frequencies, whose noise the wide windows' ~4x spikes lower; no weights, only inference", lo=0.0, hi=256.0)
     r_level_from: str = opt("base", "where r_level_px takes R's level: base (the anchored physics on the N windows) | wide (the same on the wide windows, ~4x the spikes; the network then reads I_wide)", choices=("base", "wide"))
     r_level_px: float = opt(0.0, "R's level from the base, its structure from the refinement: R = R_ref + G_s * (R_base - R_ref), G_s a Gaussian blur of this sigma in pixels (0 = off, the refined R). The refinement shrinks R's level where the spikes do not identify it; the base (the anchored physics with base = anchored) keeps it; no weights, only inference", lo=0.0, hi=256.0)
-    span_level: bool = opt(False, "D = R - T toward the long span's first harmonic where the span identifies it (reconstruct.solvers.span_blend with span_weights: inverse-variance, saturated pixels left out), keeping the long mean: every spike of 17.5 ms for the difference the refinement's spikes leave noisy or biased. Applied on an external zeta only (self-calibrated or given, fed with alpha = 1), never on the learned per-window zeta, whose orientation nothing checks over the span; the network then reads I_harm and needs the stream's exposure and span length; no weights, only inference; needs use_mean")
+    span_level: bool = opt(False, "D = R - T toward the long span's first harmonic where the span identifies it (reconstruct.solvers.span_blend with span_weights: inverse-variance, saturated pixels left out), keeping the long mean: every spike of 17.5 ms for the difference the refinement's spikes leave noisy or biased. Applied on an external zeta only (self-calibrated or given, fed with alpha = 1), never on the learned per-window zeta, whose orientation nothing checks over the span; the network then reads I_harm and needs the stream's exposure and span length (training items carry both); no weights, and no gradient through the move; needs use_mean")
     span_level_px: float = opt(2.0, "span_level: sigma in pixels of the normalised convolution of the span's correction (0 = per pixel)", lo=0.0, hi=256.0)
     span_level_tol: float = opt(0.5, "span_level: the error of the refined D (radiance units) the span's noise is weighed against: its gain is tol^2 / (tol^2 + var)", lo=1e-6, hi=1e6)
     span_rad: float = opt(math.radians(7.02), "polarizer rotation inside one aggregation window (0.65 ms at 30 rev/s), rad; recorded with the weights, not used by the layers", lo=0.0, hi=math.pi)
@@ -430,7 +430,8 @@ class PolSpikeNet(nn.Module):
                 units; required where ``NetConfig.wide_input`` (use_wide, t_level_px, r_level_from = wide), ignored otherwise.  Its solver takes zeta as given for
                 the narrow windows (the wide window's averaging lowers zeta's modulation by ~5 % at 57 steps).
             exposure, span_steps: the stream's exposure (spikes per step per unit radiance) and the number of steps of
-                I_mean's span; required by a ``span_level`` network (the span's noise and saturation), ignored otherwise.
+                I_mean's span, numbers or (B,) tensors; required by a ``span_level`` network (the span's noise and
+                saturation), ignored otherwise.
 
         Returns:
             :class:`NetOutput`.
@@ -521,7 +522,7 @@ class PolSpikeNet(nn.Module):
                 raise ShapeError(f"a span_level network needs I_harm {(I_c.shape[0], 2, *I_c.shape[1:])} (the long span's first harmonic)", actual_shape=None if I_harm is None else tuple(I_harm.shape), expected_shape=(I_c.shape[0], 2, *I_c.shape[1:]))
             if exposure is None or span_steps is None:
                 raise ShapeError("a span_level network needs the stream's exposure and span_steps (the span's noise and saturation)", actual_shape=None, expected_shape="exposure, span_steps")
-            with torch.no_grad():  # inference only, like the other levels' inputs
+            with torch.no_grad():  # a move of D computed without gradient, like the other levels' inputs
                 peak = I.max(1).values if I_wide is None else torch.maximum(I.max(1).values, I_wide.float().max(1).values)
                 zs = zeta_used.detach()
                 wsp = span_weights(I_mean, zs, phi, exposure, span_steps, I_peak=peak)

@@ -18,6 +18,7 @@ reads a stored group:
 ``I_wide``    (N, H, W) float32  with ``WindowConfig.wide_steps``: the observations over the wide window (the input of a network with NetConfig.wide_input)
 ``I_harm``    (2, H, W) float32  with ``I_mean``: the first harmonic (cos 2 phi, sin 2 phi) of the same span's spikes
                                  at the nominal angles (:func:`reconstruct.groups.span_harmonic`; a use_harm network's input)
+``span_steps`` ()     float32  with ``I_mean``: the number of steps of its span (clipped to the stream)
 
 On-the-fly items come from a :data:`WindowSource` callable ``(seed, index) ->
 item``.  ``reconstruct`` never imports ``generator``: the CLI
@@ -174,6 +175,7 @@ def item_from_stream(
         item["I_mean"] = _t(spikes[a:b].sum(0, dtype=np.int64) / ((b - a) * exposure))
         sums = np.tensordot(harmonic_design(phi_nom[a:b]), spikes[a:b].astype(np.float64), axes=(1, 0))
         item["I_harm"] = _t(span_harmonic(sums, phi_nom[a:b], exposure))  # the span's first harmonic, as a stored group's
+        item["span_steps"] = torch.tensor(float(b - a))  # the span's length, clipped to the stream (a span_level network's noise)
     return item
 
 

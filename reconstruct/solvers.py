@@ -520,7 +520,7 @@ def separable_blur(x: torch.Tensor, k: torch.Tensor) -> torch.Tensor:
     return y.squeeze(1)
 
 
-def span_weights(I_mean, zeta, phi, exposure: float, span_steps: int, I_peak=None):
+def span_weights(I_mean, zeta, phi, exposure, span_steps, I_peak=None):
     """Inverse variance of the long span's difference D = R - T (:func:`long_span_separation`) per pixel, (B, H, W).
 
     Over ``span_steps`` steps a pixel firing with probability p = I exposure per step has a per-step variance
@@ -529,10 +529,15 @@ def span_weights(I_mean, zeta, phi, exposure: float, span_steps: int, I_peak=Non
     (b^2 + c^2)) with (b, c) zeta's first harmonic.  The weight is its inverse; 0 where the pixel is saturated
     (:data:`SPAN_SATURATION`, on I_mean or on ``I_peak``, e.g. the largest of the windows' observations): the clipped
     spikes there say nothing of the modulation.  The integrate-and-fire pixel is more regular than this Bernoulli
-    count, so the weights are conservative; :func:`span_blend`'s tolerance absorbs the scale.
+    count, so the weights are conservative; :func:`span_blend`'s tolerance absorbs the scale.  ``exposure`` and
+    ``span_steps``: numbers, or (B,) tensors (one per image, e.g. a training batch).
     """
-    n = float(span_steps)
-    e = float(exposure)
+    def per_image(v):  # a number, or one per image of the batch: (B,) -> (B, 1, 1)
+        t = torch.as_tensor(v, dtype=I_mean.dtype, device=I_mean.device)
+        return t.reshape(-1, 1, 1) if t.dim() == 1 else t
+
+    n = per_image(span_steps).clamp_min(1.0)
+    e = per_image(exposure)
     _, b, c = harmonic_of(zeta, phi)
     p = (I_mean * e).clamp(0.5 / n, 1.0 - 0.5 / n)
     w = n * e * e * (b * b + c * c) / (8.0 * p * (1.0 - p))

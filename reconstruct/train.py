@@ -128,9 +128,15 @@ SPAN_KEYS = ("I_mean", "I_harm", "I_wide")
 """Batch keys of the long span a network may read beside its windows (:class:`reconstruct.network.PolSpikeNet`)."""
 
 
-def span_inputs(b: dict[str, torch.Tensor], device) -> dict[str, torch.Tensor]:
-    """The :data:`SPAN_KEYS` a batch carries, on ``device``, as keyword inputs of the network."""
-    return {k: b[k].to(device) for k in SPAN_KEYS if k in b}
+def span_inputs(b: dict[str, torch.Tensor], device, span_level: bool = False) -> dict[str, torch.Tensor]:
+    """The :data:`SPAN_KEYS` a batch carries, on ``device``, as keyword inputs of the network; for a ``span_level``
+    network also each item's exposure and span length."""
+    kw = {k: b[k].to(device) for k in SPAN_KEYS if k in b}
+    if span_level:
+        if "span_steps" not in b:
+            raise ConfigError("a span_level network needs items with the long span (set [window] mean_steps, e.g. 350)")
+        kw.update(exposure=b["exposure"].to(device), span_steps=b["span_steps"].to(device))
+    return kw
 
 
 def _device(name: str) -> torch.device:
@@ -179,7 +185,7 @@ def evaluate_model(model: PolSpikeNet, dataset, batch_size: int = 8, device: tor
     for s in range(0, len(dataset), batch_size):
         b = collate([dataset[i] for i in range(s, min(len(dataset), s + batch_size))])
         I, phi, T, R, z = (b[k].to(device) for k in ("I", "phi", "T", "R", "zeta"))
-        span = span_inputs(b, device)
+        span = span_inputs(b, device, getattr(model.cfg, "span_level", False))
         out = model(I, phi, **span)
         orc = solve("rwps", z, I, None, model.solver_cfg_in)
         ests = {"T": out.T, "T_base": out.T_base, "T_oracle": orc.T, "T_tfp": 2.0 * I.mean(1), "R": out.R, "R_base": out.R_base, "R_oracle": orc.R}
@@ -384,8 +390,6 @@ def train(
     Returns:
         dict with ``step``, ``total_steps``, ``param_count`` and the last validation metrics.
     """
-    if cfg.net.span_level:
-        raise ConfigError("[net] span_level is an inference-only level (no weights; training items carry no exposure): train with span_level = false and set it in the checkpoint's config")
     run = ensure_dir(run_dir)
     dev = _device(cfg.device)
     spe = cfg.steps_per_epoch or max(1, len(train_set) // cfg.batch_size)
@@ -468,7 +472,7 @@ def train(
                     shape = torch.exp(cfg.zeta_shape_jitter * torch.randn(I.shape[0], generator=g)).to(dev)
                 if cfg.assumed_prob > 0:  # drawn last, for the same reason
                     feed, scale = assumed_glass_feed(b, z, scale, cfg, g)
-        out = model(I, phi, zeta_gt=z, alpha=alpha, **span_inputs(b, dev), zeta_scale=scale, zeta_shape=shape, zeta_feed=feed)
+        out = model(I, phi, zeta_gt=z, alpha=alpha, **span_inputs(b, dev, cfg.net.span_level), zeta_scale=scale, zeta_shape=shape, zeta_feed=feed)
         loss, parts = total_loss(out, T, R, alpha, cfg.loss)
         if not math.isfinite(parts["loss"]):
             raise FloatingPointError(f"non-finite loss at step {step}: {parts}")

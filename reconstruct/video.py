@@ -537,7 +537,7 @@ def reconstruct_stream(
     tail_start = 0
 
     mean_steps = spike_mean_steps(source.rate_hz) if getattr(model.cfg, "use_mean", False) else 0
-    use_harm = bool(getattr(model.cfg, "harm_input", False))
+    use_harm = bool(getattr(model.cfg, "harm_input", False) or getattr(model.cfg, "use_harm", False))
     span_kw = {"exposure": exposure, "span_steps": mean_steps} if getattr(model.cfg, "span_level", False) else {}
     prefix = SpikeMeanSums(centres, mean_steps, source.phi_step_rad.size, (source.height, source.width), source.phi_step_rad if use_harm else None) if mean_steps else None
     tile = auto_tile(model, device) if cfg.tile < 0 else cfg.tile
@@ -631,7 +631,7 @@ def standin_inputs(model, I) -> dict[str, Any]:
     kw: dict[str, Any] = {}
     if getattr(cfg, "use_mean", False):
         kw["I_mean"] = 0.5 * I.mean(1)
-    if getattr(cfg, "harm_input", False):
+    if getattr(cfg, "harm_input", False) or getattr(cfg, "use_harm", False):
         shape = (I.shape[0], 2, *I.shape[2:])
         kw["I_harm"] = I.new_full(shape, 0.01) if torch.is_tensor(I) else np.full(shape, 0.01, np.float32)
     if getattr(cfg, "wide_input", False):

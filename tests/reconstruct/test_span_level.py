@@ -1,16 +1,13 @@
 """D = R - T from every spike of the long span (net.span_level, issue 16): the span's inverse-variance weights against a
 Monte Carlo of the spikes, the blend against its closed form (it keeps the long mean, takes an exact span's D, leaves
 pixels without weight alone), and the wiring: only on an external zeta, the stream hands the network what the store
-does, tiles agree with whole frames, and training refuses the inference-only option through the console script."""
+does, tiles agree with whole frames, training items carry the span's length and exposure per image."""
 
 from __future__ import annotations
 
 import dataclasses
 import math
-import subprocess
-import sys
 import types
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -22,7 +19,6 @@ from reconstruct.network import NetConfig, PolSpikeNet, init_weights
 from reconstruct.solvers import SPAN_SATURATION, harmonic_of, long_span_separation, span_blend, span_weights
 from reconstruct.zeta_source import PaneMaps, zeta_from_maps
 
-REPO = Path(__file__).resolve().parents[2]
 SMALL = NetConfig(arch="v2", feat_ch=8, lr_ch=8, w_ch=4, ref_ch=(8, 8, 8), dec_ch=(8, 8, 8), use_rir=False, use_mean=True, base="anchored", anchor_zbar="harmonic")
 SPAN = 350
 PHI_T = 0.4 + np.arange(SPAN) * 2 * math.pi * 30 / 20000  # 30 rev/s at 20 kHz: about one turn of 2 phi
@@ -227,13 +223,33 @@ def test_stream_hands_a_span_level_network_the_store_exposure_span_and_harmonic(
     np.testing.assert_allclose(got, g.I_harm[3 : 3 + got.shape[0]], rtol=1e-5, atol=1e-6)
 
 
-def test_train_refuses_span_level_through_the_console_script(tmp_path):
-    cfg = tmp_path / "span.toml"
-    cfg.write_text("[net]\narch = \"v2\"\nuse_mean = true\nspan_level = true\n")
-    r = subprocess.run([sys.executable, "-c", "from polspike.cli import app; app()", "train", str(cfg), "--out", str(tmp_path / "run")],
-                       capture_output=True, text=True, cwd=REPO, timeout=300)
-    assert r.returncode == 2, (r.stdout[-500:], r.stderr[-1500:])
-    assert "Traceback" not in r.stderr
-    lines = [ln for ln in r.stderr.strip().splitlines() if ln.strip()]
-    assert len(lines) == 1 and "span_level" in lines[0], r.stderr
-    assert not (tmp_path / "run").exists()
+def test_training_items_carry_what_a_span_level_network_reads_and_the_forced_scores_use_it():
+    """Window items with the long span carry its length; evaluate_model (the training validation and
+    checkpoint-scores) hands a span_level network each item's exposure and span length, and its forced R moves
+    (the self-calibrated zeta's path); without the span the batch is refused with what to set."""
+    from polinfra.errors import ConfigError
+    from reconstruct.onthefly import OnTheFlyWindows
+    from reconstruct.train import TINY, evaluate_model, span_inputs
+    from tests.reconstruct.test_train import _stream_item
+
+    wcfg = dataclasses.replace(TINY.window, mean_steps=SPAN, crop=24)
+    ds = OnTheFlyWindows(lambda s_, i: _stream_item(s_, i, wcfg), length=4, seed=3)
+    item = ds[0]
+    assert 0 < float(item["span_steps"]) <= SPAN + 1  # an odd span centred on the frame
+    nets = {k: _net(**kw) for k, kw in {"off": {}, "on": {"span_level": True}}.items()}
+    sc = {k: evaluate_model(n, ds, batch_size=4, forced=True) for k, n in nets.items()}
+    assert all(np.isfinite(v["psnr_R_forced"]) for v in sc.values())
+    assert sc["on"]["psnr_R_forced"] != sc["off"]["psnr_R_forced"]
+    assert sc["on"]["psnr_T"] == sc["off"]["psnr_T"]  # the network's own zeta: unchanged
+    with pytest.raises(ConfigError, match="mean_steps"):
+        span_inputs({"I": item["I"][None], "exposure": item["exposure"][None]}, "cpu", span_level=True)
+
+
+def test_span_weights_take_one_exposure_and_span_per_image():
+    T, R, maps = _scene()
+    _, phi_w, Zw = _light(T, R, maps)
+    Im = torch.full((2, *T.shape), 0.2, dtype=torch.float64)
+    Z2, P2 = Zw.expand(2, -1, -1, -1), phi_w.expand(2, -1)
+    both = span_weights(Im, Z2, P2, torch.tensor([1.0, 2.0]), torch.tensor([350.0, 100.0]))
+    torch.testing.assert_close(both[0], span_weights(Im[:1], Zw, phi_w, 1.0, 350)[0])
+    torch.testing.assert_close(both[1], span_weights(Im[:1], Zw, phi_w, 2.0, 100)[0])
