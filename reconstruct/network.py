@@ -94,7 +94,8 @@ class NetConfig:
     r_level_px: float = opt(0.0, "R's level from the base, its structure from the refinement: R = R_ref + G_s * (R_base - R_ref), G_s a Gaussian blur of this sigma in pixels (0 = off, the refined R). The refinement shrinks R's level where the spikes do not identify it; the base (the anchored physics with base = anchored) keeps it; no weights, only inference", lo=0.0, hi=256.0)
     span_level: bool = opt(False, "D = R - T toward the long span's first harmonic where the span identifies it (reconstruct.solvers.span_blend with span_weights: inverse-variance, saturated pixels left out), keeping the long mean: every spike of 17.5 ms for the difference the refinement's spikes leave noisy or biased. Applied on an external zeta only (self-calibrated or given, fed with alpha = 1), never on the learned per-window zeta, whose orientation nothing checks over the span; the network then reads I_harm and needs the stream's exposure and span length (training items carry both); no weights, and no gradient through the move; needs use_mean")
     span_level_px: float = opt(2.0, "span_level: sigma in pixels of the normalised convolution of the span's correction (0 = per pixel)", lo=0.0, hi=256.0)
-    span_level_tol: float = opt(0.5, "span_level: the error of the refined D (radiance units) the span's noise is weighed against: its gain is tol^2 / (tol^2 + var)", lo=1e-6, hi=1e6)
+    span_level_tol: float = opt(2.0, "span_level: the error of the refined D, relative to the pixel's light 2 I_mean, the span's noise is weighed against: its gain is tol^2 / (tol^2 + var) (relative, so the move does not depend on the brightness scale, e.g. an estimated exposure)", lo=1e-6, hi=1e6)
+    span_level_tol_t: float = opt(0.25, "span_level: also keep T, which moves by zbar times the change of D, no noisier than this fraction of the pixel's light 2 I_mean (gain min(tol^2 / (tol^2 + var), tol_t^2 / (tol_t^2 + zbar^2 var)); 0 = off): where zeta's mean is large (a glancing pane, or a calibration that put it there) the span's noise reaches T", lo=0.0, hi=1e6)
     span_rad: float = opt(math.radians(7.02), "polarizer rotation inside one aggregation window (0.65 ms at 30 rev/s), rad; recorded with the weights, not used by the layers", lo=0.0, hi=math.pi)
 
     @property
@@ -526,7 +527,9 @@ class PolSpikeNet(nn.Module):
                 peak = I.max(1).values if I_wide is None else torch.maximum(I.max(1).values, I_wide.float().max(1).values)
                 zs = zeta_used.detach()
                 wsp = span_weights(I_mean, zs, phi, exposure, span_steps, I_peak=peak)
-                T, R = span_blend(T, R, I_mean, I_harm, zs, phi, wsp, self.cfg.span_level_px, self.cfg.span_level_tol)
+                tol = self.cfg.span_level_tol * 2.0 * I_mean.double().clamp_min(0.0)  # relative to the pixel's light: any brightness scale gives the same move
+                tol_t = self.cfg.span_level_tol_t * 2.0 * I_mean.double().clamp_min(0.0) if self.cfg.span_level_tol_t > 0 else None
+                T, R = span_blend(T, R, I_mean, I_harm, zs, phi, wsp, self.cfg.span_level_px, tol, tol_t)
         return NetOutput(T=T, R=R, T_base=T0, R_base=R0, zeta_hat=zeta_hat, zeta_used=zeta_used, weights=w, conf=res.conf, res=resid, I=I, zeta_gt=zeta_gt)
 
 

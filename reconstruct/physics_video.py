@@ -156,10 +156,12 @@ def calibrate_source(source, window_steps: int = 13, exposure: float | None = No
     """Self-calibrate the pane on the first ``cfg.span_s`` of a spike stream (:class:`reconstruct.video.SpikeSource`).
 
     Every spike of the span is used: back-to-back Eq. (3) windows of ``window_steps`` steps, each at
-    its mean calibrated polarizer angle (denser than the output cadence: more data, same model).
+    its mean calibrated polarizer angle (denser than the output cadence: more data, same model); pixels that
+    saturate are left out (:func:`reconstruct.selfcal.leave_out_saturated`).
     """
-    I, phi = span_frames(source, cfg.span_s, window_steps, exposure)
-    return self_calibrate(I, phi, cfg, name=source.name)
+    ex = exposure if exposure is not None else (source.exposure or 1.0)  # span_frames' own: I x ex = spikes per step
+    I, phi = span_frames(source, cfg.span_s, window_steps, ex)
+    return self_calibrate(I, phi, cfg, name=source.name, exposure=ex)
 
 
 def span_frames(source, span_s: float, window_steps: int = 13, exposure: float | None = None) -> tuple[np.ndarray, np.ndarray]:

@@ -950,7 +950,27 @@ def _span_factor_of(phi: np.ndarray) -> float:
     return 1.0 if step <= 0 or step > 0.25 else math.sin(step) / step
 
 
-def self_calibrate(I: np.ndarray, phi: np.ndarray, cfg: SelfCalConfig = SelfCalConfig(), *, frames_per_s: float | None = None, name: str = "stream") -> SelfCalResult:
+def leave_out_saturated(I: np.ndarray, exposure: float | None) -> tuple[np.ndarray, float]:
+    """Frames with every pixel that saturates in any of them set to 0, and the fraction of such pixels.
+
+    A spike-camera pixel fires at most once per step, so a window at the ceiling
+    (:data:`reconstruct.solvers.SPAN_SATURATION` spikes per step) clips the light where the polarizer lets most
+    through: the pixel's modulation reads flatter, its degree of polarization lower, which the cone and the
+    layers' content would take for a weaker pane (a glancing single interface calibrated as a thin slab, measured
+    on the stress set).  A pixel at 0 in every frame adds nothing to the orientation field's or the cone's block
+    sums.  ``exposure`` None (unknown): the frames unchanged."""
+    from reconstruct.solvers import SPAN_SATURATION
+
+    if exposure is None:
+        return I, 0.0
+    sat = (np.asarray(I) * float(exposure) >= SPAN_SATURATION).any(0)
+    if not sat.any():
+        return I, 0.0
+    return np.where(sat[None], np.zeros((), np.asarray(I).dtype), I), float(sat.mean())
+
+
+def self_calibrate(I: np.ndarray, phi: np.ndarray, cfg: SelfCalConfig = SelfCalConfig(), *, frames_per_s: float | None = None, name: str = "stream",
+                   exposure: float | None = None) -> SelfCalResult:
     """Estimate the pane (normal, field of view, and where the data constrain them index and pane model)
     from a stream's frames and build its pane maps.
 
@@ -960,6 +980,8 @@ def self_calibrate(I: np.ndarray, phi: np.ndarray, cfg: SelfCalConfig = SelfCalC
         cfg: :class:`SelfCalConfig`.
         frames_per_s: frame cadence, to turn ``span_s`` into frames (None: use every frame given).
         name: for the log.
+        exposure: the stream's exposure (spikes per step per unit radiance), when known: pixels that saturate in any
+            frame are left out (:func:`leave_out_saturated`; their share is ``diagnostics["saturated_px"]``).
 
     Returns:
         :class:`SelfCalResult`; ``ok = False`` (with a logged warning) where nothing modulates or the
@@ -972,6 +994,7 @@ def self_calibrate(I: np.ndarray, phi: np.ndarray, cfg: SelfCalConfig = SelfCalC
         raise ShapeError(f"self_calibrate needs frames (M, H, W); got {I.shape}", actual_shape=I.shape, expected_shape="(M, H, W)")
     M, H, W = I.shape
     m = M if frames_per_s is None else max(3, min(M, int(round(cfg.span_s * frames_per_s))))
+    I, sat_px = leave_out_saturated(I[:m], exposure)
     s = cfg.block_px or max(1, W // 48)
     s = max(1, min(s, max(1, H // 4), max(1, W // 4)))
     f = orientation_field(I[:m], np.asarray(phi)[:m], s)
@@ -979,7 +1002,7 @@ def self_calibrate(I: np.ndarray, phi: np.ndarray, cfg: SelfCalConfig = SelfCalC
     thr = cfg.coherence_sigmas
     mask = np.abs(f["s4"]) > thr * np.sqrt(0.5 * np.maximum(f["q"], 1e-300))  # blocks that modulate on their own
     frac = float(mask.mean())
-    diag = {"psi": f["psi"], "coherence": f["coherence"], "mask": mask, "block_px": s, "threshold": thr, "frames": m, "chunks": f["chunks"], "dop": f["dop"], "s4": f["s4"]}
+    diag = {"psi": f["psi"], "coherence": f["coherence"], "mask": mask, "block_px": s, "threshold": thr, "frames": m, "chunks": f["chunks"], "dop": f["dop"], "s4": f["s4"], "saturated_px": sat_px}
     fov_given = cfg.fov_deg if cfg.fov_deg > 0 else None
     fit = fit_normal(f["s4"], f["q"], w, h, fov_given, cfg.fov_init_deg)
     diag.update({"z": fit["z"], "alignment": fit["alignment"]})
@@ -1128,11 +1151,14 @@ def group_self_zeta(group, n: float | None = None, model: str | None = None, cfg
         from reconstruct.physics_video import span_frames
         from reconstruct.video import group_source
 
-        I, phi = span_frames(group_source(src_dir), c.span_s)
+        src = group_source(src_dir)
+        I, phi = span_frames(src, c.span_s)
+        exposure = src.exposure
     else:
         frames = min(group.I.shape[0], MAX_FRAMES)
         I, phi = group.I[:frames], np.asarray(group.phi_nominal)[:frames]
-    r = self_calibrate(I, phi, c, name=group.name)
+        exposure = getattr(group, "exposure", None)
+    r = self_calibrate(I, phi, c, name=group.name, exposure=exposure)
     group_self_zeta.last = r  # the latest calibration, for reports
     if not r.ok:
         return None

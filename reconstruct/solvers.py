@@ -547,14 +547,14 @@ def span_weights(I_mean, zeta, phi, exposure, span_steps, I_peak=None):
     return torch.where(sat, torch.zeros_like(w), w)
 
 
-def span_blend(T, R, I_mean, I_harm, zeta, phi, w, sigma: float, tol: float):
+def span_blend(T, R, I_mean, I_harm, zeta, phi, w, sigma: float, tol, tol_t=None):
     """Move a separation's difference D = R - T toward the long span's where the span identifies it (torch, (B, H, W)).
 
     The span's D (:func:`long_span_separation`, every spike of 17.5 ms, unbiased) and the given separation's are two
     estimates of one map.  Their difference is smoothed by normalised convolution with the span's weights ``w``
     (:func:`span_weights`), c = G * (w (D_span - D)) / G * w, whose variance is (G^2 * w) / (G * w)^2; it is added
     with the gain lam = tol^2 / (tol^2 + that variance): the inverse-variance combination of the two when the given D
-    errs by ``tol`` (at the scale ``sigma``), so the span takes over where its noise is below tol and leaves D where
+    errs by ``tol`` (a number or a (B, H, W) map; at the scale ``sigma``), so the span takes over where its noise is below tol and leaves D where
     the pane barely modulates, the pixel saturates or the light is dim.  ``sigma`` = 0: per pixel.  The change keeps
     the long mean: T -= a dD, R += (1 - a) dD with a = zeta's half-turn mean (as :func:`anchor_to_mean`).
 
@@ -566,15 +566,22 @@ def span_blend(T, R, I_mean, I_harm, zeta, phi, w, sigma: float, tol: float):
     w = w.double()
     wD = w * 2.0 * (bI * b + cI * c) / (b * b + c * c + HARMONIC_FLOOR)  # w D_span, finite where the modulation vanishes
     wx = wD - w * (R - T).double()
-    t2 = tol * tol
+    t2 = torch.as_tensor(tol, dtype=torch.float64, device=T.device) ** 2  # a number or a (B, H, W) map
     if sigma > 0:
         k = gaussian_kernel(sigma, torch.float64, T.device)
         Gw = separable_blur(w, k)
         corr = separable_blur(wx, k) / Gw.clamp_min(1e-300)
-        lam = t2 * Gw * Gw / (t2 * Gw * Gw + separable_blur(w, k * k) + 1e-300)  # tol^2 / (tol^2 + var), var = G^2 w / (G w)^2
+        G2w = separable_blur(w, k * k)
+        lam = t2 * Gw * Gw / (t2 * Gw * Gw + G2w + 1e-300)  # tol^2 / (tol^2 + var), var = G^2 w / (G w)^2
+        if tol_t is not None:  # and T, which moves by a dD, no noisier than tol_t: tol_t^2 / (tol_t^2 + a^2 var)
+            tt2 = torch.as_tensor(tol_t, dtype=torch.float64, device=T.device) ** 2
+            lam = torch.minimum(lam, tt2 * Gw * Gw / (tt2 * Gw * Gw + a * a * G2w + 1e-300))
     else:
         corr = wx / w.clamp_min(1e-300)
         lam = t2 * w / (t2 * w + 1.0)  # var = 1 / w
+        if tol_t is not None:
+            tt2 = torch.as_tensor(tol_t, dtype=torch.float64, device=T.device) ** 2
+            lam = torch.minimum(lam, tt2 * w / (tt2 * w + a * a))
     dD = lam * corr
     return (T - (a * dD).to(T.dtype)), (R + ((1.0 - a) * dD).to(R.dtype))
 

@@ -999,6 +999,7 @@ def calibrate_input(input: Path, cfg: CalibratePaneConfig, *, height: int | None
                     rev_per_s: float | None = None, rate_hz: float = 20000.0, progress=None) -> tuple[dict, dict | None, int, int]:
     """Load a group store or a raw .dat and run :func:`calibrate_frames`; returns (result, base scene dict, W, H)."""
     from reconstruct.physics_video import span_frames
+    from reconstruct.selfcal import leave_out_saturated
     from reconstruct.selfcal import fov_from_group_dir
     from reconstruct.video import dat_source, group_source
 
@@ -1021,7 +1022,11 @@ def calibrate_input(input: Path, cfg: CalibratePaneConfig, *, height: int | None
             log.info("%s records its field of view; calibrate-pane fits it anyway (give --fov-deg to fix it)", input)
     else:
         raise ConfigError(f"input {input} is neither a .dat file nor a spike group directory (GROUP/spikes.h5)")
-    I, phi = span_frames(src, cfg.span_s, cfg.window_steps)
+    ex = src.exposure or 1.0  # span_frames' own: I x ex = spikes per step
+    I, phi = span_frames(src, cfg.span_s, cfg.window_steps, ex)
+    I, sat = leave_out_saturated(I, ex)  # clipped pixels would read as a weaker pane
+    if sat > 0:
+        log.info("%s: %.1f %% of the pixels saturate; left out of the fit", src.name, 100 * sat)
     span = 2 * math.pi * src.polarizer_rev_s * cfg.window_steps / src.rate_hz
     res = calibrate_frames(I, phi, cfg, span_rad=span, name=src.name, progress=progress)
     return res, base, src.width, src.height

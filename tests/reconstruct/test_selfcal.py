@@ -341,3 +341,32 @@ def test_scatter_polish_discounts_blocks_whose_pixels_scatter():
     r = least_squares(lambda x: sw * 0.5 * np.sin(2.0 * (of["psi"] - ppf(x[0], x[1]))).ravel(), [tilt + math.radians(3.0), az])
     e_s4 = float(np.median(np.degrees(np.abs(ppf(*r.x) - pp))))
     assert e_pol < 0.8 and e_s4 > 3 * e_pol, (e_pol, e_s4)
+
+
+def test_saturated_pixels_are_left_out_of_the_calibration():
+    """A pixel whose window reaches the spike ceiling (one spike per step) in any frame is set to 0 in every frame and
+    counted; without an exposure nothing changes.  On a stream clipped at the ceiling over a bright part of the view,
+    the calibration given the exposure keeps the unclipped stream's geometry and zeta scale."""
+    from reconstruct.selfcal import leave_out_saturated
+    from reconstruct.solvers import SPAN_SATURATION
+
+    g, N = make_pane_group(65.0, 200.0, r_gain=4.0, exposure=3.0, seed=7, **SMALL)
+    e = 0.9 / float(g.I.max())  # the closed-form counts have no ceiling: a sensor whose brightest pixel fires 0.9 per step
+    ceiling = np.float32(1.0 / e)  # one spike per step, in radiance units
+    bright = np.zeros(g.I.shape[1:], bool)
+    bright[:, : SMALL["W"] // 3] = True
+    I = g.I.copy()
+    I[:, bright] = np.minimum(I[:, bright] * 8.0, ceiling)  # a bright third of the view, clipped by the sensor
+    out, frac = leave_out_saturated(I, e)
+    sat = (I * e >= SPAN_SATURATION).any(0)
+    assert sat.any() and frac == pytest.approx(float(sat.mean()))
+    assert np.all(out[:, sat] == 0) and np.array_equal(out[:, ~sat], I[:, ~sat])
+    same, zero = leave_out_saturated(I, None)
+    assert same is I and zero == 0.0
+    cfg = SelfCalConfig(fov_deg=g.fov_deg, model="single")
+    ref = self_calibrate(g.I, g.phi_nominal, cfg, exposure=e)
+    r = self_calibrate(I, g.phi_nominal, cfg, exposure=e)
+    assert ref.ok and r.ok and r.diagnostics["saturated_px"] == pytest.approx(frac) and ref.diagnostics["saturated_px"] == 0.0
+    assert _angle_deg(r.normal, N) < 4.0
+    z, z_ref = self_zeta(r, g.phi_true, g.span_rad), self_zeta(ref, g.phi_true, g.span_rad)
+    assert abs(float(z.mean()) / float(z_ref.mean()) - 1.0) < 0.05

@@ -253,3 +253,42 @@ def test_span_weights_take_one_exposure_and_span_per_image():
     both = span_weights(Im, Z2, P2, torch.tensor([1.0, 2.0]), torch.tensor([350.0, 100.0]))
     torch.testing.assert_close(both[0], span_weights(Im[:1], Zw, phi_w, 1.0, 350)[0])
     torch.testing.assert_close(both[1], span_weights(Im[:1], Zw, phi_w, 2.0, 100)[0])
+
+
+def test_t_tolerance_caps_the_gain_where_zeta_mean_is_large():
+    """Per pixel (sigma 0) with tol_t: lam = min(tol^2 w / (tol^2 w + 1), tol_t^2 w / (tol_t^2 w + a^2)), a = zeta's
+    half-turn mean; the cap binds where a is large (T moves by a dD), and the long mean is kept either way."""
+    T, R, maps = _scene()
+    I_t, phi_w, Zw = _light(T, R, maps)
+    h = torch.from_numpy(span_harmonic(np.tensordot(_design(PHI_T), I_t, axes=(1, 0)), PHI_T).astype(np.float64))[None]
+    Im = torch.from_numpy(I_t.mean(0))[None]
+    Ts, Rs = long_span_separation(Im, h, Zw, phi_w)
+    T0, R0 = torch.from_numpy(T)[None], torch.from_numpy(R)[None] + 0.2
+    w = torch.linspace(0.5, 400, T0.numel(), dtype=torch.float64).reshape(T0.shape)
+    tol, tol_t = 0.3, 0.02
+    a = harmonic_of(Zw, phi_w)[0]
+    T1, R1 = span_blend(T0, R0, Im, h, Zw, phi_w, w, 0.0, tol, tol_t)
+    lam = torch.minimum(tol**2 * w / (tol**2 * w + 1), tol_t**2 * w / (tol_t**2 * w + a * a))
+    D0 = R0 - T0
+    torch.testing.assert_close(R1 - T1, D0 + lam * ((Rs - Ts) - D0), rtol=1e-9, atol=1e-9)
+    assert bool((tol_t**2 * w / (tol_t**2 * w + a * a) < tol**2 * w / (tol**2 * w + 1)).any())  # the cap binds somewhere
+    torch.testing.assert_close(T1 + a * (R1 - T1), T0 + a * (R0 - T0), rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize("sigma", [0.0, 2.0])
+def test_span_move_is_equivariant_to_the_brightness_scale(sigma):
+    """The weights scale with exposure^2 and the tolerances with the pixel's light (as the network sets them): a stream
+    read at another exposure (an estimated one) gives the same layers up to that scale."""
+    I, phi, Im, h, Z = _inputs()
+    Im, h, I = Im.double(), h.double(), I.double()
+    T = 2 * Im - 0.05
+    R = T + 0.2 * I.std(1)
+
+    def move(k, e):
+        w = span_weights(Im * k, Z, phi, e, SPAN, I_peak=(I * k).max(1).values)
+        return span_blend(T * k, R * k, Im * k, h * k, Z, phi, w, sigma, 2.0 * 2 * Im * k, 0.25 * 2 * Im * k)
+
+    a, b = move(1.0, 1.3), move(1 / 1.11, 1.3 * 1.11)
+    torch.testing.assert_close(b[0] * 1.11, a[0], rtol=1e-6, atol=1e-9)
+    torch.testing.assert_close(b[1] * 1.11, a[1], rtol=1e-6, atol=1e-9)
+    assert float((a[1] - R).abs().max()) > 1e-3
