@@ -17,7 +17,8 @@ from polinfra.errors import ShapeError
 from reconstruct.groups import span_harmonic
 from reconstruct.network import NetConfig, PolSpikeNet, init_weights
 from reconstruct.solvers import SPAN_SATURATION, harmonic_of, long_span_separation, span_blend, span_weights
-from reconstruct.zeta_source import PaneMaps, zeta_from_maps
+from reconstruct.zeta_source import zeta_from_maps
+from tests.reconstruct.test_long_span import _static_scene
 
 SMALL = NetConfig(arch="v2", feat_ch=8, lr_ch=8, w_ch=4, ref_ch=(8, 8, 8), dec_ch=(8, 8, 8), use_rir=False, use_mean=True, base="anchored", anchor_zbar="harmonic")
 SPAN = 350
@@ -26,11 +27,7 @@ WIN = 175 + (np.arange(7) - 3) * 58  # the N = 7 window centres inside the span
 
 
 def _scene(H=6, W=5, seed=0):
-    rng = np.random.default_rng(seed)
-    T = rng.uniform(0.1, 0.5, (H, W))
-    R = rng.uniform(0.1, 0.9, (H, W))
-    maps = PaneMaps(R_perp=rng.uniform(0.15, 0.35, (H, W)), R_par=rng.uniform(0.0, 0.04, (H, W)), phi_perp=rng.uniform(0, math.pi, (H, W)))
-    return T, R, maps
+    return _static_scene(seed=seed, H=H, W=W)  # random layers and pane maps (test_long_span's)
 
 
 def _light(T, R, maps):
