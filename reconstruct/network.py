@@ -399,8 +399,8 @@ class PolSpikeNet(nn.Module):
         zeta_feed: torch.Tensor | None = None,
         I_harm: torch.Tensor | None = None,
         I_wide: torch.Tensor | None = None,
-        exposure: float | None = None,
-        span_steps: int | None = None,
+        exposure: float | torch.Tensor | None = None,
+        span_steps: int | torch.Tensor | None = None,
     ) -> NetOutput:
         """Reconstruct the centre frame of each window.
 

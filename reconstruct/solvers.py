@@ -552,11 +552,13 @@ def span_blend(T, R, I_mean, I_harm, zeta, phi, w, sigma: float, tol, tol_t=None
 
     The span's D (:func:`long_span_separation`, every spike of 17.5 ms, unbiased) and the given separation's are two
     estimates of one map.  Their difference is smoothed by normalised convolution with the span's weights ``w``
-    (:func:`span_weights`), c = G * (w (D_span - D)) / G * w, whose variance is (G^2 * w) / (G * w)^2; it is added
-    with the gain lam = tol^2 / (tol^2 + that variance): the inverse-variance combination of the two when the given D
-    errs by ``tol`` (a number or a (B, H, W) map; at the scale ``sigma``), so the span takes over where its noise is below tol and leaves D where
-    the pane barely modulates, the pixel saturates or the light is dim.  ``sigma`` = 0: per pixel.  The change keeps
-    the long mean: T -= a dD, R += (1 - a) dD with a = zeta's half-turn mean (as :func:`anchor_to_mean`).
+    (:func:`span_weights`), c = G * (w (D_span - D)) / G * w, whose variance is var = (G^2 * w) / (G * w)^2; it is
+    added with the gain lam = tol^2 / (tol^2 + var): the inverse-variance combination of the two when the given D errs
+    by ``tol`` (a number or a (B, H, W) map; at the scale ``sigma``), so the span takes over where its noise is below
+    tol and leaves D where the pane barely modulates, the pixel saturates or the light is dim.  ``tol_t`` (optional):
+    the gain is at most tol_t^2 / (tol_t^2 + a^2 var), so T, which moves by a dD, gets no more of the span's noise than
+    that.  ``sigma`` = 0: per pixel.  The change keeps the long mean: T -= a dD, R += (1 - a) dD with a = zeta's
+    half-turn mean (as :func:`anchor_to_mean`).
 
     Returns:
         (T, R) each (B, H, W), float like ``T``.
@@ -566,22 +568,20 @@ def span_blend(T, R, I_mean, I_harm, zeta, phi, w, sigma: float, tol, tol_t=None
     w = w.double()
     wD = w * 2.0 * (bI * b + cI * c) / (b * b + c * c + HARMONIC_FLOOR)  # w D_span, finite where the modulation vanishes
     wx = wD - w * (R - T).double()
-    t2 = torch.as_tensor(tol, dtype=torch.float64, device=T.device) ** 2  # a number or a (B, H, W) map
     if sigma > 0:
         k = gaussian_kernel(sigma, torch.float64, T.device)
-        Gw = separable_blur(w, k)
-        corr = separable_blur(wx, k) / Gw.clamp_min(1e-300)
-        G2w = separable_blur(w, k * k)
-        lam = t2 * Gw * Gw / (t2 * Gw * Gw + G2w + 1e-300)  # tol^2 / (tol^2 + var), var = G^2 w / (G w)^2
-        if tol_t is not None:  # and T, which moves by a dD, no noisier than tol_t: tol_t^2 / (tol_t^2 + a^2 var)
-            tt2 = torch.as_tensor(tol_t, dtype=torch.float64, device=T.device) ** 2
-            lam = torch.minimum(lam, tt2 * Gw * Gw / (tt2 * Gw * Gw + a * a * G2w + 1e-300))
-    else:
-        corr = wx / w.clamp_min(1e-300)
-        lam = t2 * w / (t2 * w + 1.0)  # var = 1 / w
-        if tol_t is not None:
-            tt2 = torch.as_tensor(tol_t, dtype=torch.float64, device=T.device) ** 2
-            lam = torch.minimum(lam, tt2 * w / (tt2 * w + a * a))
+        Gw, Gwx, G2w = separable_blur(w, k), separable_blur(wx, k), separable_blur(w, k * k)
+    else:  # per pixel: the same formulas with G the identity
+        Gw, Gwx, G2w = w, wx, w
+    corr = Gwx / Gw.clamp_min(1e-300)
+
+    def gain(tol_, scale=1.0):  # tol^2 / (tol^2 + scale^2 var), var = G^2 * w / (G * w)^2; tol a number or a (B, H, W) map
+        t2 = torch.as_tensor(tol_, dtype=torch.float64, device=T.device) ** 2
+        return t2 * Gw * Gw / (t2 * Gw * Gw + scale * scale * G2w + 1e-300)
+
+    lam = gain(tol)
+    if tol_t is not None:  # and T, which moves by a dD, no noisier than tol_t
+        lam = torch.minimum(lam, gain(tol_t, a))
     dD = lam * corr
     return (T - (a * dD).to(T.dtype)), (R + ((1.0 - a) * dD).to(R.dtype))
 
