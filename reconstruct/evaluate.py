@@ -56,7 +56,7 @@ import torch
 from polinfra.config import opt, to_dict
 from polinfra.errors import ConfigError, DataFormatError
 
-from reconstruct.groups import EvalGroup
+from reconstruct.groups import EvalGroup, network_inputs
 from reconstruct.identifiability import SHARE_MIN, bound_psnr, ls_layer_variance, reflected_share, window_mean_variance
 from reconstruct.metrics import LPIPS_NA, lpips_status, masked_psnr, masked_score, psnr, score
 from reconstruct.net_zeta import NET_FALLBACKS, fallback_for
@@ -451,19 +451,8 @@ def evaluate_groups(
             if net_rows:
                 t0 = time.perf_counter()
                 zn = None if Znet is None else np.stack([np.ascontiguousarray(Znet[i - K : i + K + 1], np.float32) for i in cb])
-                use_mean = getattr(model.cfg, "use_mean", False)
-                if use_mean and Im is None:
-                    raise ConfigError(f"group {g.name}: the network takes the long spike mean, which only stored groups (spikes.h5) give; evaluate it on a built dataset")
-                use_harm, use_wide = getattr(model.cfg, "harm_input", False) or getattr(model.cfg, "use_harm", False), getattr(model.cfg, "wide_input", False)
-                span_level = getattr(model.cfg, "span_level", False)
-                for need, have, what in ((use_harm, g.I_harm, "the long span's first harmonic"), (use_wide, g.I_wide, "the observations over the wide window"),
-                                         (span_level, g.exposure, "the stream's exposure"), (span_level, g.span_steps, "the long span's length")):
-                    if need and have is None:
-                        raise ConfigError(f"group {g.name}: the network takes {what}, which only stored groups (spikes.h5) and synthetic groups give")
-                span_kw = {"exposure": g.exposure, "span_steps": g.span_steps} if span_level else {}
-                Ih = np.stack([g.I_harm[i] for i in cb]) if use_harm else None
-                Iwd = np.stack([g.I_wide[i - K : i + K + 1] for i in cb]) if use_wide else None
-                o = run_model_on_windows(model, raw.float().cpu().numpy(), Pw.float().cpu().numpy(), device=next(model.parameters()).device, tile=cfg.net_tile, zeta=zn, I_mean=Im if use_mean else None, I_harm=Ih, I_wide=Iwd, **span_kw)
+                span_kw = network_inputs(g, model, cb, K)  # the long span it reads; ConfigError where the group lacks it
+                o = run_model_on_windows(model, raw.float().cpu().numpy(), Pw.float().cpu().numpy(), device=next(model.parameters()).device, tile=cfg.net_tile, zeta=zn, **span_kw)
                 est[net_rows[0]] = (o["T"], o["R"])
                 est[net_rows[1]] = (o["T_base"], o["R_base"])
                 t["network"] += time.perf_counter() - t0

@@ -527,9 +527,9 @@ class PolSpikeNet(nn.Module):
                 peak = I.max(1).values if I_wide is None else torch.maximum(I.max(1).values, I_wide.float().max(1).values)
                 zs = zeta_used.detach()
                 wsp = span_weights(I_mean, zs, phi, exposure, span_steps, I_peak=peak)
-                tol = self.cfg.span_level_tol * 2.0 * I_mean.double().clamp_min(0.0)  # relative to the pixel's light: any brightness scale gives the same move
-                tol_t = self.cfg.span_level_tol_t * 2.0 * I_mean.double().clamp_min(0.0) if self.cfg.span_level_tol_t > 0 else None
-                T, R = span_blend(T, R, I_mean, I_harm, zs, phi, wsp, self.cfg.span_level_px, tol, tol_t)
+                light = 2.0 * I_mean.double().clamp_min(0.0)  # tolerances relative to the pixel's light: any brightness scale gives the same move
+                tol_t = self.cfg.span_level_tol_t * light if self.cfg.span_level_tol_t > 0 else None
+                T, R = span_blend(T, R, I_mean, I_harm, zs, phi, wsp, self.cfg.span_level_px, self.cfg.span_level_tol * light, tol_t)
         return NetOutput(T=T, R=R, T_base=T0, R_base=R0, zeta_hat=zeta_hat, zeta_used=zeta_used, weights=w, conf=res.conf, res=resid, I=I, zeta_gt=zeta_gt)
 
 

@@ -34,7 +34,7 @@ from reconstruct.selfcal import SelfCalConfig, SelfCalResult, StreamTooShortErro
 from reconstruct.solvers import PHYSICS_SOLVER_CONFIG, SOLVERS, SolverConfig, anchor_to_mean, solve, zbar_of
 from reconstruct.zeta_source import PaneMaps, zeta_from_maps, zeta_learned
 
-__all__ = ["PHYSICS_METHODS", "STREAM_ZETA_SOURCES", "PhysicsModel", "PhysicsOutput", "calibrate_source", "span_frames", "group_pane_maps", "build_physics_model"]
+__all__ = ["PHYSICS_METHODS", "STREAM_ZETA_SOURCES", "PhysicsModel", "PhysicsOutput", "calibrate_source", "frames_exposure", "span_frames", "group_pane_maps", "build_physics_model"]
 
 log = logging.getLogger(__name__)
 
@@ -159,16 +159,23 @@ def calibrate_source(source, window_steps: int = 13, exposure: float | None = No
     its mean calibrated polarizer angle (denser than the output cadence: more data, same model); pixels that
     saturate are left out (:func:`reconstruct.selfcal.leave_out_saturated`).
     """
-    ex = exposure if exposure is not None else (source.exposure or 1.0)  # span_frames' own: I x ex = spikes per step
+    ex = frames_exposure(source, exposure)
     I, phi = span_frames(source, cfg.span_s, window_steps, ex)
     return self_calibrate(I, phi, cfg, name=source.name, exposure=ex)
+
+
+def frames_exposure(source, exposure: float | None = None) -> float:
+    """The exposure :func:`span_frames` divides by: the one given, else the source's, else 1 (a raw stream of unknown
+    scale: radiance = spikes per step).  Frames times it are spikes per step whatever it is, so saturation tests on
+    them hold."""
+    return exposure if exposure is not None else (source.exposure or 1.0)
 
 
 def span_frames(source, span_s: float, window_steps: int = 13, exposure: float | None = None) -> tuple[np.ndarray, np.ndarray]:
     """The first ``span_s`` of a spike stream as back-to-back Eq. (3) frames: I (M, H, W) float32 radiance, phi (M,) radians."""
     steps_needed = max(window_steps * 3, int(round(span_s * source.rate_hz)))
     steps_needed = min(steps_needed, int(source.phi_step_rad.size))
-    ex = exposure if exposure is not None else (source.exposure or 1.0)
+    ex = frames_exposure(source, exposure)
     bufs, have = [], 0
     for _, chunk in source.chunks():
         bufs.append(np.asarray(chunk))

@@ -1148,12 +1148,12 @@ def group_self_zeta(group, n: float | None = None, model: str | None = None, cfg
     src_dir = getattr(group, "source_dir", None)
     if src_dir and (Path(src_dir) / "spikes.h5").is_file():
         # a stored group: every spike of the first span_s (back-to-back windows), not only the strided output frames
-        from reconstruct.physics_video import span_frames
+        from reconstruct.physics_video import frames_exposure, span_frames
         from reconstruct.video import group_source
 
         src = group_source(src_dir)
-        I, phi = span_frames(src, c.span_s)
-        exposure = src.exposure
+        exposure = frames_exposure(src)
+        I, phi = span_frames(src, c.span_s, exposure=exposure)
     else:
         frames = min(group.I.shape[0], MAX_FRAMES)
         I, phi = group.I[:frames], np.asarray(group.phi_nominal)[:frames]

@@ -45,7 +45,7 @@ from polinfra.atomic import atomic_path, ensure_dir, write_json
 from polinfra.config import opt
 from polinfra.errors import ConfigError, DataFormatError
 
-from reconstruct.groups import SpikeMeanSums, spike_mean_steps, wide_window_steps
+from reconstruct.groups import SpikeMeanSums, spike_mean_steps, wide_window_steps, window_means
 
 __all__ = ["DISPLAY_CLIP_FRACTION", "DisplayHistogram", "display_gain", "ReconstructConfig", "SpikeSource", "FeatureCache", "auto_tile", "dat_source", "group_source", "reconstruct_stream", "run_model_on_windows", "standin_inputs"]
 
@@ -143,6 +143,11 @@ def _pad4(x: torch.Tensor, multiple: int = 4) -> tuple[torch.Tensor, tuple[int, 
 _KEYS = ("T", "R", "T_base", "R_base")
 
 
+def _given(**kw) -> dict:
+    """The keywords that are not None (optional inputs passed on to a model only when a caller has them)."""
+    return {k: v for k, v in kw.items() if v is not None}
+
+
 def _multiple(model) -> int:
     return int(getattr(model, "pad_multiple", 4))
 
@@ -207,7 +212,7 @@ def run_model_on_windows(model, I: np.ndarray, phi: np.ndarray, device: str | to
     if w_ is not None and w_.shape != x.shape:
         raise ConfigError(f"I_wide must have the windows' shape {tuple(x.shape)}; got {tuple(w_.shape)}")
 
-    span_kw = {k: v for k, v in (("exposure", exposure), ("span_steps", span_steps)) if v is not None}
+    span_kw = _given(exposure=exposure, span_steps=span_steps)
 
     def zkw(zz, i, mm=None, hh=None, ww=None):
         kw = {} if zz is None else {"zeta_gt": zz[i : i + max_batch], "alpha": 1.0}
@@ -222,11 +227,7 @@ def run_model_on_windows(model, I: np.ndarray, phi: np.ndarray, device: str | to
 
     with torch.inference_mode(), _autocast(dev, precision):
         if tile <= 0 or (H <= tile and W <= tile):
-            xp, _ = _pad4(x, mult)
-            zp = None if z is None else _pad4(z, mult)[0]
-            mp = None if m_ is None else _pad4(m_, mult)[0]
-            hp = None if h_ is None else _pad4(h_, mult)[0]
-            wp = None if w_ is None else _pad4(w_, mult)[0]
+            xp, zp, mp, hp, wp = (None if t is None else _pad4(t, mult)[0] for t in (x, z, m_, h_, w_))
             outs = [model(xp[i : i + max_batch], p[i : i + max_batch], **zkw(zp, i, mp, hp, wp)) for i in range(0, B, max_batch)]
             return {k: torch.cat([getattr(o, k) for o in outs])[..., :H, :W].float().cpu().numpy() for k in _KEYS}
         # a network that blurs its output (r_level_px: R's level from the base) needs that blur's radius inside the margin
@@ -240,25 +241,14 @@ def run_model_on_windows(model, I: np.ndarray, phi: np.ndarray, device: str | to
         ny, nx = -(-H // tile), -(-W // tile)
         # replicate-pad the frame so every tile with its margin has the same size ts x ts
         padding = (margin, nx * tile - W + ts - tile - margin, margin, ny * tile - H + ts - tile - margin)
-        xp = F.pad(x, padding, mode="replicate")
         pos = [(ty * tile, tx * tile) for ty in range(ny) for tx in range(nx)]
-        tiles = torch.stack([xp[..., y0 : y0 + ts, x0 : x0 + ts] for (y0, x0) in pos], 1).reshape(B * len(pos), N, ts, ts)
-        ztiles = None
-        if z is not None:
-            zp = F.pad(z, padding, mode="replicate")
-            ztiles = torch.stack([zp[..., y0 : y0 + ts, x0 : x0 + ts] for (y0, x0) in pos], 1).reshape(B * len(pos), N, ts, ts)
-        mtiles = None
-        if m_ is not None:
-            mpad = F.pad(m_, padding, mode="replicate")
-            mtiles = torch.stack([mpad[..., y0 : y0 + ts, x0 : x0 + ts] for (y0, x0) in pos], 1).reshape(B * len(pos), 1, ts, ts)
-        htiles = None
-        if h_ is not None:
-            hpad = F.pad(h_, padding, mode="replicate")
-            htiles = torch.stack([hpad[..., y0 : y0 + ts, x0 : x0 + ts] for (y0, x0) in pos], 1).reshape(B * len(pos), 2, ts, ts)
-        wtiles = None
-        if w_ is not None:
-            wpad = F.pad(w_, padding, mode="replicate")
-            wtiles = torch.stack([wpad[..., y0 : y0 + ts, x0 : x0 + ts] for (y0, x0) in pos], 1).reshape(B * len(pos), N, ts, ts)
+        def cut(t):  # (B, C, H, W) -> the (B * tiles, C, ts, ts) tiles with their margins; None stays None
+            if t is None:
+                return None
+            tp = F.pad(t, padding, mode="replicate")
+            return torch.stack([tp[..., y0 : y0 + ts, x0 : x0 + ts] for (y0, x0) in pos], 1).reshape(B * len(pos), t.shape[1], ts, ts)
+
+        tiles, ztiles, mtiles, htiles, wtiles = (cut(t) for t in (x, z, m_, h_, w_))
         pt = p.repeat_interleave(len(pos), 0)
         # a v2 network normalises brightness by the window's scale: give every tile the whole frame's
         kw = {}
@@ -333,12 +323,10 @@ class FeatureCache:
                     fs.append(f_)
                     gs.append(g_)
             self.reused += B * N - len(need)
-            mk = {} if I_mean is None else {"I_mean": _pad4(torch.as_tensor(I_mean, dtype=torch.float32, device=dev)[:, None], _multiple(self.model))[0][:, 0]}
-            if I_harm is not None:
-                mk["I_harm"] = _pad4(torch.as_tensor(I_harm, dtype=torch.float32, device=dev), _multiple(self.model))[0]
-            if I_wide is not None:
-                mk["I_wide"] = _pad4(torch.as_tensor(I_wide, dtype=torch.float32, device=dev), _multiple(self.model))[0]
-            mk.update({k: v for k, v in (("exposure", exposure), ("span_steps", span_steps)) if v is not None})
+            mk = {k: _pad4(torch.as_tensor(v, dtype=torch.float32, device=dev), _multiple(self.model))[0] for k, v in _given(I_harm=I_harm, I_wide=I_wide).items()}
+            if I_mean is not None:
+                mk["I_mean"] = _pad4(torch.as_tensor(I_mean, dtype=torch.float32, device=dev)[:, None], _multiple(self.model))[0][:, 0]
+            mk.update(_given(exposure=exposure, span_steps=span_steps))
             out = self.model(xp, p, feats=(torch.stack(fs), torch.stack(gs)), **mk)
             res = {k: getattr(out, k)[..., :H, :W].float().cpu().numpy() for k in _KEYS}
         lo = int(idx[:, 0].max()) + 1  # windows advance: the next one starts after this batch's last first frame
@@ -521,13 +509,12 @@ def reconstruct_stream(
         )
     exposure = source.exposure if source.exposure is not None else cfg.exposure
     fps = output_fps(source.polarizer_rev_s, cfg.stride_deg) if source.polarizer_rev_s > 0 else 1.0
-    half = agg.half
     t0 = time.perf_counter()
     frames_I: deque[np.ndarray] = deque(maxlen=N)
     wide = bool(getattr(model.cfg, "wide_input", False))
     n_total = source.phi_step_rad.size
-    wide_half = wide_window_steps(source.rate_hz, source.polarizer_rev_s, cfg.stride_deg) // 2 if wide else 0
-    reach = max(half, wide_half)  # steps a frame needs on each side of its centre
+    widths = (cfg.window_steps, wide_window_steps(source.rate_hz, source.polarizer_rev_s, cfg.stride_deg)) if wide else (cfg.window_steps,)
+    reach = max(w // 2 for w in widths)  # steps a frame needs on each side of its centre
     frames_W: deque[np.ndarray] = deque(maxlen=N)
     pending: list[tuple[np.ndarray, np.ndarray]] = []
     stats = {"nan_frames": 0, "tfp_corr": [], "tfp_psnr": []}
@@ -537,7 +524,7 @@ def reconstruct_stream(
     tail_start = 0
 
     mean_steps = spike_mean_steps(source.rate_hz) if getattr(model.cfg, "use_mean", False) else 0
-    use_harm = bool(getattr(model.cfg, "harm_input", False) or getattr(model.cfg, "use_harm", False))
+    use_harm = bool(getattr(model.cfg, "harm_input", False))
     span_kw = {"exposure": exposure, "span_steps": mean_steps} if getattr(model.cfg, "span_level", False) else {}
     prefix = SpikeMeanSums(centres, mean_steps, source.phi_step_rad.size, (source.height, source.width), source.phi_step_rad if use_harm else None) if mean_steps else None
     tile = auto_tile(model, device) if cfg.tile < 0 else cfg.tile
@@ -578,11 +565,11 @@ def reconstruct_stream(
             if prefix is not None:
                 prefix.feed(s0, chunk)
             while next_c < centres.size and min(int(centres[next_c]) + reach, n_total - 1) < b1 and done + len(pending) < n_out:
-                c = int(centres[next_c]) - b0
-                frames_I.append(buf[c - half : c + half + 1].sum(0, dtype=np.int32).astype(np.float32) / (cfg.window_steps * exposure))  # Eq. (3), radiance units
-                if wide:  # the wide window, clipped to the stream as a stored group's (reconstruct.groups.window_means)
-                    lo, hi = max(0, c + b0 - wide_half), min(n_total, c + b0 + wide_half + 1)
-                    frames_W.append(buf[lo - b0 : hi - b0].sum(0, dtype=np.int32).astype(np.float32) / np.float32(max(hi - lo, 1) * exposure))
+                # Eq. (3) in radiance units, and the wide window clipped to the stream, as a stored group's
+                got = window_means(lambda a, b: buf[a - b0 : b - b0], [int(centres[next_c])], widths, n_total, exposure)
+                frames_I.append(got[0][0])
+                if wide:
+                    frames_W.append(got[1][0])
                 next_c += 1
                 if len(frames_I) == N:
                     j = next_c - 1 - K
@@ -631,7 +618,7 @@ def standin_inputs(model, I) -> dict[str, Any]:
     kw: dict[str, Any] = {}
     if getattr(cfg, "use_mean", False):
         kw["I_mean"] = 0.5 * I.mean(1)
-    if getattr(cfg, "harm_input", False) or getattr(cfg, "use_harm", False):
+    if getattr(cfg, "harm_input", False):
         shape = (I.shape[0], 2, *I.shape[2:])
         kw["I_harm"] = I.new_full(shape, 0.01) if torch.is_tensor(I) else np.full(shape, 0.01, np.float32)
     if getattr(cfg, "wide_input", False):

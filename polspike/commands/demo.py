@@ -150,7 +150,7 @@ def reconstruct_and_score(group_dir: Path, figs: Path, n_frames: int, crop: int)
 
     from polinfra.plotting import image_grid, save_figure
     from reconstruct.checkpoint import DEFAULT_WEIGHTS, load_model
-    from reconstruct.groups import load_store_group
+    from reconstruct.groups import load_store_group, network_inputs
     from reconstruct.metrics import score
     from reconstruct.video import run_model_on_windows
 
@@ -172,13 +172,9 @@ def reconstruct_and_score(group_dir: Path, figs: Path, n_frames: int, crop: int)
     sl = (slice(y0, y0 + c), slice(x0, x0 + c))
     I = np.stack([g.I[i - K : i + K + 1][:, sl[0], sl[1]] for i in idx])
     phi = np.stack([g.phi_nominal[i - K : i + K + 1] for i in idx])
-    im = np.stack([g.I_mean[i][sl] for i in idx]) if model.cfg.use_mean else None  # the long spike mean, when the net takes it
-    ih = np.stack([g.I_harm[i][:, sl[0], sl[1]] for i in idx]) if model.cfg.harm_input else None  # its first harmonic, likewise
     zw = None if Z is None else np.stack([Z[i - K : i + K + 1][:, sl[0], sl[1]] for i in idx]).astype(np.float32)
-    with torch.no_grad():
-        iw = np.stack([g.I_wide[i - K : i + K + 1][:, sl[0], sl[1]] for i in idx]) if model.cfg.wide_input else None  # the wide windows, likewise
-        span_kw = {"exposure": g.exposure, "span_steps": g.span_steps} if model.cfg.span_level else {}
-        res = run_model_on_windows(model, I, phi, I_mean=im, I_harm=ih, I_wide=iw, zeta=zw, **span_kw)
+    with torch.no_grad():  # with the long span the network reads (reconstruct.groups.network_inputs)
+        res = run_model_on_windows(model, I, phi, zeta=zw, **network_inputs(g, model, idx, K, sl))
     est = {"TFP (window mean)": (2 * I.mean(1), None), "RWPS only": (res["T_base"], res["R_base"]), "full network": (res["T"], res["R"])}
     rows = []
     for name, (T, R) in est.items():

@@ -998,9 +998,8 @@ def write_outputs(out: Path, res: dict, *, base_scene: dict | None = None, width
 def calibrate_input(input: Path, cfg: CalibratePaneConfig, *, height: int | None = None, width: int | None = None, phi0_deg: float | None = None,
                     rev_per_s: float | None = None, rate_hz: float = 20000.0, progress=None) -> tuple[dict, dict | None, int, int]:
     """Load a group store or a raw .dat and run :func:`calibrate_frames`; returns (result, base scene dict, W, H)."""
-    from reconstruct.physics_video import span_frames
-    from reconstruct.selfcal import leave_out_saturated
-    from reconstruct.selfcal import fov_from_group_dir
+    from reconstruct.physics_video import frames_exposure, span_frames
+    from reconstruct.selfcal import fov_from_group_dir, leave_out_saturated
     from reconstruct.video import dat_source, group_source
 
     base = None
@@ -1022,7 +1021,7 @@ def calibrate_input(input: Path, cfg: CalibratePaneConfig, *, height: int | None
             log.info("%s records its field of view; calibrate-pane fits it anyway (give --fov-deg to fix it)", input)
     else:
         raise ConfigError(f"input {input} is neither a .dat file nor a spike group directory (GROUP/spikes.h5)")
-    ex = src.exposure or 1.0  # span_frames' own: I x ex = spikes per step
+    ex = frames_exposure(src)
     I, phi = span_frames(src, cfg.span_s, cfg.window_steps, ex)
     I, sat = leave_out_saturated(I, ex)  # clipped pixels would read as a weaker pane
     if sat > 0:

@@ -241,7 +241,7 @@ def test_stream_gives_the_network_the_store_harmonic(tmp_path, chunk):
     from spike_sim.aggregate import AggregateConfig, frame_centres
     from spike_sim.store import open_group
 
-    got, src, g = _streamed(tmp_path, chunk, 3, _Recorder("I_harm", use_harm=True))
+    got, src, g = _streamed(tmp_path, chunk, 3, _Recorder("I_harm", use_harm=True, harm_input=True))
     np.testing.assert_allclose(got, g.I_harm[3 : 3 + got.shape[0]], rtol=1e-5, atol=1e-6)
     with open_group(tmp_path / "g") as sg:  # and both are the direct fit of the raw spikes (exposure 1 here or not)
         c, _ = frame_centres(sg.phi_nominal_rad, AggregateConfig())
