@@ -123,6 +123,12 @@ def _wmedian(v: np.ndarray, w: np.ndarray) -> float:
 
 
 # --------------------------------------------------------------------------- geometry
+def _degenerate_view(x: np.ndarray, fit_fov: bool) -> bool:
+    """A geometry pushed against the fit's bounds (tilt >= 89 deg; a fitted fov outside 5.5-149 deg): a degenerate
+    view in which theta hardly varies across the image, so any index fits any modulation depth."""
+    return bool(x[0] >= math.radians(89.0) or (fit_fov and not math.radians(5.5) < x[2] < math.radians(149.0)))
+
+
 def fit_geometry(of: dict, width: int, height: int, block: int, x0: np.ndarray, fit_fov: bool, coherence_sigmas: float = 4.0, weighting: str = "scatter",
                  fov_starts: tuple[float, ...] = (25.0, 40.0, 55.0, 70.0), rounds: int = 0) -> dict:
     """Gauss-Newton of (tilt, azimuth[, fov]) on the block orientation field (module docstring, step 3).
@@ -229,7 +235,7 @@ def fit_geometry(of: dict, width: int, height: int, block: int, x0: np.ndarray, 
         res = _robust_gn(fun_w, np.clip(xs0, lb, ub), lb, ub)
         d = fun_w(res.x, np.ones(psi.size))[2]
         score = float(np.sum(w * (1.0 - np.cos(4.0 * d))))  # bounded per block: comparable across starts
-        tried.append({"start": np.degrees(xs0).tolist(), "end": np.degrees(res.x).tolist(), "cost": score})
+        tried.append({"start": np.degrees(xs0).tolist(), "end": np.degrees(res.x).tolist(), "cost": score, "degenerate": _degenerate_view(full(res.x), fit_fov)})
         if best is None or score < best[0]:
             best = (score, res)
     res = best[1]
@@ -659,6 +665,13 @@ def calibrate_frames(I: np.ndarray, phi: np.ndarray, cfg: CalibratePaneConfig = 
     x0 = np.array([math.radians(init.tilt_deg), math.radians(init.azimuth_deg), math.radians(init.fov_deg), fixed_n or cfg.prior_n])
     fit_fov = cfg.fov_deg <= 0
     geo = fit_geometry(of, W, H, block, x0, fit_fov=fit_fov)
+    fov_kept = None
+    if fit_fov and _degenerate_view(geo["x"], True) and not _degenerate_view(x0, True):
+        # every start slid down the fov-tilt valley to an orthographic (or fish-eye) view: the field's curvature is
+        # below the noise.  Keep the self-calibration's field of view (its vanishing-point start is not degenerate)
+        # and fit the orientation at it; the fov is reported NOT identified.
+        fov_kept = {"ended_at": [math.degrees(v) for v in geo["x"][:3]], "fov_deg": math.degrees(x0[2])}
+        geo = fit_geometry(of, W, H, block, x0, fit_fov=False)
     timings["geometry_s"] = time.perf_counter() - t0
     gblock = cfg.glass_block_px or block
     gain = math.sin(span_rad) / span_rad if span_rad > 1e-9 else 1.0
@@ -681,14 +694,10 @@ def calibrate_frames(I: np.ndarray, phi: np.ndarray, cfg: CalibratePaneConfig = 
             v_tw = float("inf")
         timings["twin_s"] = time.perf_counter() - t0
         report["twin"] = twin
-        # a candidate pushed against the bounds (tilt 89.5 deg, fov 5 or 150 deg) is a degenerate view in which
-        # theta hardly varies and any index fits any modulation depth: it cannot win
-        def _at_bound(g):
-            return g["x"][0] >= math.radians(89.0) or (fit_fov and not math.radians(5.5) < g["x"][2] < math.radians(149.0))
-
-        if _at_bound(geo):
+        # a candidate pushed against the bounds is a degenerate view (_degenerate_view): it cannot win
+        if _degenerate_view(geo["x"], fit_fov):
             v_best = float("inf")
-        if tw is not None and _at_bound(tw):
+        if tw is not None and _degenerate_view(tw["x"], fit_fov):
             v_tw = float("inf")
         twin["best"]["eligible"] = bool(np.isfinite(v_best))
         if "twin" in twin:
@@ -706,7 +715,7 @@ def calibrate_frames(I: np.ndarray, phi: np.ndarray, cfg: CalibratePaneConfig = 
         twin["why"] = (f"modulo 90 deg the orientation field could not tell the two panes apart ({100 * init.twin_ratio:.1f} %); the modulation depths violate "
                        f"the {twin['chosen']}'s cone [-DoP_T, DoP_R] by chi^2 {min(v_best, v_tw):.1f}, the other's by {max(v_best, v_tw):.1f}")
     x = geo["x"]
-    if x[0] >= math.radians(89.0) or (fit_fov and not math.radians(5.5) < x[2] < math.radians(149.0)):
+    if _degenerate_view(x, fit_fov):
         report.update({"ok": False, "reason": f"the orientation fit ran into its bounds (tilt {math.degrees(x[0]):.1f} deg, fov {math.degrees(x[2]):.1f} deg): "
                                               "a degenerate view in which theta is not identified (give --fov-deg if it is known)"})
         return {"ok": False, "report": report}
@@ -799,9 +808,12 @@ def calibrate_frames(I: np.ndarray, phi: np.ndarray, cfg: CalibratePaneConfig = 
         # the field of view is read from phi_perp's weak curvature: fov and tilt slide along a shallow valley of
         # the orientation fit, and theta(p) with them; claim it only where the propagated theta 1-sigma is small
         s_th = float(geo["sigma_theta_deg_median"])
-        ok_fov = s_th <= cfg.max_theta_sigma_deg
+        ok_fov = s_th <= cfg.max_theta_sigma_deg and fov_kept is None
         fov_verdict = {"identified": bool(ok_fov), "value": fov, "sigma_deg": math.degrees(sig[2]), "theta_sigma_deg_median": s_th,
-                       "why": (prof["why"] if prof and prof["used"] else
+                       "why": (f"NOT identified: the orientation fit with the fov free ran into its bounds (tilt {fov_kept['ended_at'][0]:.1f} deg, fov "
+                               f"{fov_kept['ended_at'][2]:.1f} deg: a degenerate view; the field's curvature is below the noise), so the self-calibration's "
+                               f"fov {fov:.2f} deg was kept and the orientation fitted at it; theta(p) is as uncertain as that fov: give --fov-deg if the lens is known"
+                               if fov_kept else prof["why"] if prof and prof["used"] else
                                f"phi_perp's curvature across the image pins the focal length, hence theta(p), to {s_th:.2f} deg (median 1-sigma)" if ok_fov else
                                f"NOT identified to {cfg.max_theta_sigma_deg:g} deg: fov and tilt trade off along a shallow valley of the orientation fit "
                                f"(the field's curvature is weak: narrow view or glancing pane); theta(p) is uncertain by {s_th:.2f} deg (median 1-sigma), "
@@ -820,7 +832,7 @@ def calibrate_frames(I: np.ndarray, phi: np.ndarray, cfg: CalibratePaneConfig = 
                      "orientation_residual_deg_median": geo["residual_deg_median"], "converged": geo["converged"], "iterations": len(geo["history"]) - 1,
                      "init_tilt_deg": init.tilt_deg, "init_azimuth_deg": init.azimuth_deg, "init_fov_deg": init.fov_deg, "starts": geo["starts"],
                      "residual_lag1_correlation_xy": geo["residual_lag1_correlation"], "covariance_inflation": geo["covariance_inflation"],
-                     "dop_fov_profile": prof},
+                     "dop_fov_profile": prof, "fov_kept_from_self_calibration": fov_kept},
         "glass": {"chunks": st["chunks"], "block_px": gblock, "valid_blocks": int(st["valid"].sum()),
                   "models": {k: {kk: vv for kk, vv in v.items() if kk not in ("dop_R", "dop_T", "grid_n", "grid_loss", "history")} for k, v in gl["models"].items()}},
         "identifiability": {

@@ -117,6 +117,43 @@ def test_a_narrow_view_reports_the_fov_tilt_trade_off_instead_of_claiming_theta(
     assert ph <= 0.5  # the orientation itself is pinned
 
 
+def test_a_fov_fit_that_ends_in_a_degenerate_view_keeps_the_self_calibrated_fov(monkeypatch):
+    """Where the fov-free orientation fit slides to its bound (an orthographic view: seen on a weakly reflecting
+    62 deg view of eval_fresh_val, every start ended at fov 5 deg while the self-calibration's vanishing point gave
+    34 deg), calibrate-pane keeps the self-calibration's fov and fits the orientation at it instead of refusing:
+    the result is usable (phi_perp within the goal), the fov is reported NOT identified with the reason, and the
+    CLI's summary says where the fov came from."""
+    import polspike.pipeline.calibrate_pane as cp
+
+    real = cp.fit_geometry
+    calls = []
+
+    def sliding(of, width, height, block, x0, fit_fov, **kw):
+        geo = real(of, width, height, block, x0, fit_fov, **kw)
+        calls.append(fit_fov)
+        if fit_fov:  # the valley's end: the bound
+            geo["x"] = geo["x"].copy()
+            geo["x"][2] = math.radians(5.0)
+        return geo
+
+    monkeypatch.setattr(cp, "fit_geometry", sliding)
+    tilt, az = CASES[0][:2]
+    I, phi, span, geo = pane_stream(tilt, az, n=1.5, model="single")
+    res = cp.calibrate_frames(I, phi, cp.CalibratePaneConfig(), span_rad=span)
+    assert calls == [True, False]
+    assert res["ok"], res["report"].get("reason")
+    rep = res["report"]
+    kept = rep["geometry"]["fov_kept_from_self_calibration"]
+    assert kept["ended_at"][2] == pytest.approx(5.0) and rep["params"]["fov_deg"] == pytest.approx(rep["init"]["fov_deg"])
+    fv = rep["identifiability"]["fov"]
+    assert fv["identified"] is False and "ran into its bounds" in fv["why"] and "--fov-deg" in fv["why"]
+    th, ph = _errors(res, geo)
+    assert ph <= 0.5 and th <= 1.0  # this stream's self-calibrated fov is close to the truth (55 deg)
+    # without the degenerate end nothing is kept
+    monkeypatch.setattr(cp, "fit_geometry", real)
+    assert cp.calibrate_frames(I, phi, cp.CalibratePaneConfig(), span_rad=span)["report"]["geometry"]["fov_kept_from_self_calibration"] is None
+
+
 def test_geometry_with_known_fov():
     """fov given (a low tilt, 30 deg): theta and phi_perp within the goal (0.5 deg median), tilt within
     1 deg and 4 reported sigmas."""
