@@ -1,6 +1,6 @@
 """Reproduce the tables of docs/calibrate_pane.md (issue 21).
 
-    PYTHONPATH=. python docs/calibrate_pane_report.py out/datasets/eval_paper [--fov-given] [--solvers [--compare-prior]] [--no-content] [--frames 40]
+    PYTHONPATH=. python docs/calibrate_pane_report.py out/datasets/eval_paper [--fov-given] [--solvers [--compare-prior]] [--no-content] [--frames 40] [--span-s 0.1]
 
 For every group of the dataset: calibrate-pane on its spikes (default options; --fov-given passes the
 scene's fov), errors of theta / phi_perp against the group's stored maps, the fitted vs true tilt, fov,
@@ -30,6 +30,7 @@ def main() -> None:
     ap.add_argument("--frames", type=int, default=40)
     ap.add_argument("--compare-prior", action="store_true", help="with --solvers: also the fitted geometry with the prior n / model (the maps before the content test)")
     ap.add_argument("--no-content", action="store_true", help="calibrate without the content test")
+    ap.add_argument("--span-s", type=float, default=0.1, help="CalibratePaneConfig.span_s: seconds of each group calibrated (at most the group's length)")
     ap.add_argument("--content-true-geometry", action="store_true", help="only the content test, on the stored (true) theta / phi_perp of each group")
     ap.add_argument("--identifiability", action="store_true", help="only the content test on the true geometry, from the spikes and from noiseless harmonics of the ground-truth layers (what the layers' content allows without spike noise)")
     ap.add_argument("--content-power", default="same", choices=("same", "cross"), help="CalibratePaneConfig.content_power")
@@ -39,7 +40,7 @@ def main() -> None:
     if a.valley:
         return valley(Path(a.dataset), a.weightings.split(","))
     if a.identifiability:
-        return identifiability(Path(a.dataset), a.content_power)
+        return identifiability(Path(a.dataset), a.content_power, a.span_s)
     if a.content_true_geometry:
         return content_on_true_geometry(Path(a.dataset))
     from polspike.pipeline.calibrate_pane import CalibratePaneConfig, calibrate_input
@@ -52,7 +53,7 @@ def main() -> None:
     for gd in sorted((Path(a.dataset) / "groups").iterdir()):
         spec = json.loads((gd / "group_spec.json").read_text())["scene"]
         t0 = time.time()
-        res, _, _, _ = calibrate_input(gd, CalibratePaneConfig(fov_deg=spec["camera"]["fov_deg"] if a.fov_given else 0.0, content=not a.no_content, content_power=a.content_power))
+        res, _, _, _ = calibrate_input(gd, CalibratePaneConfig(fov_deg=spec["camera"]["fov_deg"] if a.fov_given else 0.0, content=not a.no_content, content_power=a.content_power, span_s=a.span_s))
         r = res["report"]
         if not res["ok"]:
             rows.append({"group": gd.name, "refused": r["reason"]})
@@ -262,7 +263,7 @@ def valley(dataset: Path, weightings: list[str]) -> None:
         print(json.dumps(row), flush=True)
 
 
-def identifiability(dataset: Path, content_power: str = "same") -> None:
+def identifiability(dataset: Path, content_power: str = "same", span_s: float = 0.1) -> None:
     """How far the layers' content, not the spike noise, limits the pane model and the index.
 
     Per group, the content test (default options) on the true theta / phi_perp twice: (a) from the spikes, as
@@ -276,7 +277,7 @@ def identifiability(dataset: Path, content_power: str = "same") -> None:
     from polspike.pipeline.calibrate_pane import CalibratePaneConfig, content_glass
     from spike_sim.store import open_group
 
-    cfg = CalibratePaneConfig(content_power=content_power)
+    cfg = CalibratePaneConfig(content_power=content_power, span_s=span_s)
     slab = lambda m: "single" if m == "single" else "slab"  # noqa: E731
     rows = []
     for gd, spec, I, phi, span in _group_spans(dataset, cfg):

@@ -83,6 +83,7 @@ def bench_calibrate_pane(
     width: int = typer.Option(400, "--width", help="image width in pixels"),
     height: int = typer.Option(250, "--height", help="image height in pixels"),
     span_s: float = typer.Option(0.1, "--span-s", help="stream span fitted, seconds"),
+    spans: str = typer.Option("", "--spans", help="comma-separated spans (seconds) to measure the span knob at as well: seconds and errors per span, e.g. 0.05,0.1,0.2"),
     as_json: bool = typer.Option(False, "--json", help="print the JSON instead of the table"),
 ) -> None:
     """Seconds for one full calibrate-pane fit of a span (goal: 0.1 s at 400 x 250 in <= 2 min on 2 cores), beside the self-calibration alone."""
@@ -93,7 +94,15 @@ def bench_calibrate_pane(
 
     from polspike.pipeline.calibrate_pane import run_bench
 
-    r = run_bench(out, width=width, height=height, span_s=span_s)
+    from polinfra.errors import ConfigError
+
+    try:
+        sweep = tuple(float(v) for v in spans.split(",") if v.strip())
+    except ValueError:
+        raise ConfigError(f"--spans {spans!r}: give comma-separated seconds, e.g. 0.05,0.1,0.2") from None
+    if any(not 0.02 <= v <= 10.0 for v in sweep):
+        raise ConfigError(f"--spans {spans!r}: each span must be 0.02-10 s (two half turns of the polarizer at least)")
+    r = run_bench(out, width=width, height=height, span_s=span_s, spans=sweep)
     if as_json:
         print(json.dumps(r, indent=2))
         return
@@ -104,4 +113,16 @@ def bench_calibrate_pane(
         tab.add_row(row["stage"], f"{row['s']:.2f}", f"{row['ratio']:.2f}")
     Console().print(tab)
     Console().print(f"goal <= 120 s: {'met' if r['total_s'] <= 120 else 'NOT met'} ({r['total_s']:.1f} s); load average {r['machine']['load_avg_1min']:.1f}; "
-                    f"tilt error {r['accuracy']['tilt_err_deg']:.2f} deg; wrote {out / 'bench_calibrate_pane.json'}")
+                    f"tilt error {r['accuracy'].get('tilt_err_deg', float('nan')):.2f} deg; wrote {out / 'bench_calibrate_pane.json'}")
+    if r["span_sweep"]:
+        tab = Table(title="the span knob: the same pane and layers fitted over each span")
+        for c in ("span s", "seconds", "x self-calibration", "theta err", "theta 1-sigma", "phi_perp err", "tilt err", "n (err, claimed)", "model (right, claimed)"):
+            tab.add_column(c, justify="right")
+        for w in r["span_sweep"]:
+            if not w["ok"]:
+                tab.add_row(f"{w['span_s']:g}", f"{w['s']:.2f}", f"{w['ratio']:.2f}", "refused", "", "", "", "", "")
+                continue
+            tab.add_row(f"{w['span_s']:g}", f"{w['s']:.2f}", f"{w['ratio']:.2f}", f"{w['theta_err_deg_median']:.3f}", f"{w['theta_sigma_deg_median']:.3f}",
+                        f"{w['phi_perp_err_deg_median']:.3f}", f"{w['tilt_err_deg']:.3f}", f"{w['n']:.3f} ({w['n_err']:.3f}, {'yes' if w['n_identified'] else 'no'})",
+                        f"{w['model']} ({'yes' if w['model_right'] else 'no'}, {'yes' if w['model_identified'] else 'no'})")
+        Console().print(tab)

@@ -455,3 +455,33 @@ def test_block_orientation_variance_matches_the_monte_carlo_spread_of_psi():
     one[1, 2] = 5.0
     v1, n1 = block_orientation_variance({"s4": one.sum()[None, None], "s4_px": one}, b)
     assert n1[0, 0] == pytest.approx(1.0)
+
+
+def test_bench_measures_the_span_knob_through_the_console_script(tmp_path):
+    """``polspike bench calibrate-pane --spans``, run as a person runs it: per span a fit of the same closed-form pane
+    (frames = span x 20 kHz / 13 steps), its seconds as a ratio to the self-calibration measured in the same run,
+    and its errors against the closed-form truth (phi_perp within the goal; theta within 4 of its own 1-sigma).
+    A malformed --spans is one line on stderr, exit 2, no traceback."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    exe = str(Path(sys.executable).with_name("polspike"))
+    if not Path(exe).exists():
+        pytest.fail("the console script 'polspike' is not installed next to this interpreter (pip install -e .)")
+    out = tmp_path / "bench"
+    r = subprocess.run([exe, "bench", "calibrate-pane", "--width", "96", "--height", "64", "--span-s", "0.05", "--spans", "0.05,0.1", "--out", str(out)],
+                       capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stderr
+    doc = json.loads((out / "bench_calibrate_pane.json").read_text())
+    ref = doc["rows"][0]["s"]
+    assert doc["rows"][0]["ratio"] == 1.0 and doc["rows"][-1]["ratio"] == pytest.approx(doc["total_s"] / ref)
+    sw = doc["span_sweep"]
+    assert [w["span_s"] for w in sw] == [0.05, 0.1] and [w["frames"] for w in sw] == [int(s * 20000) // 13 for s in (0.05, 0.1)]
+    for w in sw:
+        assert w["ok"] and w["ratio"] == pytest.approx(w["s"] / ref)
+        assert w["phi_perp_err_deg_median"] <= 0.5
+        assert w["theta_err_deg_median"] <= 4 * w["theta_sigma_deg_median"] + 0.05
+    assert "span knob" in r.stdout
+    bad = subprocess.run([exe, "bench", "calibrate-pane", "--spans", "0.1,x", "--out", str(tmp_path / "b2")], capture_output=True, text=True, timeout=120)
+    assert bad.returncode == 2 and "--spans" in bad.stderr and "Traceback" not in bad.stderr and len(bad.stderr.strip().splitlines()) == 1
