@@ -30,6 +30,9 @@ def main() -> None:
     ap.add_argument("--frames", type=int, default=40)
     ap.add_argument("--compare-prior", action="store_true", help="with --solvers: also the fitted geometry with the prior n / model (the maps before the content test)")
     ap.add_argument("--no-content", action="store_true", help="calibrate without the content test")
+    ap.add_argument("--content-sigma", type=float, default=None, help="CalibratePaneConfig.content_sigma_px (default: the config's)")
+    ap.add_argument("--content-pixels", default=None, choices=("same", "split"), help="CalibratePaneConfig.content_pixels")
+    ap.add_argument("--content-best-n", default=None, choices=("best", "rejects_prior"), help="CalibratePaneConfig.content_best_n")
     ap.add_argument("--span-s", type=float, default=0.1, help="CalibratePaneConfig.span_s: seconds of each group calibrated (at most the group's length)")
     ap.add_argument("--content-true-geometry", action="store_true", help="only the content test, on the stored (true) theta / phi_perp of each group")
     ap.add_argument("--identifiability", action="store_true", help="only the content test on the true geometry, from the spikes and from noiseless harmonics of the ground-truth layers (what the layers' content allows without spike noise)")
@@ -40,7 +43,7 @@ def main() -> None:
     if a.valley:
         return valley(Path(a.dataset), a.weightings.split(","))
     if a.identifiability:
-        return identifiability(Path(a.dataset), a.content_power, a.span_s)
+        return identifiability(Path(a.dataset), a.content_power, a.span_s, a.content_sigma)
     if a.content_true_geometry:
         return content_on_true_geometry(Path(a.dataset))
     from polspike.pipeline.calibrate_pane import CalibratePaneConfig, calibrate_input
@@ -53,7 +56,8 @@ def main() -> None:
     for gd in sorted((Path(a.dataset) / "groups").iterdir()):
         spec = json.loads((gd / "group_spec.json").read_text())["scene"]
         t0 = time.time()
-        res, _, _, _ = calibrate_input(gd, CalibratePaneConfig(fov_deg=spec["camera"]["fov_deg"] if a.fov_given else 0.0, content=not a.no_content, content_power=a.content_power, span_s=a.span_s))
+        res, _, _, _ = calibrate_input(gd, CalibratePaneConfig(fov_deg=spec["camera"]["fov_deg"] if a.fov_given else 0.0, content=not a.no_content, content_power=a.content_power, span_s=a.span_s,
+                                                           **{k: v for k, v in (("content_sigma_px", a.content_sigma), ("content_pixels", a.content_pixels), ("content_best_n", a.content_best_n)) if v is not None}))
         r = res["report"]
         if not res["ok"]:
             rows.append({"group": gd.name, "refused": r["reason"]})
@@ -263,7 +267,7 @@ def valley(dataset: Path, weightings: list[str]) -> None:
         print(json.dumps(row), flush=True)
 
 
-def identifiability(dataset: Path, content_power: str = "same", span_s: float = 0.1) -> None:
+def identifiability(dataset: Path, content_power: str = "same", span_s: float = 0.1, content_sigma: float | None = None) -> None:
     """How far the layers' content, not the spike noise, limits the pane model and the index.
 
     Per group, the content test (default options) on the true theta / phi_perp twice: (a) from the spikes, as
@@ -278,6 +282,8 @@ def identifiability(dataset: Path, content_power: str = "same", span_s: float = 
     from spike_sim.store import open_group
 
     cfg = CalibratePaneConfig(content_power=content_power, span_s=span_s)
+    if content_sigma is not None:
+        cfg = dataclasses.replace(cfg, content_sigma_px=content_sigma)
     slab = lambda m: "single" if m == "single" else "slab"  # noqa: E731
     rows = []
     for gd, spec, I, phi, span in _group_spans(dataset, cfg):

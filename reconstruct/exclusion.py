@@ -81,8 +81,25 @@ def _grad(x: np.ndarray, sigma: float) -> tuple[np.ndarray, np.ndarray]:
     return np.diff(y, axis=1)[:-1, :], np.diff(y, axis=0)[:, :-1]
 
 
+def _checkerboard(shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """The two disjoint pixel sets of a checkerboard (each pixel's four neighbours lie in the other set)."""
+    yy, xx = np.indices(shape)
+    even = (yy + xx) % 2 == 0
+    return even, ~even
+
+
+def _set_grad(x: np.ndarray, keep: np.ndarray, sigma: float) -> tuple[np.ndarray, np.ndarray]:
+    """Gradient of x seen through the pixels ``keep`` only: normalised convolution (the Gaussian mean of the kept
+    pixels), then the forward differences of :func:`_grad`."""
+    from scipy.ndimage import gaussian_filter
+
+    s = max(sigma, 0.7)  # every pixel needs kept neighbours
+    y = gaussian_filter(np.where(keep, x, 0.0), s) / np.maximum(gaussian_filter(keep.astype(np.float64), s), 1e-12)
+    return np.diff(y, axis=1)[:-1, :], np.diff(y, axis=0)[:, :-1]
+
+
 def cross_gradient_sums(parts, phi_perp: np.ndarray, A: np.ndarray, B: np.ndarray, gain: float = 1.0, sigma: float = SIGMA_PX,
-                        mask: np.ndarray | None = None, pairs: str = "all") -> dict:
+                        mask: np.ndarray | None = None, pairs: str = "all", pixels: str = "same") -> dict:
     """Per-pixel products of the layers' gradients solved under zeta (A, B), crossed between time parts.
 
     Returns (H - 1, W - 1) maps ``cross`` (gR_p . gT_q with p != q, x and y gradients summed; ``pairs`` = "all": the
@@ -91,11 +108,24 @@ def cross_gradient_sums(parts, phi_perp: np.ndarray, A: np.ndarray, B: np.ndarra
     over parts).  ``mask`` (H, W): pixels left out (the layers set to 0 there, gradient pairs touching them 0).  Sum
     the maps over any pixel set and form cross / sqrt(pr pt) for its normalised correlation (:func:`label_correlations`).
     Shared by ``polspike calibrate-pane`` (pane model and index) and the self zeta's 90 deg twin test
-    (``reconstruct.selfcal.layer_gradient_correlation``)."""
+    (``reconstruct.selfcal.layer_gradient_correlation``).
+
+    ``pixels``: ``same`` takes both layers' gradients from every pixel; ``split`` takes R' from one set of a
+    checkerboard and T' from the other (both ways, averaged; normalised convolution at ``sigma``), so that what a
+    pixel carries into both layers drops out of their correlation.  That is the sensor's fixed pattern: a static
+    per-pixel gain (threshold and gain mismatch, ~7 % in the default sensor) multiplies R' and T' alike and, being
+    static, survives the crossing of time parts; it correlates their gradients positively at the right zeta, which
+    a wrong zeta's leak of the opposite sign cancels (docs/calibrate_pane.md, round 5: the index was read low)."""
     from scipy.ndimage import gaussian_filter
 
     if pairs not in ("all", "adjacent"):
         raise ConfigError(f"pairs = {pairs!r}: choose all or adjacent")
+    if pixels not in ("same", "split"):
+        raise ConfigError(f"pixels = {pixels!r}: choose same or split")
+    if pixels == "split":
+        if mask is not None:
+            raise ConfigError("cross_gradient_sums: pixels = 'split' does not take a mask")
+        return _split_sums(parts, phi_perp, A, B, gain, sigma, pairs)
     if mask is not None:
         okx, oky = mask[:-1, :-1] & mask[:-1, 1:], mask[:-1, :-1] & mask[1:, :-1]
     gs = []
@@ -145,3 +175,22 @@ def label_correlations(sums: dict, labels: np.ndarray, n_labels: int, power: str
     den = np.sqrt(np.where(good, pr * pt, 1.0))
     with np.errstate(invalid="ignore", divide="ignore"):
         return np.where(good, cr / den, np.nan)
+
+
+def _split_sums(parts, phi_perp: np.ndarray, A: np.ndarray, B: np.ndarray, gain: float, sigma: float, pairs: str) -> dict:
+    """:func:`cross_gradient_sums` with ``pixels = 'split'``: the time parts crossed as there, and within each pair R'
+    from one checkerboard set with T' from the other (both ways)."""
+    sets = _checkerboard(phi_perp.shape)
+    prod = lambda u, v: u[0] * v[0] + u[1] * v[1]  # noqa: E731
+    gs = []
+    for a0, c in parts:
+        R, T = solve_layers(a0, c, phi_perp, A, B, gain)
+        gs.append({(k, i): _set_grad(X, S, sigma) for k, X in (("R", R), ("T", T)) for i, S in enumerate(sets)})
+    P = len(gs)
+    if P < 2:
+        raise ConfigError("cross_gradient_sums needs at least two time parts")
+    pq = [(j, j + 1) for j in range(P - 1)] + [(j + 1, j) for j in range(P - 1)] if pairs == "adjacent" else [(p, q) for p in range(P) for q in range(P) if q != p]
+    cross = sum(0.5 * (prod(gs[p][("R", 0)], gs[q][("T", 1)]) + prod(gs[p][("R", 1)], gs[q][("T", 0)])) for p, q in pq) / len(pq)
+    own = lambda k: sum(0.5 * (prod(g[(k, 0)], g[(k, 0)]) + prod(g[(k, 1)], g[(k, 1)])) for g in gs) / P  # noqa: E731
+    crossed = lambda k: sum(0.5 * (prod(gs[p][(k, 0)], gs[q][(k, 1)]) + prod(gs[p][(k, 1)], gs[q][(k, 0)])) for p, q in pq) / len(pq)  # noqa: E731
+    return {"cross": cross, "pr": own("R"), "pt": own("T"), "pr_x": crossed("R"), "pt_x": crossed("T")}

@@ -93,3 +93,42 @@ def test_cross_part_power_removes_the_noise_from_the_normalisation():
     assert clean > 0.3
     assert abs(cross - clean) < 0.05 * clean
     assert same < 0.8 * clean
+
+
+def test_split_pixels_drop_the_fixed_pattern_that_same_pixels_read_as_correlation():
+    """The sensor's fixed pattern, a static per-pixel gain (7 %, as the default sensor's threshold and gain
+    mismatch), multiplies R' and T' alike in every time part, so crossing the parts keeps it: taken from the same
+    pixels, the layers' gradient correlation at the true zeta moves up by the gain's own gradient power; with R'
+    from one checkerboard set and T' from the other the gain's values are independent and the correlation stays
+    where the gain-free layers put it.  Without a gain the two agree (the split keeps the content's correlation).
+    Oracle: the same solve of the gain-free harmonics."""
+    H, W = 96, 128
+    A, B, pp = np.full((H, W), 0.12), np.full((H, W), 0.08), np.full((H, W), 0.4)
+    one = np.zeros((H, W), int)
+    for seed in range(3):
+        R = 1.0 + 0.05 * _tex(21 + seed, H, W, s=4)  # low-contrast layers: the fixed pattern's gradients count
+        T = 0.6 + 0.03 * _tex(40 + seed, H, W, s=4)
+        gain = 1.0 + 0.07 * np.random.default_rng(23 + seed).standard_normal((H, W))
+        a0, c = 0.5 * (T + A * (R - T)), 0.5 * B * (R - T) * np.exp(2j * pp)
+
+        def corr(g, pixels):
+            return float(label_correlations(cross_gradient_sums([(g * a0, g * c)] * 2, pp, A, B, sigma=2.0, pixels=pixels), one, 1)[0])
+
+        free_same, free_split = corr(1.0, "same"), corr(1.0, "split")
+        assert abs(free_split - free_same) < 0.01
+        assert corr(gain, "same") - free_same > 0.1, seed
+        assert abs(corr(gain, "split") - free_split) < 0.04, seed
+
+
+def test_split_pixels_refuse_a_mask_and_unknown_names():
+    import pytest
+
+    from polinfra.errors import ConfigError
+
+    H, W = 16, 24
+    parts = [(np.ones((H, W)), np.zeros((H, W), complex))] * 2
+    z = np.full((H, W), 0.1)
+    with pytest.raises(ConfigError, match="pixels"):
+        cross_gradient_sums(parts, z, z, z, pixels="odd")
+    with pytest.raises(ConfigError, match="mask"):
+        cross_gradient_sums(parts, z, z, z, pixels="split", mask=np.ones((H, W), bool))
