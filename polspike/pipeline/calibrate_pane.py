@@ -89,9 +89,8 @@ class CalibratePaneConfig:
     content_tiles: int = opt(6, "the content score's tiles per image axis (its spread across tiles gives the margin)", lo=2, hi=64)
     content_parts: int = opt(2, "time parts of the span: R^ of one part is correlated with T^ of another (independent spike noise)", lo=2, hi=16)
     content_power: str = opt("same", "normalisation of the content test's tile correlations: same (each part's own gradient power: content + spike noise, so hypotheses that amplify the noise score lower) or cross (the power crossed between time parts: content only)", choices=("same", "cross"))
-    content_pixels: str = opt("split", "pixels of the content test: split (R^ from one checkerboard set, T^ from the other: the sensor's static fixed pattern, common to both layers at a pixel, drops out) or same (both from every pixel)", choices=("split", "same"))
+    content_pixels: str = opt("same", "pixels of the content test: same (both layers' gradients from every pixel) or split (R^ from one checkerboard set, T^ from the other: the sensor's static fixed pattern, common to both layers at a pixel, drops out, which unbiases the index but widens its spread; docs/calibrate_pane.md round 5)", choices=("same", "split"))
     content_best: bool = opt(True, "where the content test does not claim n / the model, its best hypothesis (still reported NOT identified) replaces the prior in the written maps")
-    content_best_n: str = opt("best", "the content test's unclaimed index in the maps: best (its best guess) or rejects_prior (only where its accepted range excludes the prior index)", choices=("best", "rejects_prior"))
     content_best_z: float = opt(1.0, "the content test's unclaimed best model replaces the prior only when the other model scores higher by at least this many standard errors (below: a coin flip, the prior stays)", lo=0.0, hi=100.0)
     content_z: float = opt(3.0, "a content claim needs the alternatives' score higher by this many standard errors (across tiles)", lo=0.0, hi=100.0)
     twin_delta_chi2: float = opt(25.0, "an orientation field that cannot tell the pane from its 90 deg twin is resolved by the modulation depth only when one candidate's cone is violated by this much chi^2 less", lo=0.0, hi=1e9)
@@ -791,12 +790,8 @@ def calibrate_frames(I: np.ndarray, phi: np.ndarray, cfg: CalibratePaneConfig = 
                 sel["model"]["why"] += f"; the maps use the content test's best guess {sel['model']['value']} (not claimed)"
                 sel["model_key"] = v
             if sel["n"]["identified"] is False and content["best_model"] == sel["model_key"]:
-                lo, hi = content.get("n", {}).get("accepted_range", [content["best_n"]] * 2)
-                if cfg.content_best_n == "rejects_prior" and lo - 1e-9 <= cfg.prior_n <= hi + 1e-9:
-                    sel["n"]["why"] += f"; the content test accepts {lo:.2f}-{hi:.2f}, the prior among them: kept"
-                else:
-                    sel["n"]["value"] = content["best_n"]
-                    sel["n"]["why"] += f"; the maps use the content test's best guess {content['best_n']:.2f} (not claimed)"
+                sel["n"]["value"] = content["best_n"]
+                sel["n"]["why"] += f"; the maps use the content test's best guess {content['best_n']:.2f} (not claimed)"
     n_final = float(sel["n"]["value"])
     model_final = sel["model"]["value"]
     x[3] = n_final
