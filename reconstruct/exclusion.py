@@ -123,9 +123,7 @@ def cross_gradient_sums(parts, phi_perp: np.ndarray, A: np.ndarray, B: np.ndarra
     if pixels not in ("same", "split"):
         raise ConfigError(f"pixels = {pixels!r}: choose same or split")
     if pixels == "split":
-        if mask is not None:
-            raise ConfigError("cross_gradient_sums: pixels = 'split' does not take a mask")
-        return _split_sums(parts, phi_perp, A, B, gain, sigma, pairs)
+        return _split_sums(parts, phi_perp, A, B, gain, sigma, pairs, mask)
     if mask is not None:
         okx, oky = mask[:-1, :-1] & mask[:-1, 1:], mask[:-1, :-1] & mask[1:, :-1]
     gs = []
@@ -177,15 +175,23 @@ def label_correlations(sums: dict, labels: np.ndarray, n_labels: int, power: str
         return np.where(good, cr / den, np.nan)
 
 
-def _split_sums(parts, phi_perp: np.ndarray, A: np.ndarray, B: np.ndarray, gain: float, sigma: float, pairs: str) -> dict:
+def _split_sums(parts, phi_perp: np.ndarray, A: np.ndarray, B: np.ndarray, gain: float, sigma: float, pairs: str, mask: np.ndarray | None = None) -> dict:
     """:func:`cross_gradient_sums` with ``pixels = 'split'``: the time parts crossed as there, and within each pair R'
-    from one checkerboard set with T' from the other (both ways)."""
+    from one checkerboard set with T' from the other (both ways); ``mask``: pixels left out of both sets, and
+    gradient pairs touching them set to 0."""
     sets = _checkerboard(phi_perp.shape)
+    valid = None
+    if mask is not None:
+        sets = tuple(S & mask for S in sets)
+        valid = (mask[:-1, :-1] & mask[:-1, 1:], mask[:-1, :-1] & mask[1:, :-1])
     prod = lambda u, v: u[0] * v[0] + u[1] * v[1]  # noqa: E731
     gs = []
     for a0, c in parts:
         R, T = solve_layers(a0, c, phi_perp, A, B, gain)
-        gs.append({(k, i): _set_grad(X, S, sigma) for k, X in (("R", R), ("T", T)) for i, S in enumerate(sets)})
+        g = {(k, i): _set_grad(X, S, sigma) for k, X in (("R", R), ("T", T)) for i, S in enumerate(sets)}
+        if valid is not None:
+            g = {k: (np.where(valid[0], v[0], 0.0), np.where(valid[1], v[1], 0.0)) for k, v in g.items()}
+        gs.append(g)
     P = len(gs)
     if P < 2:
         raise ConfigError("cross_gradient_sums needs at least two time parts")

@@ -859,7 +859,7 @@ def layer_gradient_correlation(parts, phi_perp: np.ndarray, theta: np.ndarray, n
     okx, oky = ok[:-1, :-1] & ok[:-1, 1:], ok[:-1, :-1] & ok[1:, :-1]
     if 0.5 * (okx.mean() + oky.mean()) < 0.25:
         return nan
-    sums = cross_gradient_sums(parts, phi_perp, A, B, sigma=sigma, mask=ok, pairs="adjacent")  # reconstruct.exclusion
+    sums = cross_gradient_sums(parts, phi_perp, A, B, sigma=sigma, mask=ok, pairs="adjacent", pixels=CONTENT_PIXELS)  # reconstruct.exclusion
     cross, pr, pt = sums["cross"], sums["pr"], sums["pt"]
     cnt = okx.astype(int) + oky.astype(int)
 
@@ -916,6 +916,13 @@ def _resolve_by_content(I, phi, cands, v_fam, W, H, sf, cfg) -> dict:
             "model": model, "model_identified": bool(model_ok), "n": cfg.n,
             "scored": sum(1 for cd in cands if "content" in cd), "pick": pick}
 
+
+CONTENT_PIXELS = "same"
+"""Pixels of the content test (reconstruct.exclusion.cross_gradient_sums).  ``split`` would take R^ and T^ from the two
+sets of a checkerboard, so that the sensor's static fixed pattern, common to both layers at a pixel, drops out; the
+thresholds below were set with the pattern in, and with ``split`` the network's self-zeta validation moved little
+(v7, 3 frames: eval_fresh_val T 33.60 -> 33.60, R 24.15 -> 23.94; eval_paper_val T 35.07 -> 35.03, R 22.63 -> 23.43),
+so ``same`` stays."""
 
 CONTENT_MODEL_MARGIN = 0.05
 """Content test: a pane model is claimed when its tile-RMS correlation beats the other model's by this much ..."""
