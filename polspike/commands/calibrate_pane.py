@@ -67,8 +67,10 @@ def calibrate_pane_cmd(
             return "fitted" + (" from the layers' content" if ident[k].get("by") == "content" else "")
         return "NOT identified: " + ("the content test's best guess" if "content test's best guess" in ident[k]["why"] else "prior kept")
 
-    kept = rep["geometry"].get("fov_kept_from_self_calibration")
-    fov_txt = (f"fov {p['fov_deg']:.2f} deg (kept from the self-calibration: the fit with it free ran into a degenerate view; NOT identified: give --fov-deg if known)" if kept else
+    kept = rep["geometry"].get("fov_kept")
+    how = {"self_calibration": "kept from the self-calibration: the fit with it free ran into a degenerate view",
+           "twin_profile": "the 90 deg twin's, from its fov profile judged by the modulation depths"}
+    fov_txt = (f"fov {p['fov_deg']:.2f} deg ({how.get(kept['by'], kept['by'])}; NOT identified: give --fov-deg if known)" if kept else
                f"fov {p['fov_deg']:.2f} +- {u['fov_deg']:.2f} deg ({'given' if ident['fov']['identified'] is None else 'fitted' if ident['fov']['identified'] else 'NOT identified: give --fov-deg if known'})")
     con.print(f"tilt {p['tilt_deg']:.2f} +- {u['tilt_deg']:.2f} deg, azimuth {p['azimuth_deg']:.2f} +- {u['azimuth_deg']:.2f} deg, {fov_txt}")
     con.print(f"theta +- {u['theta_deg_median']:.2f} deg{' at that fov' if kept else ''}, phi_perp +- {u['phi_perp_deg_median']:.2f} deg (median 1 sigma); "

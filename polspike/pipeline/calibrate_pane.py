@@ -93,6 +93,9 @@ class CalibratePaneConfig:
     content_best: bool = opt(True, "where the content test does not claim n / the model, its best hypothesis (still reported NOT identified) replaces the prior in the written maps")
     content_best_z: float = opt(1.0, "the content test's unclaimed best model replaces the prior only when the other model scores higher by at least this many standard errors (below: a coin flip, the prior stays)", lo=0.0, hi=100.0)
     content_z: float = opt(3.0, "a content claim needs the alternatives' score higher by this many standard errors (across tiles)", lo=0.0, hi=100.0)
+    twin_check_ratio: float = opt(0.95, "fov fitted: where the orientation field scores the 90 deg twin above this fraction of the best (below the self-calibration's ambiguity limit), the twin family is profiled along the fov and its cone asked too", lo=0.0, hi=10.0)
+    twin_profile_cost_tol: float = opt(0.05, "twin profile: only twin points whose orientation cost is within this fraction of the chosen pane's are judged by the cone", lo=0.0, hi=10.0)
+    twin_close_factor: float = opt(4.0, "a twin overturns the orientation field's narrow choice only where the chosen pane's cone is violated this many times more (and by twin_delta_chi2)", lo=1.0, hi=1e6)
     twin_delta_chi2: float = opt(25.0, "an orientation field that cannot tell the pane from its 90 deg twin is resolved by the modulation depth only when one candidate's cone is violated by this much chi^2 less", lo=0.0, hi=1e9)
 
 
@@ -498,6 +501,53 @@ def find_twin(of: dict, width: int, height: int, block: int, x_best: np.ndarray,
     return fit_geometry(of, width, height, block, found["x"], fit_fov)
 
 
+def twin_fov_profile(I, phi, of: dict, width: int, height: int, block: int, gblock: int, gain: float, x_best: np.ndarray, best_score: float,
+                     models: tuple[str, ...], fixed_n: float | None, cfg: CalibratePaneConfig) -> dict:
+    """The 90 deg twin family profiled along the field of view, each point judged by the cone.
+
+    With the fov free, a family's orientation optimum slides along its fov-tilt valley, and the twin family's optimum
+    can be a wide view far from the right pane (eval_paper_val train_004: the right pane is a point of that valley,
+    2 % worse in orientation cost, not a local optimum).  So at each fov of ``TWIN_FOVS_DEG`` the twin family's tilt
+    and azimuth are fitted (starts at several tilts, azimuth turned by +-90 deg; kept only where the phi_perp field is
+    turned against ``x_best``'s), and the points whose orientation cost is within ``twin_profile_cost_tol`` of the
+    chosen pane's get the cone's violation.  Returns ``points`` and ``best``: among the judged points whose violation is within
+    ``twin_delta_chi2`` of the least, the best explanation of the orientation field (None when none is judged)."""
+    from generator.pane_fit import PaneModelAD
+
+    pm = PaneModelAD(width, height, "single", block=block)
+    p1 = pm.maps(x_best)["phi_perp"]
+    w = np.abs(of["s4"])
+    points, judged, best, prev = [], [], None, None
+    for f in TWIN_FOVS_DEG:
+        top = None
+        # the first fov from several tilts and both azimuth turns; then along the valley from the previous point
+        starts = [(math.radians(tl), x_best[1] + da) for tl in (30.0, 55.0, 75.0) for da in (0.5 * math.pi, -0.5 * math.pi)] if prev is None else [(prev[0], prev[1])]
+        for tl, az in starts:
+            xs = np.asarray(x_best, np.float64).copy()
+            xs[0], xs[1], xs[2] = tl, az, math.radians(f)
+            g = fit_geometry(of, width, height, block, xs, False, fov_starts=(), rounds=1)
+            if float(np.sum(w * np.cos(2.0 * (pm.maps(g["x"])["phi_perp"] - p1)))) < 0 and not _degenerate_view(g["x"], False) and (top is None or g["score"] < top["score"]):
+                top = g
+        prev = None if top is None else top["x"]
+        if top is None:
+            continue
+        row = {"fov_deg": f, "tilt_deg": math.degrees(top["x"][0]), "azimuth_deg": math.degrees(top["x"][1]) % 360.0, "orientation_cost": top["score"],
+               "cost_ratio": top["score"] / max(best_score, 1e-300)}
+        if top["score"] <= (1.0 + cfg.twin_profile_cost_tol) * best_score:
+            row["cone_violation_chi2"] = _cone_violation(I, phi, top["x"], width, height, gblock, gain, models, fixed_n, cfg)[0]
+            judged.append((row, top))
+        points.append(row)
+    if judged:
+        # the cone bounds the fov (a hinge: flat wherever the depths stay inside); within what it allows, the orientation decides
+        v_min = min(r["cone_violation_chi2"] for r, _ in judged)
+        best = min(((r, g) for r, g in judged if r["cone_violation_chi2"] <= v_min + cfg.twin_delta_chi2), key=lambda rg: rg[0]["orientation_cost"])
+    return {"points": points, "best": best}
+
+
+TWIN_FOVS_DEG = (15.0, 20.0, 25.0, 30.0, 40.0, 50.0, 65.0, 90.0)
+"""Fields of view (degrees) at which :func:`twin_fov_profile` fits the twin family."""
+
+
 def _cone_violation(I, phi, x, width, height, gblock, gain, models, fixed_n, cfg) -> tuple[float, dict, dict]:
     """Least chi^2 of the modulation depths' excursions beyond the cone of pane ``x`` (over the models and n)."""
     from generator.pane_fit import PaneModelAD
@@ -671,7 +721,10 @@ def calibrate_frames(I: np.ndarray, phi: np.ndarray, cfg: CalibratePaneConfig = 
         # every start slid down the fov-tilt valley to an orthographic (or fish-eye) view: the field's curvature is
         # below the noise.  Keep the self-calibration's field of view (its vanishing-point start is not degenerate)
         # and fit the orientation at it; the fov is reported NOT identified.
-        fov_kept = {"ended_at": [math.degrees(v) for v in geo["x"][:3]], "fov_deg": math.degrees(x0[2])}
+        fov_kept = {"by": "self_calibration", "ended_at": [math.degrees(v) for v in geo["x"][:3]], "fov_deg": math.degrees(x0[2]),
+                    "why": f"NOT identified: the orientation fit with the fov free ran into its bounds (tilt {math.degrees(geo['x'][0]):.1f} deg, fov "
+                           f"{math.degrees(geo['x'][2]):.1f} deg: a degenerate view; the field's curvature is below the noise), so the self-calibration's "
+                           f"fov {math.degrees(x0[2]):.2f} deg was kept and the orientation fitted at it; theta(p) is as uncertain as that fov: give --fov-deg if the lens is known"}
         geo = fit_geometry(of, W, H, block, x0, fit_fov=False)
     timings["geometry_s"] = time.perf_counter() - t0
     gblock = cfg.glass_block_px or block
@@ -715,6 +768,36 @@ def calibrate_frames(I: np.ndarray, phi: np.ndarray, cfg: CalibratePaneConfig = 
             twin["chosen"] = "best"
         twin["why"] = (f"modulo 90 deg the orientation field could not tell the two panes apart ({100 * init.twin_ratio:.1f} %); the modulation depths violate "
                        f"the {twin['chosen']}'s cone [-DoP_T, DoP_R] by chi^2 {min(v_best, v_tw):.1f}, the other's by {max(v_best, v_tw):.1f}")
+    if amb_reason is None and fit_fov and init.twin_ratio is not None and init.twin_ratio >= cfg.twin_check_ratio and not _degenerate_view(geo["x"], True):
+        # the orientation field chose narrowly: ask the cone along the twin family's fov valley too
+        if progress:
+            progress("90 deg twin")
+        t0 = time.perf_counter()
+        v_best, st_b, gl_b = _cone_violation(I, phi, geo["x"], W, H, gblock, gain, models, fixed_n, cfg)
+        prof_t = twin_fov_profile(I, phi, of, W, H, block, gblock, gain, geo["x"], geo["score"], models, fixed_n, cfg)
+        twin = {"orientation_twin_ratio": init.twin_ratio, "best": {"tilt_deg": math.degrees(geo["x"][0]), "azimuth_deg": math.degrees(geo["x"][1]) % 360.0,
+                                                                    "fov_deg": math.degrees(geo["x"][2]), "cone_violation_chi2": v_best}, "profile": prof_t["points"]}
+        pre = (st_b, gl_b)
+        twin["chosen"] = "best"
+        cand = prof_t["best"]
+        if cand is not None and cand[0]["cone_violation_chi2"] <= v_best - cfg.twin_delta_chi2 and cand[0]["cone_violation_chi2"] * cfg.twin_close_factor <= v_best:
+            row, g_t = cand
+            geo = fit_geometry(of, W, H, block, g_t["x"], fit_fov=False)  # the twin at the profile's fov (the orientation alone would slide it away)
+            fov_kept = {"by": "twin_profile", "fov_deg": row["fov_deg"],
+                        "why": f"NOT identified: the 90 deg twin was taken at fov {row['fov_deg']:g} deg, the point of its fov valley the modulation depths fit best "
+                               f"(a grid of {len(TWIN_FOVS_DEG)} fields of view; the orientation alone slides it to a wide view): give --fov-deg if the lens is known"}
+            pre = None
+            twin["chosen"] = "twin"
+            twin["why"] = (f"the orientation field preferred its pane narrowly ({100 * init.twin_ratio:.1f} %) and the modulation depths violate that pane's cone by "
+                           f"chi^2 {v_best:.1f}; the 90 deg twin at fov {row['fov_deg']:g} deg (orientation cost {100 * (row['cost_ratio'] - 1):+.1f} %) by {row['cone_violation_chi2']:.1f}: "
+                           f"the twin is taken, its fov from the profile (NOT identified by the orientation)")
+        else:
+            twin["why"] = (f"the orientation field preferred its pane narrowly ({100 * init.twin_ratio:.1f} %); along the twin family's fov valley the least cone violation "
+                           f"within {100 * cfg.twin_profile_cost_tol:g} % of its orientation cost is "
+                           + (f"chi^2 {cand[0]['cone_violation_chi2']:.1f}" if cand else "none (no twin point that close)")
+                           + f" against {v_best:.1f} here: kept (overturned only below both {v_best - cfg.twin_delta_chi2:.1f} and 1/{cfg.twin_close_factor:g} of it)")
+        timings["twin_s"] = time.perf_counter() - t0
+        report["twin"] = twin
     x = geo["x"]
     if _degenerate_view(x, fit_fov):
         report.update({"ok": False, "reason": f"the orientation fit ran into its bounds (tilt {math.degrees(x[0]):.1f} deg, fov {math.degrees(x[2]):.1f} deg): "
@@ -811,10 +894,7 @@ def calibrate_frames(I: np.ndarray, phi: np.ndarray, cfg: CalibratePaneConfig = 
         s_th = float(geo["sigma_theta_deg_median"])
         ok_fov = s_th <= cfg.max_theta_sigma_deg and fov_kept is None
         fov_verdict = {"identified": bool(ok_fov), "value": fov, "sigma_deg": math.degrees(sig[2]), "theta_sigma_deg_median": s_th,
-                       "why": (f"NOT identified: the orientation fit with the fov free ran into its bounds (tilt {fov_kept['ended_at'][0]:.1f} deg, fov "
-                               f"{fov_kept['ended_at'][2]:.1f} deg: a degenerate view; the field's curvature is below the noise), so the self-calibration's "
-                               f"fov {fov:.2f} deg was kept and the orientation fitted at it; theta(p) is as uncertain as that fov: give --fov-deg if the lens is known"
-                               if fov_kept else prof["why"] if prof and prof["used"] else
+                       "why": (fov_kept["why"] if fov_kept else prof["why"] if prof and prof["used"] else
                                f"phi_perp's curvature across the image pins the focal length, hence theta(p), to {s_th:.2f} deg (median 1-sigma)" if ok_fov else
                                f"NOT identified to {cfg.max_theta_sigma_deg:g} deg: fov and tilt trade off along a shallow valley of the orientation fit "
                                f"(the field's curvature is weak: narrow view or glancing pane); theta(p) is uncertain by {s_th:.2f} deg (median 1-sigma), "
@@ -833,7 +913,7 @@ def calibrate_frames(I: np.ndarray, phi: np.ndarray, cfg: CalibratePaneConfig = 
                      "orientation_residual_deg_median": geo["residual_deg_median"], "converged": geo["converged"], "iterations": len(geo["history"]) - 1,
                      "init_tilt_deg": init.tilt_deg, "init_azimuth_deg": init.azimuth_deg, "init_fov_deg": init.fov_deg, "starts": geo["starts"],
                      "residual_lag1_correlation_xy": geo["residual_lag1_correlation"], "covariance_inflation": geo["covariance_inflation"],
-                     "dop_fov_profile": prof, "fov_kept_from_self_calibration": fov_kept},
+                     "dop_fov_profile": prof, "fov_kept": fov_kept},
         "glass": {"chunks": st["chunks"], "block_px": gblock, "valid_blocks": int(st["valid"].sum()),
                   "models": {k: {kk: vv for kk, vv in v.items() if kk not in ("dop_R", "dop_T", "grid_n", "grid_loss", "history")} for k, v in gl["models"].items()}},
         "identifiability": {
