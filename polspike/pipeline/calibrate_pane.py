@@ -12,7 +12,10 @@ Pipeline (issue 21; physics in ../shared/RECONSTRUCTION_NOTES.md):
    from the best-measured blocks), Var psi_b measured from the scatter of the block's pixels perpendicular to its
    direction (:func:`block_orientation_variance`): invariant to the 90 deg flip where R < T, blocks that do not modulate
    left out.  Where the self-calibration cannot tell the pane from its 90 deg twin, both are fitted and
-   the cone of step 4 decides (:func:`find_twin`); a fitted fov is claimed only where theta's 1-sigma is small.  phi_perp_b(x) and its Jacobian come from
+   the cone of step 4 decides (:func:`find_twin`); where it preferred one only narrowly (``twin_check_ratio``), the
+   twin family is profiled along the fov and the cone asked there too (:func:`twin_fov_profile`); where every fov-free
+   start slides to a degenerate view, the self-calibration's fov is kept (reported NOT identified); a fitted fov is
+   claimed only where theta's 1-sigma is small.  phi_perp_b(x) and its Jacobian come from
    the differentiable maps tier (:class:`generator.pane_fit.PaneModelAD`, Dr.Jit forward AD).
 4. **Glass** (n, pane model): the modulated component of each chunk's harmonic fit, projected on
    the fitted s-direction, over its mean: rho = m / a0 lies in the cone [-DoP_T(theta), DoP_R(theta)]
