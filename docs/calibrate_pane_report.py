@@ -31,6 +31,7 @@ def main() -> None:
     ap.add_argument("--compare-prior", action="store_true", help="with --solvers: also the fitted geometry with the prior n / model (the maps before the content test)")
     ap.add_argument("--no-content", action="store_true", help="calibrate without the content test")
     ap.add_argument("--content-sigma", type=float, default=None, help="CalibratePaneConfig.content_sigma_px (default: the config's)")
+    ap.add_argument("--content-parts", type=int, default=None, help="CalibratePaneConfig.content_parts")
     ap.add_argument("--content-pixels", default=None, choices=("same", "split"), help="CalibratePaneConfig.content_pixels")
     ap.add_argument("--span-s", type=float, default=0.1, help="CalibratePaneConfig.span_s: seconds of each group calibrated (at most the group's length)")
     ap.add_argument("--content-true-geometry", action="store_true", help="only the content test, on the stored (true) theta / phi_perp of each group")
@@ -56,7 +57,7 @@ def main() -> None:
         spec = json.loads((gd / "group_spec.json").read_text())["scene"]
         t0 = time.time()
         res, _, _, _ = calibrate_input(gd, CalibratePaneConfig(fov_deg=spec["camera"]["fov_deg"] if a.fov_given else 0.0, content=not a.no_content, content_power=a.content_power, span_s=a.span_s,
-                                                           **{k: v for k, v in (("content_sigma_px", a.content_sigma), ("content_pixels", a.content_pixels)) if v is not None}))
+                                                           **{k: v for k, v in (("content_sigma_px", a.content_sigma), ("content_pixels", a.content_pixels), ("content_parts", a.content_parts)) if v is not None}))
         r = res["report"]
         if not res["ok"]:
             rows.append({"group": gd.name, "refused": r["reason"]})
