@@ -75,6 +75,8 @@ def calibrate_pane_cmd(
     con.print(f"tilt {p['tilt_deg']:.2f} +- {u['tilt_deg']:.2f} deg, azimuth {p['azimuth_deg']:.2f} +- {u['azimuth_deg']:.2f} deg, {fov_txt}")
     con.print(f"theta +- {u['theta_deg_median']:.2f} deg{' at that fov' if kept else ''}, phi_perp +- {u['phi_perp_deg_median']:.2f} deg (median 1 sigma); "
               f"orientation residual {rep['geometry']['orientation_residual_deg_median']:.2f} deg")
+    if rep.get("twin", {}).get("chosen") == "twin":
+        con.print(f"90 deg twin taken: {rep['twin']['why']}")
     con.print(f"n {p['n']:.4f} ({verdict('n')}), model {p['model']} ({verdict('model')}); thickness and reflectance scale not identified")
     con.print(f"[green]wrote[/] {out}: {', '.join(rep['files'])} in {rep['timings_s']['total_s']:.1f} s")
 
