@@ -295,9 +295,12 @@ def identifiability(dataset: Path, content_power: str = "same", span_s: float = 
         A = 0.5 * (mp["R_perp"] + mp["R_par"])
         B = 0.5 * (mp["R_perp"] - mp["R_par"])
         rot = np.exp(2j * mp["phi_perp"])
-        bounds = np.linspace(0, nf, cfg.content_parts + 1).round().astype(int)
+        from polspike.pipeline.calibrate_pane import content_parts_for
+
+        n_parts = content_parts_for(phi, I.shape[0], cfg.content_parts)
+        bounds = np.linspace(0, nf, n_parts + 1).round().astype(int)
         parts = []
-        for p in range(cfg.content_parts):
+        for p in range(n_parts):
             R, T = Rg[bounds[p]:bounds[p + 1]].mean(0), Tg[bounds[p]:bounds[p + 1]].mean(0)
             parts.append((0.5 * (T + A * (R - T)), 0.5 * B * (R - T) * rot))
         row = {"group": gd.name, "model": spec["pane"]["model"], "n": spec["pane"]["n"], "tilt": spec["pane"]["tilt_deg"]}

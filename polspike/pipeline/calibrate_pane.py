@@ -90,7 +90,7 @@ class CalibratePaneConfig:
     content: bool = opt(True, "where the DoP cone leaves n / the model open, try the layers' content: the gradients of R^ and T^ solved under the right zeta are least correlated (reconstruct.exclusion); claimed only with a margin over the tiles' spread")
     content_sigma_px: float = opt(2.0, "smoothing (pixels) of the solved layers before their gradients are correlated (the sensor's fixed pattern correlates them at 1 px)", lo=0.0, hi=20.0)
     content_tiles: int = opt(6, "the content score's tiles per image axis (its spread across tiles gives the margin)", lo=2, hi=64)
-    content_parts: int = opt(2, "time parts of the span: R^ of one part is correlated with T^ of another (independent spike noise)", lo=2, hi=16)
+    content_parts: int = opt(0, "time parts of the span: R^ of one part is correlated with T^ of another (independent spike noise); 0 = one part per CONTENT_PART_HALF_TURNS half turns of the polarizer, at least 2 (0.1 s at 30 rev/s: 2; 0.2 s: 4), so a longer span adds pairs instead of blurring the moving layers", lo=0, hi=64)
     content_power: str = opt("same", "normalisation of the content test's tile correlations: same (each part's own gradient power: content + spike noise, so hypotheses that amplify the noise score lower) or cross (the power crossed between time parts: content only)", choices=("same", "cross"))
     content_pixels: str = opt("same", "pixels of the content test: same (both layers' gradients from every pixel) or split (R^ from one checkerboard set, T^ from the other: the sensor's static fixed pattern, common to both layers at a pixel, drops out, which unbiases the index but widens its spread; docs/calibrate_pane.md round 5)", choices=("same", "split"))
     content_best: bool = opt(True, "where the content test does not claim n / the model, its best hypothesis (still reported NOT identified) replaces the prior in the written maps")
@@ -609,6 +609,23 @@ CONTENT_N_GRID = np.round(np.arange(1.40, 2.0001, 0.02), 4)
 """Index grid of the content test (common glasses; a best index at either end is not used)."""
 
 
+CONTENT_PART_HALF_TURNS = 3
+"""Half turns of the polarizer per time part of the content test when ``content_parts`` is 0 (0.05 s at 30 rev/s):
+parts much longer than that blur the moving layers (an eval_fresh_val build at 0.2 s, every solver within 0.3 dB:
+11 of 16 with 2 parts of 0.1 s, 12 of 16 with 4 of 0.05 s; docs/calibrate_pane.md, round 5)."""
+
+
+def content_parts_for(phi: np.ndarray, frames: int, parts: int = 0) -> int:
+    """Time parts of the content test for a span of ``frames`` frames at polarizer angles ``phi``: ``parts`` when
+    given, else one per :data:`CONTENT_PART_HALF_TURNS` half turns (rounded), at least 2."""
+    from reconstruct.harmonic_fit import half_turn_frames
+
+    if parts:
+        return int(parts)
+    chunks = int(frames) // max(1, half_turn_frames(np.asarray(phi, np.float64)))
+    return max(2, int(round(chunks / CONTENT_PART_HALF_TURNS)))
+
+
 def content_glass(I: np.ndarray, phi: np.ndarray, theta: np.ndarray, phi_perp: np.ndarray, gain: float, models: tuple[str, ...],
                   cfg: CalibratePaneConfig, fixed_n: float | None = None, n_grid: np.ndarray | None = None, parts: list | None = None) -> dict:
     """Pane model and index from the layers' content (gradient exclusion, :mod:`reconstruct.exclusion`).
@@ -630,7 +647,7 @@ def content_glass(I: np.ndarray, phi: np.ndarray, theta: np.ndarray, phi_perp: n
     tiles = (yy * K // H) * K + (xx * K // W)
     if parts is None:  # ``parts``: the time parts' (a0, c) given directly (docs/calibrate_pane_report.py: noiseless parts)
         try:
-            parts = part_harmonics(I, phi, cfg.content_parts)
+            parts = part_harmonics(I, phi, content_parts_for(phi, I.shape[0], cfg.content_parts))
         except ConfigError as e:
             return {"ok": False, "why": str(e)}
     grid = np.array([fixed_n]) if fixed_n else (CONTENT_N_GRID if n_grid is None else n_grid)

@@ -521,3 +521,15 @@ def test_a_narrowly_chosen_twin_is_overturned_by_the_cone_along_the_other_family
     assert ph <= 0.5 and th <= 1.0, (th, ph)
     fv = rep["identifiability"]["fov"]
     assert fv["identified"] is False and "twin" in fv["why"] and rep["geometry"]["fov_kept"]["by"] == "twin_profile"
+
+
+def test_content_parts_follow_the_span_in_half_turns():
+    """The content test's time parts (content_parts = 0): one per 3 half turns of the polarizer (0.05 s at 30 rev/s),
+    at least 2, so 0.1 s of back-to-back 13-step windows gives 2 parts and 0.2 s gives 4; a given count is kept."""
+    from polspike.pipeline.calibrate_pane import content_parts_for
+
+    step = 2 * math.pi * 30.0 * 13 / 20000.0  # polarizer sweep per window
+    for span_s, want in ((0.05, 2), (0.1, 2), (0.2, 4), (0.4, 8)):
+        M = int(span_s * 20000) // 13
+        assert content_parts_for(0.3 + step * np.arange(M), M) == want, span_s
+    assert content_parts_for(0.3 + step * np.arange(300), 300, parts=3) == 3
