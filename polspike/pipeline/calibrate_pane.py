@@ -28,7 +28,7 @@ Pipeline (issue 21; physics in ../shared/RECONSTRUCTION_NOTES.md):
 4b. **Content** (where the cone leaves n or the model open; ``content``): under the right zeta the layers solved
    by paper Eq. (1)-(2) are independent, under a wrong one each carries the other's texture
    (:mod:`reconstruct.exclusion`).  For single / slab and n over common glasses (1.40-2.00) the span's time parts
-   are solved in closed form and the gradients of R^ (one part) and T^ (another) correlated per tile; the least
+   (one per 3 half turns of the polarizer, at least 2: :func:`content_parts_for`) are solved in closed form and the gradients of R^ (one part) and T^ (another) correlated per tile; the least
    mean squared correlation is the best guess.  A model / n is claimed only when the alternatives score higher by
    ``content_z`` standard errors across the tiles; unclaimed, the best guess still replaces the prior in the maps
    (``content_best``; it is reported NOT identified), unless the best index is at the end of the range or the
