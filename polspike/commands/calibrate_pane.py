@@ -96,9 +96,8 @@ def bench_calibrate_pane(
     from rich.console import Console
     from rich.table import Table
 
-    from polspike.pipeline.calibrate_pane import run_bench
-
     from polinfra.errors import ConfigError
+    from polspike.pipeline.calibrate_pane import run_bench
 
     try:
         sweep = tuple(float(v) for v in spans.split(",") if v.strip())

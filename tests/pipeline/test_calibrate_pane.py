@@ -121,8 +121,7 @@ def test_a_fov_fit_that_ends_in_a_degenerate_view_keeps_the_self_calibrated_fov(
     """Where the fov-free orientation fit slides to its bound (an orthographic view: seen on a weakly reflecting
     62 deg view of eval_fresh_val, every start ended at fov 5 deg while the self-calibration's vanishing point gave
     34 deg), calibrate-pane keeps the self-calibration's fov and fits the orientation at it instead of refusing:
-    the result is usable (phi_perp within the goal), the fov is reported NOT identified with the reason, and the
-    CLI's summary says where the fov came from."""
+    the result is usable (phi_perp within the goal) and the fov is reported NOT identified with the reason."""
     import polspike.pipeline.calibrate_pane as cp
 
     real = cp.fit_geometry
