@@ -98,6 +98,7 @@ __all__ = [
     "SPAN_SATURATION",
     "span_weights",
     "span_blend",
+    "span_difference",
     "separable_blur",
     "gaussian_kernel",
     "anchor_to_mean",
@@ -488,9 +489,15 @@ def long_span_separation(I_mean, I_harm, zeta, phi, floor: float = HARMONIC_FLOO
         (T, R) each (B, H, W).
     """
     a, b, c = harmonic_of(zeta, phi)
-    D = 2.0 * (I_harm[:, 0] * b + I_harm[:, 1] * c) / (b * b + c * c + floor)
+    D = span_difference(I_harm, b, c, floor)
     T = 2.0 * I_mean - a * D
     return T, T + D
+
+
+def span_difference(I_harm, b, c, floor: float = HARMONIC_FLOOR):
+    """D = R - T from the span's first harmonic ``I_harm`` (B, 2, H, W) projected on zeta's first harmonic (b, c):
+    2 (b_I b + c_I c) / (b^2 + c^2 + floor) (:func:`long_span_separation`; finite where the modulation vanishes)."""
+    return 2.0 * (I_harm[:, 0] * b + I_harm[:, 1] * c) / (b * b + c * c + floor)
 
 
 SPAN_SATURATION = 0.97
@@ -564,10 +571,8 @@ def span_blend(T, R, I_mean, I_harm, zeta, phi, w, sigma: float, tol, tol_t=None
         (T, R) each (B, H, W), float like ``T``.
     """
     a, b, c = harmonic_of(zeta.double(), phi.double())
-    bI, cI = I_harm[:, 0].double(), I_harm[:, 1].double()
     w = w.double()
-    wD = w * 2.0 * (bI * b + cI * c) / (b * b + c * c + HARMONIC_FLOOR)  # w D_span, finite where the modulation vanishes
-    wx = wD - w * (R - T).double()
+    wx = w * (span_difference(I_harm.double(), b, c) - (R - T).double())  # w (D_span - D)
     if sigma > 0:
         k = gaussian_kernel(sigma, torch.float64, T.device)
         Gw, Gwx, G2w = separable_blur(w, k), separable_blur(wx, k), separable_blur(w, k * k)
