@@ -122,36 +122,50 @@ def cross_gradient_sums(parts, phi_perp: np.ndarray, A: np.ndarray, B: np.ndarra
         raise ConfigError(f"pairs = {pairs!r}: choose all or adjacent")
     if pixels not in ("same", "split"):
         raise ConfigError(f"pixels = {pixels!r}: choose same or split")
-    if pixels == "split":
-        return _split_sums(parts, phi_perp, A, B, gain, sigma, pairs, mask)
+    okx = oky = None
     if mask is not None:
         okx, oky = mask[:-1, :-1] & mask[:-1, 1:], mask[:-1, :-1] & mask[1:, :-1]
-    gs = []
+    sets = _checkerboard(phi_perp.shape) if pixels == "split" else None
+    if sets is not None and mask is not None:
+        sets = tuple(S & mask for S in sets)
+    gs = []  # per part: {"R": (gradient from set 0, from set 1), "T": ...}; the same gradient twice for pixels = same
     for a0, c in parts:
-        R, T = solve_layers(a0, c, phi_perp, A, B, gain, mask)
-        g = []
-        for x in (R, T):
-            if mask is None:
-                g.append(_grad(x, sigma))
+        R, T = solve_layers(a0, c, phi_perp, A, B, gain, None if sets is not None else mask)
+        g = {}
+        for k, x in (("R", R), ("T", T)):
+            if sets is not None:  # each set's normalised convolution; gradient pairs touching the mask 0
+                both = tuple(_set_grad(x, S, sigma) for S in sets)
+                if mask is not None:
+                    both = tuple((np.where(okx, u[0], 0.0), np.where(oky, u[1], 0.0)) for u in both)
+            elif mask is None:
+                both = (_grad(x, sigma),) * 2
             else:  # R = T + D with D and T zero outside the mask
                 y = gaussian_filter(x, sigma)
-                g.append((np.where(okx, np.diff(y, axis=1)[:-1, :], 0.0), np.where(oky, np.diff(y, axis=0)[:, :-1], 0.0)))
-        gs.append(tuple(g))
+                both = ((np.where(okx, np.diff(y, axis=1)[:-1, :], 0.0), np.where(oky, np.diff(y, axis=0)[:, :-1], 0.0)),) * 2
+            g[k] = both
+        gs.append(g)
     P = len(gs)
     if P < 2:
         raise ConfigError("cross_gradient_sums needs at least two time parts")
     prod = lambda u, v: u[0] * v[0] + u[1] * v[1]  # noqa: E731
+
+    def mix(u, v):  # one layer's gradient from set 0 with the other's from set 1, both ways (pixels = same: u . v)
+        return prod(u[0], v[1]) if (u[0] is u[1] and v[0] is v[1]) else 0.5 * (prod(u[0], v[1]) + prod(u[1], v[0]))
+
+    def own(u):  # a gradient's own power, over both sets
+        return prod(u[0], u[0]) if u[0] is u[1] else 0.5 * (prod(u[0], u[0]) + prod(u[1], u[1]))
+
     if pairs == "adjacent":
-        cross = sum(0.5 * (prod(gs[j][0], gs[j + 1][1]) + prod(gs[j + 1][0], gs[j][1])) for j in range(P - 1)) / (P - 1)
+        cross = sum(0.5 * (mix(gs[j]["R"], gs[j + 1]["T"]) + mix(gs[j + 1]["R"], gs[j]["T"])) for j in range(P - 1)) / (P - 1)
     else:
-        cross = sum(prod(gs[p][0], gs[q][1]) for p in range(P) for q in range(P) if q != p) / (P * (P - 1))
-    pr = sum(prod(g[0], g[0]) for g in gs) / P
-    pt = sum(prod(g[1], g[1]) for g in gs) / P
+        cross = sum(mix(gs[p]["R"], gs[q]["T"]) for p in range(P) for q in range(P) if q != p) / (P * (P - 1))
+    pr = sum(own(g["R"]) for g in gs) / P
+    pt = sum(own(g["T"]) for g in gs) / P
     # the layers' gradient power crossed between parts as well: the spike noise is independent across parts, so these
     # hold the content's power without the noise's (pr, pt hold both; a hypothesis that amplifies the noise, small B',
     # would otherwise have its correlation shrunk by its own noise and look less mixed)
-    prx = sum(prod(gs[p][0], gs[q][0]) for p in range(P) for q in range(P) if q != p) / (P * (P - 1))
-    ptx = sum(prod(gs[p][1], gs[q][1]) for p in range(P) for q in range(P) if q != p) / (P * (P - 1))
+    prx = sum(mix(gs[p]["R"], gs[q]["R"]) for p in range(P) for q in range(P) if q != p) / (P * (P - 1))
+    ptx = sum(mix(gs[p]["T"], gs[q]["T"]) for p in range(P) for q in range(P) if q != p) / (P * (P - 1))
     return {"cross": cross, "pr": pr, "pt": pt, "pr_x": prx, "pt_x": ptx}
 
 
@@ -174,29 +188,3 @@ def label_correlations(sums: dict, labels: np.ndarray, n_labels: int, power: str
     with np.errstate(invalid="ignore", divide="ignore"):
         return np.where(good, cr / den, np.nan)
 
-
-def _split_sums(parts, phi_perp: np.ndarray, A: np.ndarray, B: np.ndarray, gain: float, sigma: float, pairs: str, mask: np.ndarray | None = None) -> dict:
-    """:func:`cross_gradient_sums` with ``pixels = 'split'``: the time parts crossed as there, and within each pair R'
-    from one checkerboard set with T' from the other (both ways); ``mask``: pixels left out of both sets, and
-    gradient pairs touching them set to 0."""
-    sets = _checkerboard(phi_perp.shape)
-    valid = None
-    if mask is not None:
-        sets = tuple(S & mask for S in sets)
-        valid = (mask[:-1, :-1] & mask[:-1, 1:], mask[:-1, :-1] & mask[1:, :-1])
-    prod = lambda u, v: u[0] * v[0] + u[1] * v[1]  # noqa: E731
-    gs = []
-    for a0, c in parts:
-        R, T = solve_layers(a0, c, phi_perp, A, B, gain)
-        g = {(k, i): _set_grad(X, S, sigma) for k, X in (("R", R), ("T", T)) for i, S in enumerate(sets)}
-        if valid is not None:
-            g = {k: (np.where(valid[0], v[0], 0.0), np.where(valid[1], v[1], 0.0)) for k, v in g.items()}
-        gs.append(g)
-    P = len(gs)
-    if P < 2:
-        raise ConfigError("cross_gradient_sums needs at least two time parts")
-    pq = [(j, j + 1) for j in range(P - 1)] + [(j + 1, j) for j in range(P - 1)] if pairs == "adjacent" else [(p, q) for p in range(P) for q in range(P) if q != p]
-    cross = sum(0.5 * (prod(gs[p][("R", 0)], gs[q][("T", 1)]) + prod(gs[p][("R", 1)], gs[q][("T", 0)])) for p, q in pq) / len(pq)
-    own = lambda k: sum(0.5 * (prod(g[(k, 0)], g[(k, 0)]) + prod(g[(k, 1)], g[(k, 1)])) for g in gs) / P  # noqa: E731
-    crossed = lambda k: sum(0.5 * (prod(gs[p][(k, 0)], gs[q][(k, 1)]) + prod(gs[p][(k, 1)], gs[q][(k, 0)])) for p, q in pq) / len(pq)  # noqa: E731
-    return {"cross": cross, "pr": own("R"), "pt": own("T"), "pr_x": crossed("R"), "pt_x": crossed("T")}
