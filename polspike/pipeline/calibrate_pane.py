@@ -482,22 +482,33 @@ def dop_fov_profile(of: dict, st: dict, width: int, height: int, block: int, gbl
 
 
 # --------------------------------------------------------------------------- the 90 deg twin
-def find_twin(of: dict, width: int, height: int, block: int, x_best: np.ndarray, fit_fov: bool) -> dict | None:
-    """The best pane whose phi_perp field runs along ``x_best``'s p-directions (its 90 deg twin: modulo 90 deg
-    the two fields agree up to the field's curvature), as a :func:`fit_geometry` result, or None."""
+def _turned_against(of: dict, width: int, height: int, block: int, x_best: np.ndarray):
+    """A test of whether a pane ``x`` belongs to ``x_best``'s 90 deg twin family: its phi_perp field turned against
+    ``x_best``'s (the orientation field's weighted mean of cos 2 delta below 0)."""
     from generator.pane_fit import PaneModelAD
 
     pm = PaneModelAD(width, height, "single", block=block)
     p1 = pm.maps(x_best)["phi_perp"]
     w = np.abs(of["s4"])
+    return lambda x: float(np.sum(w * np.cos(2.0 * (pm.maps(x)["phi_perp"] - p1)))) < 0
+
+
+def _angles_deg(x: np.ndarray) -> dict:
+    """A pane's tilt, azimuth and fov in degrees, as the report lists them."""
+    return {"tilt_deg": math.degrees(x[0]), "azimuth_deg": math.degrees(x[1]), "fov_deg": math.degrees(x[2])}
+
+
+def find_twin(of: dict, width: int, height: int, block: int, x_best: np.ndarray, fit_fov: bool) -> dict | None:
+    """The best pane whose phi_perp field runs along ``x_best``'s p-directions (its 90 deg twin: modulo 90 deg
+    the two fields agree up to the field's curvature), as a :func:`fit_geometry` result, or None."""
+    turned = _turned_against(of, width, height, block, x_best)
     found = None
     for tl in sorted({float(x_best[0]), math.radians(30.0), math.radians(55.0), math.radians(75.0)}):
         for da in (0.5 * math.pi, -0.5 * math.pi):
             xs = np.asarray(x_best, np.float64).copy()
             xs[0], xs[1] = tl, x_best[1] + da
             g = fit_geometry(of, width, height, block, xs, fit_fov, fov_starts=(), rounds=1)
-            p = pm.maps(g["x"])["phi_perp"]
-            if float(np.sum(w * np.cos(2.0 * (p - p1)))) < 0 and (found is None or g["score"] < found["score"]):
+            if turned(g["x"]) and (found is None or g["score"] < found["score"]):
                 found = g
     if found is None:
         return None
@@ -515,11 +526,7 @@ def twin_fov_profile(I, phi, of: dict, width: int, height: int, block: int, gblo
     turned against ``x_best``'s), and the points whose orientation cost is within ``twin_profile_cost_tol`` of the
     chosen pane's get the cone's violation.  Returns ``points`` and ``best``: among the judged points whose violation is within
     ``twin_delta_chi2`` of the least, the best explanation of the orientation field (None when none is judged)."""
-    from generator.pane_fit import PaneModelAD
-
-    pm = PaneModelAD(width, height, "single", block=block)
-    p1 = pm.maps(x_best)["phi_perp"]
-    w = np.abs(of["s4"])
+    turned = _turned_against(of, width, height, block, x_best)
     points, judged, best, prev = [], [], None, None
     for f in TWIN_FOVS_DEG:
         top = None
@@ -529,7 +536,7 @@ def twin_fov_profile(I, phi, of: dict, width: int, height: int, block: int, gblo
             xs = np.asarray(x_best, np.float64).copy()
             xs[0], xs[1], xs[2] = tl, az, math.radians(f)
             g = fit_geometry(of, width, height, block, xs, False, fov_starts=(), rounds=1)
-            if float(np.sum(w * np.cos(2.0 * (pm.maps(g["x"])["phi_perp"] - p1)))) < 0 and not _degenerate_view(g["x"], False) and (top is None or g["score"] < top["score"]):
+            if turned(g["x"]) and not _degenerate_view(g["x"], False) and (top is None or g["score"] < top["score"]):
                 top = g
         prev = None if top is None else top["x"]
         if top is None:
@@ -760,10 +767,10 @@ def calibrate_frames(I: np.ndarray, phi: np.ndarray, cfg: CalibratePaneConfig = 
         t0 = time.perf_counter()
         tw = find_twin(of, W, H, block, geo["x"], fit_fov)
         v_best, st_b, gl_b = _cone_violation(I, phi, geo["x"], W, H, gblock, gain, models, fixed_n, cfg)
-        twin = {"orientation_twin_ratio": init.twin_ratio, "best": {"tilt_deg": math.degrees(geo["x"][0]), "azimuth_deg": math.degrees(geo["x"][1]), "fov_deg": math.degrees(geo["x"][2]), "cone_violation_chi2": v_best}}
+        twin = {"orientation_twin_ratio": init.twin_ratio, "best": {**_angles_deg(geo["x"]), "cone_violation_chi2": v_best}}
         if tw is not None:
             v_tw, st_t, gl_t = _cone_violation(I, phi, tw["x"], W, H, gblock, gain, models, fixed_n, cfg)
-            twin["twin"] = {"tilt_deg": math.degrees(tw["x"][0]), "azimuth_deg": math.degrees(tw["x"][1]), "fov_deg": math.degrees(tw["x"][2]), "cone_violation_chi2": v_tw}
+            twin["twin"] = {**_angles_deg(tw["x"]), "cone_violation_chi2": v_tw}
         else:
             v_tw = float("inf")
         timings["twin_s"] = time.perf_counter() - t0
@@ -795,8 +802,7 @@ def calibrate_frames(I: np.ndarray, phi: np.ndarray, cfg: CalibratePaneConfig = 
         t0 = time.perf_counter()
         v_best, st_b, gl_b = _cone_violation(I, phi, geo["x"], W, H, gblock, gain, models, fixed_n, cfg)
         prof_t = twin_fov_profile(I, phi, of, W, H, block, gblock, gain, geo["x"], geo["score"], models, fixed_n, cfg)
-        twin = {"orientation_twin_ratio": init.twin_ratio, "best": {"tilt_deg": math.degrees(geo["x"][0]), "azimuth_deg": math.degrees(geo["x"][1]) % 360.0,
-                                                                    "fov_deg": math.degrees(geo["x"][2]), "cone_violation_chi2": v_best}, "profile": prof_t["points"]}
+        twin = {"orientation_twin_ratio": init.twin_ratio, "best": {**_angles_deg(geo["x"]), "cone_violation_chi2": v_best}, "profile": prof_t["points"]}
         pre = (st_b, gl_b)
         twin["chosen"] = "best"
         cand = prof_t["best"]
