@@ -278,7 +278,7 @@ def identifiability(dataset: Path, content_power: str = "same", span_s: float = 
     the spike noise removed: where (b) does not claim, no amount of spikes lets this test claim."""
     import math
 
-    from polspike.pipeline.calibrate_pane import CalibratePaneConfig, content_glass
+    from polspike.pipeline.calibrate_pane import CalibratePaneConfig, content_glass, content_parts_for
     from spike_sim.store import open_group
 
     cfg = CalibratePaneConfig(content_power=content_power, span_s=span_s)
@@ -295,8 +295,6 @@ def identifiability(dataset: Path, content_power: str = "same", span_s: float = 
         A = 0.5 * (mp["R_perp"] + mp["R_par"])
         B = 0.5 * (mp["R_perp"] - mp["R_par"])
         rot = np.exp(2j * mp["phi_perp"])
-        from polspike.pipeline.calibrate_pane import content_parts_for
-
         n_parts = content_parts_for(phi, I.shape[0], cfg.content_parts)
         bounds = np.linspace(0, nf, n_parts + 1).round().astype(int)
         parts = []
