@@ -1118,7 +1118,7 @@ def calibrate_input(input: Path, cfg: CalibratePaneConfig, *, height: int | None
                     rev_per_s: float | None = None, rate_hz: float = 20000.0, progress=None) -> tuple[dict, dict | None, int, int]:
     """Load a group store or a raw .dat and run :func:`calibrate_frames`; returns (result, base scene dict, W, H)."""
     from reconstruct.physics_video import frames_exposure, span_frames
-    from reconstruct.selfcal import fov_from_group_dir, leave_out_saturated
+    from reconstruct.selfcal import StreamTooShortError, fov_from_group_dir, leave_out_saturated
     from reconstruct.video import dat_source, group_source
 
     base = None
@@ -1140,6 +1140,15 @@ def calibrate_input(input: Path, cfg: CalibratePaneConfig, *, height: int | None
             log.info("%s records its field of view; calibrate-pane fits it anyway (give --fov-deg to fix it)", input)
     else:
         raise ConfigError(f"input {input} is neither a .dat file nor a spike group directory (GROUP/spikes.h5)")
+    have = int(src.phi_step_rad.size)
+    half_turn = int(math.ceil(src.rate_hz / (2.0 * src.polarizer_rev_s)))
+    if have < half_turn:
+        raise StreamTooShortError(
+            f"{src.name} holds {have} steps ({1e3 * have / src.rate_hz:.1f} ms at {src.rate_hz / 1e3:g} kHz); calibrate-pane "
+            f"needs at least half a polarizer turn, {half_turn} steps ({1e3 * half_turn / src.rate_hz:.1f} ms at "
+            f"{src.polarizer_rev_s:g} rev/s): record longer, or check --rev-per-s")
+    if have < round(cfg.span_s * src.rate_hz):
+        log.warning("%s holds %.3f s, less than the %.3g s span asked for: fitting all of it", src.name, have / src.rate_hz, cfg.span_s)
     ex = frames_exposure(src)
     I, phi = span_frames(src, cfg.span_s, cfg.window_steps, ex)
     I, sat = leave_out_saturated(I, ex)  # clipped pixels would read as a weaker pane

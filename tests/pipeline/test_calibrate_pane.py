@@ -315,6 +315,21 @@ def test_cli_on_a_raw_dat_and_bad_input(tmp_path):
         assert isinstance(r.exception, PolspikeError), (args, r.output)  # the console script prints it on one line, exit 2
 
 
+def test_a_dat_shorter_than_half_a_polarizer_turn_says_how_long_it_must_be(tmp_path, polspike_cli):
+    """300 steps at 20 kHz are 15 ms; half a turn at 30 rev/s is 16.7 ms (334 steps): exit 2, one line with both
+    lengths.  At 60 rev/s half a turn is 167 steps, so the same file is long enough to be read (and refused for
+    want of modulation, not length: it is a stream without a polarizer)."""
+    from spike_sim.vidar_dat import write_dat
+
+    dat = tmp_path / "short.dat"
+    write_dat(dat, (np.random.default_rng(0).random((300, 16, 24)) < 0.2).astype(np.uint8))
+    base = ["calibrate-pane", dat, "--height", 16, "--width", 24, "--phi0-deg", 0, "--out", tmp_path / "x"]
+    r = polspike_cli(*base, "--rev-per-s", 30)
+    polspike_cli.one_line_exit_2(r, "300 steps", "15.0 ms", "334 steps", "half a polarizer turn")
+    r = polspike_cli(*base, "--rev-per-s", 60)
+    assert r.returncode != 2 and "half a polarizer turn" not in r.stderr, r.stderr[-800:]
+
+
 def _fitted_scene(tmp_path, report: dict | None):
     from polspike.pipeline.calibrate_pane import fitted_scene_dict, scene_toml_text
 
