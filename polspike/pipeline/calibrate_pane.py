@@ -891,14 +891,17 @@ def calibrate_frames(I: np.ndarray, phi: np.ndarray, cfg: CalibratePaneConfig = 
         model_known = sel["model"]["identified"] is not False
         if content["ok"] and sel["n"]["identified"] is False and model_known and content.get("n", {}).get("identified") and content["best_model"] == sel["model_key"]:
             sel["n"] = {"identified": True, "value": content["n"]["value"], "sigma": cfg.max_n_sigma, "by": "content", "why": content["n"]["why"], "cone": sel["n"]}
-        if content["ok"] and cfg.content_best and interior:
-            # not claimed, but the least-mixed layers are a better estimate of zeta than the prior (docs/calibrate_pane.md)
+        if content["ok"] and cfg.content_best:
+            # not claimed, but the least-mixed layers are a better estimate of zeta than the prior (docs/calibrate_pane.md).
+            # The model's guess compares each model's best over the same range of indices, so it stands where the best
+            # index sits at the range's end (round 6: the fixed pattern reads n low); that index is no minimum, so the
+            # prior index stays then
             if sel["model"]["identified"] is False and content.get("model", {}).get("z", 0.0) >= cfg.content_best_z:
                 v = content["best_model"]
                 sel["model"]["value"] = v if v == "single" else (cfg.prior_model if cfg.prior_model != "single" else "thin_slab")
                 sel["model"]["why"] += f"; the maps use the content test's best guess {sel['model']['value']} (not claimed)"
                 sel["model_key"] = v
-            if sel["n"]["identified"] is False and content["best_model"] == sel["model_key"]:
+            if interior and sel["n"]["identified"] is False and content["best_model"] == sel["model_key"]:
                 sel["n"]["value"] = content["best_n"]
                 sel["n"]["why"] += f"; the maps use the content test's best guess {content['best_n']:.2f} (not claimed)"
     n_final = float(sel["n"]["value"])
