@@ -904,6 +904,9 @@ def calibrate_frames(I: np.ndarray, phi: np.ndarray, cfg: CalibratePaneConfig = 
             if interior and sel["n"]["identified"] is False and content["best_model"] == sel["model_key"]:
                 sel["n"]["value"] = content["best_n"]
                 sel["n"]["why"] += f"; the maps use the content test's best guess {content['best_n']:.2f} (not claimed)"
+            elif not interior and sel["n"]["identified"] is False:
+                sel["n"]["why"] += (f"; the content test's best index {content['best_n']:.2f} is at the end of the range tried "
+                                    f"({CONTENT_N_GRID[0]:.2f}-{CONTENT_N_GRID[-1]:.2f}), no minimum: the prior stays")
     n_final = float(sel["n"]["value"])
     model_final = sel["model"]["value"]
     x[3] = n_final

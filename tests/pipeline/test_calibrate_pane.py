@@ -193,6 +193,31 @@ def test_refuses_to_claim_the_glass_when_no_layer_is_ever_black():
     assert ident["n"]["identified"] is False or abs(rep["params"]["n"] - 1.6) <= 0.03
 
 
+@pytest.mark.parametrize("z,model", [(2.0, "single"), (0.5, "thin_slab")])
+def test_an_unclaimed_model_guess_stands_when_its_best_index_is_at_the_end_of_the_range(monkeypatch, z, model):
+    """The content test prefers single by z standard errors, at n = 1.40 (the range's end: no minimum).  The model
+    comparison holds over the same range of indices, so above content_best_z (1) the maps use single; the index is
+    no estimate, so the prior 1.5 stays and the report says why.  Below it, the prior model stays."""
+    import polspike.pipeline.calibrate_pane as cp
+
+    tilt, az = CASES[2][:2]
+    I, phi, span, _ = pane_stream(tilt, az, n=1.6, model="single", black=False)
+    grid = cp.CONTENT_N_GRID
+
+    def fake(*a, **kw):
+        sc = {"single": [0.1] * grid.size, "thin_slab": [0.2] * grid.size}
+        return {"ok": True, "tiles": 36, "n_grid": grid.tolist(), "score": sc, "best_model": "single", "best_n": float(grid[0]), "best_score": 0.1,
+                "model": {"identified": False, "value": "single", "z": z, "other": "thin_slab", "other_n": 1.5, "other_score": 0.2, "why": "fake"},
+                "n": {"identified": False, "value": float(grid[0]), "accepted_range": [1.4, 1.46], "why": "fake"}}
+
+    monkeypatch.setattr(cp, "content_glass", fake)
+    rep = cp.calibrate_frames(I, phi, cp.CalibratePaneConfig(fov_deg=55.0), span_rad=span)["report"]
+    ident = rep["identifiability"]
+    assert ident["model"]["identified"] is False and ident["n"]["identified"] is False
+    assert rep["params"]["model"] == model and rep["params"]["n"] == 1.5
+    assert "end of the range" in ident["n"]["why"]
+
+
 def textured_stream(tilt_deg, azimuth_deg, model, n, *, H=80, W=128, M=104, fov_deg=70.0, exposure=200.0, R_level=1.0, T_level=0.5, contrast=True, seed=0):
     """Back-to-back 13-step windows behind a known pane (polphysics geometry and Fresnel, paper Eq. (1)-(2),
     Poisson counts) of static layers with fine independent textures (Gaussian-smoothed white noise, 1.5 px), or
