@@ -32,7 +32,7 @@ def main() -> None:
     ap.add_argument("--no-content", action="store_true", help="calibrate without the content test")
     ap.add_argument("--content-sigma", type=float, default=None, help="CalibratePaneConfig.content_sigma_px (default: the config's)")
     ap.add_argument("--content-parts", type=int, default=None, help="CalibratePaneConfig.content_parts")
-    ap.add_argument("--content-pixels", default=None, choices=("same", "split"), help="CalibratePaneConfig.content_pixels")
+    ap.add_argument("--content-pixels", default=None, choices=("auto", "same", "split"), help="CalibratePaneConfig.content_pixels")
     ap.add_argument("--span-s", type=float, default=0.1, help="CalibratePaneConfig.span_s: seconds of each group calibrated (at most the group's length)")
     ap.add_argument("--content-true-geometry", action="store_true", help="only the content test, on the stored (true) theta / phi_perp of each group")
     ap.add_argument("--identifiability", action="store_true", help="only the content test on the true geometry, from the spikes and from noiseless harmonics of the ground-truth layers (what the layers' content allows without spike noise)")
@@ -124,6 +124,8 @@ def main() -> None:
     print(f"median |theta err| and |phi_perp err| <= 0.5 deg: {len(geo)} of {len(rows)} ({len(geo)} of {len(ok)} calibrated); theta only: "
           f"{sum(1 for r in ok if r['theta_err_median'] <= 0.5)}, phi_perp only: {sum(1 for r in ok if r['phi_perp_err_median'] <= 0.5)}")
     print(f"n claimed on {len(n_claims)} groups, within 0.03 on {len(n_good)}; model claimed on {len(m_claims)} groups with tilt >= 30, right on {len(m_good)}")
+    tilted = [r for r in ok if r["tilt"][0] >= 30]
+    print(f"model in the maps (claimed or not) right on {sum(1 for r in tilted if slab(r['model'][0]) == slab(r['model'][1]))} of {len(tilted)} calibrated groups with tilt >= 30")
     by = lambda rs, k, v: sum(1 for r in rs if r.get(k) == v)  # noqa: E731
     print(f"  of these by the content test: n {by(n_claims, 'n_by', 'content')} (within 0.03: {by(n_good, 'n_by', 'content')}), "
           f"model {by(m_claims, 'model_by', 'content')} (right: {by(m_good, 'model_by', 'content')})")
@@ -135,6 +137,9 @@ def main() -> None:
     if a.solvers:
         within = [r for r in ok if all(r["psnr_T_fitted"][k] - r["psnr_T_true"][k] >= -0.3 for k in ("ls", "ridge", "irls", "rwps"))]
         print(f"every solver within 0.3 dB of the true maps: {len(within)} of {len(rows)} ({len(within)} of {len(ok)} calibrated)")
+        dl = {k: np.array([r["psnr_T_fitted"][k] - r["psnr_T_true"][k] for r in ok]) for k in ("ls", "ridge", "irls", "rwps")}
+        if ok:
+            print("fitted - true maps over the calibrated groups, mean / median dB: " + ", ".join(f"{k} {v.mean():+.2f} / {np.median(v):+.2f}" for k, v in dl.items()))
         if a.compare_prior:
             w0 = [r for r in ok if all(r["psnr_T_prior"][k] - r["psnr_T_true"][k] >= -0.3 for k in ("ls", "ridge", "irls", "rwps"))]
             d = {k: float(np.mean([r["psnr_T_fitted"][k] - r["psnr_T_prior"][k] for r in ok])) for k in ("ls", "ridge", "irls", "rwps")}

@@ -92,7 +92,7 @@ class CalibratePaneConfig:
     content_tiles: int = opt(6, "the content score's tiles per image axis (its spread across tiles gives the margin)", lo=2, hi=64)
     content_parts: int = opt(0, "time parts of the span: R^ of one part is correlated with T^ of another (independent spike noise); 0 = one part per CONTENT_PART_HALF_TURNS half turns of the polarizer, at least 2 (0.1 s at 30 rev/s: 2; 0.2 s: 4), so a longer span adds pairs instead of blurring the moving layers", lo=0, hi=64)
     content_power: str = opt("same", "normalisation of the content test's tile correlations: same (each part's own gradient power: content + spike noise, so hypotheses that amplify the noise score lower) or cross (the power crossed between time parts: content only)", choices=("same", "cross"))
-    content_pixels: str = opt("same", "pixels of the content test: same (both layers' gradients from every pixel) or split (R^ from one checkerboard set, T^ from the other: the sensor's static fixed pattern, common to both layers at a pixel, drops out, which unbiases the index but widens its spread; docs/calibrate_pane.md round 5)", choices=("same", "split"))
+    content_pixels: str = opt("auto", "pixels of the content test: same (both layers' gradients from every pixel), split (R^ from one checkerboard set, T^ from the other: the sensor's static fixed pattern, common to both layers at a pixel, drops out, which unbiases the index but widens its spread; docs/calibrate_pane.md round 5) or auto (split where the span holds CONTENT_SPLIT_PARTS time parts or more, whose extra pairs pay for the halved pixels: 0.2 s at 30 rev/s; same below; round 6)", choices=("auto", "same", "split"))
     content_best: bool = opt(True, "where the content test does not claim n / the model, its best hypothesis (still reported NOT identified) replaces the prior in the written maps")
     content_best_z: float = opt(1.0, "the content test's unclaimed best model replaces the prior only when the other model scores higher by at least this many standard errors (below: a coin flip, the prior stays)", lo=0.0, hi=100.0)
     content_z: float = opt(3.0, "a content claim needs the alternatives' score higher by this many standard errors (across tiles)", lo=0.0, hi=100.0)
@@ -622,6 +622,49 @@ parts much longer than that blur the moving layers (an eval_fresh_val build at 0
 11 of 16 with 2 parts of 0.1 s, 12 of 16 with 4 of 0.05 s; docs/calibrate_pane.md, round 5)."""
 
 
+def content_n_sigma_from_geometry(pm, x: np.ndarray, geo: dict, model: str, n_hat: float, step: int = 4) -> float:
+    """1-sigma of a content-test index from the geometry's uncertainty.  The content test finds the zeta under
+    which the layers do not leak into each other, i.e. the reflection's DoP (R_perp - R_par) / (R_perp + R_par)
+    per pixel (the leak is alpha = A - A' B / B', docs/calibrate_pane.md round 3); so for each principal direction
+    of the geometry's covariance, the geometry moved by one standard deviation, the index whose DoP map best matches
+    the fitted one (least squares over the view, every ``step``-th pixel) is the shifted reading.  Returns the
+    root sum of squares of the shifts."""
+    from polphysics.fresnel import pane_coefficients
+
+    key = "thin_slab" if model == "thick_slab" else model
+
+    def dop(theta: np.ndarray, n: float) -> np.ndarray:
+        co = pane_coefficients(theta, float(n), model=key)
+        return (co["R_perp"] - co["R_par"]) / np.maximum(co["R_perp"] + co["R_par"], 1e-12)
+
+    d0 = dop(pm.maps(x)["theta"][::step, ::step], n_hat)
+    grid = n_hat + np.arange(-0.2, 0.2001, 0.0025)
+    ev, evec = np.linalg.eigh(np.asarray(geo["cov"], np.float64))
+    shifts = []
+    for lam, v in zip(ev, evec.T):
+        xp = np.asarray(x, np.float64).copy()
+        xp[list(geo["wrt"])] += math.sqrt(max(float(lam), 0.0)) * v
+        th = pm.maps(xp)["theta"][::step, ::step]
+        cost = [float(np.mean((dop(th, g) - d0) ** 2)) for g in grid]
+        shifts.append(float(grid[int(np.argmin(cost))] - n_hat))
+    return float(np.sqrt(np.sum(np.square(shifts))))
+
+
+CONTENT_SPLIT_PARTS = 4
+"""``content_pixels = "auto"`` splits the pixels where the content test has at least this many time parts.  The
+split removes the fixed pattern's pull on the index but halves each layer's pixels; with 2 parts (0.1 s) the spread
+costs more than the bias (validation builds, every solver within 0.3 dB: same 18, split 17 of 28), with 4 (0.2 s)
+the other way round (stress regimes and eval_fresh_val's scenes built at 0.2 s: same 25, split 28 of 34;
+docs/calibrate_pane.md, round 6)."""
+
+
+def content_pixels_for(pixels: str, parts: int) -> str:
+    """The content test's pixel mode for ``content_pixels`` = ``pixels`` and ``parts`` time parts."""
+    if pixels == "auto":
+        return "split" if parts >= CONTENT_SPLIT_PARTS else "same"
+    return pixels
+
+
 def content_parts_for(phi: np.ndarray, frames: int, parts: int = 0) -> int:
     """Time parts of the content test for a span of ``frames`` frames at polarizer angles ``phi``: ``parts`` when
     given, else one per :data:`CONTENT_PART_HALF_TURNS` half turns (rounded), at least 2."""
@@ -657,6 +700,7 @@ def content_glass(I: np.ndarray, phi: np.ndarray, theta: np.ndarray, phi_perp: n
             parts = part_harmonics(I, phi, content_parts_for(phi, I.shape[0], cfg.content_parts))
         except ConfigError as e:
             return {"ok": False, "why": str(e)}
+    pixels = content_pixels_for(cfg.content_pixels, len(parts))
     grid = np.array([fixed_n]) if fixed_n else (CONTENT_N_GRID if n_grid is None else n_grid)
     ct = {}
     for model in models:
@@ -665,7 +709,7 @@ def content_glass(I: np.ndarray, phi: np.ndarray, theta: np.ndarray, phi_perp: n
             co = pane_coefficients(theta, float(n), model=model)
             A = 0.5 * (co["R_perp"] + co["R_par"])
             B = 0.5 * (co["R_perp"] - co["R_par"])
-            rows.append(label_correlations(cross_gradient_sums(parts, phi_perp, A, B, gain, sigma=cfg.content_sigma_px, pixels=cfg.content_pixels), tiles, K * K, power=cfg.content_power))
+            rows.append(label_correlations(cross_gradient_sums(parts, phi_perp, A, B, gain, sigma=cfg.content_sigma_px, pixels=pixels), tiles, K * K, power=cfg.content_power))
         ct[model] = np.array(rows)  # (n, tiles)
     ok = np.all(np.isfinite(np.concatenate(list(ct.values()))), axis=0)
     if ok.sum() < 4:
@@ -682,7 +726,7 @@ def content_glass(I: np.ndarray, phi: np.ndarray, theta: np.ndarray, phi_perp: n
         se = float(np.std(d, ddof=1) / math.sqrt(T_))
         return float(d.mean() / se) if se > 0 else float("inf")
 
-    out = {"ok": True, "tiles": T_, "n_grid": grid.tolist(), "score": {m: v.tolist() for m, v in score.items()},
+    out = {"ok": True, "tiles": T_, "parts": len(parts), "pixels": pixels, "n_grid": grid.tolist(), "score": {m: v.tolist() for m, v in score.items()},
            "correlation_global_best": float(np.nanmean(ct[best_model][i_best][ok])), "best_model": best_model, "best_n": float(grid[i_best]),
            "best_score": float(score[best_model][i_best])}
     if len(models) > 1:
@@ -890,7 +934,17 @@ def calibrate_frames(I: np.ndarray, phi: np.ndarray, cfg: CalibratePaneConfig = 
             sel["model_key"] = v
         model_known = sel["model"]["identified"] is not False
         if content["ok"] and sel["n"]["identified"] is False and model_known and content.get("n", {}).get("identified") and content["best_model"] == sel["model_key"]:
-            sel["n"] = {"identified": True, "value": content["n"]["value"], "sigma": cfg.max_n_sigma, "by": "content", "why": content["n"]["why"], "cone": sel["n"]}
+            # the content test read n at the fitted geometry; a theta off by its uncertainty moves the index whose
+            # reflection DoP it matches (round 6: eval_fresh_val train_015, theta 1.3 deg off, claimed 1.54 vs 1.585).
+            # Its own 1-sigma: indices max_n_sigma away are rejected by content_z standard errors
+            s_geo = content_n_sigma_from_geometry(pm_full, x, geo, sel["model_key"], content["n"]["value"])
+            content["n"]["sigma_from_geometry"] = s_geo
+            if s_geo <= cfg.max_n_sigma:
+                sel["n"] = {"identified": True, "value": content["n"]["value"], "sigma": math.hypot(cfg.max_n_sigma / max(cfg.content_z, 1.0), s_geo), "sigma_from_geometry": s_geo,
+                            "by": "content", "why": content["n"]["why"] + f"; the geometry's uncertainty moves it by {s_geo:.3f}", "cone": sel["n"]}
+            else:
+                sel["n"]["why"] += (f"; the content test's indices {content['n']['accepted_range'][0]:.2f}-{content['n']['accepted_range'][1]:.2f} "
+                                    f"hold at the fitted geometry, but its uncertainty moves the index by {s_geo:.3f} (> {cfg.max_n_sigma:g}): not claimed")
         if content["ok"] and cfg.content_best:
             # not claimed, but the least-mixed layers are a better estimate of zeta than the prior (docs/calibrate_pane.md).
             # The model's guess compares each model's best over the same range of indices, so it stands where the best
