@@ -257,6 +257,49 @@ def test_content_test_picks_the_pane_model_from_textured_layers(model):
     assert lo <= 1.5 <= hi and abs(r["best_n"] - 1.5) <= 0.1
 
 
+def test_content_pixels_auto_splits_where_the_span_holds_enough_parts():
+    """content_pixels = auto: 0.07 s (2 time parts) scores exactly as same; 0.2 s (4 parts of 3 half turns) exactly as
+    split (the checkerboard sets, which drop the fixed pattern's pull on the index).  Explicit choices are kept."""
+    import dataclasses
+
+    from polspike.pipeline.calibrate_pane import CONTENT_SPLIT_PARTS, CalibratePaneConfig, content_glass, content_pixels_for
+
+    assert [content_pixels_for("auto", p) for p in (2, 3, 4, 6)] == ["same", "same", "split", "split"] and CONTENT_SPLIT_PARTS == 4
+    assert content_pixels_for("same", 8) == "same" and content_pixels_for("split", 2) == "split"
+    for M, parts, mode in ((104, 2, "same"), (307, 4, "split")):
+        I, phi, g, geo = textured_stream(60.0, 30.0, "single", 1.5, H=40, W=64, M=M)
+        run = lambda px: content_glass(I, phi, geo["theta"], geo["phi_perp"], g, ("single",), dataclasses.replace(CalibratePaneConfig(), content_pixels=px))  # noqa: E731
+        auto, fixed = run("auto"), run(mode)
+        assert auto["parts"] == parts and auto["pixels"] == mode
+        np.testing.assert_array_equal(auto["score"]["single"], fixed["score"]["single"])
+        other = run("split" if mode == "same" else "same")
+        assert np.max(np.abs(np.subtract(other["score"]["single"], auto["score"]["single"]))) > 0
+
+
+@pytest.mark.parametrize("tilt,n,sigma_deg", [(50.0, 1.55, 0.5), (35.0, 1.6, 1.0), (70.0, 1.5, 0.3)])
+def test_content_index_uncertainty_from_the_geometry_matches_the_dop_slope(tilt, n, sigma_deg):
+    """A narrow view (fov 10 deg) whose tilt is uncertain by sigma: every theta moves by about sigma, so the index
+    that keeps the reflection's DoP moves by |dDoP/dtheta| / |dDoP/dn| sigma (finite differences of the Fresnel
+    formulas at the centre, an independent oracle), to the 0.0025 grid of the search."""
+    from generator.pane_fit import PaneModelAD
+    from polphysics.fresnel import pane_coefficients
+    from polspike.pipeline.calibrate_pane import content_n_sigma_from_geometry
+
+    pm = PaneModelAD(64, 40, "single", sub=1)
+    x = np.array([math.radians(tilt), 0.3, math.radians(10.0), n])
+    geo = {"cov": np.diag([math.radians(sigma_deg) ** 2, 1e-14]), "wrt": (0, 1)}
+    got = content_n_sigma_from_geometry(pm, x, geo, "single", n)
+
+    def dop(t, m):
+        c = pane_coefficients(np.array([t]), m, model="single")
+        return float(((c["R_perp"] - c["R_par"]) / (c["R_perp"] + c["R_par"]))[0])
+
+    t0, e = math.radians(tilt), 1e-5
+    slope = abs((dop(t0 + e, n) - dop(t0 - e, n)) / (dop(t0, n + e) - dop(t0, n - e)))
+    assert got == pytest.approx(slope * math.radians(sigma_deg), abs=0.003)
+    assert content_n_sigma_from_geometry(pm, x, {"cov": np.zeros((2, 2)), "wrt": (0, 1)}, "single", n) < 1e-9
+
+
 def test_content_test_claims_nothing_without_content():
     """R = T everywhere (flat, equal): the pane changes nothing in the solved layers, whose gradients are only spike
     noise, independent across time parts: neither the model nor n is claimed."""
