@@ -24,6 +24,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 import math
+from pathlib import Path
 
 import numpy as np
 import torch
@@ -209,6 +210,36 @@ def group_pane_maps(group_dir, zeta: str, n: float = 1.5, model: str = "single")
 
     co = pane_coefficients(mp["theta"], n, model=model)
     return PaneMaps(R_perp=co["R_perp"], R_par=co["R_par"], phi_perp=mp["phi_perp"])
+
+
+def calibrated_pane_maps(path, height: int, width: int) -> PaneMaps:
+    """The pane maps of ``polspike calibrate-pane`` (its output directory, or that directory's maps.exr) for a stream
+    of ``height`` x ``width``: R_perp, R_par and phi_perp as fitted (geometry, index and model are in them).
+
+    Raises:
+        ConfigError: no maps there (calibrate-pane refused that recording: its report.json says why), channels
+            missing, or maps of another frame size (one line, what to fix).
+    """
+    from polinfra.errors import DataFormatError
+    from polinfra.exr import read_exr
+
+    p = Path(path)
+    if not p.exists():
+        raise ConfigError(f"--pane {path}: no such directory or file; give a calibrate-pane output directory or its maps.exr")
+    f = p / "maps.exr" if p.is_dir() else p
+    if not f.is_file():
+        why = " (calibrate-pane wrote no maps: its report.json says why it did not calibrate)" if (f.parent / "report.json").is_file() else ""
+        raise ConfigError(f"--pane {path}: no {f.name} there{why}; give a calibrate-pane output directory or its maps.exr")
+    try:
+        mp = read_exr(f, ["R_perp", "R_par", "phi_perp"])
+    except DataFormatError as e:
+        raise ConfigError(f"--pane {path}: {e} (calibrate-pane's maps.exr has R_perp, R_par and phi_perp)") from None
+    if mp["phi_perp"].shape != (height, width):
+        h, w = mp["phi_perp"].shape
+        raise ConfigError(f"--pane {path}: maps of {w} x {h} for a stream of {width} x {height}; calibrate a recording of this camera's frame size")
+    if not all(np.all(np.isfinite(v)) for v in mp.values()):
+        raise ConfigError(f"--pane {path}: the maps hold NaN or Inf; calibrate the recording again")
+    return PaneMaps(R_perp=mp["R_perp"], R_par=mp["R_par"], phi_perp=mp["phi_perp"])
 
 
 def build_physics_model(

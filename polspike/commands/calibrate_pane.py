@@ -78,6 +78,8 @@ def calibrate_pane_cmd(
     if rep.get("twin", {}).get("chosen") == "twin":
         con.print(f"90 deg twin taken: {rep['twin']['why']}")
     con.print(f"n {p['n']:.4f} ({verdict('n')}), model {p['model']} ({verdict('model')}); thickness and reflectance scale not identified")
+    if not rep["pane_toml"]["written"]:
+        con.print(f"[yellow]no pane.toml[/]: {rep['pane_toml']['why']}; reconstruct with --pane {out} still uses the maps")
     con.print(f"[green]wrote[/] {out}: {', '.join(rep['files'])} in {rep['timings_s']['total_s']:.1f} s")
 
 

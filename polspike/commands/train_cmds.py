@@ -109,6 +109,7 @@ def reconstruct_cmd(
     precision: str = typer.Option("float32", "--precision", help="float32 | bfloat16 (autocast of the network; the solver stays float32)"),
     pane_n: Optional[float] = typer.Option(None, "--pane-n", help="the pane's refractive index where known (e.g. from polspike calibrate-pane) [default: --zeta self fits it where the spikes constrain it, else 1.5; --zeta physics: 1.5]"),
     pane_model: str = typer.Option("auto", "--pane-model", help="the pane model where known: single, thin_slab or thick_slab [default auto: --zeta self fits it where the spikes constrain it, else thin_slab; --zeta physics: single]"),
+    pane: Optional[Path] = typer.Option(None, "--pane", help="zeta from the maps of polspike calibrate-pane (its output directory or maps.exr) of this camera and pane, instead of --zeta: e.g. fitted once on a long static recording, then used for every recording of the setup"),
     ensemble: int = typer.Option(1, "--ensemble", help="the network averaged over 1, 2, 4 or 8 mirror / transpose symmetries of each window (test-time self-ensemble: that many forward passes, no feature cache; measured by polspike bench ensemble)"),
 ) -> None:
     """Turn a spike group or a .dat into reflection-free T and R video at the output cadence (~343 FPS)."""
@@ -156,6 +157,11 @@ def reconstruct_cmd(
         raise ConfigError(f"--pane-n {pane_n}: a pane's refractive index lies in (1, 4]")
     if exposure is not None and not exposure > 0:
         raise ConfigError(f"--exposure {exposure}: must be > 0 (thresholds per step per unit radiance)")
+    if pane is not None:
+        if zeta is not None:
+            raise ConfigError(f"--pane gives zeta (the calibrated maps): drop --zeta {zeta}")
+        if pane_n is not None or pane_model != "auto":
+            raise ConfigError("--pane fixes the index and the pane model (they are in its maps): drop --pane-n / --pane-model")
     cfg = ReconstructConfig(window_steps=window_steps, stride_deg=stride_deg, exposure=exposure or 1.0, frames=frames, max_frames=max_frames, precision=precision)
     if input.suffix.lower() == ".dat":
         missing = [n for n, v in (("--height", height), ("--width", width), ("--phi0-deg", phi0_deg), ("--rev-per-s", rev_per_s)) if v is None]
@@ -182,7 +188,19 @@ def reconstruct_cmd(
         cfg = dataclasses.replace(cfg, exposure=est.exposure)
         exposure_info = {"exposure_source": "estimated", "exposure_estimate": est.summary()}
     info = None
-    if method == "net":
+    if pane is not None:
+        from reconstruct.physics_video import PhysicsModel, calibrated_pane_maps
+
+        maps = calibrated_pane_maps(pane, src.height, src.width)
+        span = 2 * math.pi * src.polarizer_rev_s * window_steps / src.rate_hz
+        info = {"zeta": f"pane ({pane})", "selfcal": None}
+        if method == "net":
+            from reconstruct.net_zeta import MapsZetaNet
+
+            model = MapsZetaNet(net_model, maps, span)
+        else:
+            model = PhysicsModel(method, 7, maps=maps, span_rad=span, rir=True if rir is None else rir, anchor=anchor)
+    elif method == "net":
         from reconstruct.net_zeta import NET_DEFAULT_ZETA
 
         model = net_model

@@ -1031,6 +1031,7 @@ def fitted_scene_dict(params: dict, width: int, height: int, base: dict | None =
     """Scene data (``generator.scene`` schema) of the fitted setup: the base scene (a group's, or the defaults)
     with the camera's fov and size and the pane's tilt, tilt axis, index and model replaced."""
     from polinfra.config import to_dict
+    from polinfra.errors import SceneError
 
     from generator.scene import SceneConfig, check_scene_geometry, scene_from_dict
 
@@ -1061,7 +1062,9 @@ def fitted_scene_dict(params: dict, width: int, height: int, base: dict | None =
         try:
             check_scene_geometry(scene_from_dict(d, where="fitted scene"))
             break
-        except Exception:  # noqa: BLE001 - SceneError: enlarge and retry
+        except SceneError as e:
+            if "does not cover" not in str(e):  # edge-on for part of the view: no size helps
+                raise SceneError(f"the fitted pane (tilt {params['tilt_deg']:.1f} deg, fov {params['fov_deg']:.1f} deg) is edge-on or behind the camera for part of the view, which a scene file cannot hold") from None
             pane["size_m"] = [2.0 * float(v) for v in pane.get("size_m", (4.0, 3.0))]
     scene_from_dict(d, where="fitted scene")
     return d
@@ -1151,6 +1154,7 @@ def _json_safe(o):
 def write_outputs(out: Path, res: dict, *, base_scene: dict | None = None, width: int, height: int) -> dict:
     """Write DIR/pane.toml, DIR/maps.exr, DIR/report.json and the figures (each file atomically)."""
     from polinfra.atomic import ensure_dir, write_json, write_text
+    from polinfra.errors import SceneError
     from polinfra.exr import write_exr
 
     ensure_dir(out)
@@ -1158,18 +1162,26 @@ def write_outputs(out: Path, res: dict, *, base_scene: dict | None = None, width
     if not res["ok"]:
         write_json(out / "report.json", _json_safe(rep))
         return rep
-    d = fitted_scene_dict(res["params"], width, height, base_scene)
-    ident = rep["identifiability"]
-    hdr = (f"Scene of the pane fitted by polspike calibrate-pane to {rep['input']}.\n"
-           f"Fitted: tilt {res['params']['tilt_deg']:.3f} +- {rep['uncertainty_1sigma']['tilt_deg']:.3f} deg, fov {res['params']['fov_deg']:.3f} deg; "
-           f"n {'fitted' if ident['n']['identified'] else 'given' if ident['n']['identified'] is None else 'NOT identified (prior)'}; "
-           f"model {'fitted' if ident['model']['identified'] else 'given' if ident['model']['identified'] is None else 'NOT identified (prior)'}.\n"
-           "Layers, polarizer and render settings come from the input's own scene when it has one, else the defaults. See report.json.")
-    write_text(out / "pane.toml", scene_toml_text(d, hdr))
+    files = []
+    try:
+        d = fitted_scene_dict(res["params"], width, height, base_scene)
+    except SceneError as e:  # the maps and the report still hold; only the scene file cannot be written
+        log.warning("%s: no pane.toml written (maps.exr and report.json are)", e)
+        rep["pane_toml"] = {"written": False, "why": str(e)}
+    else:
+        ident = rep["identifiability"]
+        hdr = (f"Scene of the pane fitted by polspike calibrate-pane to {rep['input']}.\n"
+               f"Fitted: tilt {res['params']['tilt_deg']:.3f} +- {rep['uncertainty_1sigma']['tilt_deg']:.3f} deg, fov {res['params']['fov_deg']:.3f} deg; "
+               f"n {'fitted' if ident['n']['identified'] else 'given' if ident['n']['identified'] is None else 'NOT identified (prior)'}; "
+               f"model {'fitted' if ident['model']['identified'] else 'given' if ident['model']['identified'] is None else 'NOT identified (prior)'}.\n"
+               "Layers, polarizer and render settings come from the input's own scene when it has one, else the defaults. See report.json.")
+        write_text(out / "pane.toml", scene_toml_text(d, hdr))
+        rep["pane_toml"] = {"written": True}
+        files.append("pane.toml")
     ch = {k: res["maps"][k].astype(np.float32) for k in ("theta", "phi_perp", "R_perp", "R_par", "T_perp", "T_par")}
     write_exr(out / "maps.exr", ch, attrs={"source": "polspike calibrate-pane", "tier": "maps (differentiable Dr.Jit pane model)"})
     rep["figures"] = _figures(out, res)
-    rep["files"] = ["pane.toml", "maps.exr", "report.json", *rep["figures"]]
+    rep["files"] = [*files, "maps.exr", "report.json", *rep["figures"]]
     write_json(out / "report.json", _json_safe(rep))
     return rep
 

@@ -409,6 +409,28 @@ def _fitted_scene(tmp_path, report: dict | None):
     return tmp_path / "pane.toml"
 
 
+def test_a_pane_edge_on_in_part_of_the_view_gets_no_scene_file_but_keeps_its_maps(tmp_path, monkeypatch):
+    """tilt 80 deg seen with a 60 deg fov: rays at the view's edge run parallel to the pane or away from it, which no
+    scene file (generator.scene) can hold, whatever the pane's size: fitted_scene_dict says so (SceneError, one
+    sentence); write_outputs writes maps.exr and report.json without pane.toml and the report says why."""
+    from polinfra.errors import SceneError
+    from polspike.pipeline.calibrate_pane import fitted_scene_dict, write_outputs
+
+    params = {"tilt_deg": 80.0, "azimuth_deg": 20.0, "fov_deg": 60.0, "n": 1.5, "model": "thin_slab"}
+    with pytest.raises(SceneError, match="edge-on"):
+        fitted_scene_dict(params, 72, 48)
+    fitted_scene_dict({**params, "tilt_deg": 40.0}, 72, 48)  # the same view at 40 deg: a scene
+    maps = {k: np.full((48, 72), 0.1, np.float64) for k in ("theta", "phi_perp", "R_perp", "R_par", "T_perp", "T_par")}
+    rep = {"input": "x", "identifiability": {}, "uncertainty_1sigma": {"tilt_deg": 0.1}}
+    res = {"ok": True, "report": rep, "params": params, "maps": maps}
+    import polspike.pipeline.calibrate_pane as cp
+
+    monkeypatch.setattr(cp, "_figures", lambda out, res: [])  # the figures need a full fit's report
+    out = write_outputs(tmp_path / "cal", res, width=72, height=48)
+    assert out["pane_toml"]["written"] is False and "edge-on" in out["pane_toml"]["why"]
+    assert sorted(p.name for p in (tmp_path / "cal").iterdir()) == ["maps.exr", "report.json"]
+
+
 def test_dataset_new_like_keeps_the_fitted_geometry_and_glass(tmp_path):
     """--like --jitter none: every group's pane sees the scene's theta / phi_perp maps exactly (the pane is
     relative to the sampled camera); content and pointing still vary.  --jitter fit: tilt spread within

@@ -143,11 +143,47 @@ def test_anchor_mean_on_a_static_stream_beats_the_plain_solver(tmp_path):
         (["--method", "ls", "--zeta", "physics"], "raw .dat"),
         (["--method", "magic"], "--method"),
         (["--method", "ls", "--zeta", "oracle"], "--zeta"),
+        (["--method", "ls", "--pane", "/nonexistent/cal"], "no such directory"),
+        (["--method", "ls", "--pane", "/nonexistent/cal", "--zeta", "self"], "drop --zeta"),
+        (["--pane", "/nonexistent/cal", "--pane-n", "1.52"], "drop --pane-n"),
     ],
 )
 def test_bad_combinations_are_one_line_exit_2(stream, polspike_main, tmp_path, args, fragment):
     r = polspike_main("reconstruct", stream["dat"], "--height", H, "--width", W, "--phi0-deg", 0, "--rev-per-s", REV, "--out", tmp_path / "o", *args)
     polspike_main.one_line_exit_2(r, fragment)
+
+
+def test_pane_from_calibrate_pane_drives_the_solvers(stream, polspike_cli, tmp_path):
+    """calibrate-pane on the .dat, then reconstruct --pane with its output (on the group store of the same stream, whose
+    exposure is stored): T within 1 dB of the true maps' T.  The true maps written as a calibration give bit for bit
+    what --zeta gt gives.  (This view is edge-on in a corner: calibrate-pane writes no pane.toml, and says so.)"""
+    from polinfra.exr import read_exr, write_exr
+
+    dat = ["--height", H, "--width", W, "--phi0-deg", math.degrees(PHI0), "--rev-per-s", REV]
+    r = polspike_cli("calibrate-pane", stream["dat"], *dat, "--out", tmp_path / "cal")
+    assert r.returncode == 0, r.stderr[-2000:]
+    rep = json.loads((tmp_path / "cal" / "report.json").read_text())
+    assert rep["pane_toml"]["written"] == (tmp_path / "cal" / "pane.toml").is_file() == ("pane.toml" in rep["files"])
+    assert rep["pane_toml"]["written"] or "no pane.toml" in r.stdout
+    common = ["--method", "ls", "--no-rir", "--max-frames", 2, "--frames", "exr", "--quiet", "--device", "cpu"]
+    r = polspike_cli("reconstruct", stream["group"], *common, "--pane", tmp_path / "cal", "--out", tmp_path / "o_pane")  # the group: its stored exposure
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert json.loads((tmp_path / "o_pane" / "physics.json").read_text())["zeta"].startswith("pane (")
+    r = polspike_cli("reconstruct", stream["group"], *common, "--zeta", "gt", "--out", tmp_path / "o_gt")
+    assert r.returncode == 0, r.stderr[-2000:]
+    T = {k: read_exr(tmp_path / k / "frames" / "000000.exr", ["T"])["T"] for k in ("o_pane", "o_gt")}
+    assert _psnr(T["o_pane"], stream["T"]) > _psnr(T["o_gt"], stream["T"]) - 1.0
+    # the true maps as a calibration: the same frames as --zeta gt
+    write_exr(tmp_path / "true" / "maps.exr", {k: np.asarray(v, np.float32) for k, v in stream["maps"].items()})
+    r = polspike_cli("reconstruct", stream["group"], *common, "--pane", tmp_path / "true", "--out", tmp_path / "o_true")
+    assert r.returncode == 0, r.stderr[-2000:]
+    for k in ("T", "R"):
+        a = read_exr(tmp_path / "o_true" / "frames" / "000001.exr", [k])[k]
+        np.testing.assert_array_equal(a, read_exr(tmp_path / "o_gt" / "frames" / "000001.exr", [k])[k])
+    # maps of another camera: one line, exit 2
+    write_exr(tmp_path / "small" / "maps.exr", {k: np.asarray(v[:, :40], np.float32) for k, v in stream["maps"].items()})
+    r = polspike_cli("reconstruct", stream["group"], *common, "--pane", tmp_path / "small", "--out", tmp_path / "o_small")
+    polspike_cli.one_line_exit_2(r, "maps of 40 x 48 for a stream of 72 x 48")
 
 
 def test_self_falls_back_to_learned_where_nothing_modulates(tmp_path):
