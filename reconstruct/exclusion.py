@@ -28,7 +28,7 @@ import numpy as np
 
 from polinfra.errors import ConfigError
 
-__all__ = ["part_harmonics", "solve_layers", "cross_gradient_sums", "label_correlations", "SIGMA_PX"]
+__all__ = ["part_harmonics", "rotate_parts", "solve_layers", "cross_gradient_sums", "label_correlations", "SIGMA_PX"]
 
 SIGMA_PX = 1.5
 """Gaussian smoothing (pixels) of the solved layers before their gradients are taken: keeps the texture, damps the
@@ -63,10 +63,18 @@ def part_harmonics(I: np.ndarray, phi: np.ndarray, parts: int = 2) -> list[tuple
     return out
 
 
-def solve_layers(a0: np.ndarray, c: np.ndarray, phi_perp: np.ndarray, A: np.ndarray, B: np.ndarray, gain: float = 1.0, mask: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+def rotate_parts(parts, phi_perp: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
+    """The parts' modulation turned to the plane of incidence, (a0, Re(c e^{-2i phi_perp})): what every hypothesis of
+    :func:`solve_layers` takes (give the result with ``phi_perp = None`` to solve many hypotheses without redoing it)."""
+    rot = np.exp(-2j * phi_perp)
+    return [(a0, (c * rot).real) for a0, c in parts]
+
+
+def solve_layers(a0: np.ndarray, c: np.ndarray, phi_perp: np.ndarray | None, A: np.ndarray, B: np.ndarray, gain: float = 1.0, mask: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """(R', T') of paper Eq. (1)-(2) from one part's harmonic mean a0 and modulation c under zeta's (A, B) (module docstring);
-    ``mask``: D and T set to 0 where it is False."""
-    m = (c * np.exp(-2j * phi_perp)).real
+    ``phi_perp`` None: c is already turned to the plane of incidence (:func:`rotate_parts`); ``mask``: D and T set to 0
+    where it is False."""
+    m = c if phi_perp is None else (c * np.exp(-2j * phi_perp)).real
     D = 2.0 * m / (gain * np.where(np.abs(B) > 1e-6, B, 1e-6))
     T = 2.0 * a0 - A * D
     if mask is not None:
@@ -88,19 +96,31 @@ def _checkerboard(shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
     return even, ~even
 
 
-def _set_grad(x: np.ndarray, keep: np.ndarray, sigma: float) -> tuple[np.ndarray, np.ndarray]:
-    """Gradient of x seen through the pixels ``keep`` only: normalised convolution (the Gaussian mean of the kept
-    pixels), then the forward differences of :func:`_grad`."""
+def _set_sigma(sigma: float) -> float:
+    return max(sigma, 0.7)  # every pixel needs kept neighbours
+
+
+def _set_weight(keep: np.ndarray, sigma: float) -> np.ndarray:
+    """The Gaussian weight of the kept pixels around each pixel (the normalisation of :func:`_set_grad`)."""
     from scipy.ndimage import gaussian_filter
 
-    s = max(sigma, 0.7)  # every pixel needs kept neighbours
-    y = gaussian_filter(np.where(keep, x, 0.0), s) / np.maximum(gaussian_filter(keep.astype(np.float64), s), 1e-12)
+    return np.maximum(gaussian_filter(keep.astype(np.float64), _set_sigma(sigma)), 1e-12)
+
+
+def _set_grad(x: np.ndarray, keep: np.ndarray, sigma: float, weight: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Gradient of x seen through the pixels ``keep`` only: normalised convolution (the Gaussian mean of the kept
+    pixels; ``weight``: :func:`_set_weight` of ``keep``, computed here when None), then the forward differences of
+    :func:`_grad`."""
+    from scipy.ndimage import gaussian_filter
+
+    y = gaussian_filter(np.where(keep, x, 0.0), _set_sigma(sigma)) / (_set_weight(keep, sigma) if weight is None else weight)
     return np.diff(y, axis=1)[:-1, :], np.diff(y, axis=0)[:, :-1]
 
 
-def cross_gradient_sums(parts, phi_perp: np.ndarray, A: np.ndarray, B: np.ndarray, gain: float = 1.0, sigma: float = SIGMA_PX,
+def cross_gradient_sums(parts, phi_perp: np.ndarray | None, A: np.ndarray, B: np.ndarray, gain: float = 1.0, sigma: float = SIGMA_PX,
                         mask: np.ndarray | None = None, pairs: str = "all", pixels: str = "same") -> dict:
-    """Per-pixel products of the layers' gradients solved under zeta (A, B), crossed between time parts.
+    """Per-pixel products of the layers' gradients solved under zeta (A, B), crossed between time parts (``parts``:
+    (a0, c) per part; with ``phi_perp`` None, as turned by :func:`rotate_parts`).
 
     Returns (H - 1, W - 1) maps ``cross`` (gR_p . gT_q with p != q, x and y gradients summed; ``pairs`` = "all": the
     mean over the ordered pairs of distinct parts, "adjacent": the mean over j of (gR_j . gT_j+1 + gR_j+1 . gT_j) / 2,
@@ -125,16 +145,17 @@ def cross_gradient_sums(parts, phi_perp: np.ndarray, A: np.ndarray, B: np.ndarra
     okx = oky = None
     if mask is not None:
         okx, oky = mask[:-1, :-1] & mask[:-1, 1:], mask[:-1, :-1] & mask[1:, :-1]
-    sets = _checkerboard(phi_perp.shape) if pixels == "split" else None
+    sets = _checkerboard(np.shape(parts[0][0])) if pixels == "split" else None
     if sets is not None and mask is not None:
         sets = tuple(S & mask for S in sets)
+    weights = None if sets is None else tuple(_set_weight(S, sigma) for S in sets)
     gs = []  # per part: {"R": (gradient from set 0, from set 1), "T": ...}; the same gradient twice for pixels = same
     for a0, c in parts:
         R, T = solve_layers(a0, c, phi_perp, A, B, gain, None if sets is not None else mask)
         g = {}
         for k, x in (("R", R), ("T", T)):
             if sets is not None:  # each set's normalised convolution; gradient pairs touching the mask 0
-                both = tuple(_set_grad(x, S, sigma) for S in sets)
+                both = tuple(_set_grad(x, S, sigma, wt) for S, wt in zip(sets, weights))
                 if mask is not None:
                     both = tuple((np.where(okx, u[0], 0.0), np.where(oky, u[1], 0.0)) for u in both)
             elif mask is None:
@@ -155,17 +176,26 @@ def cross_gradient_sums(parts, phi_perp: np.ndarray, A: np.ndarray, B: np.ndarra
     def own(u):  # a gradient's own power, over both sets
         return prod(u[0], u[0]) if u[0] is u[1] else 0.5 * (prod(u[0], u[0]) + prod(u[1], u[1]))
 
+    def total(k):  # a layer's gradients summed over the parts, per set (one array twice for pixels = same)
+        sets_ = tuple(tuple(sum(g[k][s][a] for g in gs) for a in (0, 1)) for s in (0, 1) if s == 0 or sets is not None)
+        return sets_ if len(sets_) == 2 else sets_ * 2
+
+    tot = {k: total(k) for k in ("R", "T")}
+
+    def off_diagonal(k, m):  # sum over ordered pairs of distinct parts p != q of mix(k_p, m_q), in O(P): all pairs less p = q
+        return mix(tot[k], tot[m]) - sum(mix(g[k], g[m]) for g in gs)
+
     if pairs == "adjacent":
         cross = sum(0.5 * (mix(gs[j]["R"], gs[j + 1]["T"]) + mix(gs[j + 1]["R"], gs[j]["T"])) for j in range(P - 1)) / (P - 1)
     else:
-        cross = sum(mix(gs[p]["R"], gs[q]["T"]) for p in range(P) for q in range(P) if q != p) / (P * (P - 1))
+        cross = off_diagonal("R", "T") / (P * (P - 1))
     pr = sum(own(g["R"]) for g in gs) / P
     pt = sum(own(g["T"]) for g in gs) / P
     # the layers' gradient power crossed between parts as well: the spike noise is independent across parts, so these
     # hold the content's power without the noise's (pr, pt hold both; a hypothesis that amplifies the noise, small B',
     # would otherwise have its correlation shrunk by its own noise and look less mixed)
-    prx = sum(mix(gs[p]["R"], gs[q]["R"]) for p in range(P) for q in range(P) if q != p) / (P * (P - 1))
-    ptx = sum(mix(gs[p]["T"], gs[q]["T"]) for p in range(P) for q in range(P) if q != p) / (P * (P - 1))
+    prx = off_diagonal("R", "R") / (P * (P - 1))
+    ptx = off_diagonal("T", "T") / (P * (P - 1))
     return {"cross": cross, "pr": pr, "pt": pt, "pr_x": prx, "pt_x": ptx}
 
 

@@ -688,7 +688,7 @@ def content_glass(I: np.ndarray, phi: np.ndarray, theta: np.ndarray, phi_perp: n
     than ``max_n_sigma`` away is rejected in the same way.  Featureless layers leave every score at the noise level
     and nothing is claimed.  Returns the scores, the choice and the two verdicts."""
     from polphysics.fresnel import pane_coefficients
-    from reconstruct.exclusion import cross_gradient_sums, label_correlations, part_harmonics
+    from reconstruct.exclusion import cross_gradient_sums, label_correlations, part_harmonics, rotate_parts
 
     t0 = time.perf_counter()
     H, W = theta.shape
@@ -701,6 +701,7 @@ def content_glass(I: np.ndarray, phi: np.ndarray, theta: np.ndarray, phi_perp: n
         except ConfigError as e:
             return {"ok": False, "why": str(e)}
     pixels = content_pixels_for(cfg.content_pixels, len(parts))
+    turned = rotate_parts(parts, phi_perp)  # the same for every hypothesis
     grid = np.array([fixed_n]) if fixed_n else (CONTENT_N_GRID if n_grid is None else n_grid)
     ct = {}
     for model in models:
@@ -709,7 +710,7 @@ def content_glass(I: np.ndarray, phi: np.ndarray, theta: np.ndarray, phi_perp: n
             co = pane_coefficients(theta, float(n), model=model)
             A = 0.5 * (co["R_perp"] + co["R_par"])
             B = 0.5 * (co["R_perp"] - co["R_par"])
-            rows.append(label_correlations(cross_gradient_sums(parts, phi_perp, A, B, gain, sigma=cfg.content_sigma_px, pixels=pixels), tiles, K * K, power=cfg.content_power))
+            rows.append(label_correlations(cross_gradient_sums(turned, None, A, B, gain, sigma=cfg.content_sigma_px, pixels=pixels), tiles, K * K, power=cfg.content_power))
         ct[model] = np.array(rows)  # (n, tiles)
     ok = np.all(np.isfinite(np.concatenate(list(ct.values()))), axis=0)
     if ok.sum() < 4:

@@ -144,3 +144,49 @@ def test_split_pixels_leave_masked_pixels_out_and_refuse_unknown_names():
     parts = [(np.ones((H, W)), np.zeros((H, W), complex))] * 2
     with pytest.raises(ConfigError, match="pixels"):
         cross_gradient_sums(parts, pp, A, B, pixels="odd")
+
+
+def test_the_part_pair_sums_equal_the_explicit_double_sum_over_distinct_parts():
+    """cross, pr_x and pt_x sum over every ordered pair of distinct time parts; they are formed in O(P) as the
+    product of the part sums less the p = q terms.  Oracle: the explicit double loop over p != q of the per-part
+    gradients (same: R'_p . T'_q; split: the mean of set 0 of one with set 1 of the other, both ways), for 2, 3 and 5
+    noisy parts, with and without a mask."""
+    from reconstruct.exclusion import _checkerboard, _grad, _set_grad, solve_layers
+
+    H, W, sigma = 40, 56, 1.5
+    rng = np.random.default_rng(7)
+    A, B, pp = 0.12 + 0.02 * _tex(1, H, W, s=3), 0.08 + 0.01 * _tex(2, H, W, s=3), 0.4 + 0.1 * _tex(3, H, W, s=3)
+    mask = np.ones((H, W), bool)
+    mask[5:12, 30:44] = False
+    for P in (2, 3, 5):
+        parts = [(0.5 + 0.05 * rng.standard_normal((H, W)), 0.04 * (rng.standard_normal((H, W)) + 1j * rng.standard_normal((H, W)))) for _ in range(P)]
+        for pixels in ("same", "split"):
+            for m in (None, mask):
+                got = cross_gradient_sums(parts, pp, A, B, sigma=sigma, pixels=pixels, mask=m)
+                sets = _checkerboard((H, W))
+                if m is not None:
+                    sets = tuple(S & m for S in sets)
+                okx = oky = None
+                if m is not None:
+                    okx, oky = m[:-1, :-1] & m[:-1, 1:], m[:-1, :-1] & m[1:, :-1]
+                g = []
+                for a0, c in parts:
+                    R, T = solve_layers(a0, c, pp, A, B, 1.0, None if pixels == "split" else m)
+                    d = {}
+                    for k, x in (("R", R), ("T", T)):
+                        if pixels == "split":
+                            two = [_set_grad(x, S, sigma) for S in sets]
+                        else:
+                            two = [_grad(x, sigma)] * 2
+                        if m is not None:
+                            two = [(np.where(okx, u[0], 0.0), np.where(oky, u[1], 0.0)) for u in two]
+                        d[k] = two
+                    g.append(d)
+                dot = lambda u, v: u[0] * v[0] + u[1] * v[1]  # noqa: E731
+                mix = lambda u, v: 0.5 * (dot(u[0], v[1]) + dot(u[1], v[0]))  # noqa: E731
+                n = P * (P - 1)
+                want = {"cross": sum(mix(g[p]["R"], g[q]["T"]) for p in range(P) for q in range(P) if p != q) / n,
+                        "pr_x": sum(mix(g[p]["R"], g[q]["R"]) for p in range(P) for q in range(P) if p != q) / n,
+                        "pt_x": sum(mix(g[p]["T"], g[q]["T"]) for p in range(P) for q in range(P) if p != q) / n}
+                for k, v in want.items():
+                    np.testing.assert_allclose(got[k], v, rtol=1e-9, atol=1e-12 * float(np.abs(v).max()), err_msg=f"{k} P={P} {pixels} mask={m is not None}")
