@@ -180,6 +180,14 @@ def test_pane_from_calibrate_pane_drives_the_solvers(stream, polspike_cli, tmp_p
     for k in ("T", "R"):
         a = read_exr(tmp_path / "o_true" / "frames" / "000001.exr", [k])[k]
         np.testing.assert_array_equal(a, read_exr(tmp_path / "o_gt" / "frames" / "000001.exr", [k])[k])
+    # the network takes the same maps (its zeta input)
+    from reconstruct.checkpoint import DEFAULT_WEIGHTS
+
+    if DEFAULT_WEIGHTS.is_file():
+        r = polspike_cli("reconstruct", stream["group"], "--method", "net", "--no-rir", "--max-frames", 1, "--quiet", "--device", "cpu", "--pane", tmp_path / "true", "--out", tmp_path / "o_net")
+        assert r.returncode == 0, r.stderr[-2000:]
+        z = json.loads((tmp_path / "o_net" / "zeta.json").read_text())
+        assert z["zeta"].startswith("pane (") and z["selfcal"] is None and "net on zeta: pane" in r.stdout
     # maps of another camera: one line, exit 2
     write_exr(tmp_path / "small" / "maps.exr", {k: np.asarray(v[:, :40], np.float32) for k, v in stream["maps"].items()})
     r = polspike_cli("reconstruct", stream["group"], *common, "--pane", tmp_path / "small", "--out", tmp_path / "o_small")
