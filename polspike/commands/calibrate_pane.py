@@ -69,7 +69,8 @@ def calibrate_pane_cmd(
 
     kept = rep["geometry"].get("fov_kept")
     how = {"self_calibration": "kept from the self-calibration: the fit with it free ran into a degenerate view",
-           "twin_profile": "the 90 deg twin's, from its fov profile judged by the modulation depths"}
+           "twin_profile": "the 90 deg twin's, from its fov profile judged by the modulation depths",
+           "feasibility": "the widest view in which every modulating block sees the pane in front: the fit with it free ran to an edge-on pane"}
     fov_txt = (f"fov {p['fov_deg']:.2f} deg ({how.get(kept['by'], kept['by'])}; NOT identified: give --fov-deg if known)" if kept else
                f"fov {p['fov_deg']:.2f} +- {u['fov_deg']:.2f} deg ({'given' if ident['fov']['identified'] is None else 'fitted' if ident['fov']['identified'] else 'NOT identified: give --fov-deg if known'})")
     con.print(f"tilt {p['tilt_deg']:.2f} +- {u['tilt_deg']:.2f} deg, azimuth {p['azimuth_deg']:.2f} +- {u['azimuth_deg']:.2f} deg, {fov_txt}")

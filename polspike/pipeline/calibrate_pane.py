@@ -86,6 +86,7 @@ class CalibratePaneConfig:
     sub: int = opt(2, "rays per pixel axis of the written maps (as the maps tier)", lo=1, hi=4)
     dop_fov: bool = opt(False, "experimental (off: on eval_paper it moved test_004 0.4 deg off, see docs/calibrate_pane.md): where the modulation depths reach the cone's edge, profile the fov-tilt valley of the orientation fit with the cone's theta dependence")
     dop_fov_delta_chi2: float = opt(25.0, "the modulation depth pins the fov only when the cone violations at both ends of the profiled valley exceed its minimum by this much", lo=0.0, hi=1e9)
+    max_incidence_deg: float = opt(89.0, "a fitted fov at which a modulating block's ray would meet the pane at more than this incidence (edge-on, or never in front of the camera: it could not modulate) is narrowed to the widest view that keeps every modulating block below it (the fov then NOT identified); 90 or more turns the check off", lo=1.0, hi=180.0)
     max_theta_sigma_deg: float = opt(0.5, "a fitted fov (hence theta) counts as identified only when theta's median 1-sigma is at most this, degrees", lo=0.0, hi=90.0)
     content: bool = opt(True, "where the DoP cone leaves n / the model open, try the layers' content: the gradients of R^ and T^ solved under the right zeta are least correlated (reconstruct.exclusion); claimed only with a margin over the tiles' spread")
     content_sigma_px: float = opt(2.0, "smoothing (pixels) of the solved layers before their gradients are correlated (the sensor's fixed pattern correlates them at 1 px)", lo=0.0, hi=20.0)
@@ -134,6 +135,25 @@ def _degenerate_view(x: np.ndarray, fit_fov: bool) -> bool:
     """A geometry pushed against the fit's bounds (tilt >= 89 deg; a fitted fov outside 5.5-149 deg): a degenerate
     view in which theta hardly varies across the image, so any index fits any modulation depth."""
     return bool(x[0] >= math.radians(89.0) or (fit_fov and not math.radians(5.5) < x[2] < math.radians(149.0)))
+
+
+def max_incidence_deg(x: np.ndarray, width: int, height: int, block: int, mask: np.ndarray) -> float:
+    """The largest angle (degrees) between a masked block's viewing ray and the pane normal on the far side, in the
+    camera frame of :class:`generator.pane_fit.PaneModelAD` (block centres).  Above 90 the ray runs away from the
+    pane: it never meets the pane in front of the camera, so such a block cannot see a reflection, let alone
+    modulate; near 90 it grazes it.  (The maps' theta folds this angle into [0, 90].)"""
+    tilt, az, fov = (float(v) for v in x[:3])
+    gh, gw = mask.shape
+    yp, xp = (np.mgrid[0:gh, 0:gw] + 0.5) * block
+    u, v = xp / width * 2.0 - 1.0, yp / height * 2.0 - 1.0
+    tx = math.tan(0.5 * fov)
+    ty = tx * height / width
+    d = np.stack([-u * tx, -v * ty, np.ones_like(u)], -1)  # forward + u tx right - v ty up; right = -x, up = +y
+    N = np.array([-math.sin(tilt) * math.cos(az), math.sin(tilt) * math.sin(az), math.cos(tilt)])
+    c = (d @ N) / np.linalg.norm(d, axis=-1)
+    if not mask.any():
+        return 0.0
+    return float(np.degrees(np.arccos(np.clip(c[mask], -1.0, 1.0))).max())
 
 
 def fit_geometry(of: dict, width: int, height: int, block: int, x0: np.ndarray, fit_fov: bool, coherence_sigmas: float = 4.0, weighting: str = "scatter",
@@ -798,6 +818,26 @@ def calibrate_frames(I: np.ndarray, phi: np.ndarray, cfg: CalibratePaneConfig = 
                            f"{math.degrees(geo['x'][2]):.1f} deg: a degenerate view; the field's curvature is below the noise), so the self-calibration's "
                            f"fov {math.degrees(x0[2]):.2f} deg was kept and the orientation fitted at it; theta(p) is as uncertain as that fov: give --fov-deg if the lens is known"}
         geo = fit_geometry(of, W, H, block, x0, fit_fov=False)
+    if fit_fov and fov_kept is None and cfg.max_incidence_deg < 90.0:
+        mi_fit = max_incidence_deg(geo["x"], W, H, block, geo["coherent"])
+        if mi_fit > cfg.max_incidence_deg:
+            # the fov-tilt valley ran to a view in which modulating blocks would see the pane edge-on or not at all:
+            # impossible.  Bisect the fov for the widest view whose orientation fit (fov fixed) keeps them in front
+            lo, hi, best = math.radians(5.5), float(geo["x"][2]), None
+            for _ in range(8):
+                mid = 0.5 * (lo + hi)
+                g = fit_geometry(of, W, H, block, np.r_[geo["x"][:2], mid, x0[3]], fit_fov=False)
+                if max_incidence_deg(g["x"], W, H, block, g["coherent"]) <= cfg.max_incidence_deg:
+                    lo, best = mid, g
+                else:
+                    hi = mid
+            if best is not None:
+                fov_kept = {"by": "feasibility", "ended_at": [math.degrees(v) for v in geo["x"][:3]], "fov_deg": math.degrees(best["x"][2]), "max_incidence_deg_there": mi_fit,
+                            "why": f"NOT identified: the orientation fit with the fov free ended at fov {math.degrees(geo['x'][2]):.1f} deg, tilt {math.degrees(geo['x'][0]):.1f} deg, "
+                                   f"where modulating blocks would meet the pane at {mi_fit:.1f} deg (edge-on or behind: they could not modulate); the widest view that keeps "
+                                   f"every modulating block below {cfg.max_incidence_deg:g} deg, fov {math.degrees(best['x'][2]):.2f} deg, was taken (the fov-tilt valley is shallow: "
+                                   f"the truth may be narrower still): give --fov-deg if the lens is known"}
+                geo = best
     timings["geometry_s"] = time.perf_counter() - t0
     gblock = cfg.glass_block_px or block
     gain = math.sin(span_rad) / span_rad if span_rad > 1e-9 else 1.0
@@ -886,7 +926,7 @@ def calibrate_frames(I: np.ndarray, phi: np.ndarray, cfg: CalibratePaneConfig = 
         gl = fit_glass(st, W, H, gblock, x, models, fixed_n, cfg)
     sel = _select_glass(gl, cfg, fixed_n, forced_model)
     prof = None
-    if fit_fov and cfg.dop_fov and gl["models"][sel["model_key"]]["edge_blocks"] >= cfg.min_edge_blocks:
+    if fit_fov and cfg.dop_fov and (fov_kept or {}).get("by") != "feasibility" and gl["models"][sel["model_key"]]["edge_blocks"] >= cfg.min_edge_blocks:
         # the modulation depths reach the cone's edge somewhere: its theta dependence may pin the fov-tilt valley
         t1 = time.perf_counter()
         prof = dop_fov_profile(of, st, W, H, block, gblock, geo, sel["model_key"], fixed_n, cfg)

@@ -153,6 +153,61 @@ def test_a_fov_fit_that_ends_in_a_degenerate_view_keeps_the_self_calibrated_fov(
     assert cp.calibrate_frames(I, phi, cp.CalibratePaneConfig(), span_rad=span)["report"]["geometry"]["fov_kept"] is None
 
 
+def test_max_incidence_is_the_maps_theta_where_every_ray_meets_the_pane_and_exceeds_90_where_some_do_not():
+    """max_incidence_deg against the differentiable tracer's own theta (block centres): equal where every ray meets
+    the pane in front; a steep pane seen wide (tilt 80, fov 60) has rays beyond 90 deg, which the maps fold back."""
+    from generator.pane_fit import PaneModelAD
+    from polspike.pipeline.calibrate_pane import max_incidence_deg
+
+    W, H, block = 96, 64, 4
+    pm = PaneModelAD(W, H, "single", block=block)
+    every = np.ones((H // block, W // block), bool)
+    for tilt, az, fov in ((50.0, 30.0, 55.0), (20.0, 250.0, 80.0)):
+        x = np.radians([tilt, az, fov, 0.0])
+        x[3] = 1.5
+        assert max_incidence_deg(x, W, H, block, every) == pytest.approx(float(np.degrees(pm.maps(x)["theta"].max())), abs=1e-3)
+    x = np.r_[np.radians([80.0, 100.0, 60.0]), 1.5]
+    assert max_incidence_deg(x, W, H, block, every) > 90.0 > float(np.degrees(pm.maps(x)["theta"].max()))
+    half = every.copy()
+    half[H // block // 2:] = False  # the normal leans up (azimuth 100): the steepest rays are in the lower half
+    assert max_incidence_deg(x, W, H, block, half) < max_incidence_deg(x, W, H, block, every)
+
+
+def test_a_fov_fit_that_ends_where_modulating_blocks_could_not_see_the_pane_is_narrowed(monkeypatch):
+    """The fov-free orientation fit made to end at a 140 deg view of a 30 deg pane, where blocks that modulate would
+    meet the pane beyond 90 deg: the fov is bisected to the widest view that keeps every modulating block within
+    max_incidence_deg (89), on that boundary to the bisection's resolution, and reported NOT identified, why said.
+    Unpatched, nothing is narrowed."""
+    import polspike.pipeline.calibrate_pane as cp
+
+    real = cp.fit_geometry
+
+    def too_wide(of, width, height, block, x0, fit_fov, **kw):
+        geo = real(of, width, height, block, x0, fit_fov, **kw)
+        if fit_fov:
+            geo["x"] = geo["x"].copy()
+            geo["x"][2] = math.radians(140.0)
+        return geo
+
+    tilt, az = CASES[2][:2]
+    I, phi, span, geo = pane_stream(tilt, az, n=1.52, model="single")
+    assert cp.calibrate_frames(I, phi, cp.CalibratePaneConfig(), span_rad=span)["report"]["geometry"]["fov_kept"] is None
+    monkeypatch.setattr(cp, "fit_geometry", too_wide)
+    res = cp.calibrate_frames(I, phi, cp.CalibratePaneConfig(), span_rad=span)
+    assert res["ok"], res["report"].get("reason")
+    rep = res["report"]
+    kept = rep["geometry"]["fov_kept"]
+    assert kept["by"] == "feasibility" and kept["ended_at"][2] == pytest.approx(140.0) and kept["max_incidence_deg_there"] > 89.0
+    assert rep["params"]["fov_deg"] == pytest.approx(kept["fov_deg"]) and rep["params"]["fov_deg"] < 140.0
+    x = np.radians([rep["params"]["tilt_deg"], rep["params"]["azimuth_deg"], rep["params"]["fov_deg"]])
+    block = rep["geometry"]["block_px"]
+    gh, gw = rep["geometry"]["blocks"][1], rep["geometry"]["blocks"][0]
+    mi = cp.max_incidence_deg(x, 96, 64, block, np.ones((gh, gw), bool))  # every block of this stream modulates
+    assert 87.0 <= mi <= 89.0 + 1e-6, mi  # on the boundary, to the bisection's resolution
+    fv = rep["identifiability"]["fov"]
+    assert fv["identified"] is False and "edge-on or behind" in fv["why"] and "--fov-deg" in fv["why"]
+
+
 def test_geometry_with_known_fov():
     """fov given (a low tilt, 30 deg): theta and phi_perp within the goal (0.5 deg median), tilt within
     1 deg and 4 reported sigmas."""
