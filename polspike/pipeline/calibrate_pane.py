@@ -137,9 +137,10 @@ def _degenerate_view(x: np.ndarray, fit_fov: bool) -> bool:
     return bool(x[0] >= math.radians(89.0) or (fit_fov and not math.radians(5.5) < x[2] < math.radians(149.0)))
 
 
-def max_incidence_deg(x: np.ndarray, width: int, height: int, block: int, mask: np.ndarray) -> float:
+def max_incidence_deg(x: np.ndarray, width: int, height: int, block: int, mask: np.ndarray, quantile: float = 1.0) -> float:
     """The largest angle (degrees) between a masked block's viewing ray and the pane normal on the far side, in the
-    camera frame of :class:`generator.pane_fit.PaneModelAD` (block centres).  Above 90 the ray runs away from the
+    camera frame of :class:`generator.pane_fit.PaneModelAD` (block centres); ``quantile`` < 1: that quantile over
+    the masked blocks instead (a few blocks flagged by noise do not decide).  Above 90 the ray runs away from the
     pane: it never meets the pane in front of the camera, so such a block cannot see a reflection, let alone
     modulate; near 90 it grazes it.  (The maps' theta folds this angle into [0, 90].)"""
     tilt, az, fov = (float(v) for v in x[:3])
@@ -153,7 +154,13 @@ def max_incidence_deg(x: np.ndarray, width: int, height: int, block: int, mask: 
     c = (d @ N) / np.linalg.norm(d, axis=-1)
     if not mask.any():
         return 0.0
-    return float(np.degrees(np.arccos(np.clip(c[mask], -1.0, 1.0))).max())
+    a = np.degrees(np.arccos(np.clip(c[mask], -1.0, 1.0)))
+    return float(a.max() if quantile >= 1.0 else np.quantile(a, quantile))
+
+
+INCIDENCE_QUANTILE = 0.995
+"""The feasibility check of the fitted fov reads this quantile of the modulating blocks' incidence (the top 0.5 %,
+which noise can flag at the image's edge, do not decide)."""
 
 
 def fit_geometry(of: dict, width: int, height: int, block: int, x0: np.ndarray, fit_fov: bool, coherence_sigmas: float = 4.0, weighting: str = "scatter",
@@ -819,7 +826,7 @@ def calibrate_frames(I: np.ndarray, phi: np.ndarray, cfg: CalibratePaneConfig = 
                            f"fov {math.degrees(x0[2]):.2f} deg was kept and the orientation fitted at it; theta(p) is as uncertain as that fov: give --fov-deg if the lens is known"}
         geo = fit_geometry(of, W, H, block, x0, fit_fov=False)
     if fit_fov and fov_kept is None and cfg.max_incidence_deg < 90.0:
-        mi_fit = max_incidence_deg(geo["x"], W, H, block, geo["coherent"])
+        mi_fit = max_incidence_deg(geo["x"], W, H, block, geo["coherent"], INCIDENCE_QUANTILE)
         if mi_fit > cfg.max_incidence_deg:
             # the fov-tilt valley ran to a view in which modulating blocks would see the pane edge-on or not at all:
             # impossible.  Bisect the fov for the widest view whose orientation fit (fov fixed) keeps them in front
@@ -827,15 +834,15 @@ def calibrate_frames(I: np.ndarray, phi: np.ndarray, cfg: CalibratePaneConfig = 
             for _ in range(8):
                 mid = 0.5 * (lo + hi)
                 g = fit_geometry(of, W, H, block, np.r_[geo["x"][:2], mid, x0[3]], fit_fov=False)
-                if max_incidence_deg(g["x"], W, H, block, g["coherent"]) <= cfg.max_incidence_deg:
+                if max_incidence_deg(g["x"], W, H, block, g["coherent"], INCIDENCE_QUANTILE) <= cfg.max_incidence_deg:
                     lo, best = mid, g
                 else:
                     hi = mid
             if best is not None:
                 fov_kept = {"by": "feasibility", "ended_at": [math.degrees(v) for v in geo["x"][:3]], "fov_deg": math.degrees(best["x"][2]), "max_incidence_deg_there": mi_fit,
                             "why": f"NOT identified: the orientation fit with the fov free ended at fov {math.degrees(geo['x'][2]):.1f} deg, tilt {math.degrees(geo['x'][0]):.1f} deg, "
-                                   f"where modulating blocks would meet the pane at {mi_fit:.1f} deg (edge-on or behind: they could not modulate); the widest view that keeps "
-                                   f"every modulating block below {cfg.max_incidence_deg:g} deg, fov {math.degrees(best['x'][2]):.2f} deg, was taken (the fov-tilt valley is shallow: "
+                                   f"where modulating blocks would meet the pane at {mi_fit:.1f} deg (99.5th percentile; edge-on or behind: they could not modulate); the widest view that keeps "
+                                   f"the modulating blocks below {cfg.max_incidence_deg:g} deg, fov {math.degrees(best['x'][2]):.2f} deg, was taken (the fov-tilt valley is shallow: "
                                    f"the truth may be narrower still): give --fov-deg if the lens is known"}
                 geo = best
     timings["geometry_s"] = time.perf_counter() - t0
