@@ -825,26 +825,6 @@ def calibrate_frames(I: np.ndarray, phi: np.ndarray, cfg: CalibratePaneConfig = 
                            f"{math.degrees(geo['x'][2]):.1f} deg: a degenerate view; the field's curvature is below the noise), so the self-calibration's "
                            f"fov {math.degrees(x0[2]):.2f} deg was kept and the orientation fitted at it; theta(p) is as uncertain as that fov: give --fov-deg if the lens is known"}
         geo = fit_geometry(of, W, H, block, x0, fit_fov=False)
-    if fit_fov and fov_kept is None and cfg.max_incidence_deg < 90.0:
-        mi_fit = max_incidence_deg(geo["x"], W, H, block, geo["coherent"], INCIDENCE_QUANTILE)
-        if mi_fit > cfg.max_incidence_deg:
-            # the fov-tilt valley ran to a view in which modulating blocks would see the pane edge-on or not at all:
-            # impossible.  Bisect the fov for the widest view whose orientation fit (fov fixed) keeps them in front
-            lo, hi, best = math.radians(5.5), float(geo["x"][2]), None
-            for _ in range(8):
-                mid = 0.5 * (lo + hi)
-                g = fit_geometry(of, W, H, block, np.r_[geo["x"][:2], mid, x0[3]], fit_fov=False)
-                if max_incidence_deg(g["x"], W, H, block, g["coherent"], INCIDENCE_QUANTILE) <= cfg.max_incidence_deg:
-                    lo, best = mid, g
-                else:
-                    hi = mid
-            if best is not None:
-                fov_kept = {"by": "feasibility", "ended_at": [math.degrees(v) for v in geo["x"][:3]], "fov_deg": math.degrees(best["x"][2]), "max_incidence_deg_there": mi_fit,
-                            "why": f"NOT identified: the orientation fit with the fov free ended at fov {math.degrees(geo['x'][2]):.1f} deg, tilt {math.degrees(geo['x'][0]):.1f} deg, "
-                                   f"where modulating blocks would meet the pane at {mi_fit:.1f} deg (99.5th percentile; edge-on or behind: they could not modulate); the widest view that keeps "
-                                   f"the modulating blocks below {cfg.max_incidence_deg:g} deg, fov {math.degrees(best['x'][2]):.2f} deg, was taken (the fov-tilt valley is shallow: "
-                                   f"the truth may be narrower still): give --fov-deg if the lens is known"}
-                geo = best
     timings["geometry_s"] = time.perf_counter() - t0
     gblock = cfg.glass_block_px or block
     gain = math.sin(span_rad) / span_rad if span_rad > 1e-9 else 1.0
@@ -916,6 +896,30 @@ def calibrate_frames(I: np.ndarray, phi: np.ndarray, cfg: CalibratePaneConfig = 
                            + f" against {v_best:.1f} here: kept (overturned only below both {v_best - cfg.twin_delta_chi2:.1f} and 1/{cfg.twin_close_factor:g} of it)")
         timings["twin_s"] = time.perf_counter() - t0
         report["twin"] = twin
+    if fit_fov and fov_kept is None and cfg.max_incidence_deg < 90.0 and not _degenerate_view(geo["x"], True):
+        # after the twin decisions, which compare the panes where the orientation put them (a narrowed pane's cone
+        # would be judged at a fov the data did not choose either); a degenerate end is refused below
+        t0 = time.perf_counter()
+        mi_fit = max_incidence_deg(geo["x"], W, H, block, geo["coherent"], INCIDENCE_QUANTILE)
+        if mi_fit > cfg.max_incidence_deg:
+            # the fov-tilt valley ran to a view in which modulating blocks would see the pane edge-on or not at all:
+            # impossible.  Bisect the fov for the widest view whose orientation fit (fov fixed) keeps them in front
+            lo, hi, best = math.radians(5.5), float(geo["x"][2]), None
+            for _ in range(8):
+                mid = 0.5 * (lo + hi)
+                g = fit_geometry(of, W, H, block, np.r_[geo["x"][:2], mid, x0[3]], fit_fov=False)
+                if max_incidence_deg(g["x"], W, H, block, g["coherent"], INCIDENCE_QUANTILE) <= cfg.max_incidence_deg:
+                    lo, best = mid, g
+                else:
+                    hi = mid
+            if best is not None:
+                fov_kept = {"by": "feasibility", "ended_at": [math.degrees(v) for v in geo["x"][:3]], "fov_deg": math.degrees(best["x"][2]), "max_incidence_deg_there": mi_fit,
+                            "why": f"NOT identified: the orientation fit with the fov free ended at fov {math.degrees(geo['x'][2]):.1f} deg, tilt {math.degrees(geo['x'][0]):.1f} deg, "
+                                   f"where modulating blocks would meet the pane at {mi_fit:.1f} deg (99.5th percentile; edge-on or behind: they could not modulate); the widest view that keeps "
+                                   f"the modulating blocks below {cfg.max_incidence_deg:g} deg, fov {math.degrees(best['x'][2]):.2f} deg, was taken (the fov-tilt valley is shallow: "
+                                   f"the truth may be narrower still): give --fov-deg if the lens is known"}
+                geo, pre = best, None  # the cone statistics are recomputed at the narrowed pane
+            timings["feasibility_s"] = time.perf_counter() - t0
     x = geo["x"]
     if _degenerate_view(x, fit_fov):
         report.update({"ok": False, "reason": f"the orientation fit ran into its bounds (tilt {math.degrees(x[0]):.1f} deg, fov {math.degrees(x[2]):.1f} deg): "
