@@ -17,7 +17,6 @@ runs the network.  Its zeta maps are per full-frame pixel: whole frames only (``
 from __future__ import annotations
 
 import logging
-import math
 
 import numpy as np
 import torch
@@ -176,5 +175,4 @@ def build_net_zeta_model(net, zeta: str, source, *, group_dir=None, window_steps
     info["selfcal"] = res.summary()
     if not res.ok:
         return fall(res.reason.split(":")[0], res)
-    span = 2 * math.pi * source.polarizer_rev_s * window_steps / source.rate_hz
-    return MapsZetaNet(net, res.maps, span), info
+    return MapsZetaNet(net, res.maps, source.window_span_rad(window_steps)), info

@@ -282,7 +282,7 @@ def build_physics_model(
         raise ConfigError(f"unknown zeta source {zeta!r}; choose one of {list(STREAM_ZETA_SOURCES)}")
     if zeta in ("gt", "physics") and group_dir is None:
         raise ConfigError(f"--zeta {zeta} needs a stored group (its pane maps); a raw .dat has none: use --zeta self or learned")
-    span = 2 * math.pi * source.polarizer_rev_s * window_steps / source.rate_hz
+    span = source.window_span_rad(window_steps)
     info: dict = {"zeta": zeta, "selfcal": None}
     if zeta == "learned":
         return PhysicsModel(method, n_obs, learned_model=_need(load_learned), rir=rir, anchor=anchor), info

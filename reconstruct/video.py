@@ -91,6 +91,10 @@ class SpikeSource:
     name: str
     exposure: float | None = None
 
+    def window_span_rad(self, window_steps: int) -> float:
+        """Polarizer rotation during one Eq. (3) window of ``window_steps`` steps, radians (zeta is averaged over it)."""
+        return 2 * math.pi * self.polarizer_rev_s * window_steps / self.rate_hz
+
 
 def dat_source(path: str | os.PathLike, height: int, width: int, phi0_rad: float, rev_per_s: float, rate_hz: float = 20000.0, chunk_steps: int = 2000) -> SpikeSource:
     """A raw Vidar ``.dat`` with the polarizer calibrated as phi(t) = phi0 + 2 pi f t (t at mid-step)."""

@@ -192,7 +192,7 @@ def reconstruct_cmd(
         from reconstruct.physics_video import PhysicsModel, calibrated_pane_maps
 
         maps = calibrated_pane_maps(pane, src.height, src.width)
-        span = 2 * math.pi * src.polarizer_rev_s * window_steps / src.rate_hz
+        span = src.window_span_rad(window_steps)
         info = {"zeta": f"pane ({pane})", "selfcal": None}
         if method == "net":
             from reconstruct.net_zeta import MapsZetaNet

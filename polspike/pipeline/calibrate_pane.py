@@ -1278,8 +1278,7 @@ def calibrate_input(input: Path, cfg: CalibratePaneConfig, *, height: int | None
     I, sat = leave_out_saturated(I, ex)  # clipped pixels would read as a weaker pane
     if sat > 0:
         log.info("%s: %.1f %% of the pixels saturate; left out of the fit", src.name, 100 * sat)
-    span = 2 * math.pi * src.polarizer_rev_s * cfg.window_steps / src.rate_hz
-    res = calibrate_frames(I, phi, cfg, span_rad=span, name=src.name, progress=progress)
+    res = calibrate_frames(I, phi, cfg, span_rad=src.window_span_rad(cfg.window_steps), name=src.name, progress=progress)
     return res, base, src.width, src.height
 
 
