@@ -649,6 +649,19 @@ parts much longer than that blur the moving layers (an eval_fresh_val build at 0
 11 of 16 with 2 parts of 0.1 s, 12 of 16 with 4 of 0.05 s; docs/calibrate_pane.md, round 5)."""
 
 
+def _one_sigma_geometries(x: np.ndarray, geo: dict) -> list[np.ndarray]:
+    """The geometry ``x`` moved by one standard deviation along each principal direction of the fit's covariance
+    (``geo["cov"]`` over the parameters ``geo["wrt"]``): where an index read at ``x`` is re-read to propagate the
+    geometry's uncertainty into it."""
+    ev, evec = np.linalg.eigh(np.asarray(geo["cov"], np.float64))
+    out = []
+    for lam, v in zip(ev, evec.T):
+        xp = np.asarray(x, np.float64).copy()
+        xp[list(geo["wrt"])] += math.sqrt(max(float(lam), 0.0)) * v
+        out.append(xp)
+    return out
+
+
 def content_n_sigma_from_geometry(pm, x: np.ndarray, geo: dict, model: str, n_hat: float, step: int = 4) -> float:
     """1-sigma of a content-test index from the geometry's uncertainty.  The content test finds the zeta under
     which the layers do not leak into each other, i.e. the reflection's DoP (R_perp - R_par) / (R_perp + R_par)
@@ -666,11 +679,8 @@ def content_n_sigma_from_geometry(pm, x: np.ndarray, geo: dict, model: str, n_ha
 
     d0 = dop(pm.maps(x)["theta"][::step, ::step], n_hat)
     grid = n_hat + np.arange(-0.2, 0.2001, 0.0025)
-    ev, evec = np.linalg.eigh(np.asarray(geo["cov"], np.float64))
     shifts = []
-    for lam, v in zip(ev, evec.T):
-        xp = np.asarray(x, np.float64).copy()
-        xp[list(geo["wrt"])] += math.sqrt(max(float(lam), 0.0)) * v
+    for xp in _one_sigma_geometries(x, geo):
         th = pm.maps(xp)["theta"][::step, ::step]
         cost = [float(np.mean((dop(th, g) - d0) ** 2)) for g in grid]
         shifts.append(float(grid[int(np.argmin(cost))] - n_hat))
@@ -952,11 +962,8 @@ def calibrate_frames(I: np.ndarray, phi: np.ndarray, cfg: CalibratePaneConfig = 
         # one standard deviation along each principal direction) and gate on the total
         key = sel["model_key"]
         n_hat = gl["models"][key]["n"]
-        ev, evec = np.linalg.eigh(geo["cov"])
         shifts = []
-        for lam, v in zip(ev, evec.T):
-            xp = x.copy()
-            xp[list(geo["wrt"])] += math.sqrt(max(lam, 0.0)) * v
+        for xp in _one_sigma_geometries(x, geo):
             g2 = fit_glass(st, W, H, gblock, xp, (key,), None, cfg, n_grid=np.round(np.arange(n_hat - 0.1, n_hat + 0.1001, 0.02), 4))
             shifts.append(g2["models"][key]["n"] - n_hat)
         s_geo = float(np.sqrt(np.sum(np.square(shifts))))
