@@ -176,9 +176,9 @@ def cross_gradient_sums(parts, phi_perp: np.ndarray | None, A: np.ndarray, B: np
     def own(u):  # a gradient's own power, over both sets
         return prod(u[0], u[0]) if u[0] is u[1] else 0.5 * (prod(u[0], u[0]) + prod(u[1], u[1]))
 
-    def total(k):  # a layer's gradients summed over the parts, per set (one array twice for pixels = same)
-        sets_ = tuple(tuple(sum(g[k][s][a] for g in gs) for a in (0, 1)) for s in (0, 1) if s == 0 or sets is not None)
-        return sets_ if len(sets_) == 2 else sets_ * 2
+    def total(k):  # a layer's gradients summed over the parts, per set (pixels = same: one sum, twice)
+        per_set = [tuple(sum(g[k][s][a] for g in gs) for a in (0, 1)) for s in ((0, 1) if sets is not None else (0,))]
+        return (per_set[0], per_set[-1])
 
     tot = {k: total(k) for k in ("R", "T")}
 

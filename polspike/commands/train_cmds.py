@@ -199,7 +199,7 @@ def reconstruct_cmd(
 
             model = MapsZetaNet(net_model, maps, span)
         else:
-            model = PhysicsModel(method, 7, maps=maps, span_rad=span, rir=True if rir is None else rir, anchor=anchor)
+            model = PhysicsModel(method, maps=maps, span_rad=span, rir=True if rir is None else rir, anchor=anchor)
     elif method == "net":
         from reconstruct.net_zeta import NET_DEFAULT_ZETA
 
