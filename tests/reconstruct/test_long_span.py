@@ -163,8 +163,9 @@ def _window(seed=0, B=2, H=16, W=16):
 
 def test_widened_harmonic_network_starts_as_the_mean_network_and_needs_the_harmonic():
     base = init_weights(PolSpikeNet(SMALL), torch.Generator().manual_seed(1)).eval()
+    g = torch.Generator().manual_seed(12)
     for p in base.refine.parameters():  # non-zero decoders, so the refinement's input matters
-        torch.nn.init.normal_(p, 0, 0.05)
+        torch.nn.init.normal_(p, 0, 0.05, generator=g)
     wide = PolSpikeNet(dataclasses.replace(SMALL, use_harm=True)).eval()
     wide.load_state_dict(_widened(base.state_dict(), wide.state_dict()))
     I, phi, Im, Ih = _window()
@@ -303,8 +304,9 @@ def test_onthefly_item_wide_windows_are_the_raw_window_sums_and_flip_with_the_im
 
 def test_widened_wide_network_starts_as_the_mean_network_and_needs_the_wide_windows():
     base = init_weights(PolSpikeNet(SMALL), torch.Generator().manual_seed(3)).eval()
+    g = torch.Generator().manual_seed(11)  # seeded: the global generator's state depends on which tests ran before
     for p in base.refine.parameters():
-        torch.nn.init.normal_(p, 0, 0.05)
+        torch.nn.init.normal_(p, 0, 0.05, generator=g)
     wide = PolSpikeNet(dataclasses.replace(SMALL, use_wide=True)).eval()
     wide.load_state_dict(_widened(base.state_dict(), wide.state_dict()))
     I, phi, Im, _ = _window(4)
@@ -316,8 +318,9 @@ def test_widened_wide_network_starts_as_the_mean_network_and_needs_the_wide_wind
         for n, v in wide.named_parameters():
             if n.startswith("refine.e1.0") and v.dim() == 4:
                 v[:, 8:] = 0.1
-        c, d = wide(I, phi, I_mean=Im, I_wide=Iw), wide(I, phi, I_mean=Im, I_wide=I)
-    assert float((c.T - d.T).abs().max()) > 1e-4
+        # a wide window far from the narrow one; over 40 random refine weights the least change seen was 2e-3
+        c, d = wide(I, phi, I_mean=Im, I_wide=1 - I), wide(I, phi, I_mean=Im, I_wide=I)
+    assert float((c.T - d.T).abs().max()) > 1e-3
     with pytest.raises(ShapeError, match="I_wide"):
         wide(I, phi, I_mean=Im)
 
