@@ -89,6 +89,7 @@ class EvalConfig:
     pane_n: float = opt(1.5, "physics zeta: calibrated refractive index of the pane", lo=1.0, hi=4.0)
     pane_model: str = opt("single", "physics zeta: pane model", choices=("single", "thin_slab", "thick_slab"))
     self_pane_model: str = opt("auto", "self zeta: pane model (auto: from the DoP cone where the data constrain it, else from the layers' content test where it clearly separates the models, else thin slab; a model given here is used with pane_n)", choices=("auto", "single", "thin_slab", "thick_slab"))
+    self_fov: str = opt("scene", "self zeta: the camera's field of view: scene (the group's, from its scene file, as a user who knows the lens gives --fov-deg) or fitted (from the orientation field alone, as polspike reconstruct does for a .dat without --fov-deg)", choices=("scene", "fitted"))
     dtype: str = opt("float32", "solver dtype", choices=("float32", "float64"))
     device: str = opt("cpu", "torch device for the solvers and the network (cpu, cuda, auto)")
     checkpoint: str = opt("", "network checkpoint for method full / zeta learned (empty: the shipped reconstruct/weights default)")
@@ -226,6 +227,8 @@ def group_zeta(group: EvalGroup, cfg: EvalConfig) -> np.ndarray | None:
     if cfg.zeta == "self":  # pane fitted to the stream (reconstruct.selfcal); None where nothing modulates -> learned
         from reconstruct.selfcal import group_self_zeta
 
+        if cfg.self_fov == "fitted":
+            group = dataclasses.replace(group, fov_deg=None)  # the scene's fov withheld: fitted, as for a .dat
         if cfg.self_pane_model == "auto":
             return group_self_zeta(group)  # index and pane model fitted where the data constrain them (--pane-n / --pane-model are for physics)
         return group_self_zeta(group, cfg.pane_n, cfg.self_pane_model)

@@ -141,11 +141,13 @@ class MapsZetaNet(_ExternalZetaNet):
 
 
 def build_net_zeta_model(net, zeta: str, source, *, group_dir=None, window_steps: int = 13, exposure: float | None = None, pane_n: float | None = None,
-                         pane_model: str | None = None, fallback: str = NET_FALLBACK_ZETA):
+                         pane_model: str | None = None, fallback: str = NET_FALLBACK_ZETA, selfcal=None):
     """The network on zeta source ``zeta`` (:data:`NET_ZETA_SOURCES`) for this stream -> (model, info).
 
     ``pane_n`` / ``pane_model``: the pane's index and model where known (None or "auto": fitted where the data
     constrain them, else n 1.5 and a thin slab; :func:`reconstruct.physics_video.calibrate_stream`).
+    ``selfcal``: self-calibration settings (a :class:`reconstruct.selfcal.SelfCalConfig`, e.g. a known field of
+    view; None: the defaults, with a stored group's scene fov).
 
     info = {"zeta": source used, "selfcal": summary or None}; ``self`` falls back to ``fallback``
     (:data:`NET_FALLBACK_ZETA`, or ``learned``) when the pane cannot be fitted (info["zeta"] says why).
@@ -168,7 +170,7 @@ def build_net_zeta_model(net, zeta: str, source, *, group_dir=None, window_steps
         return (ZeroZetaNet(net) if fb == "none" else net), info
 
     try:
-        res = calibrate_stream(source, group_dir, window_steps, exposure, None, pane_n, pane_model)
+        res = calibrate_stream(source, group_dir, window_steps, exposure, selfcal, pane_n, pane_model)
     except StreamTooShortError as e:  # e.g. a 15 ms .dat at 30 rev/s: nothing measured, as where nothing modulates
         log.warning("%s; the network runs on zeta %s", e, fallback_for(None, fallback))
         return fall("the stream is shorter than half a polarizer turn")

@@ -30,6 +30,7 @@ def evaluate_cmd(
     pane_model: str = typer.Option("single", "--pane-model", help="physics zeta: single, thin_slab or thick_slab"),
     dtype: str = typer.Option("float32", "--dtype", help="solver dtype: float32 or float64"),
     device: str = typer.Option("cpu", "--device", help="torch device for the solvers and the network: cpu, cuda or auto"),
+    self_fov: str = typer.Option("scene", "--self-fov", help="self zeta: the field of view the self-calibration is given: scene (the group's) or fitted (withheld, fitted from the spikes as for a .dat without --fov-deg)"),
     sweep: bool = typer.Option(False, "--sweep", help="also run the window analysis (N in 5,7,9 x dt in 0.30,0.65,1.10 ms; supp. Table 1)"),
     by_regime: bool = typer.Option(False, "--by-regime", help="stress table: every solver with each zeta of --regime-zetas, baselines and the network (unless --no-net), one row per regime level of the group names (datasets/manifests/stress.toml)"),
     regime_zetas: str = typer.Option("gt,learned", "--regime-zetas", help="--by-regime: comma-separated zeta sources (gt, physics, learned, self)"),
@@ -58,7 +59,7 @@ def evaluate_cmd(
     cfg = from_dict(
         EvalConfig,
         {"n_obs": n_obs, "dt_ms": dt_ms, "stride_deg": stride_deg, "methods": method, "zeta": zeta, "rir": rir, "max_frames": max_frames, "pane_n": pane_n, "pane_model": pane_model, "dtype": dtype, "device": device,
-         "checkpoint": str(checkpoint or ""), "no_attention": no_attention, "no_conf": no_conf, "net_tile": net_tile, "net_zeta": net_zeta, "net_fallback": net_fallback, "net_ensemble": net_ensemble, "anchor": anchor},
+         "checkpoint": str(checkpoint or ""), "no_attention": no_attention, "no_conf": no_conf, "net_tile": net_tile, "net_zeta": net_zeta, "net_fallback": net_fallback, "net_ensemble": net_ensemble, "anchor": anchor, "self_fov": self_fov},
         where="command line",
     )
     try:

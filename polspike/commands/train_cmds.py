@@ -109,6 +109,7 @@ def reconstruct_cmd(
     precision: str = typer.Option("float32", "--precision", help="float32 | bfloat16 (autocast of the network; the solver stays float32)"),
     pane_n: Optional[float] = typer.Option(None, "--pane-n", help="the pane's refractive index where known (e.g. from polspike calibrate-pane) [default: --zeta self fits it where the spikes constrain it, else 1.5; --zeta physics: 1.5]"),
     pane_model: str = typer.Option("auto", "--pane-model", help="the pane model where known: single, thin_slab or thick_slab [default auto: --zeta self fits it where the spikes constrain it, else thin_slab; --zeta physics: single]"),
+    fov_deg: Optional[float] = typer.Option(None, "--fov-deg", help="--zeta self: the camera's horizontal field of view in degrees where the lens is known [default: a group's scene fov; a .dat: fitted from the spikes, which on narrow views trades against the pane's tilt (docs/selfcal.md)]"),
     pane: Optional[Path] = typer.Option(None, "--pane", help="zeta from the maps of polspike calibrate-pane (its output directory or maps.exr) of this camera and pane, instead of --zeta: e.g. fitted once on a long static recording, then used for every recording of the setup"),
     ensemble: int = typer.Option(1, "--ensemble", help="the network averaged over 1, 2, 4 or 8 mirror / transpose symmetries of each window (test-time self-ensemble: that many forward passes, no feature cache; measured by polspike bench ensemble)"),
 ) -> None:
@@ -124,6 +125,7 @@ def reconstruct_cmd(
     from reconstruct.video import ReconstructConfig, dat_source, group_source, reconstruct_stream
 
     from reconstruct.physics_video import PHYSICS_METHODS, STREAM_ZETA_SOURCES
+    from reconstruct.selfcal import SelfCalConfig
 
     if method not in ("net", *PHYSICS_METHODS):
         raise ConfigError(f"--method {method!r}: choose net or one of {', '.join(PHYSICS_METHODS)}")
@@ -157,6 +159,12 @@ def reconstruct_cmd(
         raise ConfigError(f"--pane-n {pane_n}: a pane's refractive index lies in (1, 4]")
     if exposure is not None and not exposure > 0:
         raise ConfigError(f"--exposure {exposure}: must be > 0 (thresholds per step per unit radiance)")
+    if fov_deg is not None:
+        if not 1.0 <= fov_deg <= 170.0:
+            raise ConfigError(f"--fov-deg {fov_deg}: a camera's horizontal field of view in degrees, 1 to 170")
+        if pane is not None or zeta not in (None, "self"):
+            raise ConfigError("--fov-deg is for the self-calibration (--zeta self, the default); " + ("--pane's maps already hold the geometry" if pane is not None else f"--zeta {zeta} does not fit the pane") + ": drop --fov-deg")
+    selfcal = None if fov_deg is None else SelfCalConfig(fov_deg=float(fov_deg))
     if pane is not None:
         if zeta is not None:
             raise ConfigError(f"--pane gives zeta (the calibrated maps): drop --zeta {zeta}")
@@ -209,13 +217,13 @@ def reconstruct_cmd(
             from reconstruct.net_zeta import build_net_zeta_model
 
             model, info = build_net_zeta_model(model, zeta, src, group_dir=None if input.suffix.lower() == ".dat" else input, window_steps=window_steps,
-                                               exposure=None if src.exposure is not None else cfg.exposure, fallback=zeta_fallback, pane_n=pane_n, pane_model=pane_model)
+                                               exposure=None if src.exposure is not None else cfg.exposure, fallback=zeta_fallback, pane_n=pane_n, pane_model=pane_model, selfcal=selfcal)
     else:
         from reconstruct.physics_video import build_physics_model
 
         model, info = build_physics_model(method, zeta or "self", src, group_dir=None if input.suffix.lower() == ".dat" else input, window_steps=window_steps,
                                           exposure=None if src.exposure is not None else cfg.exposure, rir=True if rir is None else rir, load_learned=load, anchor=anchor,
-                                          pane_n=pane_n, pane_model=pane_model)
+                                          pane_n=pane_n, pane_model=pane_model, selfcal=selfcal)
     with rich_progress("reconstruct", enabled=not quiet) as cb:
         s = reconstruct_stream(src, model, out, cfg, device=dev, progress=cb, meta={**exposure_info, "method": method, "anchor": anchor, "ensemble": ensemble, "zeta": info["zeta"] if info is not None else "learned"})
     c = Console()

@@ -83,6 +83,24 @@ def test_dat_form_with_method_and_self_zeta(stream, polspike_cli, tmp_path):
     assert sorted(p.name for p in (out / "frames").iterdir()) == ["R_000000.png", "R_000001.png", "T_000000.png", "T_000001.png"]
 
 
+def test_fov_deg_is_the_self_calibrations_field_of_view(stream, polspike_cli, tmp_path):
+    """--fov-deg gives the self-calibration the lens: the fit keeps it, and the pane's normal keeps its vanishing point
+    (the orientation field pins it: tan(tilt) / tan(fov / 2) is what the spikes see), so a narrower fov is a smaller tilt."""
+    got = {}
+    for fov in (None, 60.0, 40.0):
+        out = tmp_path / f"o{fov}"
+        r = polspike_cli("reconstruct", stream["dat"], "--height", H, "--width", W, "--phi0-deg", math.degrees(PHI0), "--rev-per-s", REV, "--out", out,
+                         "--method", "ls", "--no-rir", "--max-frames", 1, "--quiet", *(() if fov is None else ("--fov-deg", fov)))
+        assert r.returncode == 0, r.stderr[-2000:]
+        got[fov] = json.loads((out / "physics.json").read_text())["selfcal"]
+    assert got[None]["fov_fitted"] and abs(got[None]["fov_deg"] - 60.0) < 3.0  # this wide view pins the fov too (measured 59.9)
+    for fov in (60.0, 40.0):
+        assert got[fov]["fov_deg"] == fov and not got[fov]["fov_fitted"]
+    assert abs(got[60.0]["tilt_deg"] - TILT) < 0.5  # measured 58.02
+    want = math.degrees(math.atan(math.tan(math.radians(TILT)) * math.tan(math.radians(20.0)) / math.tan(math.radians(30.0))))
+    assert abs(got[40.0]["tilt_deg"] - want) < 1.5, (got[40.0]["tilt_deg"], want)  # measured 45.9 vs 45.3
+
+
 def _psnr(a, b):
     return float(10 * np.log10(float(b.max()) ** 2 / np.mean((a - b) ** 2)))
 
@@ -146,6 +164,11 @@ def test_anchor_mean_on_a_static_stream_beats_the_plain_solver(tmp_path):
         (["--method", "ls", "--pane", "/nonexistent/cal"], "no such directory"),
         (["--method", "ls", "--pane", "/nonexistent/cal", "--zeta", "self"], "drop --zeta"),
         (["--pane", "/nonexistent/cal", "--pane-n", "1.52"], "drop --pane-n"),
+        (["--fov-deg", "200"], "--fov-deg 200"),
+        (["--fov-deg", "0"], "--fov-deg 0"),
+        (["--method", "ls", "--zeta", "learned", "--fov-deg", "40"], "drop --fov-deg"),
+        (["--method", "net", "--zeta", "none", "--fov-deg", "40"], "drop --fov-deg"),
+        (["--pane", "/nonexistent/cal", "--fov-deg", "40"], "drop --fov-deg"),
     ],
 )
 def test_bad_combinations_are_one_line_exit_2(stream, polspike_main, tmp_path, args, fragment):

@@ -22,6 +22,12 @@ def test_evaluate_bad_method_is_a_one_line_error(tmp_path, polspike_main):
     assert not (tmp_path / "e" / "results.csv").exists()
 
 
+def test_evaluate_bad_self_fov_is_a_one_line_error(tmp_path, polspike_main):
+    r = polspike_main("evaluate", "synthetic", "--zeta", "self", "--self-fov", "lens", "--out", tmp_path / "e", "--quiet")
+    polspike_main.one_line_exit_2(r, "self_fov")
+    assert not (tmp_path / "e" / "results.csv").exists()
+
+
 def test_bench_reconstruct_small(tmp_path):
     r = CliRunner().invoke(get_app(), ["bench", "reconstruct", "--out", str(tmp_path), "--width", "32", "--height", "24", "--repeats", "1", "--batch", "2"])
     assert r.exit_code == 0, r.output

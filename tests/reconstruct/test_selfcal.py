@@ -273,6 +273,22 @@ def test_modulating_fraction_separates_noise_from_a_modulating_pane():
     assert r1.summary()["modulating_px"] == r1.diagnostics["modulating_px"]
 
 
+def test_evaluate_self_fov_scene_gives_the_groups_fov_and_fitted_withholds_it():
+    # EvalConfig.self_fov: scene = the group's recorded fov, as given; fitted = what polspike reconstruct meets on a .dat
+    from reconstruct.evaluate import EvalConfig, group_zeta
+
+    g, N = make_pane_group(60.0, 200.0, fov_deg=80.0, r_gain=4.0, exposure=3.0, seed=5, **SMALL)
+    assert g.fov_deg == 80.0
+    group_zeta(g, EvalConfig(zeta="self"))
+    r_scene = group_self_zeta.last
+    group_zeta(g, EvalConfig(zeta="self", self_fov="fitted"))
+    r_fit = group_self_zeta.last
+    assert r_scene.ok and not r_scene.fov_fitted and r_scene.fov_deg == 80.0
+    assert r_fit.ok and r_fit.fov_fitted and r_fit.fov_deg != 80.0 and abs(r_fit.fov_deg - 80.0) < 5.0
+    assert g.fov_deg == 80.0  # the group itself is left as it was
+    assert _angle_deg(r_fit.normal, N) < 3.0
+
+
 def test_evaluate_self_source_fits_or_takes_the_given_pane_model():
     # polspike evaluate's self source: the cone's glass fit by default (not identified here -> thin slab, said why),
     # a given model with EvalConfig.self_pane_model; the two zetas differ by the slab's larger reflectance
