@@ -7,6 +7,8 @@ Usage (from the repository root, venv active; one torch thread):
     python docs/selfcal_report.py speed GROUP_DIR [WEIGHTS]          # frames/s: physics-only streams vs the network, same run
     python docs/selfcal_report.py twin-heldout                      # 16 random T-dominated narrow glancing closed-form groups:
         # how the 90 deg twin is decided (cone / content / refused) against the truth (not used to choose any threshold)
+    python docs/selfcal_report.py fov out/datasets/eval_fresh_val [SPLIT]   # per group: geometry error with the scene's fov
+        # given and withheld (fitted, as reconstruct does for a .dat without --fov-deg)
     python docs/selfcal_report.py stress out/datasets/stress BY_REGIME_JSON [FIGURE.png]   # per-group table: calibration
         # (modulating share, cone, glass, geometry and zeta error) beside the PSNRs of
         # `polspike evaluate out/datasets/stress --by-regime --regime-zetas gt,self --no-net --max-frames 3` (its by_regime.json)
@@ -226,10 +228,33 @@ def twin_heldout(n_groups: int = 16, seed: int = 2026) -> None:
         print(json.dumps(row), flush=True)
 
 
+def fov(path: str, split: str = "test") -> None:
+    """Each group calibrated twice, with its scene's field of view given and withheld (fitted, as ``polspike reconstruct``
+    does for a .dat without --fov-deg): median phi_perp error and mean theta error against the group's true maps."""
+    from reconstruct.evaluate import EvalConfig, group_zeta, load_groups
+    from reconstruct.selfcal import group_self_zeta
+
+    for g in load_groups(path, split, EvalConfig()):
+        row = {"group": g.name, "fov_deg": g.fov_deg}
+        for mode in ("scene", "fitted"):
+            group_zeta(g, EvalConfig(zeta="self", self_fov=mode))
+            r = group_self_zeta.last
+            if r.ok:
+                row[mode] = {"fov_deg": r.fov_deg, "twin_ratio": r.twin_ratio,
+                             "phi_perp_err_deg": float(np.median(np.degrees(np.abs(np.mod(r.maps.phi_perp - g.maps.phi_perp + np.pi / 2, np.pi) - np.pi / 2)))),
+                             "theta_err_deg": float(np.degrees(np.abs(r.theta - g.theta)).mean())}
+            else:
+                row[mode] = {"refused": r.reason.split(":")[0]}
+        print(json.dumps(row), flush=True)
+
+
 if __name__ == "__main__":
     a = sys.argv[1:]
-    if not a or a[0] not in ("closed-form", "dataset", "speed", "stress", "twin-heldout"):
+    if not a or a[0] not in ("closed-form", "dataset", "speed", "stress", "twin-heldout", "fov"):
         sys.exit(__doc__)
+    if a[0] == "fov":
+        fov(a[1], a[2] if len(a) > 2 else "test")
+        sys.exit(0)
     if a[0] == "twin-heldout":
         twin_heldout()
         sys.exit(0)

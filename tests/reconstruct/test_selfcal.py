@@ -133,6 +133,56 @@ def test_narrow_view_glancing_pane_resolved_by_the_dop_cone():
     assert r.ok and r.twin_ratio < 0.98 and "cone" not in r.diagnostics and _angle_deg(r.normal, N) < 4.0
 
 
+def _narrow_choice_group():
+    # fov withheld, 35.6 deg view of a 62 deg pane: the orientation field prefers the right family only narrowly (twin
+    # ratio 0.969, inside [twin_check_ratio, max_twin_ratio])
+    return make_pane_group(62.2, 348.3, fov_deg=35.6, r_gain=0.81, t_level=1.0, exposure=3.0, motion_px=0.0, seed=303, record_fov=False, **SMALL)
+
+
+def test_a_narrow_choice_with_the_fov_fitted_is_checked_and_kept_when_the_votes_do_not_both_favour_the_twin():
+    g, _ = _narrow_choice_group()
+    r = self_calibrate(g.I, g.phi_nominal, SelfCalConfig())
+    cfg = SelfCalConfig()
+    assert r.ok and cfg.twin_check_ratio <= r.twin_ratio <= cfg.max_twin_ratio
+    tc = r.diagnostics["twin_check"]
+    assert not tc["overturned"] and "cone" not in r.diagnostics
+    assert _family_and_theta_err(r, g)[0] < 3.0  # the right family (measured 1.0 deg)
+    off = self_calibrate(g.I, g.phi_nominal, SelfCalConfig(twin_check_ratio=1.0))  # the check off: the same pane, bit for bit
+    np.testing.assert_array_equal(off.maps.phi_perp, r.maps.phi_perp)
+    assert "twin_check" not in off.diagnostics
+    given = self_calibrate(g.I, g.phi_nominal, SelfCalConfig(fov_deg=35.6))  # a given fov pins the twin family: no check
+    assert "twin_check" not in given.diagnostics
+
+
+def test_the_twin_is_taken_only_where_the_cone_and_the_content_both_prefer_it(monkeypatch):
+    # the decision rule, on the real check's output with the two families' labels swapped (so the "twin" is the right pane):
+    # both votes swapped -> overturned, to the check's pick; one vote swapped -> kept
+    import reconstruct.selfcal as sc
+
+    import copy
+
+    g, _ = _narrow_choice_group()
+    real, cache = sc._resolve_by_cone, []
+    for swap_cone, swap_content, want in ((True, True, True), (True, False, False), (False, True, False)):
+        def fake(*a, **k):
+            if not cache:
+                cache.append(real(*a, **k))  # the same stream each time: the check runs once
+            out = copy.deepcopy(cache[0])
+            out["v_family"] = [9.0 + 2 * sc.SelfCalConfig().cone_margin, 0.0] if swap_cone else [0.0, 9.0 + 2 * sc.SelfCalConfig().cone_margin]
+            ct = dict(out.get("content") or {})
+            ct["corr_family"] = [0.6, 0.1] if swap_content else [0.1, 0.6]
+            out["content"] = ct
+            return out
+
+        monkeypatch.setattr(sc, "_resolve_by_cone", fake)
+        r = self_calibrate(g.I, g.phi_nominal, SelfCalConfig(geometry_weighting="s4"))  # s4: no polish after the decision
+        assert r.ok and r.diagnostics["twin_check"]["overturned"] is want
+        if want:
+            assert r.diagnostics["cone"]["by"] == "twin_check" and abs(r.tilt_deg - math.degrees(r.diagnostics["cone"]["tilt"])) < 1e-9
+        else:
+            assert "cone" not in r.diagnostics
+
+
 def _t_dominated_narrow_glancing(azimuth=120.0, contrast=1.0):
     # the transmission dominates everywhere (R/T 0.3, no dark T): the DoP stays inside both families' cones (the cone cannot
     # refute the 90 deg twin; the previous version refused these)
