@@ -997,7 +997,8 @@ def self_calibrate(I: np.ndarray, phi: np.ndarray, cfg: SelfCalConfig = SelfCalC
         :class:`SelfCalResult`; ``ok = False`` (with a logged warning) where nothing modulates or the
         geometry stays ambiguous.  ``diagnostics`` carries ``modulating_px`` / ``modulating_blocks``
         (share of pixels / 4 x 4 blocks modulating above noise, :func:`modulating_fraction`), ``cone``
-        (the 90 deg / tilt-valley resolution, when needed) and ``glass`` (the index / model fit).
+        (the 90 deg / tilt-valley resolution, when needed), ``twin_check`` (with the fov fitted, the cone's and the
+        content's votes on a narrow orientation choice, and whether they overturned it) and ``glass`` (the index / model fit).
     """
     I = np.asarray(I)
     if I.ndim != 3:
