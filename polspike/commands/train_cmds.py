@@ -233,7 +233,7 @@ def reconstruct_cmd(
         write_json(out / ("zeta.json" if method == "net" else "physics.json"), {"method": method, **info})
         sc = info["selfcal"]
         if sc and sc["ok"]:
-            c.print(f"{method} on self-calibrated zeta: pane tilt {sc['tilt_deg']:.1f} deg, azimuth {sc['azimuth_deg']:.1f} deg, fov {sc['fov_deg']:.1f} deg{' (fitted)' if sc['fov_fitted'] else ''}, {sc['model']} n {sc['n']:g}")
+            c.print(f"{method} on self-calibrated zeta: pane tilt {sc['tilt_deg']:.1f} deg, azimuth {sc['azimuth_deg']:.1f} deg, fov {sc['fov_deg']:.1f} deg{' (fitted: give --fov-deg if the lens is known)' if sc['fov_fitted'] else ''}, {sc['model']} n {sc['n']:g}")
         else:
             c.print(f"{method} on zeta: {info['zeta']}" + (f" ({sc['reason']})" if sc else ""))
     if exposure_info["exposure_source"] == "estimated":

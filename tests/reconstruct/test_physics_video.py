@@ -92,6 +92,7 @@ def test_fov_deg_is_the_self_calibrations_field_of_view(stream, polspike_cli, tm
         r = polspike_cli("reconstruct", stream["dat"], "--height", H, "--width", W, "--phi0-deg", math.degrees(PHI0), "--rev-per-s", REV, "--out", out,
                          "--method", "ls", "--no-rir", "--max-frames", 1, "--quiet", *(() if fov is None else ("--fov-deg", fov)))
         assert r.returncode == 0, r.stderr[-2000:]
+        assert ("give --fov-deg" in " ".join(r.stdout.split())) == (fov is None)  # the hint only where the fov was fitted
         got[fov] = json.loads((out / "physics.json").read_text())["selfcal"]
     assert got[None]["fov_fitted"] and abs(got[None]["fov_deg"] - 60.0) < 3.0  # this wide view pins the fov too (measured 59.9)
     for fov in (60.0, 40.0):
