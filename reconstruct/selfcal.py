@@ -151,6 +151,7 @@ class SelfCalConfig:
     cone_margin: float = opt(9.0, "cone test: a pane family (or glass) is rejected when its DoP-cone violation (chi^2, noise units) exceeds the best by this", lo=0.0, hi=1e9)
     cone_ratio: float = opt(10.0, "cone test: the rejected pane family's DoP-cone violation must also be at least this many times the chosen one's (else neither fits)", lo=1.0, hi=1e9)
     valley_step_deg: float = opt(2.0, "cone test: tilt step of the candidate panes, degrees", lo=0.5, hi=20.0)
+    valley_drop_fov_bounds: bool = opt(True, "fov fitted: cone / content candidates whose fitted fov ran into the search bounds (5 or 150 deg) are left out: degenerate views, not fitted values, whose layers can come out as independent as the right pane's (the stress set's weak glancing 18 deg view with the fov withheld: the twin family's 5 deg candidates scored 0.23 against the pane's 0.10 and the group was refused; without them 0.40, resolved)")
     valley_ratio: float = opt(0.97, "cone test: panes scoring at least this fraction of the orientation optimum are candidates", lo=0.0, hi=1.0)
     z_min: float = opt(8.0, "the fitted pane must explain the orientation field this many noise standard deviations above chance, else 'nothing modulates' (ok = False)", lo=0.0, hi=1e6)
     geometry_weighting: str = opt("scatter", "weights of the blocks in the final geometry fit: scatter (each block by 1 / (its orientation's measured variance, from the scatter of its pixels across its direction, plus a misfit floor), robust to blocks the plane does not explain; calibrate-pane's, docs/selfcal.md) or s4 (by |sum z4|, the matched filter of the grid search, which overweights weak blocks whose |sum z4| is mostly their signal's power)", choices=("scatter", "s4"))
@@ -687,7 +688,7 @@ def fit_glass(scores: dict, prior_n: float, prior_model: str, margin: float) -> 
 
 
 def valley_candidates(s4: np.ndarray, width_blocks: int, height_blocks: int, seeds: list[tuple[float, float, float]], fov_deg: float | None,
-                      tilt_step_deg: float = 2.0, keep_ratio: float = 0.97) -> list[dict]:
+                      tilt_step_deg: float = 2.0, keep_ratio: float = 0.97, drop_fov_bounds: bool = False) -> list[dict]:
     """Panes the orientation field cannot tell apart: for each seed (tilt, azimuth, fov) and every tilt on a
     ``tilt_step_deg`` grid, the azimuth (and the field of view when not given) that best explain the field
     (matched statistic of :func:`fit_normal`), kept when they score at least ``keep_ratio`` of the best.
@@ -726,7 +727,14 @@ def valley_candidates(s4: np.ndarray, width_blocks: int, height_blocks: int, see
             sc, az, fv = max(at_tilt(t, a, f_seed) for a in (a_seed, a_seed + math.pi))
             out.append({"tilt": float(t), "azimuth": az % (2 * math.pi), "fov_deg": fv, "score": sc, "family": fam})
     best = max([c["score"] for c in out], default=0.0)
-    return [c for c in out if c["score"] >= keep_ratio * best]
+    keep = [c for c in out if c["score"] >= keep_ratio * best]
+    if drop_fov_bounds and not fov_deg:
+        keep = [c for c in keep if FOV_BOUNDS_DEG[0] + 0.05 < c["fov_deg"] < FOV_BOUNDS_DEG[1] - 0.05]
+    return keep
+
+
+FOV_BOUNDS_DEG = (5.0, 150.0)
+"""Search bounds of the fitted field of view in :func:`valley_candidates`."""
 
 
 def modulating_fraction(s4_px: np.ndarray, q_px: np.ndarray, phi_perp: np.ndarray, block: int = 1, sigmas: float = 3.0) -> float:
@@ -759,7 +767,7 @@ def _resolve_by_cone(I, phi, f, fit, W, H, fov_given, cfg) -> dict:
     seeds = [(fit["tilt"], fit["azimuth"], fit["fov_deg"])]
     if "twin_tilt" in fit:
         seeds.append((fit["twin_tilt"], fit["twin_azimuth"], fit["twin_fov_deg"]))
-    cands = valley_candidates(f["s4"], w, h, seeds, fov_given, tilt_step_deg=cfg.valley_step_deg, keep_ratio=cfg.valley_ratio)
+    cands = valley_candidates(f["s4"], w, h, seeds, fov_given, tilt_step_deg=cfg.valley_step_deg, keep_ratio=cfg.valley_ratio, drop_fov_bounds=cfg.valley_drop_fov_bounds)
     cands += [{"tilt": t, "azimuth": a, "fov_deg": fv, "score": sc, "family": k}
               for k, (t, a, fv, sc) in enumerate([(fit["tilt"], fit["azimuth"], fit["fov_deg"], fit["score"])]
                                                  + ([(fit["twin_tilt"], fit["twin_azimuth"], fit["twin_fov_deg"], fit["twin_score"])] if "twin_tilt" in fit else []))]

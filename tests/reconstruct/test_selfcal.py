@@ -189,6 +189,26 @@ def _t_dominated_narrow_glancing(azimuth=120.0, contrast=1.0):
     return make_pane_group(74.0, azimuth, fov_deg=18.0, r_gain=0.3, t_level=1.0, exposure=10.0, motion_px=0.0, seed=7, contrast=contrast, **SMALL)
 
 
+def test_valley_candidates_whose_fov_ran_into_its_bounds_are_left_out():
+    # fov free, narrow glancing view: along the tilt valley the fitted fov runs into the 5 deg bound for some tilts
+    # (degenerate views, not fitted values); drop_fov_bounds leaves exactly those out, and a given fov is never dropped
+    from reconstruct.selfcal import FOV_BOUNDS_DEG, fit_normal, orientation_field, valley_candidates
+
+    g, _ = _t_dominated_narrow_glancing()
+    f = orientation_field(g.I, g.phi_nominal, 2)
+    h, w = f["psi"].shape
+    fit = fit_normal(f["s4"], f["q"], w, h, None)
+    seeds = [(fit["tilt"], fit["azimuth"], fit["fov_deg"])] + ([(fit["twin_tilt"], fit["twin_azimuth"], fit["twin_fov_deg"])] if "twin_tilt" in fit else [])
+    key = lambda c: (c["family"], round(c["tilt"], 6))  # noqa: E731
+    every = valley_candidates(f["s4"], w, h, seeds, None, tilt_step_deg=4.0)
+    kept = valley_candidates(f["s4"], w, h, seeds, None, tilt_step_deg=4.0, drop_fov_bounds=True)
+    at_bound = [c for c in every if not FOV_BOUNDS_DEG[0] + 0.05 < c["fov_deg"] < FOV_BOUNDS_DEG[1] - 0.05]
+    assert at_bound and len(kept) == len(every) - len(at_bound)
+    assert {key(c) for c in kept} == {key(c) for c in every} - {key(c) for c in at_bound}
+    given = valley_candidates(f["s4"], w, h, seeds[:1], 5.0, tilt_step_deg=8.0, drop_fov_bounds=True)  # a given fov is the lens: kept
+    assert given and all(c["fov_deg"] == 5.0 for c in given)
+
+
 def test_twin_the_cone_cannot_refute_is_told_apart_by_the_layers_content():
     # under the twin the solved R' carries the transmission's texture (R' ~ T + (T - R)): R^ and T^ gradients correlate;
     # under the true pane they are the two independent layers.  Checked against the known truth, not the estimator's own fit.
