@@ -803,10 +803,11 @@ def calibrate_frames(I: np.ndarray, phi: np.ndarray, cfg: CalibratePaneConfig = 
     forced_model = None if cfg.pane_model == "auto" else cfg.pane_model
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
-    # the self-calibration's own narrow-twin check is off here (the twin profile below asks the full forward model's cone,
-    # the stronger test), and its polish keeps the 15 deg cap the round-6 tables were measured with
+    # the start as the round-6 tables were measured: the self-calibration's session-13 changes for a fitted fov are off
+    # (its narrow-twin check: the twin profile below asks the full forward model's cone, the stronger test; its 45 deg
+    # polish and its dropping of valley candidates at the fov bounds: not measured through this fit)
     sc_cfg = SelfCalConfig(span_s=max(cfg.span_s, 0.001), block_px=cfg.block_px, fov_deg=cfg.fov_deg, n=fixed_n or cfg.prior_n, model=forced_model or cfg.prior_model,
-                           twin_check_ratio=1.0, polish_max_move_deg=15.0)
+                           twin_check_ratio=1.0, polish_max_move_deg=15.0, valley_drop_fov_bounds=False)
     init = self_calibrate(I, phi, sc_cfg, name=name)
     amb_reason = None  # the self-calibration's "ambiguous" reason where the twin is left to the cone below
     if not init.ok and init.reason.startswith("ambiguous") and cfg.twin_delta_chi2 > 0:
