@@ -151,7 +151,7 @@ class SelfCalConfig:
     cone_margin: float = opt(9.0, "cone test: a pane family (or glass) is rejected when its DoP-cone violation (chi^2, noise units) exceeds the best by this", lo=0.0, hi=1e9)
     cone_ratio: float = opt(10.0, "cone test: the rejected pane family's DoP-cone violation must also be at least this many times the chosen one's (else neither fits)", lo=1.0, hi=1e9)
     valley_step_deg: float = opt(2.0, "cone test: tilt step of the candidate panes, degrees", lo=0.5, hi=20.0)
-    valley_drop_fov_bounds: bool = opt(True, "fov fitted: cone / content candidates whose fitted fov ran into the search bounds (5 or 150 deg) are left out: degenerate views, not fitted values, whose layers can come out as independent as the right pane's (the stress set's weak glancing 18 deg view with the fov withheld: the twin family's 5 deg candidates scored 0.23 against the pane's 0.10 and the group was refused; without them 0.40, resolved)")
+    valley_drop_fov_bounds: bool = opt(True, "fov fitted: cone / content candidates whose fitted fov ran into the search bounds (5 or 150 deg) are left out where each family keeps a candidate inside them: degenerate views, not fitted values, whose layers can come out as independent as the right pane's (the stress set's weak glancing 18 deg view with the fov withheld: the twin family's 5 deg candidates scored 0.23 against the pane's 0.10 and the group was refused; without them 0.40, resolved)")
     valley_ratio: float = opt(0.97, "cone test: panes scoring at least this fraction of the orientation optimum are candidates", lo=0.0, hi=1.0)
     z_min: float = opt(8.0, "the fitted pane must explain the orientation field this many noise standard deviations above chance, else 'nothing modulates' (ok = False)", lo=0.0, hi=1e6)
     geometry_weighting: str = opt("scatter", "weights of the blocks in the final geometry fit: scatter (each block by 1 / (its orientation's measured variance, from the scatter of its pixels across its direction, plus a misfit floor), robust to blocks the plane does not explain; calibrate-pane's, docs/selfcal.md) or s4 (by |sum z4|, the matched filter of the grid search, which overweights weak blocks whose |sum z4| is mostly their signal's power)", choices=("scatter", "s4"))
@@ -729,7 +729,11 @@ def valley_candidates(s4: np.ndarray, width_blocks: int, height_blocks: int, see
     best = max([c["score"] for c in out], default=0.0)
     keep = [c for c in out if c["score"] >= keep_ratio * best]
     if drop_fov_bounds and not fov_deg:
-        keep = [c for c in keep if FOV_BOUNDS_DEG[0] + 0.05 < c["fov_deg"] < FOV_BOUNDS_DEG[1] - 0.05]
+        inside = [c for c in keep if FOV_BOUNDS_DEG[0] + 0.05 < c["fov_deg"] < FOV_BOUNDS_DEG[1] - 0.05]
+        if {c["family"] for c in inside} == {c["family"] for c in keep}:
+            # only where every family keeps a fitted view: a family whose whole valley sits on a bound (a field as
+            # uniform as an orthographic view's) would otherwise lose by default, and the ambiguity stands
+            keep = inside
     return keep
 
 

@@ -207,6 +207,14 @@ def test_valley_candidates_whose_fov_ran_into_its_bounds_are_left_out():
     assert {key(c) for c in kept} == {key(c) for c in every} - {key(c) for c in at_bound}
     given = valley_candidates(f["s4"], w, h, seeds[:1], 5.0, tilt_step_deg=8.0, drop_fov_bounds=True)  # a given fov is the lens: kept
     assert given and all(c["fov_deg"] == 5.0 for c in given)
+    # a uniform field (an orthographic view's): every candidate of both families sits on the 5 deg bound; dropping them
+    # would leave a family empty, to lose by default, so nothing is dropped and the ambiguity stands
+    uni = np.full((8, 12), 50.0 * np.exp(4j * 0.4))
+    fu = fit_normal(uni, np.full(uni.shape, 50.0), 12, 8, None)
+    su = [(fu["tilt"], fu["azimuth"], fu["fov_deg"]), (fu["twin_tilt"], fu["twin_azimuth"], fu["twin_fov_deg"])]
+    every = valley_candidates(uni, 12, 8, su, None, tilt_step_deg=4.0)
+    assert {c["family"] for c in every} == {0, 1} and all(c["fov_deg"] < FOV_BOUNDS_DEG[0] + 0.05 for c in every)
+    assert len(valley_candidates(uni, 12, 8, su, None, tilt_step_deg=4.0, drop_fov_bounds=True)) == len(every)
 
 
 def test_twin_the_cone_cannot_refute_is_told_apart_by_the_layers_content():
