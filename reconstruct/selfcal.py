@@ -162,6 +162,7 @@ class SelfCalConfig:
     content_margin: float = opt(0.2, "content test (where the cone leaves the 90 deg twin open): the other family's smallest layer-gradient |correlation| must exceed the chosen one's by this (0 = off: refuse as before)", lo=0.0, hi=2.0)
     content_ratio: float = opt(3.0, "content test: ... and be at least this many times the chosen one's", lo=1.0, hi=1e9)
     twin_check_ratio: float = opt(0.95, "fov fitted: where the 90 deg twin scores between this and max_twin_ratio of the best, the DoP cone and the layers' content are asked too, and the twin is taken where both prefer it, the cone by more than cone_margin (1 = off)", lo=0.0, hi=10.0)
+    twin_check_step_deg: float = opt(4.0, "the narrow twin check's tilt step along each family's valley, degrees (the cone test's own is valley_step_deg; the check's scan is most of its time)", lo=0.5, hi=20.0)
     polish_max_move_deg: float = opt(45.0, "the scatter-weighted polish of the geometry is kept only where it turns the normal by less than this (degrees) and stays in the chosen 90 deg family; with the fov free it moves along the fov-tilt valley, where the normal turns a lot for little change in the field (eval_paper test_005, fov withheld: 16 deg from a grid fov of 70 to 43.8, truth 43.1; 15 deg until session 13)", lo=0.0, hi=180.0)
 
 
@@ -1067,7 +1068,7 @@ def self_calibrate(I: np.ndarray, phi: np.ndarray, cfg: SelfCalConfig = SelfCalC
         # the fov is free, so the twin family can bend along its own fov-tilt valley and the orientation field's
         # preference is narrow: a twin handed over swaps R and T (eval_paper_val train_004 with the fov withheld: the
         # network's T 17.6 dB against 36.3 on the right pane).  Overturn only on two independent votes for the twin
-        chk = _resolve_by_cone(I[:m], np.asarray(phi)[:m], f, fit, W, H, fov_given, cfg)
+        chk = _resolve_by_cone(I[:m], np.asarray(phi)[:m], f, fit, W, H, fov_given, dataclasses.replace(cfg, valley_step_deg=cfg.twin_check_step_deg))
         v0, v1 = chk["v_family"]
         cc = (chk.get("content") or {}).get("corr_family") or [None, None]
         content_twin = cc[0] is not None and cc[1] is not None and np.isfinite(cc[1]) and cc[1] < cc[0]
