@@ -45,11 +45,17 @@ def _psnr_rows(g, sources=("gt", "self"), max_frames=6, **kw) -> dict:
     return row
 
 
+def _errors_deg(g, r) -> tuple[float, float]:
+    """(mean |theta error|, median |phi_perp error| modulo 180) of calibration ``r`` against group ``g``'s true maps, degrees."""
+    return float(np.degrees(np.abs(r.theta - g.theta)).mean()), float(np.median(np.degrees(np.abs(np.mod(r.maps.phi_perp - g.maps.phi_perp + np.pi / 2, np.pi) - np.pi / 2))))
+
+
 def _geometry(g, r, Zs, Zg) -> dict:
+    th, pp = _errors_deg(g, r)
     return {
         "tilt_fit_deg": r.tilt_deg,
-        "theta_err_deg": float(np.degrees(np.abs(r.theta - g.theta)).mean()),
-        "phi_perp_err_deg_median": float(np.median(np.degrees(np.abs(np.mod(r.maps.phi_perp - g.maps.phi_perp + np.pi / 2, np.pi) - np.pi / 2)))),
+        "theta_err_deg": th,
+        "phi_perp_err_deg_median": pp,
         "zeta_mae": float(np.abs(Zs - Zg).mean()),
         "zeta_mae_rel": float(np.abs(Zs - Zg).mean() / Zg.mean()),
         "z": r.diagnostics["z"],
@@ -131,10 +137,10 @@ def _calibration_row(g) -> dict:
         row["cone"] = {k: sm["cone"].get(k) for k in ("resolved", "by", "v_family", "chosen_family", "tilt_range_deg", "content")}
     if r.ok:
         Zg = group_zeta(g, EvalConfig(zeta="gt"))
+        th, pp = _errors_deg(g, r)
         row.update({"tilt_fit_deg": r.tilt_deg, "model": r.model, "n": r.n, "glass_why": (sm["glass"] or {}).get("why"),
                     "glass_content": ((sm["glass"] or {}).get("content") or {}).get("scores"),
-                    "theta_err_deg": float(np.degrees(np.abs(r.theta - g.theta)).mean()),
-                    "phi_perp_err_deg_median": float(np.median(np.degrees(np.abs(np.mod(r.maps.phi_perp - g.maps.phi_perp + np.pi / 2, np.pi) - np.pi / 2)))),
+                    "theta_err_deg": th, "phi_perp_err_deg_median": pp,
                     "zeta_mae_rel": float(np.abs(Zs - Zg).mean() / Zg.mean())})
     return row
 
@@ -222,8 +228,7 @@ def twin_heldout(n_groups: int = 16, seed: int = 2026) -> None:
         row = {"tilt": tilt, "azimuth": az, "fov": fov, "R_over_T": 0.5 * rg, "exposure": ex, "motion_px": mo, "model": model, "twin_ratio": r.twin_ratio,
                "by": cone.get("by"), "content": (cone.get("content") or {}).get("corr_family"), "ok": r.ok, "model_used": r.model}
         if r.ok:
-            row["phi_perp_err_deg"] = float(np.median(np.degrees(np.abs(np.mod(r.maps.phi_perp - g.maps.phi_perp + np.pi / 2, np.pi) - np.pi / 2))))
-            row["theta_err_deg"] = float(np.degrees(np.abs(r.theta - g.theta)).mean())
+            row["theta_err_deg"], row["phi_perp_err_deg"] = _errors_deg(g, r)
             row["family"] = "right" if row["phi_perp_err_deg"] < 10 else "twin"
         print(json.dumps(row), flush=True)
 
@@ -240,9 +245,8 @@ def fov(path: str, split: str = "test") -> None:
             group_zeta(g, EvalConfig(zeta="self", self_fov=mode))
             r = group_self_zeta.last
             if r.ok:
-                row[mode] = {"fov_deg": r.fov_deg, "twin_ratio": r.twin_ratio,
-                             "phi_perp_err_deg": float(np.median(np.degrees(np.abs(np.mod(r.maps.phi_perp - g.maps.phi_perp + np.pi / 2, np.pi) - np.pi / 2)))),
-                             "theta_err_deg": float(np.degrees(np.abs(r.theta - g.theta)).mean())}
+                th, pp = _errors_deg(g, r)
+                row[mode] = {"fov_deg": r.fov_deg, "twin_ratio": r.twin_ratio, "phi_perp_err_deg": pp, "theta_err_deg": th}
             else:
                 row[mode] = {"refused": r.reason.split(":")[0]}
         print(json.dumps(row), flush=True)

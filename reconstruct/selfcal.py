@@ -362,6 +362,11 @@ def _pane_phi_perp(width: int, height: int, tilt: float, az: float, fov_deg: flo
     return _phi_perp_grid(cam, normal_from_angles(tilt, az, cam))
 
 
+FOV_BOUNDS_DEG = (5.0, 150.0)
+"""Search bounds (degrees) of a fitted field of view: :func:`fit_normal`, :func:`polish_geometry` and
+:func:`valley_candidates`, which leaves out candidates that ran into them."""
+
+
 def fit_normal(s4: np.ndarray, q: np.ndarray, width_blocks: int, height_blocks: int, fov_deg: float | None, fov_init_deg: float = 60.0) -> dict:
     """Fit the pane normal (and optionally the field of view) to a block-grid orientation field.
 
@@ -422,7 +427,7 @@ def fit_normal(s4: np.ndarray, q: np.ndarray, width_blocks: int, height_blocks: 
             x0, lb, ub = [t0, a0], [0.0, a0 - math.pi], [math.radians(89.9), a0 + math.pi]
         else:
             fun = lambda x: sw * np.sin(0.5 * (ang4 - 4.0 * phis(x[0], x[1], x[2])))  # noqa: E731
-            x0, lb, ub = [t0, a0, fov0], [0.0, a0 - math.pi, 5.0], [math.radians(89.9), a0 + math.pi, 150.0]
+            x0, lb, ub = [t0, a0, fov0], [0.0, a0 - math.pi, FOV_BOUNDS_DEG[0]], [math.radians(89.9), a0 + math.pi, FOV_BOUNDS_DEG[1]]
         r = least_squares(fun, x0, bounds=(lb, ub), x_scale=[0.1, 0.1] + ([10.0] if not fov_deg else []))
         f = float(r.x[2]) if not fov_deg else fov0
         return (score(r.x[0], r.x[1], f), float(r.x[0]), float(r.x[1]) % (2 * math.pi), f)
@@ -520,8 +525,8 @@ def polish_geometry(of: dict, block: int, tilt: float, az: float, fov_deg: float
         return _pane_phi_perp(w, h, x[0], x[1], x[2] if fit_fov else fov_deg)[mask]
 
     x = np.array([tilt, az] + ([fov_deg] if fit_fov else []), np.float64)
-    lb = [0.0, az - math.pi] + ([5.0] if fit_fov else [])
-    ub = [math.radians(89.9), az + math.pi] + ([150.0] if fit_fov else [])
+    lb = [0.0, az - math.pi] + ([FOV_BOUNDS_DEG[0]] if fit_fov else [])
+    ub = [math.radians(89.9), az + math.pi] + ([FOV_BOUNDS_DEG[1]] if fit_fov else [])
     x = np.clip(x, lb, ub)
     sys2 = math.radians(1.0) ** 2
     for _ in range(2):
@@ -716,7 +721,7 @@ def valley_candidates(s4: np.ndarray, width_blocks: int, height_blocks: int, see
             az, fv = float(r.x[0]), float(fov_deg)
         else:
             fun = lambda x: sw * np.sin(0.5 * (ang4 - 4.0 * phis(t, x[0], x[1])))  # noqa: E731
-            r = least_squares(fun, [a_seed, f_seed], bounds=([a_seed - math.pi / 2, 5.0], [a_seed + math.pi / 2, 150.0]), x_scale=[0.1, 10.0])
+            r = least_squares(fun, [a_seed, f_seed], bounds=([a_seed - math.pi / 2, FOV_BOUNDS_DEG[0]], [a_seed + math.pi / 2, FOV_BOUNDS_DEG[1]]), x_scale=[0.1, 10.0])
             az, fv = float(r.x[0]), float(r.x[1])
         return float(np.sum(mag * np.cos(ang4 - 4.0 * phis(t, az, fv)))), az, fv
 
@@ -737,9 +742,6 @@ def valley_candidates(s4: np.ndarray, width_blocks: int, height_blocks: int, see
             keep = inside
     return keep
 
-
-FOV_BOUNDS_DEG = (5.0, 150.0)
-"""Search bounds of the fitted field of view in :func:`valley_candidates`."""
 
 
 def modulating_fraction(s4_px: np.ndarray, q_px: np.ndarray, phi_perp: np.ndarray, block: int = 1, sigmas: float = 3.0) -> float:
@@ -1076,7 +1078,7 @@ def self_calibrate(I: np.ndarray, phi: np.ndarray, cfg: SelfCalConfig = SelfCalC
         diag["twin_check"] = {"v_family": [v0, v1], "corr_family": cc, "overturned": overturn}
         if overturn:
             aggs = chk.pop("aggs")
-            diag["cone"] = {**{k: v for k, v in chk.items() if k != "aggs"}, "resolved": True, "by": "twin_check", "chosen_family": 1}
+            diag["cone"] = {**chk, "resolved": True, "by": "twin_check", "chosen_family": 1}
             fit = {**fit, "tilt": chk["tilt"], "azimuth": chk["azimuth"], "fov_deg": chk["fov_deg"]}
             modulation(fit["tilt"], fit["azimuth"], fit["fov_deg"])
             res_deg = residual()
