@@ -47,9 +47,9 @@ def main() -> None:
     if a.content_true_geometry:
         return content_on_true_geometry(Path(a.dataset))
     from polspike.pipeline.calibrate_pane import CalibratePaneConfig, calibrate_input
-    from reconstruct.evaluate import EvalConfig, evaluate_groups
-    from reconstruct.groups import load_store_group
-    from reconstruct.zeta_source import PaneMaps
+    from reconstruct.evaluate.harness import EvalConfig, evaluate_groups
+    from reconstruct.stream.groups import load_store_group
+    from reconstruct.physics.zeta import PaneMaps
     from spike_sim.store import open_group
 
     rows = []
@@ -152,8 +152,8 @@ def _group_spans(dataset: Path, cfg):
     stored group of ``dataset`` (the spikes calibrate-pane reads with ``cfg``)."""
     import math
 
-    from reconstruct.physics_video import span_frames
-    from reconstruct.video import group_source
+    from reconstruct.stream.sources import span_frames
+    from reconstruct.stream.sources import group_source
 
     for gd in sorted((dataset / "groups").iterdir()):
         spec = json.loads((gd / "group_spec.json").read_text())["scene"]
@@ -203,10 +203,11 @@ def valley(dataset: Path, weightings: list[str]) -> None:
 
     from generator.pane_fit import PaneModelAD, gauss_newton
     from polspike.pipeline.calibrate_pane import CalibratePaneConfig, _wrap90, fit_geometry
-    from reconstruct.selfcal import block_orientation_variance
-    from reconstruct.physics_video import span_frames
-    from reconstruct.selfcal import SelfCalConfig, orientation_field, self_calibrate
-    from reconstruct.video import group_source
+    from reconstruct.pane.orientation import block_orientation_variance
+    from reconstruct.stream.sources import span_frames
+    from reconstruct.pane.selfcal import SelfCalConfig, self_calibrate
+    from reconstruct.pane.orientation import orientation_field
+    from reconstruct.stream.sources import group_source
     from spike_sim.store import open_group
 
     cfg = CalibratePaneConfig()

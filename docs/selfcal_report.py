@@ -34,7 +34,7 @@ MAX_FRAMES = 8
 
 
 def _psnr_rows(g, sources=("gt", "self"), max_frames=6, **kw) -> dict:
-    from reconstruct.evaluate import EvalConfig, evaluate_groups
+    from reconstruct.evaluate.harness import EvalConfig, evaluate_groups
 
     row = {}
     for src in sources:
@@ -63,7 +63,7 @@ def _geometry(g, r, Zs, Zg) -> dict:
 
 
 def closed_form() -> None:
-    from reconstruct.selfcal import group_self_zeta
+    from reconstruct.pane.selfcal import group_self_zeta
     from tests.reconstruct._pane_groups import make_pane_group
 
     for tilt, az, rg in [(35, 20, 3.0), (55, 120, 3.0), (70, 250, 3.0), (55, 300, 5.0), (45, 200, 2.0)]:
@@ -80,8 +80,8 @@ def closed_form() -> None:
 
 
 def dataset(path: str, pane_model: str = "single", pane_n: float = 1.5) -> None:
-    from reconstruct.evaluate import EvalConfig, group_zeta, load_groups
-    from reconstruct.selfcal import group_self_zeta
+    from reconstruct.evaluate.harness import EvalConfig, group_zeta, load_groups
+    from reconstruct.pane.selfcal import group_self_zeta
 
     for g in load_groups(path, "test", EvalConfig()):
         t0 = time.perf_counter()
@@ -95,9 +95,10 @@ def dataset(path: str, pane_model: str = "single", pane_n: float = 1.5) -> None:
 
 
 def speed(group_dir: str, weights: str | None = None) -> None:
-    from reconstruct.checkpoint import DEFAULT_WEIGHTS, load_model
-    from reconstruct.physics_video import build_physics_model
-    from reconstruct.video import ReconstructConfig, group_source, reconstruct_stream
+    from reconstruct.net.checkpoint import DEFAULT_WEIGHTS, load_model
+    from reconstruct.video.physics import build_physics_model
+    from reconstruct.video.stream import ReconstructConfig, reconstruct_stream
+    from reconstruct.stream.sources import group_source
 
     src = group_source(group_dir)
     res: dict = {}
@@ -124,8 +125,8 @@ def speed(group_dir: str, weights: str | None = None) -> None:
 
 
 def _calibration_row(g) -> dict:
-    from reconstruct.evaluate import EvalConfig, group_zeta
-    from reconstruct.selfcal import group_self_zeta
+    from reconstruct.evaluate.harness import EvalConfig, group_zeta
+    from reconstruct.pane.selfcal import group_self_zeta
 
     t0 = time.perf_counter()
     Zs = group_self_zeta(g)
@@ -157,7 +158,7 @@ def _short_reason(row) -> str:
 
 
 def stress(path: str, by_regime_json: str, figure: str | None = None) -> None:
-    from reconstruct.evaluate import EvalConfig, load_groups
+    from reconstruct.evaluate.harness import EvalConfig, load_groups
 
     psnr = {g["group"]: g for g in json.loads(Path(by_regime_json).read_text())["groups"]}
     rows = []
@@ -214,7 +215,7 @@ def twin_heldout(n_groups: int = 16, seed: int = 2026) -> None:
     """Closed-form groups where the transmission dominates (R/T 0.04-0.3) in a narrow view (15-25 deg) of a glancing pane
     (66-80 deg), random axis, single or thin slab, exposure 3 or 10, layers sliding 0, 0.2 or 0.5 px per strided frame:
     the family chosen (by the cone, by the content, or refused) against the true phi_perp."""
-    from reconstruct.selfcal import SelfCalConfig, self_calibrate
+    from reconstruct.pane.selfcal import SelfCalConfig, self_calibrate
     from tests.reconstruct._pane_groups import make_pane_group
 
     rng = np.random.default_rng(seed)
@@ -236,8 +237,8 @@ def twin_heldout(n_groups: int = 16, seed: int = 2026) -> None:
 def fov(path: str, split: str = "test") -> None:
     """Each group calibrated twice, with its scene's field of view given and withheld (fitted, as ``polspike reconstruct``
     does for a .dat without --fov-deg): median phi_perp error and mean theta error against the group's true maps."""
-    from reconstruct.evaluate import EvalConfig, group_zeta, load_groups
-    from reconstruct.selfcal import group_self_zeta
+    from reconstruct.evaluate.harness import EvalConfig, group_zeta, load_groups
+    from reconstruct.pane.selfcal import group_self_zeta
 
     for g in load_groups(path, split, EvalConfig()):
         row = {"group": g.name, "fov_deg": g.fov_deg}

@@ -14,7 +14,7 @@ import torch
 
 from spike_sim.config import DEFAULT, IDEAL
 from spike_sim.integrate_fire import simulate_constant
-from reconstruct.solvers import solve
+from reconstruct.physics.solvers import solve
 
 
 def _cfg(base, h=6, w=8, **kw):

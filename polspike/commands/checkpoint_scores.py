@@ -12,7 +12,7 @@ from polspike.cli import app_typer
 
 @app_typer.command("checkpoint-scores")
 def checkpoint_scores_cmd(
-    weights: Optional[Path] = typer.Argument(None, help="checkpoint [default: the shipped default, reconstruct.checkpoint.DEFAULT_WEIGHTS]"),
+    weights: Optional[Path] = typer.Argument(None, help="checkpoint [default: the shipped default, reconstruct.net.checkpoint.DEFAULT_WEIGHTS]"),
     manifest: str = typer.Option("datasets/manifests/paper_v1.toml", "--manifest", help="test windows from this manifest's test groups (the model card's test split)"),
     threads: int = typer.Option(1, "--threads", help="torch CPU threads (1 = the setting the stored scores are reproduced with)"),
     reduced_only: bool = typer.Option(False, "--reduced-only", help="recompute only the reduced evaluation (seconds); keep the stored model-card block if it belongs to these weights"),
@@ -33,7 +33,7 @@ def checkpoint_scores_cmd(
 
     from polinfra.errors import CheckpointError, ConfigError
     from polspike.pipeline.checkpoint_scores import compare_reduced, evaluate_setting, scores_path, sha256_file, summary_line, write_scores
-    from reconstruct.checkpoint import DEFAULT_WEIGHTS
+    from reconstruct.net.checkpoint import DEFAULT_WEIGHTS
 
     if threads < 1:
         raise ConfigError(f"--threads {threads} must be >= 1")

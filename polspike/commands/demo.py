@@ -149,19 +149,19 @@ def reconstruct_and_score(group_dir: Path, figs: Path, n_frames: int, crop: int)
     import torch
 
     from polinfra.plotting import image_grid, save_figure
-    from reconstruct.checkpoint import DEFAULT_WEIGHTS, load_model
-    from reconstruct.groups import load_store_group, network_inputs
-    from reconstruct.metrics import score
-    from reconstruct.video import run_model_on_windows
+    from reconstruct.net.checkpoint import DEFAULT_WEIGHTS, load_model
+    from reconstruct.stream.groups import load_store_group, network_inputs
+    from reconstruct.evaluate.metrics import score
+    from reconstruct.video.tiling import run_model_on_windows
 
-    from reconstruct.net_zeta import NET_DEFAULT_ZETA
+    from reconstruct.net.net_zeta import NET_DEFAULT_ZETA
 
     model, _ = load_model(DEFAULT_WEIGHTS, "cpu")
     K = model.cfg.n_obs // 2
     g = load_store_group(group_dir)
     Z, zeta_used = None, "learned"
     if NET_DEFAULT_ZETA == "self":  # the network on the pane fitted to this stream, as `polspike reconstruct` runs it
-        from reconstruct.selfcal import group_self_zeta
+        from reconstruct.pane.selfcal import group_self_zeta
 
         Z = group_self_zeta(g)
         zeta_used = "self" if Z is not None else "learned (the stream does not calibrate: " + group_self_zeta.last.reason.split(":")[0] + ")"
@@ -173,7 +173,7 @@ def reconstruct_and_score(group_dir: Path, figs: Path, n_frames: int, crop: int)
     I = np.stack([g.I[i - K : i + K + 1][:, sl[0], sl[1]] for i in idx])
     phi = np.stack([g.phi_nominal[i - K : i + K + 1] for i in idx])
     zw = None if Z is None else np.stack([Z[i - K : i + K + 1][:, sl[0], sl[1]] for i in idx]).astype(np.float32)
-    with torch.no_grad():  # with the long span the network reads (reconstruct.groups.network_inputs)
+    with torch.no_grad():  # with the long span the network reads (reconstruct.stream.groups.network_inputs)
         res = run_model_on_windows(model, I, phi, zeta=zw, **network_inputs(g, model, idx, K, sl))
     est = {"TFP (window mean)": (2 * I.mean(1), None), "RWPS only": (res["T_base"], res["R_base"]), "full network": (res["T"], res["R"])}
     rows = []

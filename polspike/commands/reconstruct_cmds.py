@@ -21,7 +21,7 @@ def evaluate_cmd(
     dt_ms: float = typer.Option(0.65, "--dt-ms", help="aggregation window, milliseconds (odd number of steps)"),
     stride_deg: float = typer.Option(31.5, "--stride-deg", help="polarizer rotation between output frames, degrees"),
     rir: bool = typer.Option(True, "--rir/--no-rir", help="reflection-invariant registration of each window (full: the without-RIR ablation)"),
-    checkpoint: Optional[Path] = typer.Option(None, "--checkpoint", help="network checkpoint for --method full / --zeta learned [default: the shipped reconstruct/weights default, reconstruct.checkpoint.DEFAULT_WEIGHTS]"),
+    checkpoint: Optional[Path] = typer.Option(None, "--checkpoint", help="network checkpoint for --method full / --zeta learned [default: the shipped reconstruct/weights default, reconstruct.net.checkpoint.DEFAULT_WEIGHTS]"),
     no_attention: bool = typer.Option(False, "--no-attention", help="full: the checkpoint is the without-angle-attention ablation (trained so)"),
     no_conf: bool = typer.Option(False, "--no-conf", help="full: the without-Conf ablation (trained so, else a test-time ablation)"),
     net_tile: int = typer.Option(256, "--net-tile", help="full: network tile size in pixels (0 = whole frame)"),
@@ -53,8 +53,8 @@ def evaluate_cmd(
     from polinfra.config import from_dict
     from polinfra.errors import ConfigError
     from polinfra.progress import rich_progress
-    from reconstruct.evaluate import EvalConfig, evaluate_groups, load_groups, markdown_table, sweep_markdown, window_sweep, write_report
-    from reconstruct.synthetic import SyntheticConfig
+    from reconstruct.evaluate.harness import EvalConfig, evaluate_groups, load_groups, markdown_table, sweep_markdown, window_sweep, write_report
+    from reconstruct.stream.synthetic import SyntheticConfig
 
     cfg = from_dict(
         EvalConfig,
@@ -70,14 +70,14 @@ def evaluate_cmd(
     con = Console()
     with rich_progress("load groups", enabled=not quiet) as cb:
         groups = load_groups(dataset, split, cfg, syn, progress=cb)
-    from reconstruct.solvers import PHYSICS_SOLVER_CONFIG, SolverConfig
+    from reconstruct.physics.solvers import PHYSICS_SOLVER_CONFIG, SolverConfig
 
     if lambda_map not in ("adaptive", "fixed"):
         raise ConfigError(f"--lambda-map {lambda_map!r}: choose adaptive or fixed")
     solver_cfg = PHYSICS_SOLVER_CONFIG if lambda_map == "adaptive" else SolverConfig()
     if by_regime:
         from polinfra.atomic import write_json, write_text
-        from reconstruct.evaluate import evaluate_by_regime, regime_markdown, regime_report
+        from reconstruct.evaluate.regimes import evaluate_by_regime, regime_markdown, regime_report
 
         zs = [z.strip() for z in regime_zetas.split(",") if z.strip()]
         nzs = [z.strip() for z in net_zetas.split(",") if z.strip()]
@@ -112,7 +112,7 @@ def evaluate_paper_cmd(
     no_conf: list[Path] = typer.Option([], "--no-conf", help="checkpoint(s) trained without Conf [default: --full with Conf zeroed at test time]"),
     solvers: str = typer.Option("ls,ridge,irls,rwps", "--solvers", help="supp. Table 3 solvers, comma-separated ('' = skip the table)"),
     zeta: str = typer.Option("self", "--zeta", help="zeta of the physics RWPS column: self (fitted to each group's stream), gt, physics or learned"),
-    net_zeta: str = typer.Option("self", "--net-zeta", help="zeta of every network column: self (the pane fitted to each group's stream; where it refuses, zeta = 0 or the learned zeta as reconstruct.net_zeta.fallback_for decides: how polspike reconstruct runs the network) or learned (its own), gt, physics, none"),
+    net_zeta: str = typer.Option("self", "--net-zeta", help="zeta of every network column: self (the pane fitted to each group's stream; where it refuses, zeta = 0 or the learned zeta as reconstruct.net.net_zeta.fallback_for decides: how polspike reconstruct runs the network) or learned (its own), gt, physics, none"),
     split: str = typer.Option("test", "--split", help="split listed in dataset.json"),
     out: Path = typer.Option(Path("out/evaluate_paper"), "--out", help="output folder (paper_table.md/.csv/.json)"),
     n_obs: int = typer.Option(7, "--n-obs", help="observations per output frame N"),
@@ -137,9 +137,9 @@ def evaluate_paper_cmd(
     from polinfra.config import from_dict
     from polinfra.errors import CheckpointError
     from polinfra.progress import rich_progress
-    from reconstruct.checkpoint import DEFAULT_WEIGHTS
-    from reconstruct.evaluate import EvalConfig, load_groups
-    from reconstruct.paper_table import paper_csv, paper_markdown, paper_tables
+    from reconstruct.net.checkpoint import DEFAULT_WEIGHTS
+    from reconstruct.evaluate.harness import EvalConfig, load_groups
+    from reconstruct.evaluate.paper_table import paper_csv, paper_markdown, paper_tables
 
     if threads > 0:
         torch.set_num_threads(threads)
@@ -147,7 +147,7 @@ def evaluate_paper_cmd(
         if not p.is_file():
             raise CheckpointError(f"checkpoint not found: {p}")
     from polinfra.errors import ConfigError
-    from reconstruct.synthetic import SyntheticConfig
+    from reconstruct.stream.synthetic import SyntheticConfig
 
     cfg = from_dict(EvalConfig, {"n_obs": n_obs, "dt_ms": dt_ms, "zeta": zeta, "max_frames": max_frames, "net_tile": net_tile, "net_ensemble": net_ensemble, "device": device}, where="command line")
     try:
@@ -180,7 +180,7 @@ def evaluate_real_cmd(
     checkpoint: Optional[Path] = typer.Option(None, "--checkpoint", help="network checkpoint [default: the shipped reconstruct/weights default]"),
     max_frames: int = typer.Option(3, "--max-frames", help="output frames per recording (bounded run)"),
     crop: int = typer.Option(0, "--crop", help="centre crop side in pixels (0 = whole frames)"),
-    zeta: Optional[str] = typer.Option(None, "--zeta", help="the network's zeta: self, learned or none [default: reconstruct.net_zeta.NET_DEFAULT_ZETA, self: the pane fitted to each recording; where it does not calibrate, zeta = 0 or the learned zeta (reconstruct.net_zeta.fallback_for)]"),
+    zeta: Optional[str] = typer.Option(None, "--zeta", help="the network's zeta: self, learned or none [default: reconstruct.net.net_zeta.NET_DEFAULT_ZETA, self: the pane fitted to each recording; where it does not calibrate, zeta = 0 or the learned zeta (reconstruct.net.net_zeta.fallback_for)]"),
     device: str = typer.Option("cpu", "--device", help="cpu or cuda"),
     threads: int = typer.Option(0, "--threads", help="torch CPU threads (0 = torch default)"),
     ensemble: int = typer.Option(1, "--ensemble", help="the network averaged over 1, 2, 4 or 8 mirror / transpose symmetries (test-time self-ensemble, as polspike reconstruct --ensemble)"),
@@ -200,7 +200,7 @@ def evaluate_real_cmd(
     from polinfra.progress import rich_progress
     from polspike.pipeline.real_eval import default_real_dir, evaluate_real, real_markdown
 
-    from reconstruct.net_zeta import NET_DEFAULT_ZETA, NET_ZETA_SOURCES
+    from reconstruct.net.net_zeta import NET_DEFAULT_ZETA, NET_ZETA_SOURCES
 
     if threads > 0:
         torch.set_num_threads(threads)
@@ -209,7 +209,7 @@ def evaluate_real_cmd(
         raise ConfigError(f"--zeta {zeta!r}: choose {', '.join(NET_ZETA_SOURCES)}")
     if max_frames < 1:
         raise ConfigError(f"--max-frames {max_frames}: must be >= 1 (a bounded run)")
-    from reconstruct.network import check_ensemble_size
+    from reconstruct.net.network import check_ensemble_size
 
     check_ensemble_size(ensemble, "--ensemble")
     folder = folder or default_real_dir()
@@ -257,10 +257,10 @@ def bench_ensemble_cmd(
     from polinfra.config import from_dict
     from polinfra.errors import ConfigError
     from polinfra.progress import rich_progress
-    from reconstruct.bench import bench_ensemble, ensemble_figure, ensemble_table
-    from reconstruct.evaluate import EvalConfig, load_groups
-    from reconstruct.network import check_ensemble_size
-    from reconstruct.synthetic import SyntheticConfig
+    from reconstruct.evaluate.bench import bench_ensemble, ensemble_figure, ensemble_table
+    from reconstruct.evaluate.harness import EvalConfig, load_groups
+    from reconstruct.net.network import check_ensemble_size
+    from reconstruct.stream.synthetic import SyntheticConfig
 
     try:
         sz = tuple(int(x) for x in sizes.split(",") if x.strip())
@@ -301,7 +301,7 @@ def bench_exposure_cmd(
 
     from polinfra.atomic import write_json, write_text
     from polinfra.errors import ConfigError
-    from reconstruct.exposure import REFERENCE_RADIANCE, exposure_errors
+    from reconstruct.stream.exposure import REFERENCE_RADIANCE, exposure_errors
 
     res, md = {}, ["| dataset | groups | mean ln(est / true) | std | max abs | worst factor | within x1.5 | geometric mean of the 99.9th pct radiance |", "|---|---:|---:|---:|---:|---:|---:|---:|"]
     for d in datasets:
@@ -341,7 +341,7 @@ def bench_reconstruct_cmd(
     from rich.table import Table
 
     from polinfra.atomic import write_json, write_text
-    from reconstruct.bench import bench_reconstruct
+    from reconstruct.evaluate.bench import bench_reconstruct
 
     from polinfra.errors import ConfigError
 
@@ -388,8 +388,8 @@ def fit_rwps_cmd(
     from polinfra.atomic import write_json, write_text
     from polinfra.errors import ConfigError
     from polinfra.progress import rich_progress
-    from reconstruct.evaluate import EvalConfig, load_groups
-    from reconstruct.rwps_fit import GRID, aligned_windows, fit_markdown, fit_rwps
+    from reconstruct.evaluate.harness import EvalConfig, load_groups
+    from reconstruct.evaluate.rwps_fit import GRID, aligned_windows, fit_markdown, fit_rwps
 
     if split == "test":
         raise ConfigError("fit-rwps fits on training groups; --split test would leak the test split into the constants")

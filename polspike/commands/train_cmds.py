@@ -60,7 +60,7 @@ def train_cmd(
 
     from polinfra.config import from_dict, load_toml
     from polinfra.progress import rich_progress
-    from reconstruct.train import TrainConfig, train
+    from reconstruct.net.train import TrainConfig, train
 
     cfg = from_dict(TrainConfig, load_toml(config), where=str(config)) if config else TrainConfig()
     if device:
@@ -69,7 +69,7 @@ def train_cmd(
         train_set, val_set = on_the_fly_sets(cfg)
         src = f"on-the-fly windows ({('scenes of ' + cfg.manifest) if cfg.manifest else f'{cfg.train_scenes} train / {cfg.test_scenes} validation sampled scenes'}, generator analytic tier + spike_sim)"
     else:
-        from reconstruct.windows import open_window_datasets
+        from reconstruct.net.windows import open_window_datasets
 
         train_set, val_set = open_window_datasets(data, cfg)
         src = f"stored windows in {data}"
@@ -97,14 +97,14 @@ def reconstruct_cmd(
     window_steps: int = typer.Option(13, "--window-steps", help="Eq. (3) window in steps (13 = 0.65 ms)"),
     stride_deg: float = typer.Option(31.5, "--stride-deg", help="polarizer rotation between output frames (31.5 deg -> 342.9 FPS at 30 rev/s)"),
     frames: str = typer.Option("none", "--frames", help="also write frames: none | png | exr"),
-    weights: Optional[Path] = typer.Option(None, "--weights", help="checkpoint [default: the shipped reconstruct/weights default, reconstruct.checkpoint.DEFAULT_WEIGHTS]"),
+    weights: Optional[Path] = typer.Option(None, "--weights", help="checkpoint [default: the shipped reconstruct/weights default, reconstruct.net.checkpoint.DEFAULT_WEIGHTS]"),
     rir: Optional[bool] = typer.Option(None, "--rir/--no-rir", help="RIR alignment [default: as trained]"),
     max_frames: int = typer.Option(0, "--max-frames", help="stop after this many output frames (0 = all)"),
     device: str = typer.Option("auto", "--device", help="auto | cpu | cuda"),
     quiet: bool = typer.Option(False, "--quiet", help="no progress bar"),
     method: str = typer.Option("net", "--method", help="net (the network) | ls | ridge | irls | rwps (a physics solver alone: no checkpoint unless --zeta learned)"),
     anchor: str = typer.Option("none", "--anchor", help="physics methods: mean = anchor each frame to the 17.5 ms spike mean (T = 2 I_mean - zbar (R - T): the level from ~27x more spikes, only R - T from the 7 windows; motion blurs the mean) | none"),
-    zeta: Optional[str] = typer.Option(None, "--zeta", help="self (pane fitted to the stream) | learned (the network's parameter branch) | none (the network on zeta = 0: no separable reflection, T is the whole light) | physics | gt (physics methods, group stores only) [default: self (reconstruct.net_zeta.NET_DEFAULT_ZETA)]"),
+    zeta: Optional[str] = typer.Option(None, "--zeta", help="self (pane fitted to the stream) | learned (the network's parameter branch) | none (the network on zeta = 0: no separable reflection, T is the whole light) | physics | gt (physics methods, group stores only) [default: self (reconstruct.net.net_zeta.NET_DEFAULT_ZETA)]"),
     zeta_fallback: str = typer.Option("auto", "--zeta-fallback", help="the network's zeta where --zeta self cannot calibrate the stream: auto (learned where >= 5 % of pixels still modulate, e.g. under a camera pan, else none) | none (zeta = 0: T is the whole light) | learned"),
     precision: str = typer.Option("float32", "--precision", help="float32 | bfloat16 (autocast of the network; the solver stays float32)"),
     pane_n: Optional[float] = typer.Option(None, "--pane-n", help="the pane's refractive index where known (e.g. from polspike calibrate-pane) [default: --zeta self fits it where the spikes constrain it, else 1.5; --zeta physics: 1.5]"),
@@ -121,17 +121,18 @@ def reconstruct_cmd(
     from rich.console import Console
 
     from polinfra.progress import rich_progress
-    from reconstruct.checkpoint import DEFAULT_WEIGHTS, load_model
-    from reconstruct.video import ReconstructConfig, dat_source, group_source, reconstruct_stream
+    from reconstruct.net.checkpoint import DEFAULT_WEIGHTS, load_model
+    from reconstruct.video.stream import ReconstructConfig, reconstruct_stream
+    from reconstruct.stream.sources import dat_source, group_source
 
-    from reconstruct.physics_video import PHYSICS_METHODS, STREAM_ZETA_SOURCES
-    from reconstruct.selfcal import SelfCalConfig
+    from reconstruct.video.physics import PHYSICS_METHODS, STREAM_ZETA_SOURCES
+    from reconstruct.pane.selfcal import SelfCalConfig
 
     if method not in ("net", *PHYSICS_METHODS):
         raise ConfigError(f"--method {method!r}: choose net or one of {', '.join(PHYSICS_METHODS)}")
     if zeta is not None and zeta not in (*STREAM_ZETA_SOURCES, "none"):
         raise ConfigError(f"--zeta {zeta!r}: choose one of {', '.join(STREAM_ZETA_SOURCES)}, none")
-    from reconstruct.net_zeta import NET_FALLBACKS, NET_ZETA_SOURCES
+    from reconstruct.net.net_zeta import NET_FALLBACKS, NET_ZETA_SOURCES
 
     if method == "net" and zeta not in (None, *NET_ZETA_SOURCES):
         raise ConfigError(f"--zeta {zeta} needs a physics --method (ls, ridge, irls, rwps); the network takes --zeta {', '.join(NET_ZETA_SOURCES)}")
@@ -148,7 +149,7 @@ def reconstruct_cmd(
     dev = "cuda" if device == "auto" and torch.cuda.is_available() else ("cpu" if device == "auto" else device)
     if precision not in ("float32", "bfloat16"):
         raise ConfigError(f"--precision {precision!r}: choose float32 or bfloat16")
-    from reconstruct.network import check_ensemble_size
+    from reconstruct.net.network import check_ensemble_size
 
     check_ensemble_size(ensemble, "--ensemble")
     if ensemble > 1 and method != "net":
@@ -183,43 +184,43 @@ def reconstruct_cmd(
     load = lambda: load_model(weights or DEFAULT_WEIGHTS, dev, **({} if rir is None else {"use_rir": rir}))[0]  # noqa: E731
     net_model = load() if method == "net" else None  # a bad checkpoint is reported before the stream is read
     if net_model is not None and ensemble > 1:
-        from reconstruct.network import SymmetryEnsemble
+        from reconstruct.net.network import SymmetryEnsemble
 
         net_model = SymmetryEnsemble(net_model, ensemble).eval()
     exposure_info = {"exposure_source": "stored in the group" if src.exposure is not None and exposure is None else "--exposure"}
     if exposure is not None:
         src = dataclasses.replace(src, exposure=None)  # --exposure forces the value, also over a group's stored one
     elif src.exposure is None:
-        from reconstruct.exposure import estimate_source_exposure
+        from reconstruct.stream.exposure import estimate_source_exposure
 
         est = estimate_source_exposure(src)
         cfg = dataclasses.replace(cfg, exposure=est.exposure)
         exposure_info = {"exposure_source": "estimated", "exposure_estimate": est.summary()}
     info = None
     if pane is not None:
-        from reconstruct.physics_video import PhysicsModel, calibrated_pane_maps
+        from reconstruct.video.physics import PhysicsModel, calibrated_pane_maps
 
         maps = calibrated_pane_maps(pane, src.height, src.width)
         span = src.window_span_rad(window_steps)
         info = {"zeta": f"pane ({pane})", "selfcal": None}
         if method == "net":
-            from reconstruct.net_zeta import MapsZetaNet
+            from reconstruct.net.net_zeta import MapsZetaNet
 
             model = MapsZetaNet(net_model, maps, span)
         else:
             model = PhysicsModel(method, maps=maps, span_rad=span, rir=True if rir is None else rir, anchor=anchor)
     elif method == "net":
-        from reconstruct.net_zeta import NET_DEFAULT_ZETA
+        from reconstruct.net.net_zeta import NET_DEFAULT_ZETA
 
         model = net_model
         zeta = zeta or NET_DEFAULT_ZETA
         if zeta in ("self", "none"):
-            from reconstruct.net_zeta import build_net_zeta_model
+            from reconstruct.net.net_zeta import build_net_zeta_model
 
             model, info = build_net_zeta_model(model, zeta, src, group_dir=None if input.suffix.lower() == ".dat" else input, window_steps=window_steps,
                                                exposure=None if src.exposure is not None else cfg.exposure, fallback=zeta_fallback, pane_n=pane_n, pane_model=pane_model, selfcal=selfcal)
     else:
-        from reconstruct.physics_video import build_physics_model
+        from reconstruct.video.physics import build_physics_model
 
         model, info = build_physics_model(method, zeta or "self", src, group_dir=None if input.suffix.lower() == ".dat" else input, window_steps=window_steps,
                                           exposure=None if src.exposure is not None else cfg.exposure, rir=True if rir is None else rir, load_learned=load, anchor=anchor,
@@ -248,7 +249,7 @@ def reconstruct_cmd(
 def heldout_mean_steps() -> int:
     """Steps of the long spike mean a ``use_mean`` network is given in the held-out windows (as trained: the default
     sensor's rate, 350 at 20 kHz)."""
-    from reconstruct.groups import spike_mean_steps
+    from reconstruct.stream.groups import spike_mean_steps
     from spike_sim.config import preset
 
     return spike_mean_steps(preset("default").rate_hz)
@@ -257,7 +258,7 @@ def heldout_mean_steps() -> int:
 def heldout_wide_steps() -> int:
     """Steps of the wide window a network with ``wide_input`` is given in the held-out windows (as trained: the default
     sensor's rate, 30 rev/s, 31.5 deg; 57 at 20 kHz)."""
-    from reconstruct.groups import wide_window_steps
+    from reconstruct.stream.groups import wide_window_steps
     from spike_sim.config import preset
 
     return wide_window_steps(preset("default").rate_hz, 30.0, 31.5)
@@ -277,7 +278,7 @@ def heldout_test_set(crop: int = 64, items: int = 96, seed: int = 20_000, manife
     """
     from polinfra.errors import ConfigError
     from polspike.pipeline.train_windows import GeneratorWindows, manifest_scenes, scene_pool
-    from reconstruct.onthefly import OnTheFlyWindows, WindowConfig
+    from reconstruct.net.onthefly import OnTheFlyWindows, WindowConfig
 
     if light not in ("range", "group"):
         raise ConfigError(f"light = {light!r}: choose range or group")
@@ -293,7 +294,7 @@ def heldout_test_set(crop: int = 64, items: int = 96, seed: int = 20_000, manife
 
 @app_typer.command("evaluate-checkpoint")
 def evaluate_checkpoint_cmd(
-    weights: Optional[Path] = typer.Argument(None, help="checkpoint [default: the shipped reconstruct/weights default, reconstruct.checkpoint.DEFAULT_WEIGHTS]"),
+    weights: Optional[Path] = typer.Argument(None, help="checkpoint [default: the shipped reconstruct/weights default, reconstruct.net.checkpoint.DEFAULT_WEIGHTS]"),
     out: Optional[Path] = typer.Option(None, "--out", help="write scores.json and scores.md here"),
     items: int = typer.Option(96, "--items", help="test windows"),
     crop: int = typer.Option(64, "--crop", help="test crop side (multiple of 4)"),
@@ -311,8 +312,8 @@ def evaluate_checkpoint_cmd(
     from rich.table import Table
 
     from polinfra.atomic import ensure_dir, write_json, write_text
-    from reconstruct.checkpoint import DEFAULT_WEIGHTS, load_model
-    from reconstruct.train import evaluate_model
+    from reconstruct.net.checkpoint import DEFAULT_WEIGHTS, load_model
+    from reconstruct.net.train import evaluate_model
 
     if threads > 0:
         torch.set_num_threads(threads)
@@ -376,9 +377,9 @@ def bench_reconstruct_net_cmd(
 
     from polinfra.atomic import write_json, write_text
     from polinfra.config import from_dict, load_toml
-    from reconstruct.bench import bench_reconstruct_net, net_table
-    from reconstruct.checkpoint import DEFAULT_WEIGHTS, V1_WEIGHTS, load_model
-    from reconstruct.train import TrainConfig
+    from reconstruct.evaluate.bench import bench_reconstruct_net, net_table
+    from reconstruct.net.checkpoint import DEFAULT_WEIGHTS, V1_WEIGHTS, load_model
+    from reconstruct.net.train import TrainConfig
 
     ref_path, new_path = reference or V1_WEIGHTS, weights or DEFAULT_WEIGHTS
     models, train_cfgs = {}, {}

@@ -3,11 +3,11 @@
 Pipeline (issue 21; physics in ../shared/RECONSTRUCTION_NOTES.md):
 
 1. **Frames**: the first ``span_s`` (default 0.1 s) of the stream as back-to-back Eq. (3) windows
-   (:func:`reconstruct.physics_video.span_frames`).
-2. **Start**: the self-calibrated zeta's geometric fit (:func:`reconstruct.selfcal.self_calibrate`:
+   (:func:`reconstruct.stream.sources.span_frames`).
+2. **Start**: the self-calibrated zeta's geometric fit (:func:`reconstruct.pane.selfcal.self_calibrate`:
    pane normal and, unless given, the field of view from the modulation's orientation mod 90 deg).
 3. **Geometry** (tilt, azimuth, fov): bounded Gauss-Newton on the block orientation field of
-   :func:`reconstruct.selfcal.orientation_field` (psi_b = arg(sum z^4)/4), residual
+   :func:`reconstruct.pane.orientation.orientation_field` (psi_b = arg(sum z^4)/4), residual
    sqrt(w_b) sin 2(psi_b - phi_perp_b(x)) / 2 with w_b = 1 / (Var psi_b + a misfit floor estimated
    from the best-measured blocks), Var psi_b measured from the scatter of the block's pixels perpendicular to its
    direction (:func:`block_orientation_variance`): invariant to the 90 deg flip where R < T, blocks that do not modulate
@@ -27,7 +27,7 @@ Pipeline (issue 21; physics in ../shared/RECONSTRUCTION_NOTES.md):
    the data give a bound, and the report says "not identified" and keeps the prior.
 4b. **Content** (where the cone leaves n or the model open; ``content``): under the right zeta the layers solved
    by paper Eq. (1)-(2) are independent, under a wrong one each carries the other's texture
-   (:mod:`reconstruct.exclusion`).  For single / slab and n over common glasses (1.40-2.00) the span's time parts
+   (:mod:`reconstruct.physics.exclusion`).  For single / slab and n over common glasses (1.40-2.00) the span's time parts
    (one per 3 half turns of the polarizer, at least 2: :func:`content_parts_for`) are solved in closed form and the gradients of R^ (one part) and T^ (another) correlated per tile; the least
    mean squared correlation is the best guess.  A model / n is claimed only when the alternatives score higher by
    ``content_z`` standard errors across the tiles; unclaimed, the best guess still replaces the prior in the maps
@@ -88,7 +88,7 @@ class CalibratePaneConfig:
     dop_fov_delta_chi2: float = opt(25.0, "the modulation depth pins the fov only when the cone violations at both ends of the profiled valley exceed its minimum by this much", lo=0.0, hi=1e9)
     max_incidence_deg: float = opt(89.0, "a fitted fov at which a modulating block's ray would meet the pane at more than this incidence (edge-on, or never in front of the camera: it could not modulate) is narrowed to the widest view that keeps every modulating block below it (the fov then NOT identified); 90 or more turns the check off", lo=1.0, hi=180.0)
     max_theta_sigma_deg: float = opt(0.5, "a fitted fov (hence theta) counts as identified only when theta's median 1-sigma is at most this, degrees", lo=0.0, hi=90.0)
-    content: bool = opt(True, "where the DoP cone leaves n / the model open, try the layers' content: the gradients of R^ and T^ solved under the right zeta are least correlated (reconstruct.exclusion); claimed only with a margin over the tiles' spread")
+    content: bool = opt(True, "where the DoP cone leaves n / the model open, try the layers' content: the gradients of R^ and T^ solved under the right zeta are least correlated (reconstruct.physics.exclusion); claimed only with a margin over the tiles' spread")
     content_sigma_px: float = opt(2.0, "smoothing (pixels) of the solved layers before their gradients are correlated (the sensor's fixed pattern correlates them at 1 px)", lo=0.0, hi=20.0)
     content_tiles: int = opt(6, "the content score's tiles per image axis (its spread across tiles gives the margin)", lo=2, hi=64)
     content_parts: int = opt(0, "time parts of the span: R^ of one part is correlated with T^ of another (independent spike noise); 0 = one part per CONTENT_PART_HALF_TURNS half turns of the polarizer, at least 2 (0.1 s at 30 rev/s: 2; 0.2 s: 4), so a longer span adds pairs instead of blurring the moving layers", lo=0, hi=64)
@@ -178,7 +178,7 @@ def fit_geometry(of: dict, width: int, height: int, block: int, x0: np.ndarray, 
     ``s4`` weighs by |sum z4| (the matched-filter weight of the self-calibration).
     ``fov_starts``: extra starts (degrees) of a fitted field of view; ``rounds``: robust re-weighting rounds."""
     from generator.pane_fit import PaneModelAD, gauss_newton
-    from reconstruct.selfcal import block_orientation_variance
+    from reconstruct.pane.orientation import block_orientation_variance
 
     s4, q = of["s4"], of["q"]
     coherent = np.abs(s4) > coherence_sigmas * np.sqrt(0.5 * np.maximum(q, 1e-300))
@@ -314,7 +314,7 @@ def edge_statistics(I: np.ndarray, phi: np.ndarray, phi_perp: np.ndarray, block:
     """
     import torch
 
-    from reconstruct.harmonic_fit import half_turn_frames, harmonic_fit
+    from reconstruct.physics.harmonic_fit import half_turn_frames, harmonic_fit
 
     L = half_turn_frames(phi)
     C = I.shape[0] // L
@@ -705,7 +705,7 @@ def content_pixels_for(pixels: str, parts: int) -> str:
 def content_parts_for(phi: np.ndarray, frames: int, parts: int = 0) -> int:
     """Time parts of the content test for a span of ``frames`` frames at polarizer angles ``phi``: ``parts`` when
     given, else one per :data:`CONTENT_PART_HALF_TURNS` half turns (rounded), at least 2."""
-    from reconstruct.harmonic_fit import half_turn_frames
+    from reconstruct.physics.harmonic_fit import half_turn_frames
 
     if parts:
         return int(parts)
@@ -715,17 +715,17 @@ def content_parts_for(phi: np.ndarray, frames: int, parts: int = 0) -> int:
 
 def content_glass(I: np.ndarray, phi: np.ndarray, theta: np.ndarray, phi_perp: np.ndarray, gain: float, models: tuple[str, ...],
                   cfg: CalibratePaneConfig, fixed_n: float | None = None, n_grid: np.ndarray | None = None, parts: list | None = None) -> dict:
-    """Pane model and index from the layers' content (gradient exclusion, :mod:`reconstruct.exclusion`).
+    """Pane model and index from the layers' content (gradient exclusion, :mod:`reconstruct.physics.exclusion`).
 
     For every hypothesis (model, n) the span's time parts are solved in closed form (paper Eq. (1)-(2)) and the
     gradients of R^ of one part and T^ of another are correlated per tile (``content_tiles`` per axis); the score is
     the mean squared tile correlation (a wrong zeta leaks one layer's texture into the other: module docstring of
-    reconstruct.exclusion).  The best hypothesis is the least score.  A model is claimed when the other model's best
+    reconstruct.physics.exclusion).  The best hypothesis is the least score.  A model is claimed when the other model's best
     score is higher by ``content_z`` standard errors of the paired per-tile differences; n when every index more
     than ``max_n_sigma`` away is rejected in the same way.  Featureless layers leave every score at the noise level
     and nothing is claimed.  Returns the scores, the choice and the two verdicts."""
     from polphysics.fresnel import pane_coefficients
-    from reconstruct.exclusion import cross_gradient_sums, label_correlations, part_harmonics, rotate_parts
+    from reconstruct.physics.exclusion import cross_gradient_sums, label_correlations, part_harmonics, rotate_parts
 
     t0 = time.perf_counter()
     H, W = theta.shape
@@ -793,7 +793,8 @@ def calibrate_frames(I: np.ndarray, phi: np.ndarray, cfg: CalibratePaneConfig = 
     import dataclasses as dc
 
     from polphysics.fresnel import glass_index
-    from reconstruct.selfcal import SelfCalConfig, orientation_field, self_calibrate
+    from reconstruct.pane.selfcal import SelfCalConfig, self_calibrate
+    from reconstruct.pane.orientation import orientation_field
 
     from generator.pane_fit import PaneModelAD
 
@@ -1252,9 +1253,11 @@ def write_outputs(out: Path, res: dict, *, base_scene: dict | None = None, width
 def calibrate_input(input: Path, cfg: CalibratePaneConfig, *, height: int | None = None, width: int | None = None, phi0_deg: float | None = None,
                     rev_per_s: float | None = None, rate_hz: float = 20000.0, progress=None) -> tuple[dict, dict | None, int, int]:
     """Load a group store or a raw .dat and run :func:`calibrate_frames`; returns (result, base scene dict, W, H)."""
-    from reconstruct.physics_video import frames_exposure, span_frames
-    from reconstruct.selfcal import StreamTooShortError, fov_from_group_dir, leave_out_saturated
-    from reconstruct.video import dat_source, group_source
+    from reconstruct.stream.sources import frames_exposure, span_frames
+    from reconstruct.stream.sources import StreamTooShortError
+    from reconstruct.stream.groups import fov_from_group_dir
+    from reconstruct.pane.selfcal import leave_out_saturated
+    from reconstruct.stream.sources import dat_source, group_source
 
     base = None
     input = Path(input)
@@ -1301,7 +1304,7 @@ def bench_stream(width: int = 400, height: int = 250, span_s: float = 0.1, tilt_
     Poisson counts at ``exposure`` thresholds per unit radiance.  Returns (I, phi, span_rad, truth)."""
     from polphysics.fresnel import pane_coefficients
     from polphysics.geometry import Plane, incidence_geometry
-    from reconstruct.selfcal import camera_for, normal_from_angles
+    from reconstruct.pane.camera import camera_for, normal_from_angles
 
     rng = np.random.default_rng(seed)
     cam = camera_for(width, height, fov_deg)
@@ -1351,7 +1354,7 @@ def run_bench(out: Path, width: int = 400, height: int = 250, span_s: float = 0.
     import os
 
     from polinfra.atomic import write_json
-    from reconstruct.selfcal import SelfCalConfig, self_calibrate
+    from reconstruct.pane.selfcal import SelfCalConfig, self_calibrate
 
     I, phi, span, truth = bench_stream(width, height, span_s)
     t0 = time.perf_counter()

@@ -52,8 +52,8 @@ def evaluate_setting(weights: str | os.PathLike, setting: dict[str, Any], thread
     import torch
 
     from polspike.commands.train_cmds import heldout_inputs, heldout_test_set
-    from reconstruct.checkpoint import load_model
-    from reconstruct.train import evaluate_model
+    from reconstruct.net.checkpoint import load_model
+    from reconstruct.net.train import evaluate_model
 
     old = torch.get_num_threads()
     torch.set_num_threads(max(1, int(threads)))
@@ -85,7 +85,7 @@ def write_scores(weights: str | os.PathLike, manifest: str = DEFAULT_MANIFEST, t
     import torch
 
     from polinfra.atomic import write_json
-    from reconstruct.checkpoint import read_checkpoint
+    from reconstruct.net.checkpoint import read_checkpoint
 
     w = Path(weights)
     data = read_checkpoint(w)

@@ -2,7 +2,7 @@
 
 ``polspike dataset inspect DIR [--group G] [--time T] --out OUT [--video]``
 calls :func:`inspect_group`.  DIR is a dataset directory (``dataset.json``,
-layout of :func:`reconstruct.groups.list_groups`, or a folder of group
+layout of :func:`reconstruct.stream.groups.list_groups`, or a folder of group
 directories) or one group directory (``GROUP/spikes.h5``, ``spike_sim.store``).
 The time T (seconds, default the middle of the stream) is snapped to the
 nearest stored output frame m whose 2K + 1 observation window fits in the

@@ -3,7 +3,7 @@
 None of these recordings has a rotating polarizer (README of that folder), so there is no
 reflection to remove: the check is robustness.  Each recording is reconstructed with the given
 checkpoint (default: the shipped one) on a bounded number of output frames, with the exposure
-estimated from the stream (:mod:`reconstruct.exposure`, the raw-.dat default) and a nominal
+estimated from the stream (:mod:`reconstruct.stream.exposure`, the raw-.dat default) and a nominal
 polarizer calibration (phi0 = 0; the rotation rate chosen so that the N observations of the
 requested frames fit the recording at the trained 31.5 deg stride: 30 rev/s, faster for short recordings).  Per
 recording: no crash, no NaN, and T against
@@ -86,7 +86,7 @@ def _load(rec: Recording, folder: Path, crop: int) -> np.ndarray:
 
 
 def _psnr_peak(est: np.ndarray, ref: np.ndarray) -> float:
-    from reconstruct.metrics import psnr
+    from reconstruct.evaluate.metrics import psnr
 
     return psnr(est, ref, data_range=max(float(ref.max()), 1e-9))
 
@@ -98,17 +98,18 @@ def evaluate_real(out: str | Path, folder: str | Path | None = None, *, weights:
     A recording that raises is reported (``status`` "error: ...") and the others still run."""
     from polinfra.atomic import ensure_dir
     from polinfra.exr import read_exr
-    from reconstruct.checkpoint import DEFAULT_WEIGHTS, load_model
-    from reconstruct.exposure import estimate_exposure
-    from reconstruct.net_zeta import build_net_zeta_model
-    from reconstruct.video import ReconstructConfig, array_source, reconstruct_stream
+    from reconstruct.net.checkpoint import DEFAULT_WEIGHTS, load_model
+    from reconstruct.stream.exposure import estimate_exposure
+    from reconstruct.net.net_zeta import build_net_zeta_model
+    from reconstruct.video.stream import ReconstructConfig, reconstruct_stream
+    from reconstruct.stream.sources import array_source
     from spike_sim.aggregate import AggregateConfig, frame_centres
 
     folder = Path(folder) if folder is not None else default_real_dir()
     out = ensure_dir(out)
     net = load_model(weights or DEFAULT_WEIGHTS, device)[0]
-    if ensemble > 1:  # test-time self-ensemble (reconstruct.network.SymmetryEnsemble)
-        from reconstruct.network import SymmetryEnsemble
+    if ensemble > 1:  # test-time self-ensemble (reconstruct.net.network.SymmetryEnsemble)
+        from reconstruct.net.network import SymmetryEnsemble
 
         net = SymmetryEnsemble(net, ensemble).eval()
     N = net.cfg.n_obs

@@ -526,7 +526,7 @@ STRESS_LEVELS: dict[str, dict[str, float | str]] = {
     "pane": {"single": "single", "slab": "thin_slab"},
 }
 """Levels of the stress grid (:func:`stress_manifest`); factor names as in
-:data:`reconstruct.evaluate.REGIME_FACTORS`."""
+:data:`reconstruct.evaluate.harness.REGIME_FACTORS`."""
 
 
 def stress_design() -> list[dict[str, str]]:

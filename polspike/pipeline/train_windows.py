@@ -5,7 +5,7 @@ crops with the generator's **analytic tier** (:func:`generator.analytic.analytic
 :func:`generator.analytic.sample_layers`, :func:`generator.analytic.frame_stokes`)
 and simulates them with :func:`spike_sim.simulate` (integrate-and-fire with the
 full noise model), the code that builds stores, then turns the stream into a
-window item with :func:`reconstruct.onthefly.item_from_stream`.
+window item with :func:`reconstruct.net.onthefly.item_from_stream`.
 
 One item (``(seed, index)`` -> item, a pure function):
 
@@ -158,11 +158,11 @@ class _SceneCache:
 
 
 class GeneratorWindows:
-    """A :data:`reconstruct.onthefly.WindowSource` over a scene pool (module docstring).
+    """A :data:`reconstruct.net.onthefly.WindowSource` over a scene pool (module docstring).
 
     Args:
         scenes: :class:`generator.scene.SceneConfig` list (all 400x250 or any size >= the crop).
-        window: :class:`reconstruct.onthefly.WindowConfig`.
+        window: :class:`reconstruct.net.onthefly.WindowConfig`.
         cache_scenes: scenes whose maps and content stay in memory (about 7 MB each).
     """
 
@@ -249,7 +249,7 @@ class GeneratorWindows:
         from spike_sim.simulate import _interp_layers, simulate
 
         from polphysics.polarizer import phi_nominal, step_phi_edges
-        from reconstruct.onthefly import flip_item, item_from_stream
+        from reconstruct.net.onthefly import flip_item, item_from_stream
 
         g = self.window_group(seed, index)
         src, cfg, w = g["source"], g["config"], self.window
@@ -303,7 +303,7 @@ def manifest_scenes(path: str, split: str, with_sensor: bool = False) -> list:
 
 
 def window_sets(window, train_items: int, val_items: int, seed: int, n_train_scenes: int = 40, n_test_scenes: int = 10, scene_seed: int = 0, manifest: str = "", val_manifest: str = "", val_split: str = "train"):
-    """(train, validation) :class:`reconstruct.onthefly.OnTheFlyWindows` on disjoint scenes and content.
+    """(train, validation) :class:`reconstruct.net.onthefly.OnTheFlyWindows` on disjoint scenes and content.
 
     With ``manifest``: the scenes of its "train" and "test" groups (e.g. ``paper.toml``: 40 / 10).
     Else training windows come from ``n_train_scenes`` scenes drawn with seed ``scene_seed``
@@ -311,7 +311,7 @@ def window_sets(window, train_items: int, val_items: int, seed: int, n_train_sce
     With ``val_manifest``: validation windows from its ``val_split`` groups instead (a validation split
     apart from the test groups).
     """
-    from reconstruct.onthefly import OnTheFlyWindows
+    from reconstruct.net.onthefly import OnTheFlyWindows
 
     if manifest:
         sc_tr, si_tr = manifest_scenes(manifest, "train", with_sensor=True)

@@ -21,9 +21,9 @@ import time
 import numpy as np
 import torch
 
-from reconstruct.harmonic_fit import dop, harmonic_fit
-from reconstruct.rir import RirConfig, estimate_shifts, warp
-from reconstruct.solvers import solve
+from reconstruct.physics.harmonic_fit import dop, harmonic_fit
+from reconstruct.physics.rir import RirConfig, estimate_shifts, warp
+from reconstruct.physics.solvers import solve
 
 __all__ = ["bench_reconstruct", "bench_reconstruct_net", "count_flops", "net_table"]
 
@@ -44,8 +44,8 @@ def _timeit(fn, repeats: int, sync=lambda: None) -> float:
 
 def _window(N: int, H: int, W: int, seed: int = 0):
     """One window of the closed-form synthetic set (pictures, pane maps, Poisson spike counts)."""
-    from reconstruct.evaluate import EvalConfig, group_zeta
-    from reconstruct.synthetic import SyntheticConfig, make_group
+    from reconstruct.evaluate.harness import EvalConfig, group_zeta
+    from reconstruct.stream.synthetic import SyntheticConfig, make_group
 
     g = make_group(SyntheticConfig(width=W, height=H, n_frames=N, seed=seed), 0)
     Z = group_zeta(g, EvalConfig())
@@ -125,7 +125,7 @@ def count_flops(model, height: int = 250, width: int = 400) -> float:
     I = 0.1 + 0.3 * torch.rand(1, model.cfg.n_obs, H, W, generator=torch.Generator().manual_seed(0))
     phi = (torch.arange(model.cfg.n_obs, dtype=torch.float32) - model.cfg.n_obs // 2)[None] * 0.55
     fc = FlopCounterMode(display=False)
-    from reconstruct.video import standin_inputs
+    from reconstruct.video.tiling import standin_inputs
 
     with torch.inference_mode(), fc:
         model(I, phi, **standin_inputs(model, I))
@@ -133,7 +133,7 @@ def count_flops(model, height: int = 250, width: int = 400) -> float:
 
 
 def _frame_fps(model, height: int, width: int, frames: int, tile: int, precision: str = "float32", device: str = "cpu") -> float:
-    from reconstruct.video import run_model_on_windows, standin_inputs
+    from reconstruct.video.tiling import run_model_on_windows, standin_inputs
 
     g = np.random.default_rng(0)
     N = model.cfg.n_obs
@@ -154,7 +154,8 @@ def _frame_fps(model, height: int, width: int, frames: int, tile: int, precision
 
 def _stream_fps(model, height: int, width: int, frames: int, out_dir) -> dict:
     """``polspike reconstruct`` end to end (Eq. (3) aggregation, network, video writing) on a synthetic stream."""
-    from reconstruct.video import ReconstructConfig, array_source, reconstruct_stream
+    from reconstruct.video.stream import ReconstructConfig, reconstruct_stream
+    from reconstruct.stream.sources import array_source
 
     N = model.cfg.n_obs
     steps = int((frames + N + 1) * 31.5 / 360 / 30.0 * 20000) + 40
@@ -171,10 +172,10 @@ def _stream_fps(model, height: int, width: int, frames: int, out_dir) -> dict:
 
 
 def _train_throughput(arch_cfg, train_set, steps: int, workers: int, out_dir) -> dict:
-    """Wall time of ``steps`` optimizer steps of :func:`reconstruct.train.train` (data generation included)."""
+    """Wall time of ``steps`` optimizer steps of :func:`reconstruct.net.train.train` (data generation included)."""
     import dataclasses
 
-    from reconstruct.train import train
+    from reconstruct.net.train import train
 
     cfg = dataclasses.replace(arch_cfg, epochs=1, steps_per_epoch=steps, ckpt_every=10**6, log_every=10**6, val_every=10**6)
     t0 = time.perf_counter()
@@ -207,7 +208,7 @@ def bench_reconstruct_net(
         frames: timed single-frame passes per setting (best kept).
         threads: torch thread counts for the frame rate.
         stream_frames: name -> output frames of the end-to-end ``polspike reconstruct`` run (on ``max(threads)`` threads; omit to skip).
-        train_cfgs: name -> :class:`reconstruct.train.TrainConfig` for the training throughput (omit to skip).
+        train_cfgs: name -> :class:`reconstruct.net.train.TrainConfig` for the training throughput (omit to skip).
         train_set: on-the-fly training windows (map-style dataset) for the training throughput.
         train_steps: name -> optimizer steps timed.
         variants: also time channels-last and bf16 autocast (and ``torch.compile`` when ``compile_``) for the models after the first.
@@ -219,7 +220,7 @@ def bench_reconstruct_net(
     import tempfile
     from pathlib import Path
 
-    from reconstruct.network import count_parameters
+    from reconstruct.net.network import count_parameters
 
     work = Path(work_dir or tempfile.mkdtemp(prefix="bench_net_"))
     out: dict = {"config": {"width": width, "height": height, "frames": frames, "threads": list(threads), "torch": torch.__version__, "machine": platform.machine()}, "models": {}}
@@ -244,7 +245,7 @@ def bench_reconstruct_net(
                     trained.setdefault(name, {})[f"workers_{w}"] = _train_throughput(train_cfgs[name], train_set, steps, w, work / f"train_{name}_{w}")
                     log.info("%s: training %s", name, trained[name])
         for name, model in models.items():
-            from reconstruct.video import auto_tile
+            from reconstruct.video.tiling import auto_tile
 
             r: dict = {"arch": getattr(model.cfg, "arch", "?"), "parameters": count_parameters(model), "tile": auto_tile(model, "cpu")}
             torch.set_num_threads(1)
@@ -344,15 +345,15 @@ ENSEMBLE_METRICS = ("psnr_T", "ssim_T", "psnr_R", "ssim_R")
 
 
 def bench_ensemble(groups, cfg, sizes: tuple[int, ...] = (1, 2, 4, 8), progress=None) -> dict:
-    """Quality and cost of the network's test-time self-ensemble (:class:`reconstruct.network.SymmetryEnsemble`).
+    """Quality and cost of the network's test-time self-ensemble (:class:`reconstruct.net.network.SymmetryEnsemble`).
 
     Every size runs the network (method full, ``cfg``'s zeta) on the same ``groups`` and frames; the result gives
-    T and R PSNR / SSIM (overall rows of :func:`reconstruct.evaluate.evaluate_groups`), the network's seconds per
+    T and R PSNR / SSIM (overall rows of :func:`reconstruct.evaluate.harness.evaluate_groups`), the network's seconds per
     output frame and its ratio to size 1, measured in the same run (size 1 is always run first).
     """
     import dataclasses
 
-    from reconstruct.evaluate import evaluate_groups, net_zeta_of
+    from reconstruct.evaluate.harness import evaluate_groups, net_zeta_of
 
     sizes = tuple(dict.fromkeys((1, *sizes)))
     groups = list(groups)

@@ -3,7 +3,7 @@
 For each group, output frames i with K = N // 2 frames on either side and a GT
 frame are reconstructed from the window {I(i+k), phi(i+k)}, k in [-K, K]:
 RIR (optional, supp. Sec. 6) aligns frames and zeta maps to the centre frame,
-then each solver of :mod:`reconstruct.solvers` recovers (R, T).
+then each solver of :mod:`reconstruct.physics.solvers` recovers (R, T).
 
 Baselines, in the same table:
 
@@ -28,14 +28,14 @@ The learned reconstructor (issue 9) from a checkpoint (:func:`load_network`):
   weights, so a checkpoint trained with them can also be evaluated without
   them (a test-time ablation, logged as a warning); attention cannot.
 * zeta source ``learned``: zeta_hat and w of the parameter branch
-  (:func:`reconstruct.zeta_source.zeta_learned`) on the RIR-aligned window,
+  (:func:`reconstruct.net.learned_zeta.zeta_learned`) on the RIR-aligned window,
   fed to the physics solvers (w to rwps only).
 
-Scores: PSNR / SSIM (:mod:`reconstruct.metrics`) of T and R per frame,
+Scores: PSNR / SSIM (:mod:`reconstruct.evaluate.metrics`) of T and R per frame,
 averaged per group and over all frames (``overall``); R also over the pixels where
 the reflection is >= 20 % of the light, with the fraction of such pixels, the noise
 floor of R for the least-squares estimate with the true zeta
-(:mod:`reconstruct.identifiability`) and a flat-R reference (:data:`SHARE_KEYS`).  Outputs (see
+(:mod:`reconstruct.physics.identifiability`) and a flat-R reference (:data:`SHARE_KEYS`).  Outputs (see
 :func:`write_report`): ``results.csv``, ``results.md``, ``results.json``,
 ``figure.png`` (input / TFP / solver T / GT, the first frame of the first
 ``figure_frames`` groups), ``config.json``.
@@ -56,16 +56,18 @@ import torch
 from polinfra.config import opt, to_dict
 from polinfra.errors import ConfigError, DataFormatError
 
-from reconstruct.groups import EvalGroup, network_inputs
-from reconstruct.identifiability import SHARE_MIN, bound_psnr, ls_layer_variance, reflected_share, window_mean_variance
-from reconstruct.metrics import LPIPS_NA, lpips_status, masked_psnr, masked_score, psnr, score
-from reconstruct.net_zeta import NET_FALLBACKS, fallback_for
-from reconstruct.network import SYMMETRY_CODES
-from reconstruct.rir import RirConfig, estimate_shifts, warp
-from reconstruct.solvers import PHYSICS_SOLVER_CONFIG, SOLVERS, SolverConfig, anchor_to_mean, long_span_separation, solve, zbar_of
-from reconstruct.zeta_source import ZETA_SOURCES, PaneMaps, zeta_from_maps, zeta_learned
+from reconstruct.stream.groups import EvalGroup, network_inputs
+from reconstruct.physics.identifiability import SHARE_MIN, bound_psnr, ls_layer_variance, reflected_share, window_mean_variance
+from reconstruct.evaluate.metrics import LPIPS_NA, lpips_status, masked_psnr, masked_score, psnr, score
+from reconstruct.net.net_zeta import NET_FALLBACKS, fallback_for
+from reconstruct.net.network import SYMMETRY_CODES
+from reconstruct.physics.rir import RirConfig, estimate_shifts, warp
+from reconstruct.physics.solvers import PHYSICS_SOLVER_CONFIG, SOLVERS, SolverConfig, solve
+from reconstruct.physics.span import anchor_to_mean, long_span_separation, zbar_of
+from reconstruct.physics.zeta import ZETA_SOURCES, PaneMaps, zeta_from_maps
+from reconstruct.net.learned_zeta import zeta_learned
 
-__all__ = ["BOUND_GOAL_DB", "SHARE_KEYS", "SHARE_FRAME_KEYS", "group_noise", "share_context", "share_scores", "net_zeta_of", "REGIME_FACTORS", "regime_of", "evaluate_by_regime", "regime_markdown", "regime_report", "REGIME_TABLES", "EvalConfig", "EvalReport", "finite_means", "BASELINES", "ANCHOR_SUFFIX", "SPAN_METHOD", "NET_METHOD", "load_network", "group_zeta", "evaluate_groups", "write_report", "parse_methods", "load_groups", "window_sweep", "markdown_table", "sweep_markdown"]
+__all__ = ["BOUND_GOAL_DB", "SHARE_KEYS", "SHARE_FRAME_KEYS", "group_noise", "share_context", "share_scores", "net_zeta_of", "REGIME_FACTORS", "EvalConfig", "EvalReport", "finite_means", "BASELINES", "ANCHOR_SUFFIX", "SPAN_METHOD", "NET_METHOD", "load_network", "group_zeta", "evaluate_groups", "write_report", "parse_methods", "load_groups", "window_sweep", "markdown_table", "sweep_markdown"]
 
 log = logging.getLogger(__name__)
 
@@ -98,15 +100,15 @@ class EvalConfig:
     net_tile: int = opt(256, "method full: network tile size in pixels (bounded memory; 0 = whole frame)", lo=0, hi=100000)
     net_solver: str = opt("", "method full: physics solver before the network's refinement instead of the trained one (supp. Table 3); empty = as trained", choices=("", "ls", "ridge", "irls", "rwps"))
     net_zeta: str = opt("", "method full: zeta of the network's solver and refinement: learned (its parameter branch), self, gt, physics, or none (zeta = 0: no separable reflection, T is the whole light); empty = self when zeta is self, else learned", choices=("", "learned", "self", "gt", "physics", "none"))
-    net_ensemble: int = opt(1, "method full: test-time self-ensemble over 1, 2, 4 or 8 symmetries of the image (reconstruct.network.SymmetryEnsemble; that many forward passes)", choices=tuple(SYMMETRY_CODES))
-    net_fallback: str = opt("auto", "method full with net zeta self, where the stream does not self-calibrate: auto (learned where the refused calibration still shows >= 5 % of pixels modulating, else none; reconstruct.net_zeta.fallback_for), none (zeta = 0, T is the whole light) or learned (the network's own zeta)", choices=NET_FALLBACKS)
-    anchor: str = opt("none", "mean: also score each method anchored to the 17.5 ms spike mean, T = 2 I_mean - zbar (R^ - T^), R = T + (R^ - T^) (rows '<method>+mean'), and the physics of the whole span's first harmonic on the solvers' zeta (row 'span'; reconstruct.solvers.long_span_separation); stored groups only", choices=("none", "mean"))
+    net_ensemble: int = opt(1, "method full: test-time self-ensemble over 1, 2, 4 or 8 symmetries of the image (reconstruct.net.network.SymmetryEnsemble; that many forward passes)", choices=tuple(SYMMETRY_CODES))
+    net_fallback: str = opt("auto", "method full with net zeta self, where the stream does not self-calibrate: auto (learned where the refused calibration still shows >= 5 % of pixels modulating, else none; reconstruct.net.net_zeta.fallback_for), none (zeta = 0, T is the whole light) or learned (the network's own zeta)", choices=NET_FALLBACKS)
+    anchor: str = opt("none", "mean: also score each method anchored to the 17.5 ms spike mean, T = 2 I_mean - zbar (R^ - T^), R = T + (R^ - T^) (rows '<method>+mean'), and the physics of the whole span's first harmonic on the solvers' zeta (row 'span'; reconstruct.physics.span.long_span_separation); stored groups only", choices=("none", "mean"))
 
 
 def _refused_fallback(cfg: EvalConfig) -> str:
     """The network's zeta (none or learned) for the group whose self-calibration just refused
-    (:func:`reconstruct.net_zeta.fallback_for` of that calibration, ``cfg.net_fallback``)."""
-    from reconstruct.selfcal import group_self_zeta
+    (:func:`reconstruct.net.net_zeta.fallback_for` of that calibration, ``cfg.net_fallback``)."""
+    from reconstruct.pane.selfcal import group_self_zeta
 
     return fallback_for(getattr(group_self_zeta, "last", None), cfg.net_fallback)
 
@@ -152,7 +154,7 @@ def load_network(cfg: EvalConfig) -> tuple[torch.nn.Module, dict]:
         ConfigError: the window length differs from the network's.
     """
     from polinfra.errors import CheckpointError
-    from reconstruct.checkpoint import DEFAULT_WEIGHTS, load_model, read_checkpoint
+    from reconstruct.net.checkpoint import DEFAULT_WEIGHTS, load_model, read_checkpoint
 
     path = Path(cfg.checkpoint) if cfg.checkpoint else DEFAULT_WEIGHTS
     net = read_checkpoint(path)["net"]
@@ -186,7 +188,7 @@ def load_network(cfg: EvalConfig) -> tuple[torch.nn.Module, dict]:
         label += f"-{overrides['solver_method']}"
     info = {"path": str(path), "label": label, "trained": trained, "overrides": overrides, "step": data.get("step"), "ensemble": cfg.net_ensemble}
     if cfg.net_ensemble > 1:
-        from reconstruct.network import SymmetryEnsemble
+        from reconstruct.net.network import SymmetryEnsemble
 
         model = SymmetryEnsemble(model, cfg.net_ensemble).eval()
     return model, info
@@ -218,14 +220,14 @@ def group_zeta(group: EvalGroup, cfg: EvalConfig) -> np.ndarray | None:
     window-averaged); ``physics``: Fresnel reflectances of the calibrated pane
     (``pane_n``, ``pane_model``) at the group's incidence-angle map, with the
     nominal (calibrated) angles; ``self``: the pane fitted to the group's own
-    frames (:func:`reconstruct.selfcal.group_self_zeta`; None where nothing
+    frames (:func:`reconstruct.pane.selfcal.group_self_zeta`; None where nothing
     modulates); ``learned``: per window from the network
-    (:func:`reconstruct.zeta_source.zeta_learned`), so this returns None.
+    (:func:`reconstruct.net.learned_zeta.zeta_learned`), so this returns None.
     """
     if cfg.zeta == "learned":
         return None
-    if cfg.zeta == "self":  # pane fitted to the stream (reconstruct.selfcal); None where nothing modulates -> learned
-        from reconstruct.selfcal import group_self_zeta
+    if cfg.zeta == "self":  # pane fitted to the stream (reconstruct.pane.selfcal); None where nothing modulates -> learned
+        from reconstruct.pane.selfcal import group_self_zeta
 
         if cfg.self_fov == "fitted":
             group = dataclasses.replace(group, fov_deg=None)  # the scene's fov withheld: fitted, as for a .dat
@@ -247,7 +249,7 @@ def group_zeta(group: EvalGroup, cfg: EvalConfig) -> np.ndarray | None:
     return zeta_from_maps(maps, group.phi_nominal, group.span_rad, dtype=torch.float64).numpy()
 
 
-# ---- R where the reflection is >= 20 % of the light, and its noise floor (reconstruct.identifiability) ----
+# ---- R where the reflection is >= 20 % of the light, and its noise floor (reconstruct.physics.identifiability) ----
 
 BOUND_GOAL_DB = 22.0
 """Issue 16's goal for R where the reflection is >= 20 % of the light; the share tables count the groups whose
@@ -256,7 +258,7 @@ R bound reaches it."""
 SHARE_FRAME_KEYS = ("share_frac", "psnr_R_bound", "psnr_R_bound_all", "psnr_R_bound_gls", "bound_frac_22", "psnr_R_flat")
 """Per-frame values that do not depend on the method: the fraction of pixels with reflected share rho >=
 :data:`SHARE_MIN`, the PSNR of R implied by the noise floor of the unbiased LS estimate with the true zeta
-(:func:`reconstruct.identifiability.ls_layer_variance`) over those pixels, over the whole frame, that of
+(:func:`reconstruct.physics.identifiability.ls_layer_variance`) over those pixels, over the whole frame, that of
 the inverse-variance weighted LS (the Cramer-Rao bound for Gaussian noise) over those pixels, and the
 fraction of those pixels whose own LS variance reaches :data:`BOUND_GOAL_DB` (var R^ <= 10^-2.2: a mean
 variance is ruled by the few pixels where zeta hardly modulates, this count is not), and the PSNR over those
@@ -265,7 +267,7 @@ much of an R score the layer's contrast leaves to explain; a dim or saturated R 
 
 SHARE_KEYS = ("psnr_R_share", "ssim_R_share", *SHARE_FRAME_KEYS)
 """Keys added to every frame and row: PSNR / SSIM of R over the pixels with rho >= :data:`SHARE_MIN`
-(:func:`reconstruct.metrics.masked_score`), then :data:`SHARE_FRAME_KEYS`; None where not defined (no GT R or
+(:func:`reconstruct.evaluate.metrics.masked_score`), then :data:`SHARE_FRAME_KEYS`; None where not defined (no GT R or
 zeta; the bounds also need the stored group's exposure, :func:`group_noise`)."""
 
 
@@ -280,12 +282,12 @@ SHARE_NOTE = (
 
 def group_noise(group: EvalGroup, cfg: EvalConfig) -> dict | None:
     """Noise of the group's Eq. (3) window means, as keywords of
-    :func:`reconstruct.identifiability.window_mean_variance`, read from the stored group's simulator
+    :func:`reconstruct.physics.identifiability.window_mean_variance`, read from the stored group's simulator
     configuration (integrate-and-fire pixel: exposure, window steps at its rate, shot and reset noise, gain
     and threshold spread); None for a group that is not a stored simulation (no ``source_dir`` or config)."""
     if not group.source_dir:
         return None
-    from reconstruct.groups import window_steps_from_ms
+    from reconstruct.stream.groups import window_steps_from_ms
     from spike_sim.store import open_group
 
     try:
@@ -375,10 +377,10 @@ def evaluate_groups(
         groups: :class:`EvalGroup` instances (already aggregated with cfg's window and stride).
         cfg: harness configuration.
         solver_cfg: solver parameters (default: the adaptive physics configuration,
-            :data:`reconstruct.solvers.PHYSICS_SOLVER_CONFIG`; the network uses its own stored one).
+            :data:`reconstruct.physics.solvers.PHYSICS_SOLVER_CONFIG`; the network uses its own stored one).
         rir_cfg: registration parameters.
         weights_fn: optional reliability weights (I, phi) -> (B, N, H, W) in [0, 1] for rwps
-            (the learned branch); default: :func:`reconstruct.solvers.poisson_reliability`.
+            (the learned branch); default: :func:`reconstruct.physics.solvers.poisson_reliability`.
         progress: optional (done, total) callback, counted in groups.
 
     Returns:
@@ -393,7 +395,7 @@ def evaluate_groups(
     solvers = [m for m in methods if m in SOLVERS]
     model = net_info = None
     if NET_METHOD in methods or cfg.zeta == "learned":
-        from reconstruct.video import run_model_on_windows
+        from reconstruct.video.tiling import run_model_on_windows
 
         model, net_info = load_network(cfg)
     nz = net_zeta_of(cfg)
@@ -518,11 +520,11 @@ def evaluate_groups(
 
 
 ANCHOR_SUFFIX = "+mean"
-"""Row-name suffix of a method anchored to the spike mean (:func:`reconstruct.solvers.anchor_to_mean`)."""
+"""Row-name suffix of a method anchored to the spike mean (:func:`reconstruct.physics.span.anchor_to_mean`)."""
 
 SPAN_METHOD = "span"
 """Row of ``--anchor mean`` (with a physics solver): the layers from the first harmonic of the whole 17.5 ms span of
-spikes on the solvers' zeta (:func:`reconstruct.solvers.long_span_separation`): physics from every spike of the span,
+spikes on the solvers' zeta (:func:`reconstruct.physics.span.long_span_separation`): physics from every spike of the span,
 not only the N windows'."""
 
 
@@ -601,13 +603,13 @@ def load_groups(dataset: str, split: str, cfg: EvalConfig, synthetic=None, progr
     """Evaluation groups of ``dataset``: a dataset directory / group directory, or ``synthetic``.
 
     ``synthetic`` (optionally ``synthetic:SEED``) builds the closed-form set of
-    :mod:`reconstruct.synthetic` in-process (``synthetic`` is its config, window
+    :mod:`reconstruct.stream.synthetic` in-process (``synthetic`` is its config, window
     and stride are taken from cfg).
     """
-    from reconstruct.groups import list_groups, load_store_group, window_steps_from_ms
+    from reconstruct.stream.groups import list_groups, load_store_group, window_steps_from_ms
 
     if dataset.startswith("synthetic"):
-        from reconstruct.synthetic import SyntheticConfig, make_group
+        from reconstruct.stream.synthetic import SyntheticConfig, make_group
 
         sc = synthetic or SyntheticConfig()
         seed = int(dataset.split(":", 1)[1]) if ":" in dataset else sc.seed
@@ -667,135 +669,3 @@ REGIME_FACTORS: dict[str, tuple[str, ...]] = {
 """Factors and levels of the stress grid; a group named ``refl-weak_motion-fast_light-dim_inc-brewster_pane-slab``
 (any order, ``FACTOR-LEVEL`` joined by ``_``) belongs to one level of each."""
 
-
-def regime_of(name: str) -> dict[str, str]:
-    """{factor: level} parsed from a stress group name (unknown parts are ignored)."""
-    out = {}
-    for part in name.split("_"):
-        f, _, lv = part.partition("-")
-        if f in REGIME_FACTORS and lv in REGIME_FACTORS[f]:
-            out[f] = lv
-    return out
-
-
-def evaluate_by_regime(
-    groups: list[EvalGroup],
-    cfg: EvalConfig,
-    zetas: Iterable[str] = ("gt", "learned"),
-    network: bool = True,
-    solver_cfg: SolverConfig = PHYSICS_SOLVER_CONFIG,
-    rir_cfg: RirConfig = RirConfig(),
-    progress: Callable[[int, int], None] | None = None,
-    net_zetas: Iterable[str] = ("learned",),
-) -> dict:
-    """Every solver with every zeta source (by name, :data:`reconstruct.zeta_source.ZETA_SOURCES`),
-    the baselines and the network (``cfg.checkpoint``; once per zeta of ``net_zetas``: ``learned``
-    = its own, columns ``net`` / ``net:solver``; others, e.g. ``self``, columns ``net@self`` /
-    ``net:solver@self``) on each group, then one row per regime level.
-
-    Returns:
-        {"columns": [...], "groups": [{"group", "regime", column: PSNR T}], "rows": [{"regime",
-        "n_groups", column: mean PSNR T over the level's groups}], "ssim": same for SSIM T,
-        "rows_R" / "ssim_R": same for R (None where a column has no R, e.g. the baselines),
-        "groups_R": per-group {column: [PSNR R, SSIM R]},
-        "rows_R_share" / "ssim_R_share": PSNR / SSIM of R over the pixels with reflected share rho >= 0.2
-        (:data:`SHARE_KEYS`), each row also with the level's mean of :data:`SHARE_FRAME_KEYS` (fraction of
-        such pixels, R bound of the LS with the true zeta, ...) and "n_bound" / "n_bound_ge_22" (groups with
-        a bound / with a bound >= :data:`BOUND_GOAL_DB`), "groups_R_share": per-group {column:
-        [PSNR, SSIM]} of that, "groups_share": per-group :data:`SHARE_FRAME_KEYS`}.
-    """
-    zetas = list(dict.fromkeys(zetas))
-    net_zetas = list(dict.fromkeys(net_zetas)) if network else []
-    bad = [z for z in zetas if z not in ZETA_SOURCES] + [z for z in net_zetas if z not in (*ZETA_SOURCES, "none")]
-    if bad:
-        raise ConfigError(f"unknown zeta source(s) {bad}; choose from {list(ZETA_SOURCES)} (network columns also none)")
-    solvers = [m for m in parse_methods(cfg.methods) if m in SOLVERS] or list(SOLVERS)
-    keys = ("psnr_T", "ssim_T", "psnr_R", "ssim_R", "psnr_R_share", "ssim_R_share")
-    per: dict[str, dict[str, dict[str, float]]] = {k: defaultdict(dict) for k in keys}
-    gshare: dict[str, dict] = {}  # per group: SHARE_FRAME_KEYS (method-independent; from the first run that has them)
-    columns: list[str] = []  # baselines first, in BASELINES order, where the groups have them (spike_mean: stored groups)
-    runs = [(z, solvers, None) for z in zetas] + [(None, [NET_METHOD], nz) for nz in net_zetas]
-    for j, (z, methods, nz) in enumerate(runs):
-        c = dataclasses.replace(cfg, zeta=z or "gt", methods=",".join(methods), figure_frames=0, **({} if nz is None else {"net_zeta": nz}))
-        rep = evaluate_groups(groups, c, solver_cfg, rir_cfg)
-        for r in rep.rows:
-            if r["group"] == "overall":
-                continue
-            m = r["method"]
-            if m in BASELINES:
-                if j > 0:
-                    continue
-                col = m
-            elif z is None:
-                anch = m.endswith(ANCHOR_SUFFIX)
-                col = ("net:solver" if ":solver" in m else "net") + ("" if nz == "learned" else f"@{nz}") + (ANCHOR_SUFFIX if anch else "")
-            else:
-                col = f"{m}@{z}"
-            for k in keys:
-                per[k][r["group"]][col] = r[k]
-            if r.get("share_frac") is not None and r["group"] not in gshare:
-                gshare[r["group"]] = {k: r.get(k) for k in SHARE_FRAME_KEYS}
-            if col not in columns:
-                columns.append(col)
-        columns.sort(key=lambda c: BASELINES.index(c) if c in BASELINES else len(BASELINES))  # stable: the rest keep their order
-        if progress:
-            progress(j + 1, len(runs))
-    grows = [{"group": g, "regime": regime_of(g), **v} for g, v in per["psnr_T"].items()]
-    out_rows: dict[str, list] = {k: [] for k in keys}
-    for f, levels in REGIME_FACTORS.items():
-        for lv in levels:
-            names = [g["group"] for g in grows if g["regime"].get(f) == lv]
-            if not names:
-                continue
-            sh = {k: _mean_or_none([gshare.get(n, {}).get(k) for n in names]) for k in SHARE_FRAME_KEYS}
-            bnd = [gshare[n]["psnr_R_bound"] for n in names if gshare.get(n, {}).get("psnr_R_bound") is not None]
-            sh.update(n_bound=len(bnd), n_bound_ge_22=sum(b >= BOUND_GOAL_DB for b in bnd))  # a dB mean hides -50 dB groups
-            for k in keys:
-                extra = sh if k.endswith("_share") else {}
-                out_rows[k].append({"regime": f"{f}={lv}", "n_groups": len(names), **{c: _mean_or_none([per[k][n].get(c) for n in names]) for c in columns}, **extra})
-    groups_R = {g["group"]: {c: [per["psnr_R"][g["group"]].get(c), per["ssim_R"][g["group"]].get(c)] for c in columns} for g in grows}
-    groups_R_share = {g["group"]: {c: [per["psnr_R_share"][g["group"]].get(c), per["ssim_R_share"][g["group"]].get(c)] for c in columns} for g in grows}
-    groups_share = {g["group"]: gshare.get(g["group"], {k: None for k in SHARE_FRAME_KEYS}) for g in grows}
-    return {"columns": columns, "groups": grows, "rows": out_rows["psnr_T"], "ssim": out_rows["ssim_T"], "rows_R": out_rows["psnr_R"], "ssim_R": out_rows["ssim_R"], "groups_R": groups_R,
-            "rows_R_share": out_rows["psnr_R_share"], "ssim_R_share": out_rows["ssim_R_share"], "groups_R_share": groups_R_share, "groups_share": groups_share}
-
-
-def _mean_or_none(v: list) -> float | None:
-    v = [x for x in v if x is not None and np.isfinite(x)]
-    return float(np.mean(v)) if v else None
-
-
-def regime_markdown(res: dict, metric: str = "rows") -> str:
-    """Markdown table of :func:`evaluate_by_regime` rows: ``metric`` = "rows" (PSNR of T, dB, the default),
-    "ssim" (SSIM of T), "rows_R" (PSNR of R, dB), "ssim_R" (SSIM of R), "rows_R_share" / "ssim_R_share" (R over
-    the pixels with reflected share >= 0.2, led by their fraction and the R bound); n/a where a column has no value."""
-    cols = res["columns"]
-    rows = res.get(metric)
-    if rows is None:
-        raise ConfigError(f"no {metric!r} table in this result; choose rows, ssim, rows_R, ssim_R, rows_R_share or ssim_R_share")
-    nd = 3 if metric.startswith("ssim") else 2
-    if metric.endswith(("_R", "_R_share")):  # the baselines estimate no R
-        cols = [c for c in cols if any(r.get(c) is not None for r in rows)]
-    extra = SHARE_EXTRA if metric.endswith("_share") else ()
-    head = "| regime | groups | " + "".join(f"{t} | " for t, _ in extra) + " | ".join(cols) + " |\n|---|---:|" + "---:|" * (len(extra) + len(cols)) + "\n"
-    return head + "\n".join(f"| {r['regime']} | {r['n_groups']} | " + "".join(f"{fm(r)} | " for _, fm in extra) + " | ".join(_fmt(r[c], nd) for c in cols) + " |" for r in rows) + "\n"
-
-
-SHARE_EXTRA = (
-    ("rho>=0.2 frac", lambda r: _fmt(r.get("share_frac"), 3)),
-    ("R bound (LS, true zeta)", lambda r: _fmt(r.get("psnr_R_bound"), 2)),
-    ("groups with bound >= 22 dB", lambda r: "n/a" if not r.get("n_bound") else f"{r['n_bound_ge_22']}/{r['n_bound']}"),
-    ("rho>=0.2 px with bound >= 22 dB", lambda r: _fmt(r.get("bound_frac_22"), 3)),
-    ("flat R (oracle level)", lambda r: _fmt(r.get("psnr_R_flat"), 2)),
-)
-"""Leading columns of the reflected-share tables: (title, formatter of the row)."""
-
-
-REGIME_TABLES = (("rows", "PSNR of T (dB)"), ("ssim", "SSIM of T"), ("rows_R", "PSNR of R (dB)"), ("ssim_R", "SSIM of R"),
-                 ("rows_R_share", "PSNR of R where the reflection is >= 20 % of the light (dB)"), ("ssim_R_share", "SSIM of R where the reflection is >= 20 % of the light"))
-"""The tables of ``by_regime.md``: (key of :func:`evaluate_by_regime`'s result, title)."""
-
-
-def regime_report(res: dict) -> str:
-    """``by_regime.md``: the per-regime tables (PSNR / SSIM of T, of R, and of R where the reflected share is >= 0.2)."""
-    return "\n".join(f"## {title} per regime level\n\n" + regime_markdown(res, key) for key, title in REGIME_TABLES if res.get(key) is not None) + f"\n{SHARE_NOTE}\n"

@@ -2,7 +2,7 @@
 with baselines) and supp. Table 3 (each solver: solver-only / final after the same refinement).
 
 ``polspike evaluate-paper DATASET --full CKPT [--full CKPT2] [--no-rir ...] [--no-attention ...]
-[--no-conf ...]`` runs :func:`reconstruct.evaluate.evaluate_groups` once per checkpoint and variant
+[--no-conf ...]`` runs :func:`reconstruct.evaluate.harness.evaluate_groups` once per checkpoint and variant
 on the same groups and windows (N = 7, dt = 0.65 ms by default), and writes ``paper_table.md``,
 ``paper_table.csv`` and ``paper_table.json``.  Every column is the mean over the checkpoints given
 for it (e.g. two training seeds); the per-checkpoint numbers are listed too.
@@ -23,7 +23,7 @@ Columns of Table 1:
   Conf zeroed at test time (marked "test-time": the paper retrains).
 
 Supp. Table 3: for each solver, the ``--full`` checkpoints with that solver before their
-refinement (``solver_method`` swapped at load, :data:`reconstruct.evaluate.EvalConfig.net_solver`):
+refinement (``solver_method`` swapped at load, :data:`reconstruct.evaluate.harness.EvalConfig.net_solver`):
 "solver-only" is the solver's output on the learned zeta and w, "final" the refined one.
 
 The paper's own numbers (Table 1, supp. Table 3) are printed beside ours for reference.
@@ -37,9 +37,9 @@ from typing import Any
 
 from polinfra.errors import ConfigError
 
-from reconstruct.evaluate import EvalConfig, evaluate_groups, finite_means
-from reconstruct.groups import EvalGroup
-from reconstruct.solvers import PHYSICS_SOLVER_CONFIG, SOLVERS, SolverConfig
+from reconstruct.evaluate.harness import EvalConfig, evaluate_groups, finite_means
+from reconstruct.stream.groups import EvalGroup
+from reconstruct.physics.solvers import PHYSICS_SOLVER_CONFIG, SOLVERS, SolverConfig
 
 __all__ = ["PAPER_TABLE1", "PAPER_TABLE3", "ABLATIONS", "paper_tables", "paper_markdown", "paper_csv"]
 
@@ -84,7 +84,7 @@ def paper_tables(
         solvers: the solvers of supp. Table 3 (empty: skip it).
         solver_cfg: the physics baseline's solver parameters.
         net_zeta: zeta of every network run: ``learned`` (its own) or ``self`` / ``gt`` / ``physics`` / ``none``
-            (:data:`reconstruct.evaluate.EvalConfig.net_zeta`).
+            (:data:`reconstruct.evaluate.harness.EvalConfig.net_zeta`).
 
     Returns:
         {"table1": {column: {"mean": metrics, "runs": [{"checkpoint", **metrics}], "note"}},

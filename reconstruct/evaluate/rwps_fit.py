@@ -1,6 +1,6 @@
 """Fit the adaptive RWPS constants (Conf -> lambda) on training groups.
 
-The adaptive mapping of :mod:`reconstruct.solvers` (``lambda_map = "adaptive"``) has these
+The adaptive mapping of :mod:`reconstruct.physics.solvers` (``lambda_map = "adaptive"``) has these
 constants: ``snr_kappa`` (the reflection SNR q at which Conf = 1/2), ``lambda_low`` (lambda
 where the modulation is strong and well conditioned, Conf -> 1), ``lambda_high`` (the prior's
 strength where the system is near-singular, Conf -> 0), the prior itself (``rwps_prior``: toward
@@ -31,11 +31,11 @@ from collections.abc import Callable
 import numpy as np
 import torch
 
-from reconstruct.evaluate import EvalConfig, group_zeta
-from reconstruct.groups import EvalGroup
-from reconstruct.metrics import psnr
-from reconstruct.rir import RirConfig, estimate_shifts, warp
-from reconstruct.solvers import SolverConfig, solve
+from reconstruct.evaluate.harness import EvalConfig, group_zeta
+from reconstruct.stream.groups import EvalGroup
+from reconstruct.evaluate.metrics import psnr
+from reconstruct.physics.rir import RirConfig, estimate_shifts, warp
+from reconstruct.physics.solvers import SolverConfig, solve
 
 __all__ = ["GRID", "POOLED_ONLY", "aligned_windows", "group_scores", "fit_rwps", "fit_markdown", "select_best"]
 
@@ -55,7 +55,7 @@ POOLED_ONLY = ("prior_pool", "prior_kappa")
 
 
 def aligned_windows(groups: list[EvalGroup], cfg: EvalConfig, rir_cfg: RirConfig = RirConfig()) -> dict[str, list[tuple[torch.Tensor, torch.Tensor, np.ndarray]]]:
-    """Per group: list of (zeta, I, GT T) windows, RIR-aligned as in :func:`reconstruct.evaluate.evaluate_groups`."""
+    """Per group: list of (zeta, I, GT T) windows, RIR-aligned as in :func:`reconstruct.evaluate.harness.evaluate_groups`."""
     K = cfg.n_obs // 2
     dtype = torch.float64 if cfg.dtype == "float64" else torch.float32
     out: dict[str, list] = {}

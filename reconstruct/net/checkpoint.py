@@ -1,4 +1,4 @@
-"""Checkpoints of :class:`reconstruct.network.PolSpikeNet`: save, load, validate.
+"""Checkpoints of :class:`reconstruct.net.network.PolSpikeNet`: save, load, validate.
 
 A checkpoint is a ``torch.save`` dict (loaded with ``weights_only=True``: plain
 data only, no pickled code) with keys
@@ -24,8 +24,8 @@ from polinfra.atomic import atomic_path
 from polinfra.config import from_dict, to_dict
 from polinfra.errors import CheckpointError, ConfigError
 
-from reconstruct.network import NetConfig, PolSpikeNet
-from reconstruct.solvers import SolverConfig
+from reconstruct.net.network import NetConfig, PolSpikeNet
+from reconstruct.physics.solvers import SolverConfig
 
 __all__ = ["CKPT_FORMAT", "DEFAULT_WEIGHTS", "V1_WEIGHTS", "V2_WEIGHTS", "V2_MEAN_WEIGHTS", "V3_WEIGHTS", "V4_WEIGHTS", "V5_WEIGHTS", "V6_WEIGHTS", "save_checkpoint", "read_checkpoint", "load_model", "export_weights"]
 

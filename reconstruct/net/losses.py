@@ -120,7 +120,7 @@ def total_loss(out, T_gt: torch.Tensor, R_gt: torch.Tensor, alpha: float, cfg: L
     """Total objective, paper Eq. (12), plus the solver-output term (``lambda_base``).
 
     Args:
-        out: :class:`reconstruct.network.NetOutput` (its ``I`` and ``zeta_gt`` are the RIR-aligned ones).
+        out: :class:`reconstruct.net.network.NetOutput` (its ``I`` and ``zeta_gt`` are the RIR-aligned ones).
         T_gt, R_gt: centre-frame ground truth (B, H, W).
         alpha: current teacher-forcing ratio (scales the solver-output term).
         cfg: weights.

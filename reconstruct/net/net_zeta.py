@@ -1,16 +1,16 @@
 """The network on a zeta it did not estimate itself: ``polspike reconstruct --method net --zeta self``.
 
 The network's parameter branch estimates zeta (and the reliability weights w) per window.  With
-``--zeta self`` the pane is instead fitted to the stream itself (:mod:`reconstruct.selfcal`, the
+``--zeta self`` the pane is instead fitted to the stream itself (:mod:`reconstruct.pane.selfcal`, the
 same fit the physics methods use) and that zeta (paper Eq. (2), window-averaged) replaces the
 learned one in the network's solver and refinement: ``model(I, phi, zeta_gt=zeta, alpha=1)``
-(the teacher-forcing path of :class:`reconstruct.network.PolSpikeNet`); w stays learned.  Where
+(the teacher-forcing path of :class:`reconstruct.net.network.PolSpikeNet`); w stays learned.  Where
 nothing modulates (no pane can be fitted) the network runs on zeta = 0 (no separable reflection, T is the whole
 light) or, where the refused stream still modulates (:data:`NET_FALLBACK_ZETA` ``auto``), on its own zeta; the info
 says which.
 
-:class:`MapsZetaNet` follows the model protocol of :func:`reconstruct.video.run_model_on_windows`
-and of the stream's feature cache, so :func:`reconstruct.video.reconstruct_stream` runs it as it
+:class:`MapsZetaNet` follows the model protocol of :func:`reconstruct.video.tiling.run_model_on_windows`
+and of the stream's feature cache, so :func:`reconstruct.video.stream.reconstruct_stream` runs it as it
 runs the network.  Its zeta maps are per full-frame pixel: whole frames only (``stream_tile = 0``).
 """
 
@@ -24,7 +24,7 @@ import torch.nn.functional as F
 
 from polinfra.errors import ConfigError
 
-from reconstruct.zeta_source import PaneMaps, zeta_from_maps
+from reconstruct.physics.zeta import PaneMaps, zeta_from_maps
 
 __all__ = ["MapsZetaNet", "ZeroZetaNet", "NET_ZETA_SOURCES", "NET_DEFAULT_ZETA", "NET_FALLBACK_ZETA", "NET_FALLBACKS", "FALLBACK_LEARNED_PX", "fallback_for", "build_net_zeta_model"]
 
@@ -62,7 +62,7 @@ NET_FALLBACKS = ("auto", "none", "learned")
 
 def fallback_for(result, fallback: str = NET_FALLBACK_ZETA) -> str:
     """The zeta source (``none`` or ``learned``) the network falls back to where the self-calibration ``result``
-    (a :class:`reconstruct.selfcal.SelfCalResult`, or None where none was possible) refused."""
+    (a :class:`reconstruct.pane.selfcal.SelfCalResult`, or None where none was possible) refused."""
     if fallback not in NET_FALLBACKS:
         raise ConfigError(f"zeta fallback {fallback!r}: choose one of {', '.join(NET_FALLBACKS)}")
     if fallback != "auto":
@@ -72,9 +72,9 @@ def fallback_for(result, fallback: str = NET_FALLBACK_ZETA) -> str:
 
 
 class _ExternalZetaNet:
-    """A :class:`reconstruct.network.PolSpikeNet` whose solver and refinement run on a zeta it did not estimate.
+    """A :class:`reconstruct.net.network.PolSpikeNet` whose solver and refinement run on a zeta it did not estimate.
 
-    Follows the model protocol of :func:`reconstruct.video.run_model_on_windows` and of the stream's feature cache;
+    Follows the model protocol of :func:`reconstruct.video.tiling.run_model_on_windows` and of the stream's feature cache;
     subclasses give :meth:`zeta` (B, N, H, W) for the window angles ``phi``.
     """
 
@@ -145,8 +145,8 @@ def build_net_zeta_model(net, zeta: str, source, *, group_dir=None, window_steps
     """The network on zeta source ``zeta`` (:data:`NET_ZETA_SOURCES`) for this stream -> (model, info).
 
     ``pane_n`` / ``pane_model``: the pane's index and model where known (None or "auto": fitted where the data
-    constrain them, else n 1.5 and a thin slab; :func:`reconstruct.physics_video.calibrate_stream`).
-    ``selfcal``: self-calibration settings (a :class:`reconstruct.selfcal.SelfCalConfig`, e.g. a known field of
+    constrain them, else n 1.5 and a thin slab; :func:`reconstruct.pane.source.calibrate_stream`).
+    ``selfcal``: self-calibration settings (a :class:`reconstruct.pane.selfcal.SelfCalConfig`, e.g. a known field of
     view; None: the defaults, with a stored group's scene fov).
 
     info = {"zeta": source used, "selfcal": summary or None}; ``self`` falls back to ``fallback``
@@ -161,8 +161,8 @@ def build_net_zeta_model(net, zeta: str, source, *, group_dir=None, window_steps
         return net, info
     if zeta == "none":
         return ZeroZetaNet(net), info
-    from reconstruct.physics_video import calibrate_stream
-    from reconstruct.selfcal import StreamTooShortError
+    from reconstruct.pane.source import calibrate_stream
+    from reconstruct.stream.sources import StreamTooShortError
 
     def fall(why: str, res=None):
         fb = fallback_for(res, fallback)

@@ -2,7 +2,7 @@
 
 Paper Sec. 3.2-3.3 and supp. Sec. 10 ("Network architecture"):
 
-1. **RIR** (optional, :mod:`reconstruct.rir`): the window is aligned to its centre
+1. **RIR** (optional, :mod:`reconstruct.physics.rir`): the window is aligned to its centre
    frame; the shift estimate is not differentiated, the warp is.
 2. **Parameter branch**: each of the N = 2K+1 observations is encoded by three
    64-channel ConvBlocks and two 3x3 convolutions (weights shared over k); a
@@ -12,7 +12,7 @@ Paper Sec. 3.2-3.3 and supp. Sec. 10 ("Network architecture"):
    Heads predict per-pixel (a0, ac, as) and per-observation reliability logits;
    zeta_k = sigmoid(a0 + ac cos 2phi_k + as sin 2phi_k) (supp. Eq. (19)) and
    w_k = softmax_k(logits) (supp. Sec. 10).
-3. **RWPS** (:func:`reconstruct.solvers.solve`, method ``rwps``) with those zeta
+3. **RWPS** (:func:`reconstruct.physics.solvers.solve`, method ``rwps``) with those zeta
    and w; during training the zeta fed to the solver is
    alpha zeta_gt + (1 - alpha) zeta_hat (teacher forcing, paper Sec. 3.4).
 4. **Refinement** on x = [T^, R^, 2I, 2I_min, Conf, 2Res] of the centre frame,
@@ -26,7 +26,7 @@ Units: I in radiance units of paper Eq. (1) (I = 1/2 (zeta R + (1 - zeta) T),
 
 Running a trained checkpoint (stable API for evaluation harnesses)::
 
-    from reconstruct.checkpoint import DEFAULT_WEIGHTS, load_model
+    from reconstruct.net.checkpoint import DEFAULT_WEIGHTS, load_model
     model, meta = load_model(DEFAULT_WEIGHTS, "cpu")            # eval mode; meta["step"], meta["net"], ...
     model, _ = load_model(path, "cpu", use_rir=True)            # NetConfig overrides at load time
     out = model(I, phi)   # I (B, N, H, W) float32 radiance units, phi (B, N) rad; H, W multiples of 4
@@ -35,7 +35,7 @@ Running a trained checkpoint (stable API for evaluation harnesses)::
     out.zeta_hat, out.weights     # (B, N, H, W); out.conf (B, H, W)
 
 For any H, W (padding, tiling with overlap) use
-:func:`reconstruct.video.run_model_on_windows`.  Ablations: ``use_rir`` has no
+:func:`reconstruct.video.tiling.run_model_on_windows`.  Ablations: ``use_rir`` has no
 weights and may be toggled at load; ``use_attention`` and ``use_conf`` need
 checkpoints trained with them (``reconstruct/configs/ablation_*.toml``);
 ``solver_method`` ("ls", "ridge", "irls", "rwps") may be overridden at load
@@ -53,8 +53,9 @@ import torch.nn.functional as F
 from polinfra.config import opt
 from polinfra.errors import ConfigError, ShapeError
 
-from reconstruct.solvers import SolverConfig, anchor_to_mean, gaussian_kernel, long_span_separation, separable_blur, solve, span_blend, span_weights, zbar_of
-from reconstruct.symmetry import symmetry_angles, symmetry_harmonic, symmetry_image
+from reconstruct.physics.solvers import SolverConfig, solve
+from reconstruct.physics.span import anchor_to_mean, gaussian_kernel, long_span_separation, separable_blur, span_blend, span_weights, zbar_of
+from reconstruct.physics.symmetry import symmetry_angles, symmetry_harmonic, symmetry_image
 
 __all__ = ["NetConfig", "NetOutput", "AngleAttention", "ParameterBranch", "LowResParameterBranch", "Refinement", "window_scale", "PolSpikeNet", "count_parameters", "init_weights", "predict_parameters", "SYMMETRY_CODES", "check_ensemble_size", "SymmetryEnsemble"]
 
@@ -68,7 +69,7 @@ class NetConfig:
     (:class:`LowResParameterBranch`, features at 1/``down`` resolution plus a light
     full-resolution path for w_k; per-observation features cacheable).  Checkpoints
     written before the field existed have no ``arch`` key and load as ``"v1"``
-    (:func:`reconstruct.checkpoint.load_model`).
+    (:func:`reconstruct.net.checkpoint.load_model`).
     """
 
     arch: str = opt("v2", "parameter branch: v1 (full resolution, 257 GFLOP/frame) | v2 (low resolution + light full-resolution w path)", choices=("v1", "v2"))
@@ -84,15 +85,15 @@ class NetConfig:
     use_attention: bool = opt(True, "angle attention block (ablation: without angle attention)")
     use_conf: bool = opt(True, "Conf-driven lambda in RWPS and Conf input to the refinement (ablation: without Conf)")
     use_mean: bool = opt(False, "the refinement also sees the long spike mean I_mean (window.mean_steps) and T anchored to it, 2 I_mean - zbar (R^ - T^) (paper Eq. (1) over a half turn): the level from ~27x more spikes")
-    base: str = opt("solver", "what the refinement's Delta_t, Delta_r are added to: solver (T^, R^, paper Sec. 3.3) | anchored (T^, R^ anchored to the long spike mean, reconstruct.solvers.anchor_to_mean; needs use_mean): the untrained refinement then returns the anchored physics", choices=("solver", "anchored"))
-    anchor_zbar: str = opt("window", "zbar of the anchor: window (mean of zeta over the N windows, what polspike_v2_mean.pt was trained with) | harmonic (the first-harmonic level of zeta over the window's angles, reconstruct.solvers.zbar_of: the half-turn mean paper Eq. (1) needs)", choices=("window", "harmonic"))
+    base: str = opt("solver", "what the refinement's Delta_t, Delta_r are added to: solver (T^, R^, paper Sec. 3.3) | anchored (T^, R^ anchored to the long spike mean, reconstruct.physics.span.anchor_to_mean; needs use_mean): the untrained refinement then returns the anchored physics", choices=("solver", "anchored"))
+    anchor_zbar: str = opt("window", "zbar of the anchor: window (mean of zeta over the N windows, what polspike_v2_mean.pt was trained with) | harmonic (the first-harmonic level of zeta over the window's angles, reconstruct.physics.span.zbar_of: the half-turn mean paper Eq. (1) needs)", choices=("window", "harmonic"))
     solver_method: str = opt("rwps", "physics solver run on the predicted zeta and w", choices=("ls", "ridge", "irls", "rwps"))
-    use_harm: bool = opt(False, "the refinement also sees T and R separated from the first harmonic of the whole long span of spikes (I_harm; reconstruct.solvers.long_span_separation): about 4x the spikes of the N windows for the difference R - T; needs use_mean")
+    use_harm: bool = opt(False, "the refinement also sees T and R separated from the first harmonic of the whole long span of spikes (I_harm; reconstruct.physics.span.long_span_separation): about 4x the spikes of the N windows for the difference R - T; needs use_mean")
     use_wide: bool = opt(False, "the refinement also sees T and R from the solver on the N observations over the wide window (I_wide: the whole stride, every spike between the windows' centres, ~4x the spikes of the 0.65 ms windows), anchored to I_mean as the base; needs use_mean")
     t_level_px: float = opt(0.0, "T's level from the wide windows' anchored physics: T += G_s * (T_wide - T_base), G_s a Gaussian blur of this sigma in pixels (0 = off; the network then reads I_wide; needs use_mean): the refinement follows its base's low frequencies, whose noise the wide windows' ~4x spikes lower; no weights, only inference", lo=0.0, hi=256.0)
     r_level_from: str = opt("base", "where r_level_px takes R's level: base (the anchored physics on the N windows) | wide (the same on the wide windows, ~4x the spikes; the network then reads I_wide)", choices=("base", "wide"))
     r_level_px: float = opt(0.0, "R's level from the base, its structure from the refinement: R = R_ref + G_s * (R_base - R_ref), G_s a Gaussian blur of this sigma in pixels (0 = off, the refined R). The refinement shrinks R's level where the spikes do not identify it; the base (the anchored physics with base = anchored) keeps it; no weights, only inference", lo=0.0, hi=256.0)
-    span_level: bool = opt(False, "D = R - T toward the long span's first harmonic where the span identifies it (reconstruct.solvers.span_blend with span_weights: inverse-variance, saturated pixels left out), keeping the long mean: every spike of 17.5 ms for the difference the refinement's spikes leave noisy or biased. Applied on an external zeta only (self-calibrated or given, fed with alpha = 1), never on the learned per-window zeta, whose orientation nothing checks over the span; the network then reads I_harm and needs the stream's exposure and span length (training items carry both); no weights, and no gradient through the move; needs use_mean")
+    span_level: bool = opt(False, "D = R - T toward the long span's first harmonic where the span identifies it (reconstruct.physics.span.span_blend with span_weights: inverse-variance, saturated pixels left out), keeping the long mean: every spike of 17.5 ms for the difference the refinement's spikes leave noisy or biased. Applied on an external zeta only (self-calibrated or given, fed with alpha = 1), never on the learned per-window zeta, whose orientation nothing checks over the span; the network then reads I_harm and needs the stream's exposure and span length (training items carry both); no weights, and no gradient through the move; needs use_mean")
     span_level_px: float = opt(2.0, "span_level: sigma in pixels of the normalised convolution of the span's correction (0 = per pixel)", lo=0.0, hi=256.0)
     span_level_tol: float = opt(2.0, "span_level: the error of the refined D, relative to the pixel's light 2 I_mean, the span's noise is weighed against: its gain is tol^2 / (tol^2 + var) (relative, so the move does not depend on the brightness scale, e.g. an estimated exposure)", lo=1e-6, hi=1e6)
     span_level_tol_t: float = opt(0.25, "span_level: also keep T, which moves by zbar times the change of D, no noisier than this fraction of the pixel's light 2 I_mean (gain min(tol^2 / (tol^2 + var), tol_t^2 / (tol_t^2 + zbar^2 var)); 0 = off): where zeta's mean is large (a glancing pane, or a calibration that put it there) the span's noise reaches T", lo=0.0, hi=1e6)
@@ -371,7 +372,7 @@ class PolSpikeNet(nn.Module):
 
     def align(self, I: torch.Tensor, phi: torch.Tensor, zeta_gt: torch.Tensor | None) -> tuple[torch.Tensor, torch.Tensor | None]:
         """RIR per batch item (shift estimates are not differentiated; the warp is)."""
-        from reconstruct.rir import estimate_shifts, warp
+        from reconstruct.physics.rir import estimate_shifts, warp
 
         outI, outZ = [], []
         for b in range(I.shape[0]):
@@ -540,8 +541,8 @@ def gaussian_radius(sigma: float) -> int:
 
 def gaussian_blur(x: torch.Tensor, sigma: float) -> torch.Tensor:
     """Separable Gaussian blur of (B, H, W) maps (kernel radius :func:`gaussian_radius`, reflected borders; replicated
-    where the map is narrower than the radius): :func:`reconstruct.solvers.separable_blur` with
-    :func:`reconstruct.solvers.gaussian_kernel`."""
+    where the map is narrower than the radius): :func:`reconstruct.physics.span.separable_blur` with
+    :func:`reconstruct.physics.span.gaussian_kernel`."""
     return separable_blur(x, gaussian_kernel(sigma, x.dtype, x.device))
 
 
@@ -582,7 +583,7 @@ def predict_parameters(model: PolSpikeNet, I: torch.Tensor, phi: torch.Tensor) -
 
 
 SYMMETRY_CODES = {1: (0,), 2: (0, 3), 4: (0, 1, 2, 3), 8: tuple(range(8))}
-"""Symmetries averaged by :class:`SymmetryEnsemble` for each ensemble size (codes of :mod:`reconstruct.symmetry`:
+"""Symmetries averaged by :class:`SymmetryEnsemble` for each ensemble size (codes of :mod:`reconstruct.physics.symmetry`:
 3 = rotation by 180 deg, 0-3 the mirrors, 4-7 with the transpose)."""
 
 

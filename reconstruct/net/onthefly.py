@@ -1,23 +1,23 @@
 """Training windows generated on the fly: the item format and the map-style dataset.
 
 An **item** is one window of N = 2K+1 spike frames around an output frame,
-with its centre-frame ground truth.  Stored windows (``reconstruct.windows``)
+with its centre-frame ground truth.  Stored windows (``reconstruct.net.windows``)
 and on-the-fly windows share this format, built by :func:`item_from_stream`
-from a spike stream exactly as :func:`reconstruct.groups.load_store_group`
+from a spike stream exactly as :func:`reconstruct.stream.groups.load_store_group`
 reads a stored group:
 
 ``I``         (N, H, W) float32  paper Eq. (3) frames / exposure (radiance units, I = 1/2 mix of paper Eq. (1))
 ``phi``       (N,)      float32  window-mean *nominal* (calibrated) polarizer angle, rad
 ``T``, ``R``  (H, W)    float32  centre-frame GT layers (float16-rounded, as a group store keeps them)
 ``zeta``      (N, H, W) float32  paper Eq. (2) at the window-mean *true* angle, averaged over
-                                 the polarizer sweep of one window (sinc factor, :func:`reconstruct.zeta_source.zeta_eq2`)
+                                 the polarizer sweep of one window (sinc factor, :func:`reconstruct.physics.zeta.zeta_eq2`)
 ``R_perp``, ``R_par``, ``phi_perp`` (H, W) float32  pane maps
 ``exposure``  ()        float32  thresholds per step per unit radiance of the stream
 ``I_mean``    (H, W)    float32  only with ``WindowConfig.mean_steps``: spikes per step / exposure over that many
                                  steps centred on the output frame (the long spike mean, a use_mean network's input)
 ``I_wide``    (N, H, W) float32  with ``WindowConfig.wide_steps``: the observations over the wide window (the input of a network with NetConfig.wide_input)
 ``I_harm``    (2, H, W) float32  with ``I_mean``: the first harmonic (cos 2 phi, sin 2 phi) of the same span's spikes
-                                 at the nominal angles (:func:`reconstruct.groups.span_harmonic`; a use_harm network's input)
+                                 at the nominal angles (:func:`reconstruct.stream.groups.span_harmonic`; a use_harm network's input)
 ``span_steps`` ()     float32  with ``I_mean``: the number of steps of its span (clipped to the stream)
 
 On-the-fly items come from a :data:`WindowSource` callable ``(seed, index) ->
@@ -40,8 +40,8 @@ import torch
 from polinfra.config import opt
 from polinfra.errors import ConfigError, ShapeError
 
-from reconstruct.groups import harmonic_design, span_harmonic, spike_mean_span, window_means
-from reconstruct.symmetry import angle_map, symmetry_harmonic, symmetry_image
+from reconstruct.stream.groups import harmonic_design, span_harmonic, spike_mean_span, window_means
+from reconstruct.physics.symmetry import angle_map, symmetry_harmonic, symmetry_image
 
 __all__ = ["WindowConfig", "ITEM_KEYS", "WindowSource", "window_centres", "item_from_stream", "OnTheFlyWindows", "flip_item"]
 
@@ -63,7 +63,7 @@ class WindowConfig:
     exposure_source: str = opt("range", "on-the-fly: range = exposure drawn from exposure_range; group = the manifest group's own exposure (its light level) times a log-uniform factor in exposure_jitter", choices=("range", "group"))
     exposure_jitter: tuple[float, float] = opt((1.0, 1.0), "on-the-fly, exposure_source = group: range of the log-uniform factor on the group's exposure", lo=1e-3, hi=1000.0)
     mean_steps: int = opt(0, "steps of the long spike mean I_mean given to a use_mean network, centred on the output frame (350 = 17.5 ms at 20 kHz, about half a polarizer turn); 0 = none", lo=0, hi=100001)
-    wide_steps: int = opt(0, "also give each item its N observations over the wide window of this many steps (odd; 57 = the whole 31.5 deg stride at 20 kHz and 30 rev/s, reconstruct.groups.wide_window_steps): the input I_wide of a network with NetConfig.wide_input; 0 = none", lo=0, hi=10001)
+    wide_steps: int = opt(0, "also give each item its N observations over the wide window of this many steps (odd; 57 = the whole 31.5 deg stride at 20 kHz and 30 rev/s, reconstruct.stream.groups.wide_window_steps): the input I_wide of a network with NetConfig.wide_input; 0 = none", lo=0, hi=10001)
     assumed_n: float = opt(0.0, "also give each item the window's zeta under an assumed glass of this index (the self-calibration's prior, 1.5) for each pane model it can assume, zeta_a_single and zeta_a_thin_slab (paper Eq. (2) from the maps' theta and phi_perp): training for the errors of --zeta self, whose index and model are assumed where the spikes do not identify them; 0 = off", lo=0.0, hi=4.0)
     flips: bool = opt(False, "on-the-fly: random mirror / transpose of each item (one of the 8 symmetries of the square crop; polarizer and phi_perp angles mirrored with the image, so the physics stays exact)")
 
@@ -181,14 +181,14 @@ def item_from_stream(
 
 ASSUMED_MODELS = ("single", "thin_slab")
 """Pane models whose zeta under the assumed index an item carries (window.assumed_n): the self-calibration's
-(:data:`reconstruct.selfcal.CONE_MODELS`)."""
+(:data:`reconstruct.pane.cone.CONE_MODELS`)."""
 
 _IMAGE_KEYS = ("I", "T", "R", "zeta", "R_perp", "R_par", "phi_perp", "T_perp", "T_par", "I_mean", "I_wide", *(f"zeta_a_{m}" for m in ASSUMED_MODELS))
 _ANGLE_KEYS = ("phi", "phi_perp")
 
 
 def flip_item(item: dict[str, torch.Tensor], code: int) -> dict[str, torch.Tensor]:
-    """One of the 8 symmetries of a square crop applied to an item, angles carried along (:mod:`reconstruct.symmetry`:
+    """One of the 8 symmetries of a square crop applied to an item, angles carried along (:mod:`reconstruct.physics.symmetry`:
     ``code`` in 0..7, bit 0 = mirror left-right, bit 1 = mirror up-down, bit 2 = transpose).  Both the polarizer
     angles ``phi`` and the plane-of-incidence map ``phi_perp`` move with the image, so zeta, T and R are the same
     numbers at the moved pixels (tested against Eq. (2))."""

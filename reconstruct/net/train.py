@@ -1,7 +1,7 @@
 """Training loop with the paper's curriculum, resumable and deterministic (paper Sec. 3.4).
 
 * Adam, lr 3e-4, batch 8 (paper Sec. 3.4); every loss weight is a
-  :class:`reconstruct.losses.LossConfig` value.
+  :class:`reconstruct.net.losses.LossConfig` value.
 * Curriculum on the teacher-forcing ratio alpha (paper Sec. 3.4): epochs 1-5 of
   60 alpha = 1.0, epochs 6-15 alpha = 0.5, then 0.0; for other epoch counts the
   same *fractions* of the run (``curriculum_fracs`` = (5/60, 15/60)).
@@ -33,15 +33,15 @@ import numpy as np
 import torch
 
 from polinfra.atomic import ensure_dir, write_json, write_text
-from polinfra.config import from_dict, opt, to_dict
+from polinfra.config import opt, to_dict
 from polinfra.errors import CheckpointError, ConfigError
 
-from reconstruct.checkpoint import read_checkpoint, save_checkpoint
-from reconstruct.identifiability import SHARE_MIN
-from reconstruct.losses import LossConfig, total_loss
-from reconstruct.network import NetConfig, PolSpikeNet, count_parameters, init_weights
-from reconstruct.onthefly import WindowConfig
-from reconstruct.solvers import SolverConfig
+from reconstruct.net.checkpoint import read_checkpoint, save_checkpoint
+from reconstruct.physics.identifiability import SHARE_MIN
+from reconstruct.net.losses import LossConfig, total_loss
+from reconstruct.net.network import NetConfig, PolSpikeNet, count_parameters, init_weights
+from reconstruct.net.onthefly import WindowConfig
+from reconstruct.physics.solvers import SolverConfig
 
 __all__ = ["TrainConfig", "alpha_at", "lr_at", "collate", "evaluate_model", "train", "TINY"]
 
@@ -125,7 +125,7 @@ def collate(items: list[dict[str, torch.Tensor]]) -> dict[str, torch.Tensor]:
 
 
 SPAN_KEYS = ("I_mean", "I_harm", "I_wide")
-"""Batch keys of the long span a network may read beside its windows (:class:`reconstruct.network.PolSpikeNet`)."""
+"""Batch keys of the long span a network may read beside its windows (:class:`reconstruct.net.network.PolSpikeNet`)."""
 
 
 def span_inputs(b: dict[str, torch.Tensor], device, span_level: bool = False) -> dict[str, torch.Tensor]:
@@ -175,7 +175,7 @@ def evaluate_model(model: PolSpikeNet, dataset, batch_size: int = 8, device: tor
         their share of all pixels).  ``forced``: also ``psnr_T_forced`` / ``psnr_R_forced``, the network
         on the true zeta (alpha = 1: how it runs on an external zeta, ``--zeta self``).
     """
-    from reconstruct.solvers import solve
+    from reconstruct.physics.solvers import solve
 
     was = model.training
     model.eval()
@@ -223,7 +223,7 @@ def assumed_glass_feed(batch: dict[str, torch.Tensor], zeta: torch.Tensor, scale
     ``window.assumed_n``): with probability ``assumed_right`` the model whose mean zeta is closer to the true one in
     log scale (what a right claim or prior gives), else the other; such an item's scale jitter is reset to 1 (its
     error is the glass').  Other items keep the true zeta and their jitter."""
-    from reconstruct.onthefly import ASSUMED_MODELS
+    from reconstruct.net.onthefly import ASSUMED_MODELS
 
     keys = [f"zeta_a_{m}" for m in ASSUMED_MODELS]
     if any(k not in batch for k in keys):
@@ -256,7 +256,7 @@ def val_score(metrics: dict[str, float], select: str) -> float:
 
 REFL_SHARE = SHARE_MIN
 """Reflected share of the mixed light above which a pixel counts as reflection-affected (evaluation; the same 20 %
-as :data:`reconstruct.identifiability.SHARE_MIN`, here with the centre window's zeta)."""
+as :data:`reconstruct.physics.identifiability.SHARE_MIN`, here with the centre window's zeta)."""
 
 _LOG_FIELDS = ["step", "epoch", "alpha", "loss", "l_rec", "l_grad", "l_phys", "l_excl", "l_base", "l_ssim", "val_psnr_T", "val_psnr_T_base", "val_psnr_T_oracle", "val_psnr_T_forced", "val_ssim_T", "val_ssim_T_forced", "val_score", "seconds"]
 
@@ -367,7 +367,7 @@ def train(
     Args:
         cfg: training configuration.
         train_set, val_set: map-style datasets of window items
-            (:class:`reconstruct.onthefly.OnTheFlyWindows` or a stored-window dataset).
+            (:class:`reconstruct.net.onthefly.OnTheFlyWindows` or a stored-window dataset).
         run_dir: output directory; an existing ``last.pt`` there is resumed
             (its config must equal ``cfg``, else CheckpointError).
         progress: optional ``(done_steps, total_steps)`` callback.

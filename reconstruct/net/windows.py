@@ -34,11 +34,11 @@ item ``j`` is
   ``phi_perp``, ``T_perp``, ``T_par`` (H, W), from which zeta follows at any
   phi.  Groups without T maps get the lossless ``T = 1 - R``.
 
-Items are built by :func:`reconstruct.onthefly.item_from_stream`, the code
+Items are built by :func:`reconstruct.net.onthefly.item_from_stream`, the code
 that builds on-the-fly items, from the crop of the windows read here: the same
 keys (``I``, ``phi``, ``T``, ``R``, ``zeta``, ``R_perp``, ``R_par``,
 ``phi_perp``, ``T_perp``, ``T_par``, ``exposure``), shapes and float32 dtypes,
-so :func:`reconstruct.train.train` consumes either.  This module owns the
+so :func:`reconstruct.net.train.train` consumes either.  This module owns the
 I/O: indexing, dense centres, crops, order, GT interpolation, lazy files.
 
 Random crops (``cfg.crop`` square) and the order are seeded: item ``j`` is a
@@ -70,8 +70,8 @@ import torch
 
 from polinfra.errors import ConfigError, DataFormatError
 
-from reconstruct.groups import list_groups
-from reconstruct.onthefly import ITEM_KEYS, WindowConfig, item_from_stream, window_centres  # noqa: F401  (re-exported)
+from reconstruct.stream.groups import list_groups
+from reconstruct.net.onthefly import ITEM_KEYS, WindowConfig, item_from_stream, window_centres  # noqa: F401  (re-exported)
 
 __all__ = ["StoreWindows", "GroupIndex", "window_centres", "open_window_datasets", "ITEM_KEYS"]
 
@@ -158,9 +158,9 @@ class StoreWindows(torch.utils.data.Dataset):
 
     Args:
         source: a dataset directory (``dataset.json`` as read by
-            :func:`reconstruct.groups.list_groups`), a group directory, or a
+            :func:`reconstruct.stream.groups.list_groups`), a group directory, or a
             sequence of group directories.
-        cfg: window geometry (:class:`reconstruct.onthefly.WindowConfig`):
+        cfg: window geometry (:class:`reconstruct.net.onthefly.WindowConfig`):
             ``n_obs`` (N = 2K + 1), ``crop`` (square side), ``window_steps``
             (Eq. (3) window dt in steps, odd), ``stride_deg`` (angle between
             observations).  The on-the-fly simulation fields are not
@@ -171,7 +171,7 @@ class StoreWindows(torch.utils.data.Dataset):
         centres: "dense" (every ``centre_every``-th step; observation centres
             from :func:`window_centres`) or "output" (the stored output
             frames only, observation k = stored frame i + k: the evaluation
-            cadence of :func:`reconstruct.groups.load_store_group`).
+            cadence of :func:`reconstruct.stream.groups.load_store_group`).
         centre_every: spacing of dense centres, steps (1 = every 50 us step).
         max_items: keep a seeded subset of this many windows (None = all).
         shuffle: permute the index space by ``seed``.
@@ -277,7 +277,7 @@ class StoreWindows(torch.utils.data.Dataset):
 
         Only the rows of the N windows [c_k - h, c_k + h] are read (and of each
         row only the bytes of the crop's image rows); the steps between windows
-        stay zero (:func:`reconstruct.onthefly.item_from_stream` never reads them).
+        stay zero (:func:`reconstruct.net.onthefly.item_from_stream` never reads them).
         """
         S, W, h = self.cfg.crop, g.width, g.window_steps // 2
         b0 = (y0 * W) // 8
@@ -344,11 +344,11 @@ def _split_names(root: Path) -> set[str]:
 
 
 def open_window_datasets(data: str | os.PathLike, cfg, *, val_split: str | None = None) -> tuple[StoreWindows, StoreWindows]:
-    """(train, validation) window sets of a built dataset for :func:`reconstruct.train.train`.
+    """(train, validation) window sets of a built dataset for :func:`reconstruct.net.train.train`.
 
     Args:
         data: dataset directory with ``dataset.json``.
-        cfg: a :class:`reconstruct.train.TrainConfig` (uses ``window``, ``seed``,
+        cfg: a :class:`reconstruct.net.train.TrainConfig` (uses ``window``, ``seed``,
             ``train_items``, ``val_items``).
         val_split: split used for validation (default "val" when the dataset has
             one, else "test").

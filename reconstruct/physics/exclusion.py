@@ -19,7 +19,7 @@ with opposite-signed weights), which would bias the correlation; so the stream i
 of one part is correlated with T' of another (:func:`cross_gradient_sums`): disjoint spikes, independent noise.
 
 Used by ``polspike calibrate-pane`` (pane model and index where the modulation depths do not reach the DoP cone's
-edges) and by the self zeta's 90 deg twin and pane-model test (``reconstruct.selfcal.layer_gradient_correlation``).
+edges) and by the self zeta's 90 deg twin and pane-model test (``reconstruct.pane.content.layer_gradient_correlation``).
 """
 
 from __future__ import annotations
@@ -43,7 +43,7 @@ def part_harmonics(I: np.ndarray, phi: np.ndarray, parts: int = 2) -> list[tuple
     content is averaged, not mis-fitted)."""
     import torch
 
-    from reconstruct.harmonic_fit import half_turn_frames, harmonic_fit
+    from reconstruct.physics.harmonic_fit import half_turn_frames, harmonic_fit
 
     I = np.asarray(I, np.float64)
     phi = np.asarray(phi, np.float64)
@@ -128,7 +128,7 @@ def cross_gradient_sums(parts, phi_perp: np.ndarray | None, A: np.ndarray, B: np
     over parts).  ``mask`` (H, W): pixels left out (the layers set to 0 there, gradient pairs touching them 0).  Sum
     the maps over any pixel set and form cross / sqrt(pr pt) for its normalised correlation (:func:`label_correlations`).
     Shared by ``polspike calibrate-pane`` (pane model and index) and the self zeta's 90 deg twin test
-    (``reconstruct.selfcal.layer_gradient_correlation``).
+    (``reconstruct.pane.content.layer_gradient_correlation``).
 
     ``pixels``: ``same`` takes both layers' gradients from every pixel; ``split`` takes R' from one set of a
     checkerboard and T' from the other (both ways, averaged; normalised convolution at ``sigma``), so that what a

@@ -136,7 +136,7 @@ def ls_layer_variance(zeta, var_I, weighted: bool = False) -> tuple[np.ndarray, 
 
 def bound_psnr(var_R, mask=None, data_range: float = 1.0) -> float | None:
     """PSNR (dB) implied by a per-pixel estimate variance: 10 log10(range^2 / mean var) over ``mask``
-    (None: all pixels); None for an empty mask; clamped to [-100, 100] dB (+100 like :func:`reconstruct.metrics.psnr`;
+    (None: all pixels); None for an empty mask; clamped to [-100, 100] dB (+100 like :func:`reconstruct.evaluate.metrics.psnr`;
     -100 where zeta does not modulate at some pixel, infinite variance: R unidentifiable)."""
     v = np.asarray(var_R, np.float64)
     if mask is not None:

@@ -32,7 +32,7 @@ import torch.nn.functional as F
 from polinfra.config import opt
 from polinfra.errors import ShapeError
 
-from reconstruct.harmonic_fit import dop, harmonic_fit
+from reconstruct.physics.harmonic_fit import dop, harmonic_fit
 
 __all__ = ["RirConfig", "registration_mask", "warp", "estimate_shifts", "align_window"]
 

@@ -4,8 +4,8 @@ A symmetry ``code`` in 0..7: bit 0 = mirror left-right, bit 1 = mirror up-down, 
 order).  A mirror maps every image-plane direction at angle a to -a (mod pi, the period of linear polarization:
 the polarizer angles and the plane-of-incidence map phi_perp alike); a transpose maps a to pi/2 - a.  paper Eq. (2)
 depends on phi_k - phi_perp only through cos 2(phi_k - phi_perp), which both maps keep, so zeta, T and R are the
-same numbers at the moved pixels.  Used by the training augmentation (:func:`reconstruct.onthefly.flip_item`) and
-the test-time self-ensemble (:class:`reconstruct.network.SymmetryEnsemble`).
+same numbers at the moved pixels.  Used by the training augmentation (:func:`reconstruct.net.onthefly.flip_item`) and
+the test-time self-ensemble (:class:`reconstruct.net.network.SymmetryEnsemble`).
 """
 
 from __future__ import annotations

@@ -6,7 +6,7 @@
   model) -> theta(p), phi_perp(p) by :mod:`polphysics.geometry`, Fresnel
   reflectances by :mod:`polphysics.fresnel`, then paper Eq. (2).
 * ``learned``: the parameter branch of the network of issue 9 (:func:`zeta_learned`).
-* ``self``: the pane geometry estimated from the stream itself (:mod:`reconstruct.selfcal`;
+* ``self``: the pane geometry estimated from the stream itself (:mod:`reconstruct.pane.selfcal`;
   the 90 deg twin of narrow glancing views resolved by the DoP cone, or where the cone holds both by
   the layers' content, R^ and T^ gradients uncorrelated under the right pane; the index and pane
   model fitted where the cone constrains them, the model also by that content test, else a thin slab
@@ -29,7 +29,7 @@ import torch
 
 from polinfra.errors import ShapeError
 
-__all__ = ["ZETA_SOURCES", "zeta_eq2", "PaneMaps", "zeta_from_maps", "pane_maps_from_geometry", "zeta_learned"]
+__all__ = ["ZETA_SOURCES", "zeta_eq2", "PaneMaps", "zeta_from_maps", "pane_maps_from_geometry"]
 
 ZETA_SOURCES = ("gt", "physics", "learned", "self")
 """Names accepted by the evaluation harness's ``--zeta`` option."""
@@ -113,28 +113,3 @@ def _pad4(x: torch.Tensor, m: int = 4) -> torch.Tensor:
     ph, pw = (-H) % m, (-W) % m
     return torch.nn.functional.pad(x, (0, pw, 0, ph), mode="replicate") if (ph or pw) else x
 
-
-@torch.no_grad()
-def zeta_learned(model, I: torch.Tensor, phi: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """The ``learned`` source: zeta_hat and reliability weights w of the network's parameter branch.
-
-    zeta_k = sigmoid(a0 + ac cos 2phi_k + as sin 2phi_k) (supp. Eq. (19)), w = softmax over the window.
-
-    Args:
-        model: :class:`reconstruct.network.PolSpikeNet` (e.g. from :func:`reconstruct.checkpoint.load_model`).
-        I: (B, N, H, W) windows, already RIR-aligned, radiance units; any H, W (replicate-padded here to
-            the network's ``pad_multiple``, 4 for v1).
-        phi: (B, N) polarizer angles (window centres), radians.
-
-    Returns:
-        (zeta, w), each (B, N, H, W) on I's device and dtype.
-    """
-    from reconstruct.network import predict_parameters
-
-    if I.dim() != 4 or phi.shape != I.shape[:2]:
-        raise ShapeError(f"zeta_learned needs I (B, N, H, W) and phi (B, N); got {tuple(I.shape)} and {tuple(phi.shape)}", actual_shape=tuple(I.shape), expected_shape="(B, N, H, W)")
-    H, W = I.shape[-2:]
-    dev = next(model.parameters()).device
-    mult = int(getattr(model, "pad_multiple", 4))  # v1: 4; v2: its pixel-unshuffle factor
-    z, w = predict_parameters(model, _pad4(I.to(dev, torch.float32), mult), phi.to(dev, torch.float32))
-    return z[..., :H, :W].to(I.device, I.dtype), w[..., :H, :W].to(I.device, I.dtype)

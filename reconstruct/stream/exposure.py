@@ -30,7 +30,7 @@ train groups, 0.30 on the 10 test groups (``eval_paper``, bias +0.21), 0.22 on t
 (the mean rate: 0.84 on train; the 99th percentile: 0.48).  The estimate is exactly
 proportional to the true exposure for a given scene (tested), so reconstructions in radiance
 units agree with those at the true exposure up to that one factor, which the networks' own
-brightness normalisation (:func:`reconstruct.network.window_scale`) removes.
+brightness normalisation (:func:`reconstruct.net.network.window_scale`) removes.
 
 A pixel fires at most once per step: when the quantile rate is above :data:`SATURATION_RATE` the
 stream is saturated at its bright end and the estimate is a lower bound (``saturated`` in the
@@ -109,7 +109,7 @@ def _from_counts(counts: np.ndarray, steps: int, reference_radiance: float, quan
 
 
 def estimate_source_exposure(source, max_steps: int = 4000, reference_radiance: float = REFERENCE_RADIANCE, quantile: float = QUANTILE) -> ExposureEstimate:
-    """:func:`estimate_exposure` on the first ``max_steps`` steps of a :class:`reconstruct.video.SpikeSource` (read chunk by chunk)."""
+    """:func:`estimate_exposure` on the first ``max_steps`` steps of a :class:`reconstruct.stream.sources.SpikeSource` (read chunk by chunk)."""
     counts = np.zeros((source.height, source.width), np.int64)
     have = 0
     for _, chunk in source.chunks():

@@ -5,7 +5,7 @@ Sources:
 * a simulated group store (``spike_sim.store``, ``GROUP/spikes.h5``), aggregated
   here by paper Eq. (3) with any window / stride (:func:`load_store_group`);
 * a dataset directory listing groups and their split (:func:`list_groups`);
-* the in-process closed-form set of :mod:`reconstruct.synthetic`.
+* the in-process closed-form set of :mod:`reconstruct.stream.synthetic`.
 
 Dataset layout accepted by :func:`list_groups` (paths relative to DATASET)::
 
@@ -31,7 +31,7 @@ import numpy as np
 
 from polinfra.errors import ConfigError, DataFormatError
 
-from reconstruct.zeta_source import PaneMaps
+from reconstruct.physics.zeta import PaneMaps
 
 __all__ = ["EvalGroup", "list_groups", "load_store_group", "window_steps_from_ms", "spike_mean_frames", "SpikeMeanSums", "SPIKE_MEAN_MS", "spike_mean_steps", "spike_mean_span", "span_harmonic", "HARMONIC_RIDGE", "wide_window_steps", "window_means", "harmonic_design", "network_inputs"]
 
@@ -84,7 +84,7 @@ class EvalGroup:
 
 
 def network_inputs(group: EvalGroup, model, centres, K: int, crop: tuple[slice, slice] = (slice(None), slice(None))) -> dict:
-    """The long-span keywords of :func:`reconstruct.video.run_model_on_windows` that ``model`` reads (its ``cfg``:
+    """The long-span keywords of :func:`reconstruct.video.tiling.run_model_on_windows` that ``model`` reads (its ``cfg``:
     ``use_mean``, ``harm_input``, ``wide_input``, ``span_level``) for the output frames at ``centres`` of a group, each
     window's N = 2K + 1 frames around its centre, cropped to ``crop`` (rows, columns); ConfigError naming what the
     group lacks (only stored groups and the synthetic set carry the long span)."""
@@ -156,12 +156,12 @@ class SpikeMeanSums:
 
     The mean of frame j covers steps [centre_j - L // 2, centre_j + L // 2 + 1) clipped to the stream. Chunks are
     fed in order (from any step up to the first boundary; earlier steps are skipped) and each boundary's running
-    count is snapshotted once: a stream reconstructor (:func:`reconstruct.video.reconstruct_stream`) and a stored
+    count is snapshotted once: a stream reconstructor (:func:`reconstruct.video.stream.reconstruct_stream`) and a stored
     group (:func:`spike_mean_frames`) share this one count.
 
     Given the per-step polarizer angles ``phi_step`` (radians, the reconstructor's nominal ones), the sums weighted
     by cos 2 phi and sin 2 phi are kept too, and :meth:`harmonic` gives the first harmonic of each span's spikes
-    (:func:`span_harmonic`; :func:`reconstruct.solvers.long_span_separation` reads it).
+    (:func:`span_harmonic`; :func:`reconstruct.physics.span.long_span_separation` reads it).
     """
 
     def __init__(self, centres: np.ndarray, steps: int, n_steps: int, shape: tuple[int, int], phi_step: np.ndarray | None = None):
@@ -364,7 +364,7 @@ def load_store_group(
     from spike_sim.aggregate import AggregateConfig, frame_centres
     from spike_sim.store import open_group
 
-    from reconstruct.selfcal import fov_from_group_dir
+    from reconstruct.stream.groups import fov_from_group_dir
 
     cfg = AggregateConfig(window_steps=window_steps, stride_deg=stride_deg, n_obs=n_obs)
     with open_group(path) as g:
@@ -425,3 +425,13 @@ def load_store_group(
             exposure=exposure,
             span_steps=span_mean,
         )
+
+
+def fov_from_group_dir(path) -> float | None:
+    """Horizontal field of view (degrees) recorded in a dataset group's ``group_spec.json`` (scene.camera.fov_deg), else None."""
+    p = Path(path) / "group_spec.json"
+    try:
+        doc = json.loads(p.read_text())
+        return float(doc["scene"]["camera"]["fov_deg"])
+    except (OSError, ValueError, KeyError, TypeError):
+        return None

@@ -28,8 +28,8 @@ import numpy as np
 
 from polinfra.config import opt
 
-from reconstruct.groups import EvalGroup, spike_mean_steps, wide_window_steps
-from reconstruct.zeta_source import PaneMaps
+from reconstruct.stream.groups import EvalGroup, spike_mean_steps, wide_window_steps
+from reconstruct.physics.zeta import PaneMaps
 
 __all__ = ["SyntheticConfig", "make_group", "make_groups", "PICTURES"]
 
@@ -152,7 +152,7 @@ def make_group(cfg: SyntheticConfig, index: int) -> EvalGroup:
             m_ = rng.poisson(np.clip(m_, 0, None) * L) / L
         Im.append(m_)
     # its first harmonic: fitted to the neighbouring noisy frames at their angles (the windows stand in for the span)
-    from reconstruct.solvers import harmonic_of
+    from reconstruct.physics.span import harmonic_of
 
     Ih = []
     for i in range(M):

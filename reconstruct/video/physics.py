@@ -1,29 +1,28 @@
 """Physics-only streaming reconstruction: a solver (ls, ridge, irls, rwps) on a zeta source, no network.
 
-:class:`PhysicsModel` follows the model protocol of :func:`reconstruct.video.run_model_on_windows`
+:class:`PhysicsModel` follows the model protocol of :func:`reconstruct.video.tiling.run_model_on_windows`
 (``cfg.n_obs``; ``model(I (B, N, H, W), phi (B, N))`` -> ``T``, ``R``, ``T_base``, ``R_base``),
-so :func:`reconstruct.video.reconstruct_stream` streams it exactly as it streams the network.  Its
+so :func:`reconstruct.video.stream.reconstruct_stream` streams it exactly as it streams the network.  Its
 zeta maps are per full-frame pixel, so it asks for whole frames (``stream_tile = 0``) and no
 padding (``pad_multiple = 1``).  Per window: RIR (optional; shifts estimated on the frames, applied
-to frames and zeta alike, as the evaluation harness does), then :func:`reconstruct.solvers.solve`.
+to frames and zeta alike, as the evaluation harness does), then :func:`reconstruct.physics.solvers.solve`.
 
 zeta sources (:func:`build_physics_model`):
 
 * ``self``: the pane fitted to the first ``span_s`` of the stream itself
-  (:func:`calibrate_source`, :mod:`reconstruct.selfcal`); where nothing modulates, the
+  (:func:`calibrate_source`, :mod:`reconstruct.pane.selfcal`); where nothing modulates, the
   learned zeta of a checkpoint instead (a warning says so);
 * ``physics``: a group store's incidence-angle and phi_perp maps with a calibrated index and
   pane model (as ``polspike evaluate --zeta physics``); a raw .dat has no pane description;
 * ``gt``: a group store's true pane maps (R_perp, R_par, phi_perp), at the calibrated angles;
 * ``learned``: zeta and reliability weights of a checkpoint's parameter branch
-  (:func:`reconstruct.zeta_source.zeta_learned`).
+  (:func:`reconstruct.net.learned_zeta.zeta_learned`).
 """
 
 from __future__ import annotations
 
 import dataclasses
 import logging
-import math
 from pathlib import Path
 
 import numpy as np
@@ -31,11 +30,14 @@ import torch
 
 from polinfra.errors import ConfigError
 
-from reconstruct.selfcal import SelfCalConfig, SelfCalResult, StreamTooShortError, self_calibrate
-from reconstruct.solvers import PHYSICS_SOLVER_CONFIG, SOLVERS, SolverConfig, anchor_to_mean, solve, zbar_of
-from reconstruct.zeta_source import PaneMaps, zeta_from_maps, zeta_learned
+from reconstruct.pane.selfcal import SelfCalConfig
+from reconstruct.physics.solvers import PHYSICS_SOLVER_CONFIG, SOLVERS, SolverConfig, solve
+from reconstruct.physics.span import anchor_to_mean, zbar_of
+from reconstruct.physics.zeta import PaneMaps, zeta_from_maps
+from reconstruct.net.learned_zeta import zeta_learned
+from reconstruct.pane.source import calibrate_stream
 
-__all__ = ["PHYSICS_METHODS", "STREAM_ZETA_SOURCES", "PhysicsModel", "PhysicsOutput", "calibrate_source", "frames_exposure", "span_frames", "group_pane_maps", "build_physics_model"]
+__all__ = ["PHYSICS_METHODS", "STREAM_ZETA_SOURCES", "PhysicsModel", "PhysicsOutput", "group_pane_maps", "build_physics_model"]
 
 log = logging.getLogger(__name__)
 
@@ -74,7 +76,7 @@ class PhysicsModel:
         solver_cfg: solver parameters.
         rir: align each window (reflection-invariant registration) before solving.
         anchor: "mean" = anchor each output to the 17.5 ms spike mean the stream passes
-            (:func:`reconstruct.solvers.anchor_to_mean`: the level from the long mean, the difference
+            (:func:`reconstruct.physics.span.anchor_to_mean`: the level from the long mean, the difference
             R - T from the solver); "none" = the solver output as is.
     """
 
@@ -114,7 +116,7 @@ class PhysicsModel:
         if self.maps is not None:
             Z = zeta_from_maps(self.maps, phi.cpu().numpy().astype(np.float64), self.span_rad, dtype=torch.float32, device=I.device)  # paper Eq. (2)
         if self.rir and N > 1:
-            from reconstruct.rir import estimate_shifts, warp
+            from reconstruct.physics.rir import estimate_shifts, warp
 
             sh = torch.stack([estimate_shifts(I[b], phi[b]) for b in range(B)]).to(I.dtype)
             I = warp(I, sh)
@@ -131,66 +133,6 @@ class PhysicsModel:
             T, R = anchor_to_mean(T, R, I_mean.to(T.dtype), zbar_of(Z, phi).to(T.dtype))
         T, R = T.clamp_min(0.0), R.clamp_min(0.0)
         return PhysicsOutput(T=T, R=R, T_base=T, R_base=R)
-
-
-def calibrate_stream(source, group_dir=None, window_steps: int = 13, exposure: float | None = None, selfcal: SelfCalConfig | None = None,
-                     pane_n: float | None = None, pane_model: str | None = None) -> SelfCalResult:
-    """:func:`calibrate_source` with the settings a stream's caller has: the field of view from the stored group's
-    scene when ``selfcal`` does not give one, and a known index / pane model (None: ``selfcal``'s, by default the
-    index and model fitted where the data constrain them, else n 1.5 and a thin slab: what the evaluation measures,
-    :func:`reconstruct.selfcal.group_self_zeta`)."""
-    sc = selfcal or SelfCalConfig()
-    if pane_n is not None:
-        sc = dataclasses.replace(sc, n=float(pane_n))
-    if pane_model is not None and pane_model != "auto":
-        sc = dataclasses.replace(sc, model=pane_model)
-    if not sc.fov_deg and group_dir is not None:
-        from reconstruct.selfcal import fov_from_group_dir
-
-        fov = fov_from_group_dir(group_dir)
-        if fov:
-            sc = dataclasses.replace(sc, fov_deg=fov)
-    return calibrate_source(source, window_steps, exposure, sc)
-
-
-def calibrate_source(source, window_steps: int = 13, exposure: float | None = None, cfg: SelfCalConfig = SelfCalConfig()) -> SelfCalResult:
-    """Self-calibrate the pane on the first ``cfg.span_s`` of a spike stream (:class:`reconstruct.video.SpikeSource`).
-
-    Every spike of the span is used: back-to-back Eq. (3) windows of ``window_steps`` steps, each at
-    its mean calibrated polarizer angle (denser than the output cadence: more data, same model); pixels that
-    saturate are left out (:func:`reconstruct.selfcal.leave_out_saturated`).
-    """
-    ex = frames_exposure(source, exposure)
-    I, phi = span_frames(source, cfg.span_s, window_steps, ex)
-    return self_calibrate(I, phi, cfg, name=source.name, exposure=ex)
-
-
-def frames_exposure(source, exposure: float | None = None) -> float:
-    """The exposure :func:`span_frames` divides by: the one given, else the source's, else 1 (a raw stream of unknown
-    scale: radiance = spikes per step).  Frames times it are spikes per step whatever it is, so saturation tests on
-    them hold."""
-    return exposure if exposure is not None else (source.exposure or 1.0)
-
-
-def span_frames(source, span_s: float, window_steps: int = 13, exposure: float | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """The first ``span_s`` of a spike stream as back-to-back Eq. (3) frames: I (M, H, W) float32 radiance, phi (M,) radians."""
-    steps_needed = max(window_steps * 3, int(round(span_s * source.rate_hz)))
-    steps_needed = min(steps_needed, int(source.phi_step_rad.size))
-    ex = frames_exposure(source, exposure)
-    bufs, have = [], 0
-    for _, chunk in source.chunks():
-        bufs.append(np.asarray(chunk))
-        have += chunk.shape[0]
-        if have >= steps_needed:
-            break
-    sp = np.concatenate(bufs)[:steps_needed] if bufs else np.zeros((0, source.height, source.width), np.uint8)
-    M = sp.shape[0] // window_steps
-    if M < 3:
-        raise StreamTooShortError(f"{source.name}: self-calibration needs at least {3 * window_steps} steps; the stream has {sp.shape[0]}")
-    counts = sp[: M * window_steps].reshape(M, window_steps, source.height, source.width).sum(1, dtype=np.int32)
-    I = counts.astype(np.float32) / np.float32(window_steps * ex)  # Eq. (3), radiance units
-    phi = source.phi_step_rad[: M * window_steps].reshape(M, window_steps).mean(1)
-    return I, phi
 
 
 def group_pane_maps(group_dir, zeta: str, n: float = 1.5, model: str = "single") -> PaneMaps:
@@ -263,7 +205,7 @@ def build_physics_model(
     Args:
         method: solver name.
         zeta: one of :data:`STREAM_ZETA_SOURCES`.
-        source: the :class:`reconstruct.video.SpikeSource`.
+        source: the :class:`reconstruct.stream.sources.SpikeSource`.
         group_dir: the stored group's directory (``physics`` and ``gt`` need it), or None for a raw .dat.
         n_obs, window_steps, exposure: window geometry (as the stream's).
         rir: RIR alignment per window.

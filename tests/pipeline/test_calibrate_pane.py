@@ -32,7 +32,7 @@ def _field(rng, H, W, shift):
 
 def _pane_geometry(tilt_deg, azimuth_deg, fov_deg, W, H, n, model):
     """The known pane's per-pixel geometry and Fresnel coefficients, and the 13-step window's polarizer sweep and sinc."""
-    from reconstruct.selfcal import camera_for, normal_from_angles
+    from reconstruct.pane.camera import camera_for, normal_from_angles
 
     cam = camera_for(W, H, fov_deg)
     N = normal_from_angles(math.radians(tilt_deg), math.radians(azimuth_deg), cam)
@@ -396,7 +396,7 @@ def test_outputs_pane_toml_reproduces_the_fit_and_maps_exr_has_the_render_channe
 
 def _dat_stream(path, tilt, az, fov=55.0, H=48, W=72, steps=2000, seed=1):
     """A raw .dat: Bernoulli spikes per 50 us step behind a known pane, polarizer at 30 rev/s from phi0 = 20 deg."""
-    from reconstruct.selfcal import camera_for, normal_from_angles
+    from reconstruct.pane.camera import camera_for, normal_from_angles
     from spike_sim.vidar_dat import write_dat
 
     rng = np.random.default_rng(seed)
@@ -559,7 +559,7 @@ def test_the_90_deg_twin_is_told_apart_by_the_modulation_depth():
     (layers go black), violate the twin's cone [-DoP_T, DoP_R] by far more chi^2 than the true pane's."""
     from generator.pane_fit import PaneModelAD
     from polspike.pipeline.calibrate_pane import CalibratePaneConfig, _cone_violation, find_twin, fit_geometry
-    from reconstruct.selfcal import orientation_field
+    from reconstruct.pane.orientation import orientation_field
 
     tilt, az, fov, H, W = 72.0, 30.0, 20.0, 48, 72
     I, phi, span, geo = pane_stream(tilt, az, fov_deg=fov, H=H, W=W, M=120, stride_deg=360 * 30 * 13 / 20000, exposure=4.0, motion=0.2)
@@ -592,7 +592,7 @@ def test_block_orientation_variance_matches_the_monte_carlo_spread_of_psi():
     """The scatter of a block's pixel sums perpendicular to its direction gives the noise variance of psi_b = arg(s4_b) / 4
     (oracle: the spread of psi_b over independent noise draws); q / (32 |s4|^2), the pure-noise scale, overstates it
     where the block modulates.  A block whose signal sits in one pixel has an effective pixel count of 1."""
-    from reconstruct.selfcal import block_orientation_variance
+    from reconstruct.pane.orientation import block_orientation_variance
 
     rng = np.random.default_rng(5)
     b, hb, wb, sig = 4, 3, 5, 0.4
@@ -655,9 +655,9 @@ def test_a_narrowly_chosen_twin_is_overturned_by_the_cone_along_the_other_family
     same check keeps the chosen pane."""
     import dataclasses
 
-    import reconstruct.selfcal as sc
+    import reconstruct.pane.selfcal as sc
     from polspike.pipeline.calibrate_pane import CalibratePaneConfig, calibrate_frames, find_twin
-    from reconstruct.selfcal import orientation_field
+    from reconstruct.pane.orientation import orientation_field
 
     tilt, az, fov, H, W = 72.0, 30.0, 20.0, 48, 72
     I, phi, span, geo = pane_stream(tilt, az, fov_deg=fov, H=H, W=W, M=120, stride_deg=360 * 30 * 13 / 20000, exposure=4.0, motion=0.2)

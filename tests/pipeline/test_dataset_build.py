@@ -65,7 +65,7 @@ def test_small_builds_and_verifies(built):
 
 
 def test_dataset_json_is_read_by_the_reconstructor(built):
-    from reconstruct.groups import list_groups, load_store_group
+    from reconstruct.stream.groups import list_groups, load_store_group
 
     train = list_groups(built, "train")
     test = list_groups(built, "test")

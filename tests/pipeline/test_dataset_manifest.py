@@ -286,7 +286,8 @@ def test_eval_paper_val_is_paper_vals_groups_reduced():
 
 def test_stress_manifest_is_a_named_grid_of_regimes():
     from polspike.pipeline.sampler import STRESS_LEVELS, stress_manifest_text
-    from reconstruct.evaluate import REGIME_FACTORS, regime_of
+    from reconstruct.evaluate.harness import REGIME_FACTORS
+    from reconstruct.evaluate.regimes import regime_of
 
     text = (MANIFESTS_DIR / "stress.toml").read_text()
     assert text == stress_manifest_text()

@@ -11,7 +11,7 @@ import pytest
 import torch
 
 from polspike.pipeline.train_windows import TEST_CONTENT, GeneratorWindows, sample_scene, scene_pool, train_content
-from reconstruct.onthefly import ITEM_KEYS, OnTheFlyWindows, WindowConfig
+from reconstruct.net.onthefly import ITEM_KEYS, OnTheFlyWindows, WindowConfig
 
 
 @pytest.fixture(scope="module")
@@ -54,8 +54,8 @@ def test_train_and_test_content_are_disjoint():
 
 
 def test_onthefly_item_equals_stored_item(source, tmp_path):
-    """The window group of item (seed, i) built as a store and read by reconstruct.windows gives the same item."""
-    windows = pytest.importorskip("reconstruct.windows")
+    """The window group of item (seed, i) built as a store and read by reconstruct.net.windows gives the same item."""
+    windows = pytest.importorskip("reconstruct.net.windows")
     from spike_sim.aggregate import AggregateConfig
     from spike_sim.simulate import simulate
 

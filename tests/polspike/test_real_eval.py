@@ -12,7 +12,7 @@ import json
 import numpy as np
 import pytest
 
-from reconstruct.checkpoint import DEFAULT_WEIGHTS
+from reconstruct.net.checkpoint import DEFAULT_WEIGHTS
 
 needs_ckpt = pytest.mark.skipif(not DEFAULT_WEIGHTS.is_file(), reason=f"shipped checkpoint {DEFAULT_WEIGHTS} not present")
 
@@ -59,7 +59,7 @@ def test_real_recordings_cropped(tmp_path, shared_data, polspike_main):
 def test_spike_mean_and_tfp_are_recomputed_independently(tmp_path, shared_data):
     """The PSNR of TFP vs the spike mean in the table equals one computed here from the raw array."""
     from polspike.pipeline.real_eval import RECORDINGS, evaluate_real, nominal_rev_per_s
-    from reconstruct.exposure import estimate_exposure
+    from reconstruct.stream.exposure import estimate_exposure
     from spike_sim.aggregate import AggregateConfig, frame_centres
 
     rec = RECORDINGS[0]

@@ -1,6 +1,6 @@
 """Closed-form evaluation groups behind a pane of known geometry (for the self-calibration tests).
 
-Independent of reconstruct.selfcal's estimator: the truth is built from polphysics (camera, plane,
+Independent of reconstruct.pane.selfcal's estimator: the truth is built from polphysics (camera, plane,
 Fresnel) and paper Eq. (1)-(2) directly; spike counts are Poisson (pessimistic) at ``exposure``.
 """
 
@@ -12,8 +12,8 @@ import numpy as np
 
 from polphysics.fresnel import pane_coefficients
 from polphysics.geometry import PinholeCamera, Plane, incidence_geometry
-from reconstruct.groups import EvalGroup
-from reconstruct.zeta_source import PaneMaps
+from reconstruct.stream.groups import EvalGroup
+from reconstruct.physics.zeta import PaneMaps
 
 from ._synth import periodic_texture
 

@@ -12,8 +12,8 @@ import torch
 
 from polinfra.errors import ConfigError, ShapeError
 from polphysics.fresnel import pane_coefficients
-from reconstruct.onthefly import ASSUMED_MODELS, WindowConfig, flip_item, item_from_stream
-from reconstruct.train import TrainConfig, assumed_glass_feed
+from reconstruct.net.onthefly import ASSUMED_MODELS, WindowConfig, flip_item, item_from_stream
+from reconstruct.net.train import TrainConfig, assumed_glass_feed
 
 CFG = WindowConfig(crop=12, n_obs=5, window_steps=9)
 
@@ -82,7 +82,7 @@ def test_feed_picks_the_closer_model_when_right_and_the_other_when_not():
 
 
 def test_network_feeds_zeta_feed_and_keeps_zeta_gt_for_the_losses():
-    from reconstruct.network import NetConfig, PolSpikeNet, init_weights
+    from reconstruct.net.network import NetConfig, PolSpikeNet, init_weights
 
     net = init_weights(PolSpikeNet(NetConfig(arch="v2", use_rir=False, lr_ch=8, w_ch=4, ref_ch=(8, 8, 8), dec_ch=(8, 8, 8), n_obs=5)), torch.Generator().manual_seed(0)).eval()
     g = torch.Generator().manual_seed(3)

@@ -7,8 +7,8 @@ from types import SimpleNamespace
 
 import torch
 
-from reconstruct.bench import bench_reconstruct_net, count_flops, net_table
-from reconstruct.network import NetConfig, PolSpikeNet, init_weights
+from reconstruct.evaluate.bench import bench_reconstruct_net, count_flops, net_table
+from reconstruct.net.network import NetConfig, PolSpikeNet, init_weights
 
 
 class _OneConv(torch.nn.Module):

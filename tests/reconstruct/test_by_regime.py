@@ -13,8 +13,9 @@ import numpy as np
 import pytest
 
 from polinfra.errors import ConfigError
-from reconstruct.evaluate import REGIME_FACTORS, EvalConfig, evaluate_by_regime, regime_of
-from reconstruct.synthetic import SyntheticConfig, make_group
+from reconstruct.evaluate.harness import REGIME_FACTORS, EvalConfig
+from reconstruct.evaluate.regimes import evaluate_by_regime, regime_of
+from reconstruct.stream.synthetic import SyntheticConfig, make_group
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -56,8 +57,8 @@ def test_fit_picks_the_best_grid_point():
     """On windows with known truth the fit's table is consistent: best = the one-SE rule's pick, margins vs LS / ridge."""
     import torch
 
-    from reconstruct.rwps_fit import fit_rwps, group_scores
-    from reconstruct.solvers import SolverConfig
+    from reconstruct.evaluate.rwps_fit import fit_rwps, group_scores
+    from reconstruct.physics.solvers import SolverConfig
 
     sys.path.insert(0, str(Path(__file__).parent))
     from test_rwps_adaptive import _regime_windows
@@ -88,7 +89,7 @@ def test_fit_rwps_refuses_the_test_split(tmp_path):
 def test_share_tables_are_means_of_their_groups_and_render(groups):
     """R where the reflection is >= 20 % of the light: per-regime rows average the groups' masked scores and
     fractions; the table leads with the fraction and the bound (n/a without a stored group's noise)."""
-    from reconstruct.evaluate import regime_markdown, regime_report
+    from reconstruct.evaluate.regimes import regime_markdown, regime_report
 
     cfg = EvalConfig(methods="ls", max_frames=2, rir=False)
     res = evaluate_by_regime(groups, cfg, zetas=("gt",), network=False)
@@ -109,14 +110,14 @@ def test_share_tables_are_means_of_their_groups_and_render(groups):
 def test_share_rows_count_the_groups_whose_bound_reaches_22_db(groups, monkeypatch):
     """With a known window noise (the synthetic set's Poisson counts, exposure 1, 13 steps) every group gets an R
     bound; each level counts the groups whose bound is >= 22 dB and averages the bounds."""
-    import reconstruct.evaluate as ev
+    import reconstruct.evaluate.harness as ev
 
     monkeypatch.setattr(ev, "group_noise", lambda g, cfg: {"exposure": 1.0, "window_steps": 13, "model": "poisson"})
     res = evaluate_by_regime(groups, EvalConfig(methods="ls", max_frames=2, rir=False), zetas=("gt",), network=False)
     b = {n: v["psnr_R_bound"] for n, v in res["groups_share"].items()}
     for r in res["rows_R_share"]:
         f, lv = r["regime"].split("=")
-        mine = [b[n] for n in b if ev.regime_of(n).get(f) == lv and b[n] is not None]
+        mine = [b[n] for n in b if regime_of(n).get(f) == lv and b[n] is not None]
         assert r["n_bound"] == len(mine) and r["n_bound_ge_22"] == sum(x >= 22.0 for x in mine)
         if mine:
             assert r["psnr_R_bound"] == pytest.approx(np.mean(mine))

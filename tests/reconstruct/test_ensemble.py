@@ -1,4 +1,4 @@
-"""Test-time self-ensemble (reconstruct.network.SymmetryEnsemble): its symmetries are flip_item's (which is checked
+"""Test-time self-ensemble (reconstruct.net.network.SymmetryEnsemble): its symmetries are flip_item's (which is checked
 against paper Eq. (2) on mirrored scenes), and averaging over a group of symmetries makes any network equivariant."""
 
 from __future__ import annotations
@@ -10,9 +10,9 @@ import pytest
 import torch
 
 from polinfra.errors import ConfigError, ShapeError
-from reconstruct.network import SYMMETRY_CODES, NetConfig, PolSpikeNet, SymmetryEnsemble, init_weights
-from reconstruct.symmetry import symmetry_angles, symmetry_image
-from reconstruct.onthefly import flip_item
+from reconstruct.net.network import SYMMETRY_CODES, NetConfig, PolSpikeNet, SymmetryEnsemble, init_weights
+from reconstruct.physics.symmetry import symmetry_angles, symmetry_image
+from reconstruct.net.onthefly import flip_item
 
 
 def _net(seed=0, **kw):
@@ -80,7 +80,7 @@ def test_ensemble_is_equivariant(size, codes, external_zeta):
 def test_wrong_angles_break_equivariance(monkeypatch):
     """The oracle has teeth: members that move the frames but not their polarizer angles disagree with the
     mirrored window (frames and angles moved, as flip_item moves them): E(g x) != g E(x)."""
-    import reconstruct.network as network
+    import reconstruct.net.network as network
 
     net = _net(2)
     I, phi = _window(seed=3)
@@ -119,7 +119,7 @@ def test_bad_size_and_features_are_errors():
 def test_ensemble_runs_in_the_video_path():
     """run_model_on_windows with tiles: the ensemble goes through the tiled path (tiles are square or not) and its
     T stays close to the single network's (same weights, averaged members)."""
-    from reconstruct.video import run_model_on_windows
+    from reconstruct.video.tiling import run_model_on_windows
 
     net = _net(4)
     I, phi = _window(B=1, H=40, W=56, seed=6)
@@ -154,10 +154,10 @@ def test_bench_ensemble_rows(tmp_path):
     numbers; the table and the figure are written."""
     import dataclasses
 
-    from reconstruct.bench import bench_ensemble, ensemble_figure, ensemble_table
-    from reconstruct.checkpoint import V1_WEIGHTS
-    from reconstruct.evaluate import EvalConfig, evaluate_groups
-    from reconstruct.synthetic import SyntheticConfig, make_group
+    from reconstruct.evaluate.bench import bench_ensemble, ensemble_figure, ensemble_table
+    from reconstruct.net.checkpoint import V1_WEIGHTS
+    from reconstruct.evaluate.harness import EvalConfig, evaluate_groups
+    from reconstruct.stream.synthetic import SyntheticConfig, make_group
 
     if not V1_WEIGHTS.is_file():
         pytest.skip("shipped v1 checkpoint not present")
@@ -180,7 +180,7 @@ def test_bench_ensemble_rows(tmp_path):
 def test_integer_choices_are_enforced_by_the_config_layer():
     """opt(choices=...) holds for integers as for strings (EvalConfig.net_ensemble, NetConfig.down)."""
     from polinfra.config import from_dict
-    from reconstruct.evaluate import EvalConfig
+    from reconstruct.evaluate.harness import EvalConfig
 
     assert from_dict(EvalConfig, {"net_ensemble": 4}).net_ensemble == 4
     with pytest.raises(ConfigError, match=r"net_ensemble = 3 is not allowed; choose one of \[1, 2, 4, 8\]"):
@@ -194,7 +194,7 @@ def test_cli_bench_ensemble_writes_json_table_and_plot(tmp_path, polspike_main):
     rows for 1 (the reference, always run) and 2, the table and the plot written."""
     import json
 
-    from reconstruct.checkpoint import V1_WEIGHTS
+    from reconstruct.net.checkpoint import V1_WEIGHTS
 
     if not V1_WEIGHTS.is_file():
         pytest.skip("shipped v1 checkpoint not present")

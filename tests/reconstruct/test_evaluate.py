@@ -8,9 +8,9 @@ import json
 import numpy as np
 import pytest
 
-from reconstruct.evaluate import EvalConfig, evaluate_groups, group_zeta, load_groups, markdown_table, write_report
-from reconstruct.groups import list_groups, load_store_group, window_steps_from_ms
-from reconstruct.synthetic import SyntheticConfig, make_group
+from reconstruct.evaluate.harness import EvalConfig, evaluate_groups, group_zeta, load_groups, markdown_table, write_report
+from reconstruct.stream.groups import list_groups, load_store_group, window_steps_from_ms
+from reconstruct.stream.synthetic import SyntheticConfig, make_group
 
 
 def _small(noise="none", n_frames=9):
@@ -119,7 +119,7 @@ def test_spike_mean_baseline_sums_the_raw_spikes(tmp_path):
     from spike_sim.aggregate import AggregateConfig, frame_centres
     from spike_sim.store import open_group
 
-    from reconstruct.groups import SPIKE_MEAN_MS
+    from reconstruct.stream.groups import SPIKE_MEAN_MS
 
     Tl, M = _write_store(tmp_path / "g0", n_frames=14)
     g = load_store_group(tmp_path / "g0")
@@ -146,7 +146,7 @@ def test_spike_mean_baseline_sums_the_raw_spikes(tmp_path):
 def test_anchor_to_mean_takes_the_level_from_the_mean_and_the_difference_from_the_solver():
     """Closed form: 2 I_mean = T + zbar (R - T) (paper Eq. (1) over a half turn); a separation with the right
     difference R - T but any wrong level (a common offset, as noise in the short windows gives) is restored exactly."""
-    from reconstruct.solvers import anchor_to_mean
+    from reconstruct.physics.span import anchor_to_mean
 
     rng = np.random.default_rng(0)
     T, R, zbar = rng.uniform(0, 1, (2, 8, 8)), rng.uniform(0, 1, (2, 8, 8)), rng.uniform(0.02, 0.4, (2, 8, 8))

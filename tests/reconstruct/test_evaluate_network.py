@@ -11,10 +11,10 @@ from typer.testing import CliRunner
 
 from polspike.cli import get_app
 from polinfra.errors import CheckpointError, ConfigError
-from reconstruct.checkpoint import save_checkpoint
-from reconstruct.evaluate import EvalConfig, evaluate_groups
-from reconstruct.network import NetConfig, PolSpikeNet, init_weights
-from reconstruct.synthetic import SyntheticConfig, make_group
+from reconstruct.net.checkpoint import save_checkpoint
+from reconstruct.evaluate.harness import EvalConfig, evaluate_groups
+from reconstruct.net.network import NetConfig, PolSpikeNet, init_weights
+from reconstruct.stream.synthetic import SyntheticConfig, make_group
 
 
 def _ckpt(path, **net):
@@ -34,7 +34,7 @@ def _overall(rep):
 
 def test_full_method_rows_and_test_time_rir_ablation(tmp_path, group, caplog):
     ck = _ckpt(tmp_path / "m.pt")
-    with caplog.at_level(logging.WARNING, logger="reconstruct.evaluate"):
+    with caplog.at_level(logging.WARNING, logger="reconstruct.evaluate.harness"):
         rep = evaluate_groups([group], EvalConfig(methods="rwps,full", rir=False, checkpoint=str(ck), figure_frames=1))
     ov = _overall(rep)
     # trained with RIR, evaluated without: the test-time ablation is named and logged

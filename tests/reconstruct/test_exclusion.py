@@ -1,4 +1,4 @@
-"""reconstruct.exclusion: closed-form layer solve under a zeta hypothesis and the crossed gradient correlation.
+"""reconstruct.physics.exclusion: closed-form layer solve under a zeta hypothesis and the crossed gradient correlation.
 
 Oracles: paper Eq. (1)-(2) written out here (window sinc included) and the algebra of the module docstring
 (a zeta scaled by k gives T' = T and R' = T + (R - T) / k); independent textures are uncorrelated.
@@ -11,7 +11,7 @@ import math
 import numpy as np
 from scipy.ndimage import gaussian_filter
 
-from reconstruct.exclusion import cross_gradient_sums, label_correlations, part_harmonics, solve_layers
+from reconstruct.physics.exclusion import cross_gradient_sums, label_correlations, part_harmonics, solve_layers
 
 
 def _tex(seed, H=64, W=96, s=1.5):
@@ -151,7 +151,7 @@ def test_the_part_pair_sums_equal_the_explicit_double_sum_over_distinct_parts():
     product of the part sums less the p = q terms.  Oracle: the explicit double loop over p != q of the per-part
     gradients (same: R'_p . T'_q; split: the mean of set 0 of one with set 1 of the other, both ways), for 2, 3 and 5
     noisy parts, with and without a mask."""
-    from reconstruct.exclusion import _checkerboard, _grad, _set_grad, solve_layers
+    from reconstruct.physics.exclusion import _checkerboard, _grad, _set_grad, solve_layers
 
     H, W, sigma = 40, 56, 1.5
     rng = np.random.default_rng(7)

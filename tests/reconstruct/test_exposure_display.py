@@ -15,7 +15,7 @@ import json
 import numpy as np
 import pytest
 
-from reconstruct.exposure import QUANTILE, REFERENCE_RADIANCE, estimate_exposure
+from reconstruct.stream.exposure import QUANTILE, REFERENCE_RADIANCE, estimate_exposure
 
 H, W = 24, 32
 
@@ -80,8 +80,8 @@ def test_cli_estimated_and_true_exposure_agree(tmp_path):
 
     from polinfra.exr import read_exr
     from polspike.cli import get_app
-    from reconstruct.checkpoint import DEFAULT_WEIGHTS
-    from reconstruct.metrics import psnr
+    from reconstruct.net.checkpoint import DEFAULT_WEIGHTS
+    from reconstruct.evaluate.metrics import psnr
 
     if not DEFAULT_WEIGHTS.is_file():
         pytest.skip(f"shipped checkpoint {DEFAULT_WEIGHTS} not present")
@@ -137,7 +137,8 @@ def _highlight_stream(seed=0, steps=1400, h=32, w=48):
 def test_png_frames_clip_at_most_a_thousandth(tmp_path):
     import imageio.v3 as iio
 
-    from reconstruct.video import ReconstructConfig, array_source, reconstruct_stream
+    from reconstruct.video.stream import ReconstructConfig, reconstruct_stream
+    from reconstruct.stream.sources import array_source
 
     s = reconstruct_stream(array_source(_highlight_stream(), 0.0, 30.0), _Tfp(), tmp_path, ReconstructConfig(frames="png", video=False, max_frames=4, exposure=0.3))
     assert s["frames"] == 4
@@ -152,7 +153,8 @@ def test_png_frames_clip_at_most_a_thousandth(tmp_path):
 def test_exr_frames_stay_linear_and_unclipped(tmp_path):
     from polinfra.exr import read_exr
     from spike_sim.aggregate import AggregateConfig, frame_centres
-    from reconstruct.video import ReconstructConfig, array_source, reconstruct_stream
+    from reconstruct.video.stream import ReconstructConfig, reconstruct_stream
+    from reconstruct.stream.sources import array_source
 
     sp = _highlight_stream(1)
     e = 0.3

@@ -12,10 +12,10 @@ import pytest
 import torch
 
 from polinfra.errors import CheckpointError, ConfigError
-from reconstruct.checkpoint import read_checkpoint, save_checkpoint
-from reconstruct.network import NetConfig, PolSpikeNet
-from reconstruct.onthefly import OnTheFlyWindows, WindowConfig, flip_item, item_from_stream
-from reconstruct.train import TINY, train
+from reconstruct.net.checkpoint import read_checkpoint, save_checkpoint
+from reconstruct.net.network import NetConfig, PolSpikeNet
+from reconstruct.net.onthefly import OnTheFlyWindows, WindowConfig, flip_item, item_from_stream
+from reconstruct.net.train import TINY, train
 
 RATE_HZ, POL_HZ = 20000.0, 30.0
 CFG = WindowConfig(crop=12, n_obs=5, window_steps=9)

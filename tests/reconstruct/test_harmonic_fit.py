@@ -7,7 +7,7 @@ import torch
 
 from polphysics.stokes import dop as stokes_dop
 from polphysics.stokes import polarizer_intensity
-from reconstruct.harmonic_fit import aolp, dop, harmonic_eval, harmonic_fit
+from reconstruct.physics.harmonic_fit import aolp, dop, harmonic_eval, harmonic_fit
 
 
 def test_noise_free_fit_recovers_stokes(np_rng):

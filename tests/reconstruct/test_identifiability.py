@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from polinfra.errors import ConfigError, ShapeError
-from reconstruct.identifiability import bound_psnr, count_variance, ls_layer_variance, reflected_share, window_mean_variance
+from reconstruct.physics.identifiability import bound_psnr, count_variance, ls_layer_variance, reflected_share, window_mean_variance
 
 
 def test_reflected_share_closed_form():
@@ -115,9 +115,9 @@ def test_the_evaluation_bound_equals_the_unclipped_ls_error_on_a_stored_group(tm
     true zeta has a mean squared error within 10 % of its mean variance (measured: 1-5 %)."""
     import torch
 
-    from reconstruct.evaluate import EvalConfig, evaluate_groups, group_noise, share_context, share_scores
-    from reconstruct.groups import load_store_group
-    from reconstruct.solvers import solve
+    from reconstruct.evaluate.harness import EvalConfig, evaluate_groups, group_noise, share_context, share_scores
+    from reconstruct.stream.groups import load_store_group
+    from reconstruct.physics.solvers import solve
     from tests.reconstruct.test_evaluate import _write_store
 
     _write_store(tmp_path / "g0", H=32, W=48, n_frames=14, exposure=1.5)

@@ -14,12 +14,12 @@ import pytest
 import torch
 
 from polinfra.errors import ShapeError
-from reconstruct.groups import SpikeMeanSums, span_harmonic, spike_mean_span
-from reconstruct.network import NetConfig, PolSpikeNet, SymmetryEnsemble, init_weights
-from reconstruct.solvers import HARMONIC_FLOOR, harmonic_of, long_span_separation, zbar_of
-from reconstruct.symmetry import angle_map, harmonic_signs, symmetry_angles, symmetry_harmonic, symmetry_image
-from reconstruct.train import _widened
-from reconstruct.zeta_source import PaneMaps, zeta_from_maps
+from reconstruct.stream.groups import SpikeMeanSums, span_harmonic, spike_mean_span
+from reconstruct.net.network import NetConfig, PolSpikeNet, SymmetryEnsemble, init_weights
+from reconstruct.physics.span import HARMONIC_FLOOR, harmonic_of, long_span_separation, zbar_of
+from reconstruct.physics.symmetry import angle_map, harmonic_signs, symmetry_angles, symmetry_harmonic, symmetry_image
+from reconstruct.net.train import _widened
+from reconstruct.physics.zeta import PaneMaps, zeta_from_maps
 
 SMALL = NetConfig(arch="v2", feat_ch=8, lr_ch=8, w_ch=4, ref_ch=(8, 8, 8), dec_ch=(8, 8, 8), use_rir=False, use_mean=True)
 
@@ -132,7 +132,7 @@ def test_symmetry_harmonic_is_the_fit_at_the_moved_angles(code):
 
 def _item(seed: int, **window):
     """(training item of a random 900-step 8 x 8 stream at exposure 0.7, its spikes, centres, angles)."""
-    from reconstruct.onthefly import WindowConfig, item_from_stream
+    from reconstruct.net.onthefly import WindowConfig, item_from_stream
 
     rng = np.random.default_rng(seed)
     spikes = (rng.random((900, 8, 8)) < 0.2).astype(np.uint8)
@@ -143,7 +143,7 @@ def _item(seed: int, **window):
 
 
 def test_onthefly_item_harmonic_is_the_direct_fit_and_flips_with_the_angles():
-    from reconstruct.onthefly import flip_item
+    from reconstruct.net.onthefly import flip_item
 
     it, spikes, ck, phi = _item(4, mean_steps=350)
     lo, hi = spike_mean_span(ck[3], 350, 900)
@@ -223,8 +223,9 @@ class _Recorder(torch.nn.Module):
 def _streamed(tmp_path, chunk: int, seed: int, rec: _Recorder):
     """(what ``rec`` was given per output frame, the stream source, the stored group) for a tiny group streamed in
     chunks of ``chunk`` steps."""
-    from reconstruct.groups import load_store_group
-    from reconstruct.video import ReconstructConfig, group_source, reconstruct_stream
+    from reconstruct.stream.groups import load_store_group
+    from reconstruct.video.stream import ReconstructConfig, reconstruct_stream
+    from reconstruct.stream.sources import group_source
     from tests.reconstruct.test_windows import make_group
 
     make_group(tmp_path / "g", seed=seed, duration=0.04)
@@ -255,8 +256,8 @@ def test_stream_gives_the_network_the_store_harmonic(tmp_path, chunk):
 def test_evaluate_scores_the_span_physics_row():
     """evaluate --anchor mean adds the row 'span' (long_span_separation on the solvers' zeta); on a static, noise-free
     synthetic group with the true zeta it is exact up to the floor, far above the plain spike mean."""
-    from reconstruct.evaluate import SPAN_METHOD, EvalConfig, evaluate_groups
-    from reconstruct.synthetic import SyntheticConfig, make_group as synth
+    from reconstruct.evaluate.harness import SPAN_METHOD, EvalConfig, evaluate_groups
+    from reconstruct.stream.synthetic import SyntheticConfig, make_group as synth
 
     g = synth(SyntheticConfig(width=24, height=16, n_groups=1, n_frames=11, noise="none", motion_px_per_frame=0.0), 0)
     rep = evaluate_groups([g], EvalConfig(methods="ls", zeta="gt", rir=False, anchor="mean", max_frames=2))
@@ -267,7 +268,7 @@ def test_evaluate_scores_the_span_physics_row():
 
 # --------------------------------------------------------------------------- the wide window (net.use_wide)
 def test_wide_window_is_the_largest_odd_count_within_a_stride():
-    from reconstruct.groups import wide_window_steps
+    from reconstruct.stream.groups import wide_window_steps
 
     assert wide_window_steps(20000.0, 30.0, 31.5) == 57  # 58.3 steps per stride
     assert wide_window_steps(20000.0, 25.0, 31.5) == 69  # 70.0 -> 69
@@ -276,7 +277,7 @@ def test_wide_window_is_the_largest_odd_count_within_a_stride():
 
 
 def test_window_means_are_the_clipped_window_means_at_every_width():
-    from reconstruct.groups import window_means
+    from reconstruct.stream.groups import window_means
 
     rng = np.random.default_rng(5)
     spikes = (rng.random((300, 3, 4)) < 0.3).astype(np.uint8)
@@ -289,7 +290,7 @@ def test_window_means_are_the_clipped_window_means_at_every_width():
 
 
 def test_onthefly_item_wide_windows_are_the_raw_window_sums_and_flip_with_the_image():
-    from reconstruct.onthefly import WindowConfig, flip_item
+    from reconstruct.net.onthefly import WindowConfig, flip_item
 
     it, spikes, ck, phi = _item(6, mean_steps=350, wide_steps=57)
     want = np.stack([spikes[c - 28 : c + 29].sum(0) / (57 * 0.7) for c in ck])
@@ -354,7 +355,7 @@ def test_stream_gives_the_network_the_store_wide_windows(tmp_path, chunk):
 def test_synthetic_wide_windows_carry_the_noise_of_their_steps():
     """The closed-form synthetic set's wide windows: the same light as the narrow ones, with the Poisson noise of 57
     steps instead of 13 (variance ratio 13 / 57 against the noiseless frames)."""
-    from reconstruct.synthetic import SyntheticConfig, make_group as synth
+    from reconstruct.stream.synthetic import SyntheticConfig, make_group as synth
 
     kw = dict(width=48, height=40, n_groups=1, n_frames=9, motion_px_per_frame=0.0)
     clean = synth(SyntheticConfig(noise="none", **kw), 0)
@@ -367,7 +368,7 @@ def test_synthetic_wide_windows_carry_the_noise_of_their_steps():
 def test_wide_levels_move_only_low_frequencies_whatever_the_refinement():
     """t_level_px / r_level_from = wide replace the base's low frequencies by the wide windows' (inference only): the
     change of T (R) is G_s * (T_wide - T_base) (R likewise), the same for any refinement weights, and smooth."""
-    from reconstruct.network import gaussian_blur
+    from reconstruct.net.network import gaussian_blur
 
     cfg0 = dataclasses.replace(SMALL, use_wide=True, base="anchored", anchor_zbar="harmonic", r_level_px=4.0)
     I, phi, Im, _ = _window(7, H=32, W=32)

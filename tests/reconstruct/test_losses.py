@@ -8,7 +8,7 @@ from types import SimpleNamespace
 import pytest
 import torch
 
-from reconstruct.losses import LossConfig, image_grad, loss_excl, loss_grad, loss_phys, loss_rec, reflection_mask, total_loss
+from reconstruct.net.losses import LossConfig, image_grad, loss_excl, loss_grad, loss_phys, loss_rec, reflection_mask, total_loss
 
 
 def test_rec_is_weighted_l1():
@@ -88,7 +88,7 @@ def test_ssim_map_mean_is_the_evaluation_ssim():
     """Oracle: skimage.metrics.structural_similarity (the metric evaluate reports), on random and structured pairs."""
     from skimage.metrics import structural_similarity
 
-    from reconstruct.losses import ssim_map
+    from reconstruct.net.losses import ssim_map
 
     g = torch.Generator().manual_seed(3)
     y = torch.rand(2, 40, 33, generator=g, dtype=torch.float64)
@@ -103,7 +103,7 @@ def test_ssim_map_mean_is_the_evaluation_ssim():
 
 def test_ssim_term_is_off_by_default_and_pulls_toward_the_structure():
     """lambda_ssim = 0 leaves the paper's objective unchanged; > 0 adds 1 - SSIM(T), which a gradient step lowers."""
-    from reconstruct.losses import LossConfig, ssim_map
+    from reconstruct.net.losses import LossConfig, ssim_map
 
     g = torch.Generator().manual_seed(4)
     gt = torch.rand(1, 24, 24, generator=g)

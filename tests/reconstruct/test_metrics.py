@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from polinfra.errors import ShapeError
-from reconstruct.metrics import LPIPS_NA, lpips_status, psnr, ssim
+from reconstruct.evaluate.metrics import LPIPS_NA, lpips_status, psnr, ssim
 
 
 def test_psnr_closed_form():
@@ -36,7 +36,7 @@ def _pair(seed=1, shape=(40, 52)):
 
 
 def test_masked_scores_equal_the_whole_frame_ones_for_an_all_true_mask():
-    from reconstruct.metrics import masked_psnr, masked_ssim
+    from reconstruct.evaluate.metrics import masked_psnr, masked_ssim
 
     gt, est = _pair()
     full = np.ones(gt.shape, bool)
@@ -45,7 +45,7 @@ def test_masked_scores_equal_the_whole_frame_ones_for_an_all_true_mask():
 
 
 def test_masked_psnr_closed_form_and_errors_outside_the_mask_do_not_count():
-    from reconstruct.metrics import masked_psnr, masked_ssim
+    from reconstruct.evaluate.metrics import masked_psnr, masked_ssim
 
     gt = np.full((30, 30), 0.5)
     mask = np.zeros(gt.shape, bool)

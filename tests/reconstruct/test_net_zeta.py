@@ -15,7 +15,7 @@ import math
 import numpy as np
 import pytest
 
-from reconstruct.checkpoint import DEFAULT_WEIGHTS
+from reconstruct.net.checkpoint import DEFAULT_WEIGHTS
 
 from .test_physics_video import H, PHI0, REV, W, _psnr, _stream, stream  # noqa: F401  (module fixture)
 
@@ -41,7 +41,7 @@ class _EchoZeta:
 
 @pytest.mark.parametrize("tile", [0, 16])
 def test_windows_zeta_reaches_the_model_whole_and_tiled(tile):
-    from reconstruct.video import run_model_on_windows
+    from reconstruct.video.tiling import run_model_on_windows
 
     rng = np.random.default_rng(0)
     I = rng.random((2, 5, 37, 45)).astype(np.float32)
@@ -59,10 +59,11 @@ def test_net_on_self_zeta_matches_net_on_true_zeta(stream, tmp_path):  # noqa: F
     import torch
 
     from polinfra.exr import read_exr
-    from reconstruct.checkpoint import load_model
-    from reconstruct.net_zeta import MapsZetaNet, build_net_zeta_model
-    from reconstruct.video import ReconstructConfig, group_source, reconstruct_stream
-    from reconstruct.zeta_source import PaneMaps
+    from reconstruct.net.checkpoint import load_model
+    from reconstruct.net.net_zeta import MapsZetaNet, build_net_zeta_model
+    from reconstruct.video.stream import ReconstructConfig, reconstruct_stream
+    from reconstruct.stream.sources import group_source
+    from reconstruct.physics.zeta import PaneMaps
 
     torch.set_num_threads(1)
     net = load_model(DEFAULT_WEIGHTS, use_rir=False)[0]
@@ -101,8 +102,9 @@ def test_evaluate_labels_the_network_zeta():
     overrides; by-regime gets net@self columns and R tables."""
     import dataclasses
 
-    from reconstruct.evaluate import EvalConfig, evaluate_by_regime, evaluate_groups, net_zeta_of, regime_report
-    from reconstruct.synthetic import SyntheticConfig, make_group
+    from reconstruct.evaluate.harness import EvalConfig, evaluate_groups, net_zeta_of
+    from reconstruct.evaluate.regimes import evaluate_by_regime, regime_report
+    from reconstruct.stream.synthetic import SyntheticConfig, make_group
 
     assert net_zeta_of(EvalConfig(zeta="self")) == "self" and net_zeta_of(EvalConfig(zeta="gt")) == "learned"
     assert net_zeta_of(EvalConfig(zeta="self", net_zeta="learned")) == "learned"
@@ -127,10 +129,10 @@ def test_a_stream_shorter_than_half_a_turn_falls_back_to_zero_zeta_or_the_learne
     for, the network itself, the reason in info; the physics path, which has no fallback, refuses with the one-line
     error's type."""
     from polinfra.errors import ConfigError
-    from reconstruct.net_zeta import NET_FALLBACK_ZETA, ZeroZetaNet, build_net_zeta_model
-    from reconstruct.physics_video import calibrate_stream
-    from reconstruct.selfcal import StreamTooShortError
-    from reconstruct.video import array_source
+    from reconstruct.net.net_zeta import NET_FALLBACK_ZETA, ZeroZetaNet, build_net_zeta_model
+    from reconstruct.pane.source import calibrate_stream
+    from reconstruct.stream.sources import StreamTooShortError
+    from reconstruct.stream.sources import array_source
 
     sp = (np.random.default_rng(0).random((200, 16, 24)) < 0.1).astype(np.uint8)  # 10 ms at 30 rev/s: 15 frames < 26
     net = _tiny_net()
@@ -149,8 +151,8 @@ def test_a_stream_shorter_than_half_a_turn_falls_back_to_zero_zeta_or_the_learne
 def _tiny_net():
     import torch
 
-    from reconstruct.network import PolSpikeNet, init_weights
-    from reconstruct.train import TINY
+    from reconstruct.net.network import PolSpikeNet, init_weights
+    from reconstruct.net.train import TINY
 
     net = PolSpikeNet(TINY.net, TINY.solver)
     init_weights(net, torch.Generator().manual_seed(0))
@@ -165,7 +167,7 @@ def test_zero_zeta_solves_for_the_whole_light():
     say in it; tiles are fine (no per-pixel maps)."""
     import torch
 
-    from reconstruct.net_zeta import ZeroZetaNet
+    from reconstruct.net.net_zeta import ZeroZetaNet
 
     net = _tiny_net()
     g = torch.Generator().manual_seed(1)
@@ -187,10 +189,10 @@ def test_a_stream_without_polarizer_does_not_self_calibrate(shared_data):
     import dataclasses
 
     from polspike.pipeline.real_eval import _load, RECORDINGS
-    from reconstruct.exposure import estimate_exposure
-    from reconstruct.physics_video import calibrate_stream
-    from reconstruct.selfcal import SelfCalConfig
-    from reconstruct.video import array_source
+    from reconstruct.stream.exposure import estimate_exposure
+    from reconstruct.pane.source import calibrate_stream
+    from reconstruct.pane.selfcal import SelfCalConfig
+    from reconstruct.stream.sources import array_source
 
     rec = next(r for r in RECORDINGS if r.file.endswith(".dat"))
     if not (shared_data / "real_spikes" / rec.file).is_file():
@@ -212,7 +214,7 @@ def test_fallback_for_follows_the_refused_calibrations_modulation():
     from types import SimpleNamespace
 
     from polinfra.errors import ConfigError
-    from reconstruct.net_zeta import FALLBACK_LEARNED_PX, fallback_for
+    from reconstruct.net.net_zeta import FALLBACK_LEARNED_PX, fallback_for
 
     res = lambda px: SimpleNamespace(ok=False, diagnostics={"modulating_px": px})  # noqa: E731
     assert fallback_for(res(0.18)) == "learned" and fallback_for(res(FALLBACK_LEARNED_PX)) == "learned"

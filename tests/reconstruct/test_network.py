@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from polinfra.errors import ShapeError
-from reconstruct.network import AngleAttention, NetConfig, PolSpikeNet, count_parameters, init_weights
+from reconstruct.net.network import AngleAttention, NetConfig, PolSpikeNet, count_parameters, init_weights
 
 PAPER_PARAMS = 0.51e6  # supp. Sec. 10: "about 0.51M parameters"
 
@@ -50,7 +50,7 @@ def test_v2_cached_features_give_the_same_output():
     B, N, H, W = I.shape
     with torch.no_grad():
         ref = m(I, phi)
-        from reconstruct.network import window_scale
+        from reconstruct.net.network import window_scale
 
         s = window_scale(I).reshape(B, 1).expand(B, N).reshape(-1)
         f, g = m.encode_obs(I.reshape(B * N, H, W), s)

@@ -13,14 +13,14 @@ import json
 import numpy as np
 import pytest
 
-from reconstruct.checkpoint import DEFAULT_WEIGHTS, V1_WEIGHTS
+from reconstruct.net.checkpoint import DEFAULT_WEIGHTS, V1_WEIGHTS
 
 pytestmark = pytest.mark.skipif(not (DEFAULT_WEIGHTS.is_file() and V1_WEIGHTS.is_file()), reason="shipped checkpoints not present")
 
 
 @pytest.fixture(scope="module")
 def groups():
-    from reconstruct.synthetic import SyntheticConfig, make_group
+    from reconstruct.stream.synthetic import SyntheticConfig, make_group
 
     cfg = SyntheticConfig(width=24, height=16, n_groups=2, n_frames=9, seed=7)
     return [make_group(cfg, i) for i in range(2)]
@@ -29,8 +29,8 @@ def groups():
 def test_columns_are_means_of_their_checkpoints(groups):
     import torch
 
-    from reconstruct.evaluate import EvalConfig, evaluate_groups
-    from reconstruct.paper_table import paper_csv, paper_markdown, paper_tables
+    from reconstruct.evaluate.harness import EvalConfig, evaluate_groups
+    from reconstruct.evaluate.paper_table import paper_csv, paper_markdown, paper_tables
 
     torch.set_num_threads(1)
     cfg = EvalConfig(zeta="gt", max_frames=1)
@@ -57,8 +57,8 @@ def test_columns_are_means_of_their_checkpoints(groups):
 
 def test_network_on_another_zeta(groups):
     """--net-zeta gt: the Ours column is the network's full@gt row of evaluate_groups."""
-    from reconstruct.evaluate import EvalConfig, evaluate_groups
-    from reconstruct.paper_table import paper_tables
+    from reconstruct.evaluate.harness import EvalConfig, evaluate_groups
+    from reconstruct.evaluate.paper_table import paper_tables
 
     cfg = EvalConfig(zeta="gt", max_frames=1)
     res = paper_tables(groups, {"full": [str(DEFAULT_WEIGHTS)]}, cfg, solvers=(), net_zeta="gt")
@@ -79,7 +79,7 @@ def test_cli_writes_md_csv_json(tmp_path, polspike_main):
 
 def test_needs_a_known_column_and_existing_checkpoints(tmp_path, groups, polspike_main):
     from polinfra.errors import ConfigError
-    from reconstruct.paper_table import paper_tables
+    from reconstruct.evaluate.paper_table import paper_tables
 
     with pytest.raises(ConfigError, match="no_magic"):
         paper_tables(groups, {"full": [str(DEFAULT_WEIGHTS)], "no_magic": ["x"]})

@@ -108,8 +108,9 @@ def _psnr(a, b):
 
 def test_physics_stream_separates_and_self_is_within_1db_of_gt(stream, tmp_path):
     from polinfra.exr import read_exr
-    from reconstruct.physics_video import build_physics_model
-    from reconstruct.video import ReconstructConfig, group_source, reconstruct_stream
+    from reconstruct.video.physics import build_physics_model
+    from reconstruct.video.stream import ReconstructConfig, reconstruct_stream
+    from reconstruct.stream.sources import group_source
 
     src = group_source(stream["group"])
     cfg = ReconstructConfig(frames="exr", video=False, max_frames=2)
@@ -137,8 +138,9 @@ def test_anchor_mean_on_a_static_stream_beats_the_plain_solver(tmp_path):
     closer to the true T than the plain RWPS output on a dim stream (~0.05 spikes per step: the level's noise
     is that of 350 steps, not 7 x 13), both on the true zeta."""
     from polinfra.exr import read_exr
-    from reconstruct.physics_video import build_physics_model
-    from reconstruct.video import ReconstructConfig, group_source, reconstruct_stream
+    from reconstruct.video.physics import build_physics_model
+    from reconstruct.video.stream import ReconstructConfig, reconstruct_stream
+    from reconstruct.stream.sources import group_source
 
     stream = _write(tmp_path / "dim", exposure=0.15)
     src = group_source(stream["group"])
@@ -205,7 +207,7 @@ def test_pane_from_calibrate_pane_drives_the_solvers(stream, polspike_cli, tmp_p
         a = read_exr(tmp_path / "o_true" / "frames" / "000001.exr", [k])[k]
         np.testing.assert_array_equal(a, read_exr(tmp_path / "o_gt" / "frames" / "000001.exr", [k])[k])
     # the network takes the same maps (its zeta input)
-    from reconstruct.checkpoint import DEFAULT_WEIGHTS
+    from reconstruct.net.checkpoint import DEFAULT_WEIGHTS
 
     if DEFAULT_WEIGHTS.is_file():
         r = polspike_cli("reconstruct", stream["group"], "--method", "net", "--no-rir", "--max-frames", 1, "--quiet", "--device", "cpu", "--pane", tmp_path / "true", "--out", tmp_path / "o_net")
@@ -219,9 +221,9 @@ def test_pane_from_calibrate_pane_drives_the_solvers(stream, polspike_cli, tmp_p
 
 
 def test_self_falls_back_to_learned_where_nothing_modulates(tmp_path):
-    from reconstruct.checkpoint import DEFAULT_WEIGHTS, load_model
-    from reconstruct.physics_video import build_physics_model
-    from reconstruct.video import array_source
+    from reconstruct.net.checkpoint import DEFAULT_WEIGHTS, load_model
+    from reconstruct.video.physics import build_physics_model
+    from reconstruct.stream.sources import array_source
 
     if not DEFAULT_WEIGHTS.is_file():
         pytest.skip(f"shipped checkpoint {DEFAULT_WEIGHTS} not present")

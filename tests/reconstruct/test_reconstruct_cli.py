@@ -15,8 +15,9 @@ import pytest
 from typer.testing import CliRunner
 
 from polspike.cli import get_app
-from reconstruct.checkpoint import DEFAULT_WEIGHTS, load_model
-from reconstruct.video import ReconstructConfig, array_source, reconstruct_stream
+from reconstruct.net.checkpoint import DEFAULT_WEIGHTS, load_model
+from reconstruct.video.stream import ReconstructConfig, reconstruct_stream
+from reconstruct.stream.sources import array_source
 
 pytestmark = pytest.mark.skipif(not DEFAULT_WEIGHTS.is_file(), reason=f"shipped checkpoint {DEFAULT_WEIGHTS} not present")
 
@@ -142,7 +143,7 @@ def test_cli_group_store_end_to_end(tmp_path):
 def _v2_model(seed=0):
     import torch
 
-    from reconstruct.network import NetConfig, PolSpikeNet, init_weights
+    from reconstruct.net.network import NetConfig, PolSpikeNet, init_weights
 
     return init_weights(PolSpikeNet(NetConfig(arch="v2", use_rir=False, lr_ch=8, w_ch=4, ref_ch=(8, 8, 8), dec_ch=(8, 8, 8))), torch.Generator().manual_seed(seed)).eval()
 
@@ -174,7 +175,7 @@ def test_feature_cache_gives_the_same_frames_as_window_by_window(tmp_path):
 
 def test_batched_tiles_match_whole_frame_inside():
     """Tiles batched through the model: away from tile seams (receptive field inside the margin) they equal the whole-frame pass."""
-    from reconstruct.video import run_model_on_windows
+    from reconstruct.video.tiling import run_model_on_windows
 
     rng = np.random.default_rng(3)
     m = _v2_model(1)

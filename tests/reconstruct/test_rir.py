@@ -7,7 +7,7 @@ import pytest
 import torch
 from skimage.registration import phase_cross_correlation
 
-from reconstruct.rir import RirConfig, align_window, estimate_shifts, registration_mask, warp
+from reconstruct.physics.rir import RirConfig, align_window, estimate_shifts, registration_mask, warp
 
 from ._synth import periodic_texture
 

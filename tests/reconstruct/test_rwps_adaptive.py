@@ -12,8 +12,8 @@ import torch
 from scipy import ndimage
 
 from polinfra.config import from_dict, to_dict
-from reconstruct.metrics import psnr
-from reconstruct.solvers import PHYSICS_SOLVER_CONFIG, SolverConfig, adaptive_confidence, confidence, lambda_from_conf, solve, solve_weighted_ridge
+from reconstruct.evaluate.metrics import psnr
+from reconstruct.physics.solvers import PHYSICS_SOLVER_CONFIG, SolverConfig, adaptive_confidence, confidence, lambda_from_conf, solve, solve_weighted_ridge
 
 # regime -> (R_perp, R_par, R/T brightness ratio, spikes per unit radiance per window)
 REGIMES = {

@@ -9,7 +9,7 @@ import dataclasses
 import numpy as np
 import torch
 
-from reconstruct.solvers import PHYSICS_SOLVER_CONFIG, pooled_difference_prior, solve
+from reconstruct.physics.solvers import PHYSICS_SOLVER_CONFIG, pooled_difference_prior, solve
 
 from .test_rwps_adaptive import _psnr, _regime_windows
 

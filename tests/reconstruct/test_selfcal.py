@@ -12,7 +12,7 @@ import math
 import numpy as np
 import pytest
 
-from reconstruct.selfcal import SelfCalConfig, group_self_zeta, self_calibrate, self_zeta
+from reconstruct.pane.selfcal import SelfCalConfig, group_self_zeta, self_calibrate, self_zeta
 
 from ._pane_groups import make_pane_group
 
@@ -83,7 +83,7 @@ def test_field_of_view_fitted_when_not_given():
 
 def test_normal_incidence_says_nothing_modulates_and_falls_back(caplog):
     g, _ = make_pane_group(0.0, 0.0, r_gain=4.0, seed=1, **SMALL)
-    with caplog.at_level(logging.WARNING, logger="reconstruct.selfcal"):
+    with caplog.at_level(logging.WARNING, logger="reconstruct.pane.selfcal"):
         z = group_self_zeta(g)
     assert z is None
     r = group_self_zeta.last
@@ -98,7 +98,7 @@ def test_normal_incidence_says_nothing_modulates_and_falls_back(caplog):
 def test_solvers_with_self_zeta_within_1db_of_true_zeta():
     import torch
 
-    from reconstruct.evaluate import EvalConfig, evaluate_groups
+    from reconstruct.evaluate.harness import EvalConfig, evaluate_groups
 
     torch.manual_seed(0)
     g, _ = make_pane_group(55.0, 300.0, r_gain=5.0, seed=7, **SMALL)
@@ -157,7 +157,7 @@ def test_a_narrow_choice_with_the_fov_fitted_is_checked_and_kept_when_the_votes_
 def test_the_twin_is_taken_only_where_the_cone_and_the_content_both_prefer_it(monkeypatch):
     # the decision rule, on the real check's output with the two families' labels swapped (so the "twin" is the right pane):
     # both votes swapped -> overturned, to the check's pick; one vote swapped -> kept
-    import reconstruct.selfcal as sc
+    import reconstruct.pane.selfcal as sc
 
     import copy
 
@@ -192,7 +192,9 @@ def _t_dominated_narrow_glancing(azimuth=120.0, contrast=1.0):
 def test_valley_candidates_whose_fov_ran_into_its_bounds_are_left_out():
     # fov free, narrow glancing view: along the tilt valley the fitted fov runs into the 5 deg bound for some tilts
     # (degenerate views, not fitted values); drop_fov_bounds leaves exactly those out, and a given fov is never dropped
-    from reconstruct.selfcal import FOV_BOUNDS_DEG, fit_normal, orientation_field, valley_candidates
+    from reconstruct.pane.camera import FOV_BOUNDS_DEG
+    from reconstruct.pane.normal import fit_normal, valley_candidates
+    from reconstruct.pane.orientation import orientation_field
 
     g, _ = _t_dominated_narrow_glancing()
     f = orientation_field(g.I, g.phi_nominal, 2)
@@ -264,7 +266,7 @@ def test_cone_and_content_disagreeing_is_refused():
 
 def test_layer_gradient_correlation_is_small_for_the_true_pane_and_large_for_its_twin():
     # oracle: the group's true maps (and the same pane with phi_perp turned 90 deg), clean data, T dominant
-    from reconstruct.selfcal import _content_parts, layer_gradient_correlation
+    from reconstruct.pane.content import _content_parts, layer_gradient_correlation
 
     g, _ = make_pane_group(60.0, 30.0, r_gain=0.4, t_level=1.0, noise=False, motion_px=0.0, seed=11)  # 160 x 100: textures' chance correlation ~0.1
     halves = _content_parts(g.I, g.phi_nominal)
@@ -282,7 +284,7 @@ def test_cone_bounds_are_the_dop_of_either_layer_alone(model):
     # oracle: paper Eq. (1)-(2) with one layer black, fitted by the harmonic fit, gives m / a0 = DoP_R (T = 0) and
     # -DoP_T (R = 0) along phi_perp: exactly the cone's edges at that theta
     from polphysics.fresnel import pane_coefficients
-    from reconstruct.selfcal import chunk_harmonics, cone_bounds
+    from reconstruct.pane.cone import chunk_harmonics, cone_bounds
 
     theta = np.deg2rad(np.array([[20.0, 45.0, 56.3, 70.0, 80.0]]))
     co = pane_coefficients(theta, 1.5, model=model)
@@ -300,7 +302,7 @@ def test_cone_bounds_are_the_dop_of_either_layer_alone(model):
 def test_cone_violation_tells_the_pane_from_its_90_deg_flip():
     # a steep pane, the reflection dominating (static layers, bright): the true phi_perp keeps every aggregate in the
     # cone; the same field turned by 90 deg puts the strong modulation on the T side, beyond DoP_T
-    from reconstruct.selfcal import chunk_harmonics, cone_aggregates, cone_violation
+    from reconstruct.pane.cone import chunk_harmonics, cone_aggregates, cone_violation
 
     g, _ = make_pane_group(60.0, 200.0, r_gain=4.0, t_level=0.3, exposure=3.0, motion_px=0.0, seed=5, **SMALL)
     a0, c = chunk_harmonics(g.I, g.phi_nominal)
@@ -311,7 +313,7 @@ def test_cone_violation_tells_the_pane_from_its_90_deg_flip():
 
 
 def test_fit_glass_claims_a_model_or_an_index_only_with_a_margin():
-    from reconstruct.selfcal import fit_glass
+    from reconstruct.pane.glass import fit_glass
 
     ns = (1.4, 1.5, 1.6, 1.7)
     # slab violated everywhere, single fits 1.5-1.6 only: model and index claimed
@@ -353,7 +355,7 @@ def test_modulating_fraction_separates_noise_from_a_modulating_pane():
 
 def test_evaluate_self_fov_scene_gives_the_groups_fov_and_fitted_withholds_it():
     # EvalConfig.self_fov: scene = the group's recorded fov, as given; fitted = what polspike reconstruct meets on a .dat
-    from reconstruct.evaluate import EvalConfig, group_zeta
+    from reconstruct.evaluate.harness import EvalConfig, group_zeta
 
     g, N = make_pane_group(60.0, 200.0, fov_deg=80.0, r_gain=4.0, exposure=3.0, seed=5, **SMALL)
     assert g.fov_deg == 80.0
@@ -370,7 +372,7 @@ def test_evaluate_self_fov_scene_gives_the_groups_fov_and_fitted_withholds_it():
 def test_evaluate_self_source_fits_or_takes_the_given_pane_model():
     # polspike evaluate's self source: the cone's glass fit by default (not identified here -> thin slab, said why),
     # a given model with EvalConfig.self_pane_model; the two zetas differ by the slab's larger reflectance
-    from reconstruct.evaluate import EvalConfig, group_zeta
+    from reconstruct.evaluate.harness import EvalConfig, group_zeta
 
     g, _ = make_pane_group(55.0, 140.0, r_gain=2.0, exposure=3.0, seed=12, **SMALL)
     z_auto = group_zeta(g, EvalConfig(zeta="self"))
@@ -389,7 +391,7 @@ def test_content_tells_the_pane_model_at_a_known_geometry(model):
     # the true geometry given, the pane model unknown: the wrong model's scale leaks T into R^ by (1 - B / B') T, so the
     # layers come out correlated under it; the right one is claimed (single vs thin slab, Poisson spike counts; static
     # layers: motion within a chunk of half a turn blurs the closed-form solve, and at 0.5 px per frame neither is claimed)
-    from reconstruct.selfcal import content_model
+    from reconstruct.pane.content import content_model
 
     g, _ = make_pane_group(50.0, 200.0, r_gain=0.6, t_level=1.0, exposure=3.0, motion_px=0.0, model=model, seed=21)
     cm = content_model(g.I, g.phi_nominal, g.maps.phi_perp, g.theta, 1.5)
@@ -397,7 +399,7 @@ def test_content_tells_the_pane_model_at_a_known_geometry(model):
 
 
 def test_content_claims_no_model_for_flat_layers():
-    from reconstruct.selfcal import content_model
+    from reconstruct.pane.content import content_model
 
     g, _ = make_pane_group(50.0, 200.0, r_gain=0.6, t_level=1.0, exposure=3.0, motion_px=0.0, seed=21, contrast=0.0)
     cm = content_model(g.I, g.phi_nominal, g.maps.phi_perp, g.theta, 1.5)
@@ -412,7 +414,9 @@ def test_scatter_polish_discounts_blocks_whose_pixels_scatter():
     variance measured from its pixels) bring it within 0.8 deg, and at least 3x closer, from a start 3 deg off."""
     from scipy.optimize import least_squares
 
-    from reconstruct.selfcal import _phi_perp_grid, block_orientation_variance, camera_for, normal_from_angles, polish_geometry
+    from reconstruct.pane.camera import _phi_perp_grid, camera_for, normal_from_angles
+    from reconstruct.pane.orientation import block_orientation_variance
+    from reconstruct.pane.normal import polish_geometry
 
     w, h, b, fov = 24, 16, 4, 50.0
     tilt, az = math.radians(50.0), math.radians(30.0)
@@ -441,8 +445,8 @@ def test_saturated_pixels_are_left_out_of_the_calibration():
     """A pixel whose window reaches the spike ceiling (one spike per step) in any frame is set to 0 in every frame and
     counted; without an exposure nothing changes.  On a stream clipped at the ceiling over a bright part of the view,
     the calibration given the exposure keeps the unclipped stream's geometry and zeta scale."""
-    from reconstruct.selfcal import leave_out_saturated
-    from reconstruct.solvers import SPAN_SATURATION
+    from reconstruct.pane.selfcal import leave_out_saturated
+    from reconstruct.physics.span import SPAN_SATURATION
 
     g, N = make_pane_group(65.0, 200.0, r_gain=4.0, exposure=3.0, seed=7, **SMALL)
     e = 0.9 / float(g.I.max())  # the closed-form counts have no ceiling: a sensor whose brightest pixel fires 0.9 per step

@@ -16,8 +16,8 @@ import pytest
 import torch
 
 from polspike.pipeline.checkpoint_scores import REPRODUCE_TOL_DB, compare_reduced, evaluate_setting, scores_path, sha256_file, summary_line
-from reconstruct.checkpoint import DEFAULT_WEIGHTS, load_model
-from reconstruct.network import NetConfig, PolSpikeNet, count_parameters
+from reconstruct.net.checkpoint import DEFAULT_WEIGHTS, load_model
+from reconstruct.net.network import NetConfig, PolSpikeNet, count_parameters
 
 REPO = Path(__file__).resolve().parents[2]
 CARD = REPO / "docs" / "MODEL_CARD.md"

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from reconstruct.solvers import SOLVERS, SolverConfig, confidence, lambda_from_conf, solve, solve_weighted_ridge
+from reconstruct.physics.solvers import SOLVERS, SolverConfig, confidence, lambda_from_conf, solve, solve_weighted_ridge
 
 
 def _window(rng, B=2, N=7, H=4, W=5, noise=0.0):

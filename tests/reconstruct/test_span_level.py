@@ -14,10 +14,10 @@ import pytest
 import torch
 
 from polinfra.errors import ShapeError
-from reconstruct.groups import span_harmonic
-from reconstruct.network import NetConfig, PolSpikeNet, init_weights
-from reconstruct.solvers import SPAN_SATURATION, harmonic_of, long_span_separation, span_blend, span_weights
-from reconstruct.zeta_source import zeta_from_maps
+from reconstruct.stream.groups import span_harmonic
+from reconstruct.net.network import NetConfig, PolSpikeNet, init_weights
+from reconstruct.physics.span import SPAN_SATURATION, harmonic_of, long_span_separation, span_blend, span_weights
+from reconstruct.physics.zeta import zeta_from_maps
 from tests.reconstruct.test_long_span import _static_scene
 
 SMALL = NetConfig(arch="v2", feat_ch=8, lr_ch=8, w_ch=4, ref_ch=(8, 8, 8), dec_ch=(8, 8, 8), use_rir=False, use_mean=True, base="anchored", anchor_zbar="harmonic")
@@ -181,7 +181,7 @@ class _BlendOnly(torch.nn.Module):
 def test_span_level_tiles_agree_with_the_whole_frame():
     """run_model_on_windows widens the tiles' margin to the span correction's blur radius (9 px at sigma 3), so tiles
     of 16 px asked for a 1 px margin agree with the whole frame."""
-    from reconstruct.video import run_model_on_windows
+    from reconstruct.video.tiling import run_model_on_windows
 
     I, phi, Im, h, Z = _inputs(H=40, W=36)
     m = _BlendOnly(3.0)
@@ -225,8 +225,8 @@ def test_training_items_carry_what_a_span_level_network_reads_and_the_forced_sco
     checkpoint-scores) hands a span_level network each item's exposure and span length, and its forced R moves
     (the self-calibrated zeta's path); without the span the batch is refused with what to set."""
     from polinfra.errors import ConfigError
-    from reconstruct.onthefly import OnTheFlyWindows
-    from reconstruct.train import TINY, evaluate_model, span_inputs
+    from reconstruct.net.onthefly import OnTheFlyWindows
+    from reconstruct.net.train import TINY, evaluate_model, span_inputs
     from tests.reconstruct.test_train import _stream_item
 
     wcfg = dataclasses.replace(TINY.window, mean_steps=SPAN, crop=24)

@@ -5,8 +5,8 @@ from __future__ import annotations
 
 import pytest
 
-import reconstruct.physics_video as pv
-from reconstruct.selfcal import SelfCalConfig
+import reconstruct.pane.source as pv
+from reconstruct.pane.selfcal import SelfCalConfig
 
 
 @pytest.fixture

@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 import torch
 
-from reconstruct.network import NetConfig, PolSpikeNet, init_weights, window_scale
-from reconstruct.video import run_model_on_windows
+from reconstruct.net.network import NetConfig, PolSpikeNet, init_weights, window_scale
+from reconstruct.video.tiling import run_model_on_windows
 
 
 class _Recorder(torch.nn.Module):
@@ -75,8 +75,8 @@ def test_tiles_keep_the_r_level_blur_inside_their_margin():
     import numpy as np
     import torch
 
-    from reconstruct.network import gaussian_blur
-    from reconstruct.video import run_model_on_windows
+    from reconstruct.net.network import gaussian_blur
+    from reconstruct.video.tiling import run_model_on_windows
 
     sigma = 8.0
 

@@ -12,9 +12,9 @@ import torch
 from scipy import ndimage
 
 from polinfra.errors import CheckpointError, ConfigError
-from reconstruct.checkpoint import load_model, read_checkpoint
-from reconstruct.onthefly import ITEM_KEYS, OnTheFlyWindows, WindowConfig, item_from_stream
-from reconstruct.train import TINY, TrainConfig, alpha_at, train
+from reconstruct.net.checkpoint import load_model, read_checkpoint
+from reconstruct.net.onthefly import ITEM_KEYS, OnTheFlyWindows, WindowConfig, item_from_stream
+from reconstruct.net.train import TINY, TrainConfig, alpha_at, train
 
 RATE_HZ = 20000.0
 POL_HZ = 30.0
@@ -150,8 +150,8 @@ def test_kill_9_during_a_checkpoint_write_resumes_to_identical_weights(tmp_path,
         "torch.set_num_threads(1)\n"
         f"spec = importlib.util.spec_from_file_location('train_items', {str(Path(__file__))!r})\n"
         "mod = importlib.util.module_from_spec(spec); spec.loader.exec_module(mod)\n"
-        "from reconstruct.onthefly import OnTheFlyWindows\n"
-        "from reconstruct.train import train\n"
+        "from reconstruct.net.onthefly import OnTheFlyWindows\n"
+        "from reconstruct.net.train import train\n"
         "tr = OnTheFlyWindows(mod._stream_item, length=mod.CFG.train_items, seed=1)\n"
         "va = OnTheFlyWindows(mod._stream_item, length=mod.CFG.val_items, seed=2)\n"
         "train(mod.CFG, tr, va, sys.argv[1])\n"
@@ -165,7 +165,7 @@ def test_kill_9_during_a_checkpoint_write_resumes_to_identical_weights(tmp_path,
     tr, va = OnTheFlyWindows(_stream_item, length=CFG.train_items, seed=1), OnTheFlyWindows(_stream_item, length=CFG.val_items, seed=2)
     import logging
 
-    with caplog.at_level(logging.INFO, logger="reconstruct.train"):
+    with caplog.at_level(logging.INFO, logger="reconstruct.net.train"):
         res = train(CFG, tr, va, run)
     assert f"at step {CFG.ckpt_every}/{CFG.epochs * CFG.steps_per_epoch}" in caplog.text  # continued, not restarted
     assert res["step"] == CFG.epochs * CFG.steps_per_epoch
@@ -241,7 +241,7 @@ def test_window_config_checks():
 def test_cosine_schedule_closed_form_and_resume(tmp_path, sets):
     """lr_at: lr at the first step, lr_min at the last, their mean half way; a cosine run killed half way and
     resumed ends with the weights of an uninterrupted one (the rate is a function of the step)."""
-    from reconstruct.train import lr_at
+    from reconstruct.net.train import lr_at
 
     cfg = dataclasses.replace(TINY, lr=1e-3, lr_schedule="cosine", lr_min=1e-5)
     total = 9
@@ -298,7 +298,7 @@ def test_trainable_freezes_every_other_weight(tmp_path, sets):
 def test_val_score_of_each_selection():
     """val_select: learned = psnr_T; mean = the mean over both zeta paths; r_share = R over the reflection pixels
     (both paths), whole-frame R where a validation set has none; ssim = T's SSIM over both paths."""
-    from reconstruct.train import val_score
+    from reconstruct.net.train import val_score
 
     m = {"psnr_T": 30.0, "psnr_T_forced": 34.0, "psnr_R": 18.0, "psnr_R_forced": 20.0, "psnrrefl_R": 12.0, "psnrrefl_R_forced": 16.0}
     assert val_score(m, "learned") == 30.0 and val_score(m, "mean") == 32.0 and val_score(m, "r_share") == 14.0

@@ -12,8 +12,8 @@ import pytest
 import torch
 
 from polinfra.errors import ConfigError, ShapeError
-from reconstruct.network import NetConfig, PolSpikeNet, init_weights
-from reconstruct.train import _widened
+from reconstruct.net.network import NetConfig, PolSpikeNet, init_weights
+from reconstruct.net.train import _widened
 
 from tests.reconstruct.test_windows import make_group
 
@@ -55,7 +55,7 @@ def test_widened_network_starts_as_the_given_one_and_needs_the_mean():
 
 
 def test_onthefly_item_mean_is_the_raw_spike_mean():
-    from reconstruct.onthefly import WindowConfig, item_from_stream
+    from reconstruct.net.onthefly import WindowConfig, item_from_stream
 
     rng = np.random.default_rng(0)
     spikes = (rng.random((900, 8, 8)) < 0.2).astype(np.uint8)
@@ -88,8 +88,9 @@ def test_stream_gives_the_network_the_store_spike_mean(tmp_path, chunk):
     from spike_sim.aggregate import AggregateConfig, frame_centres
     from spike_sim.store import open_group
 
-    from reconstruct.groups import spike_mean_frames
-    from reconstruct.video import ReconstructConfig, group_source, reconstruct_stream
+    from reconstruct.stream.groups import spike_mean_frames
+    from reconstruct.video.stream import ReconstructConfig, reconstruct_stream
+    from reconstruct.stream.sources import group_source
 
     make_group(tmp_path / "g", seed=3, duration=0.04)
     rec = _Recorder()
@@ -104,12 +105,12 @@ def test_stream_gives_the_network_the_store_spike_mean(tmp_path, chunk):
 
 
 def test_a_mean_network_refuses_groups_without_spikes():
-    from reconstruct.evaluate import EvalConfig, evaluate_groups
-    from reconstruct.synthetic import SyntheticConfig, make_group as synth
+    from reconstruct.evaluate.harness import EvalConfig, evaluate_groups
+    from reconstruct.stream.synthetic import SyntheticConfig, make_group as synth
 
     g = dataclasses.replace(synth(SyntheticConfig(width=16, height=16, n_groups=1, n_frames=9), 0), I_mean=None)  # e.g. an in-memory group
     rec = _Recorder()
-    import reconstruct.evaluate as ev
+    import reconstruct.evaluate.harness as ev
 
     orig = ev.load_network
     ev.load_network = lambda cfg: (rec, {"label": "full"})
@@ -123,7 +124,7 @@ def test_a_mean_network_refuses_groups_without_spikes():
 def test_synthetic_groups_carry_the_half_turn_mean():
     """The closed-form synthetic set gives a use_mean network its input: noise-free and static, 2 I_mean =
     T + zbar (R - T) with zbar = (R_perp + R_par) / 2 (paper Eq. (1)-(2) averaged over a half turn)."""
-    from reconstruct.synthetic import SyntheticConfig, make_group as synth
+    from reconstruct.stream.synthetic import SyntheticConfig, make_group as synth
 
     g = synth(SyntheticConfig(width=24, height=16, n_groups=1, n_frames=9, noise="none", motion_px_per_frame=0.0), 0)
     zbar = 0.5 * (g.maps.R_perp + g.maps.R_par)
@@ -136,7 +137,7 @@ def test_zbar_of_is_the_half_turn_mean_not_the_window_mean():
     """Closed form: zeta = a + b cos 2phi + c sin 2phi (paper Eq. (2)); over the N = 7, 0.65 ms windows (~84 deg of
     2 phi) the plain mean is off by up to the modulation depth, the first-harmonic level is a; it equals the mean
     over a whole turn, and a still polarizer (all angles equal) gives the plain mean."""
-    from reconstruct.solvers import zbar_of
+    from reconstruct.physics.span import zbar_of
 
     rng = np.random.default_rng(3)
     a, b, c = rng.uniform(0.05, 0.3, (3, 5)), rng.uniform(-0.1, 0.1, (3, 5)), rng.uniform(-0.1, 0.1, (3, 5))
@@ -156,7 +157,7 @@ def test_zbar_of_is_the_half_turn_mean_not_the_window_mean():
 def test_anchored_base_network_starts_as_the_anchored_solver():
     """base = anchored with zero decoder outputs returns exactly anchor_to_mean of its own solver output (with the
     first-harmonic zbar); the forced zeta scale reaches the solver but not the returned ground truth."""
-    from reconstruct.solvers import anchor_to_mean, zbar_of
+    from reconstruct.physics.span import anchor_to_mean, zbar_of
 
     cfg = dataclasses.replace(SMALL, use_mean=True, base="anchored", anchor_zbar="harmonic")
     net = init_weights(PolSpikeNet(cfg), torch.Generator().manual_seed(1)).eval()
@@ -193,8 +194,8 @@ def test_r_level_takes_rs_level_from_the_base_and_its_structure_from_the_refinem
     scipy's mirrored Gaussian filter (truncated at 3 sigma)."""
     from scipy.ndimage import gaussian_filter
 
-    from reconstruct.network import gaussian_blur
-    from reconstruct.solvers import anchor_to_mean, zbar_of
+    from reconstruct.net.network import gaussian_blur
+    from reconstruct.physics.span import anchor_to_mean, zbar_of
 
     x = torch.rand(2, 40, 50, dtype=torch.float64, generator=torch.Generator().manual_seed(0))
     ref = np.stack([gaussian_filter(a, 3.0, mode="mirror", truncate=3.0) for a in x.numpy()])

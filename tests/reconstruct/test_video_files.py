@@ -12,8 +12,9 @@ import math
 import numpy as np
 import pytest
 
-from reconstruct.checkpoint import DEFAULT_WEIGHTS, load_model
-from reconstruct.video import ReconstructConfig, array_source, reconstruct_stream
+from reconstruct.net.checkpoint import DEFAULT_WEIGHTS, load_model
+from reconstruct.video.stream import ReconstructConfig, reconstruct_stream
+from reconstruct.stream.sources import array_source
 
 pytestmark = pytest.mark.skipif(not DEFAULT_WEIGHTS.is_file(), reason=f"shipped checkpoint {DEFAULT_WEIGHTS} not present")
 

@@ -13,8 +13,9 @@ import torch
 from polinfra.errors import ConfigError, DataFormatError
 from polphysics.polarizer import PolarizerConfig
 from polphysics.zeta import mix_eq1, stokes_from_layers, zeta
-from reconstruct.onthefly import WindowConfig
-from reconstruct.windows import ITEM_KEYS, StoreWindows, open_window_datasets, window_centres
+from reconstruct.net.onthefly import WindowConfig
+from reconstruct.net.onthefly import ITEM_KEYS, window_centres
+from reconstruct.net.windows import StoreWindows, open_window_datasets
 from spike_sim.config import DEFAULT, IDEAL
 from spike_sim.simulate import keyframes_from_arrays, simulate
 from spike_sim.store import open_group
@@ -105,7 +106,7 @@ def test_window_centres_follow_the_angle():
 
 
 def test_items_equal_the_on_the_fly_item_builder(group):
-    """Keys, shapes, dtypes and values agree with reconstruct.onthefly.item_from_stream on the same stream."""
+    """Keys, shapes, dtypes and values agree with reconstruct.net.onthefly.item_from_stream on the same stream."""
     from reconstruct import onthefly
 
     path, maps = group
@@ -192,7 +193,7 @@ def test_split_filtering_loader_workers_and_training(tmp_path):
     with pytest.raises(ConfigError):
         StoreWindows(root, dataclasses.replace(CFG, crop=32), split="train")
     # DataLoader workers reopen the HDF5 files lazily and give the same items
-    from reconstruct.train import TINY, collate, train
+    from reconstruct.net.train import TINY, collate, train
 
     dl = torch.utils.data.DataLoader(tr, batch_size=4, num_workers=2, collate_fn=collate, multiprocessing_context="fork")
     first = next(iter(dl))

@@ -8,7 +8,8 @@ import torch
 
 from polinfra.errors import PolspikeError
 from polphysics.zeta import zeta as zeta_np
-from reconstruct.zeta_source import PaneMaps, pane_maps_from_geometry, zeta_from_maps, zeta_learned
+from reconstruct.physics.zeta import PaneMaps, pane_maps_from_geometry, zeta_from_maps
+from reconstruct.net.learned_zeta import zeta_learned
 
 
 def test_eq2_matches_physics_module(np_rng):
@@ -47,7 +48,7 @@ def test_physics_maps_from_geometry_normal_incidence():
 def test_learned_source_shapes_and_softmax_weights():
     import torch
 
-    from reconstruct.network import NetConfig, PolSpikeNet, init_weights
+    from reconstruct.net.network import NetConfig, PolSpikeNet, init_weights
 
     m = init_weights(PolSpikeNet(NetConfig(feat_ch=8, ref_ch=(8, 8, 8), dec_ch=(8, 8, 8), use_rir=False)), torch.Generator().manual_seed(0)).eval()
     I = 0.1 + 0.3 * torch.rand(2, 7, 10, 13, dtype=torch.float64, generator=torch.Generator().manual_seed(1))  # H, W not multiples of 4
