@@ -9,7 +9,7 @@ variables (``*_ad_*`` variant: llvm here, cuda where present):
 
     x = (tilt, azimuth, fov, n)
 
-* camera: the reference pinhole of :func:`reconstruct.selfcal.camera_for` (origin, forward +z,
+* camera: the reference pinhole of :func:`reconstruct.pane.camera.camera_for` (origin, forward +z,
   up +y, so image right = -x), pixel rays through sub-pixel centres, horizontal field of view ``fov``;
 * N = sin(tilt) (cos(az) right + sin(az) up) + cos(tilt) forward;
 * theta = angle(d, N); the s-direction d x N expressed in the ray's Stokes frame
@@ -87,7 +87,7 @@ class PaneModelAD:
         model: ``single``, ``thin_slab`` or ``thick_slab`` (coefficient maps of thin and thick are equal;
             the thick slab's ghost displacement is not part of the maps).
         block: > 0: one ray per ``block`` x ``block`` pixel block (through the block's centre), maps on the
-            (height // block, width // block) grid of :func:`reconstruct.selfcal.orientation_field`'s blocks.
+            (height // block, width // block) grid of :func:`reconstruct.pane.orientation.orientation_field`'s blocks.
         thickness_m, absorption_per_m: slab absorption along the internal path.
     """
 
