@@ -46,7 +46,8 @@ def main() -> None:
         return identifiability(Path(a.dataset), a.content_power, a.span_s, a.content_sigma)
     if a.content_true_geometry:
         return content_on_true_geometry(Path(a.dataset))
-    from polspike.pipeline.calibrate_pane import CalibratePaneConfig, calibrate_input
+    from polspike.pipeline.pane_config import CalibratePaneConfig
+    from polspike.pipeline.calibrate_pane import calibrate_input
     from reconstruct.evaluate.harness import EvalConfig, evaluate_groups
     from reconstruct.stream.groups import load_store_group
     from reconstruct.physics.zeta import PaneMaps
@@ -167,7 +168,8 @@ def content_on_true_geometry(dataset: Path) -> None:
     tells the model and n when the geometry is right."""
     import math
 
-    from polspike.pipeline.calibrate_pane import CalibratePaneConfig, content_glass
+    from polspike.pipeline.pane_config import CalibratePaneConfig
+    from polspike.pipeline.pane_content import content_glass
     from spike_sim.store import open_group
 
     cfg = CalibratePaneConfig()
@@ -202,7 +204,8 @@ def valley(dataset: Path, weightings: list[str]) -> None:
     import math
 
     from generator.pane_fit import PaneModelAD, gauss_newton
-    from polspike.pipeline.calibrate_pane import CalibratePaneConfig, _wrap90, fit_geometry
+    from polspike.pipeline.pane_config import CalibratePaneConfig
+    from polspike.pipeline.pane_geometry import _wrap90, fit_geometry
     from reconstruct.pane.orientation import block_orientation_variance
     from reconstruct.stream.sources import span_frames
     from reconstruct.pane.selfcal import SelfCalConfig, self_calibrate
@@ -284,7 +287,8 @@ def identifiability(dataset: Path, content_power: str = "same", span_s: float = 
     the spike noise removed: where (b) does not claim, no amount of spikes lets this test claim."""
     import math
 
-    from polspike.pipeline.calibrate_pane import CalibratePaneConfig, content_glass, content_parts_for
+    from polspike.pipeline.pane_config import CalibratePaneConfig
+    from polspike.pipeline.pane_content import content_glass, content_parts_for
     from spike_sim.store import open_group
 
     cfg = CalibratePaneConfig(content_power=content_power, span_s=span_s)

@@ -30,7 +30,9 @@ def calibrate_pane_cmd(
     from rich.console import Console
 
     from polinfra.errors import ConfigError
-    from polspike.pipeline.calibrate_pane import PANE_CHOICES, CalibratePaneConfig, calibrate_input, write_outputs
+    from polspike.pipeline.pane_config import PANE_CHOICES, CalibratePaneConfig
+    from polspike.pipeline.calibrate_pane import calibrate_input
+    from polspike.pipeline.pane_outputs import write_outputs
 
     if pane_model not in PANE_CHOICES:
         raise ConfigError(f"--pane-model {pane_model!r}: choose one of {', '.join(PANE_CHOICES)}")

@@ -18,7 +18,6 @@ duration).  The JSON says which numbers were measured and which scaled.
 
 from __future__ import annotations
 
-import json
 import logging
 import math
 import os

@@ -8,7 +8,7 @@ import torch
 from polinfra.errors import ConfigError
 from reconstruct.physics.harmonic_fit import half_turn_frames, harmonic_fit
 from reconstruct.pane.camera import camera_for, normal_from_angles
-from reconstruct.pane.orientation import _block
+from reconstruct.pane.orientation import block_sum
 
 log = logging.getLogger(__name__)
 
@@ -87,8 +87,8 @@ def cone_aggregates(a0: np.ndarray, c: np.ndarray, phi_perp: np.ndarray, theta: 
         h, w = a0.shape[-2] // s, a0.shape[-1] // s
         if h < 1 or w < 1:
             continue
-        th = _block(theta, s) / (s * s)
-        A, Mm, O = _block(a0, s), _block(m_px, s), _block(o_px, s)
+        th = block_sum(theta, s) / (s * s)
+        A, Mm, O = block_sum(a0, s), block_sum(m_px, s), block_sum(o_px, s)
         for a, m, o, t in ((A, Mm, O, np.broadcast_to(th, A.shape)), (A.sum(0), Mm.sum(0), O.sum(0), th)):
             a, m, o, t = (np.asarray(x, np.float64).ravel() for x in (a, m, o, t))
             keep = a > 0
@@ -149,7 +149,7 @@ def modulating_fraction(s4_px: np.ndarray, q_px: np.ndarray, phi_perp: np.ndarra
     r = s4_px * np.exp(-4j * phi_perp)
     p, o, q = r.real, r.imag, q_px
     if block > 1:
-        p, o, q = _block(p, block), _block(o, block), _block(q, block)
+        p, o, q = block_sum(p, block), block_sum(o, block), block_sum(q, block)
     q = np.maximum(q, 1e-300)
     kappa = float(np.median(o * o / q)) / 0.4549  # the orthogonal part carries no pane signal: it calibrates the noise scale
     z = p / np.sqrt(max(kappa, 1e-300) * q)

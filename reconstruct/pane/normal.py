@@ -5,7 +5,7 @@ import logging
 import math
 import numpy as np
 from reconstruct.pane.camera import FOV_BOUNDS_DEG, _pane_phi_perp, _phi_perp_many, camera_for, normal_from_angles
-from reconstruct.pane.orientation import _block, block_orientation_variance
+from reconstruct.pane.orientation import block_sum, block_orientation_variance
 
 log = logging.getLogger(__name__)
 
@@ -134,8 +134,8 @@ def polish_geometry(of: dict, block: int, tilt: float, az: float, fov_deg: float
         hb, wb = H // block, W // block
         if hb < 2 or wb < 2:
             return None
-        s4b = _block(of["s4_px"], block)
-        of = {"s4": s4b, "q": _block(of["q_px"], block), "psi": np.angle(s4b) / 4.0, "s4_px": of["s4_px"]}
+        s4b = block_sum(of["s4_px"], block)
+        of = {"s4": s4b, "q": block_sum(of["q_px"], block), "psi": np.angle(s4b) / 4.0, "s4_px": of["s4_px"]}
     s4, q = of["s4"], of["q"]
     h, w = s4.shape
     v, n_eff = block_orientation_variance(of, block)

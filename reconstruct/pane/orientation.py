@@ -12,7 +12,8 @@ from reconstruct.stream.sources import StreamTooShortError
 log = logging.getLogger(__name__)
 
 
-def _block(x: np.ndarray, s: int) -> np.ndarray:
+def block_sum(x: np.ndarray, s: int) -> np.ndarray:
+    """Sums over s x s blocks of the last two axes (..., H, W) -> (..., H // s, W // s); a ragged edge is dropped."""
     H, W = x.shape[-2:]
     h, w = H // s, W // s
     return x[..., : h * s, : w * s].reshape(*x.shape[:-2], h, s, w, s).sum(axis=(-3, -1))
@@ -71,8 +72,8 @@ def orientation_field(I: np.ndarray, phi: np.ndarray, block: int) -> dict:
         a0s += a0
     n_win = len(starts)
     q *= L  # overlapping windows: each sample is correlated with about L neighbours (conservative noise scale)
-    bs4 = _block(s4.real, block) + 1j * _block(s4.imag, block)
-    ben, bq = _block(en, block), _block(q, block)
+    bs4 = block_sum(s4.real, block) + 1j * block_sum(s4.imag, block)
+    ben, bq = block_sum(en, block), block_sum(q, block)
     coh = np.where(ben > 0, np.abs(bs4) / np.maximum(ben, 1e-300), 0.0)
     psi = np.mod(0.25 * np.angle(bs4), 0.5 * math.pi)
     return {"s4": bs4, "q": bq, "energy": ben, "psi": psi, "coherence": coh, "samples": n_chunks * block * block, "chunks": n_chunks, "windows": n_win, "chunk_frames": L, "dop": dop / n_win, "a0": a0s / n_win,

@@ -82,7 +82,8 @@ def test_geometry_recovered_with_fitted_fov(tilt, az, model, n):
     reported 1-sigma uncertainties cover the truth (tilt, azimuth, fov within 4 sigma; theta's median error
     within 3 of its median 1-sigma, and within 1 deg), and the fov is claimed exactly when theta's 1-sigma
     passes the 0.5 deg gate."""
-    from polspike.pipeline.calibrate_pane import CalibratePaneConfig, calibrate_frames
+    from polspike.pipeline.pane_config import CalibratePaneConfig
+    from polspike.pipeline.calibrate_pane import calibrate_frames
 
     I, phi, span, geo = pane_stream(tilt, az, n=n, model=model)
     res = calibrate_frames(I, phi, CalibratePaneConfig(), span_rad=span)
@@ -102,7 +103,8 @@ def test_a_narrow_view_reports_the_fov_tilt_trade_off_instead_of_claiming_theta(
     """Narrow view (fov 15 deg), fov fitted: phi_perp's curvature barely changes along the fov-tilt valley,
     so the fit must not claim theta: the fov is reported NOT identified, theta's 1-sigma exceeds the 0.5 deg
     gate, and the truth lies within 4 reported sigmas (honest error bars)."""
-    from polspike.pipeline.calibrate_pane import CalibratePaneConfig, calibrate_frames
+    from polspike.pipeline.pane_config import CalibratePaneConfig
+    from polspike.pipeline.calibrate_pane import calibrate_frames
 
     tilt, az = 50.0, 60.0
     I, phi, span, geo = pane_stream(tilt, az, fov_deg=15.0, n=1.5, model="single", H=48, W=72)
@@ -157,7 +159,7 @@ def test_max_incidence_is_the_maps_theta_where_every_ray_meets_the_pane_and_exce
     """max_incidence_deg against the differentiable tracer's own theta (block centres): equal where every ray meets
     the pane in front; a steep pane seen wide (tilt 80, fov 60) has rays beyond 90 deg, which the maps fold back."""
     from generator.pane_fit import PaneModelAD
-    from polspike.pipeline.calibrate_pane import max_incidence_deg
+    from polspike.pipeline.pane_geometry import max_incidence_deg
 
     W, H, block = 96, 64, 4
     pm = PaneModelAD(W, H, "single", block=block)
@@ -211,7 +213,8 @@ def test_a_fov_fit_that_ends_where_modulating_blocks_could_not_see_the_pane_is_n
 def test_geometry_with_known_fov():
     """fov given (a low tilt, 30 deg): theta and phi_perp within the goal (0.5 deg median), tilt within
     1 deg and 4 reported sigmas."""
-    from polspike.pipeline.calibrate_pane import CalibratePaneConfig, calibrate_frames
+    from polspike.pipeline.pane_config import CalibratePaneConfig
+    from polspike.pipeline.calibrate_pane import calibrate_frames
 
     tilt, az = CASES[2][:2]
     I, phi, span, geo = pane_stream(tilt, az, n=1.52, model="single")
@@ -229,7 +232,8 @@ def test_refuses_to_claim_the_glass_when_no_layer_is_ever_black():
     """Layers never black (the cone's edges are not reached): n and the model are reported as NOT
     identified and the priors are kept (not the truth, 1.6 / single, by luck); the geometry's truth lies
     within 4 reported sigmas even on this weakly modulating stream."""
-    from polspike.pipeline.calibrate_pane import CalibratePaneConfig, calibrate_frames
+    from polspike.pipeline.pane_config import CalibratePaneConfig
+    from polspike.pipeline.calibrate_pane import calibrate_frames
 
     tilt, az = CASES[2][:2]
     I, phi, span, geo = pane_stream(tilt, az, n=1.6, model="single", black=False)
@@ -302,7 +306,8 @@ def test_content_test_picks_the_pane_model_from_textured_layers(model):
     """Textured independent layers, wide view of a tilted pane (theta 31-90 deg), n 1.5, no layer black (the cone
     says nothing): the layers solved under the true model are the least mixed; the other model's best index scores
     clearly worse (>= 2 standard errors over the tiles), and the true index is inside the accepted range."""
-    from polspike.pipeline.calibrate_pane import CalibratePaneConfig, content_glass
+    from polspike.pipeline.pane_config import CalibratePaneConfig
+    from polspike.pipeline.pane_content import content_glass
 
     I, phi, g, geo = textured_stream(70.0, 30.0, model, 1.5)
     r = content_glass(I, phi, geo["theta"], geo["phi_perp"], g, ("single", "thin_slab"), CalibratePaneConfig())
@@ -317,7 +322,8 @@ def test_content_pixels_auto_splits_where_the_span_holds_enough_parts():
     split (the checkerboard sets, which drop the fixed pattern's pull on the index).  Explicit choices are kept."""
     import dataclasses
 
-    from polspike.pipeline.calibrate_pane import CONTENT_SPLIT_PARTS, CalibratePaneConfig, content_glass, content_pixels_for
+    from polspike.pipeline.pane_content import CONTENT_SPLIT_PARTS, content_glass, content_pixels_for
+    from polspike.pipeline.pane_config import CalibratePaneConfig
 
     assert [content_pixels_for("auto", p) for p in (2, 3, 4, 6)] == ["same", "same", "split", "split"] and CONTENT_SPLIT_PARTS == 4
     assert content_pixels_for("same", 8) == "same" and content_pixels_for("split", 2) == "split"
@@ -338,7 +344,7 @@ def test_content_index_uncertainty_from_the_geometry_matches_the_dop_slope(tilt,
     formulas at the centre, an independent oracle), to the 0.0025 grid of the search."""
     from generator.pane_fit import PaneModelAD
     from polphysics.fresnel import pane_coefficients
-    from polspike.pipeline.calibrate_pane import content_n_sigma_from_geometry
+    from polspike.pipeline.pane_content import content_n_sigma_from_geometry
 
     pm = PaneModelAD(64, 40, "single", sub=1)
     x = np.array([math.radians(tilt), 0.3, math.radians(10.0), n])
@@ -358,7 +364,8 @@ def test_content_index_uncertainty_from_the_geometry_matches_the_dop_slope(tilt,
 def test_content_test_claims_nothing_without_content():
     """R = T everywhere (flat, equal): the pane changes nothing in the solved layers, whose gradients are only spike
     noise, independent across time parts: neither the model nor n is claimed."""
-    from polspike.pipeline.calibrate_pane import CalibratePaneConfig, content_glass
+    from polspike.pipeline.pane_config import CalibratePaneConfig
+    from polspike.pipeline.pane_content import content_glass
 
     I, phi, g, geo = textured_stream(70.0, 30.0, "single", 1.5, R_level=0.6, T_level=0.6, contrast=False)
     r = content_glass(I, phi, geo["theta"], geo["phi_perp"], g, ("single", "thin_slab"), CalibratePaneConfig())
@@ -372,7 +379,9 @@ def test_outputs_pane_toml_reproduces_the_fit_and_maps_exr_has_the_render_channe
     from generator.analytic import MAP_CHANNELS
     from generator.scene import load_scene
     from polinfra.exr import read_exr
-    from polspike.pipeline.calibrate_pane import CalibratePaneConfig, calibrate_frames, write_outputs
+    from polspike.pipeline.pane_config import CalibratePaneConfig
+    from polspike.pipeline.calibrate_pane import calibrate_frames
+    from polspike.pipeline.pane_outputs import write_outputs
 
     I, phi, span, geo = pane_stream(50.0, 300.0, n=1.55, model="single", H=48, W=72)
     res = calibrate_frames(I, phi, CalibratePaneConfig(n=1.55, pane_model="single"), span_rad=span)
@@ -454,7 +463,7 @@ def test_a_dat_shorter_than_half_a_polarizer_turn_says_how_long_it_must_be(tmp_p
 
 
 def _fitted_scene(tmp_path, report: dict | None):
-    from polspike.pipeline.calibrate_pane import fitted_scene_dict, scene_toml_text
+    from polspike.pipeline.pane_outputs import fitted_scene_dict, scene_toml_text
 
     params = {"tilt_deg": 47.0, "azimuth_deg": 110.0, "fov_deg": 52.0, "n": 1.58, "model": "single"}
     d = fitted_scene_dict(params, 80, 50)
@@ -469,7 +478,7 @@ def test_a_pane_edge_on_in_part_of_the_view_gets_no_scene_file_but_keeps_its_map
     scene file (generator.scene) can hold, whatever the pane's size: fitted_scene_dict says so (SceneError, one
     sentence); write_outputs writes maps.exr and report.json without pane.toml and the report says why."""
     from polinfra.errors import SceneError
-    from polspike.pipeline.calibrate_pane import fitted_scene_dict, write_outputs
+    from polspike.pipeline.pane_outputs import fitted_scene_dict, write_outputs
 
     params = {"tilt_deg": 80.0, "azimuth_deg": 20.0, "fov_deg": 60.0, "n": 1.5, "model": "thin_slab"}
     with pytest.raises(SceneError, match="edge-on"):
@@ -478,9 +487,9 @@ def test_a_pane_edge_on_in_part_of_the_view_gets_no_scene_file_but_keeps_its_map
     maps = {k: np.full((48, 72), 0.1, np.float64) for k in ("theta", "phi_perp", "R_perp", "R_par", "T_perp", "T_par")}
     rep = {"input": "x", "identifiability": {}, "uncertainty_1sigma": {"tilt_deg": 0.1}}
     res = {"ok": True, "report": rep, "params": params, "maps": maps}
-    import polspike.pipeline.calibrate_pane as cp
+    import polspike.pipeline.pane_outputs as po
 
-    monkeypatch.setattr(cp, "_figures", lambda out, res: [])  # the figures need a full fit's report
+    monkeypatch.setattr(po, "_figures", lambda out, res: [])  # the figures need a full fit's report
     out = write_outputs(tmp_path / "cal", res, width=72, height=48)
     assert out["pane_toml"]["written"] is False and "edge-on" in out["pane_toml"]["why"]
     assert sorted(p.name for p in (tmp_path / "cal").iterdir()) == ["maps.exr", "report.json"]
@@ -526,7 +535,8 @@ def test_pane_model_from_the_cone_edges_when_layers_go_black(tilt, az, model, n)
     """0.1 s of back-to-back windows (120 x 80) where T and R are each black somewhere: the model, when
     claimed, is the true one; n, when claimed, is within 0.03 (here its 1-sigma exceeds the 0.03 gate,
     so it is not claimed and the prior is kept)."""
-    from polspike.pipeline.calibrate_pane import CalibratePaneConfig, calibrate_frames
+    from polspike.pipeline.pane_config import CalibratePaneConfig
+    from polspike.pipeline.calibrate_pane import calibrate_frames
 
     I, phi, span, geo = pane_stream(tilt, az, n=n, model=model, H=80, W=120, M=153, stride_deg=360 * 30 * 13 / 20000, exposure=4.0, motion=0.2)
     rep = calibrate_frames(I, phi, CalibratePaneConfig(), span_rad=span)["report"]
@@ -540,7 +550,9 @@ def test_pane_model_from_the_cone_edges_when_layers_go_black(tilt, az, model, n)
 
 def test_nothing_modulates_is_reported_not_fitted(tmp_path):
     """Near-normal incidence: no pane is claimed; report.json says why and nothing else is written."""
-    from polspike.pipeline.calibrate_pane import CalibratePaneConfig, calibrate_frames, write_outputs
+    from polspike.pipeline.pane_config import CalibratePaneConfig
+    from polspike.pipeline.calibrate_pane import calibrate_frames
+    from polspike.pipeline.pane_outputs import write_outputs
 
     I, phi, span, _ = pane_stream(1.0, 0.0, H=48, W=72)
     res = calibrate_frames(I, phi, CalibratePaneConfig(fov_deg=55.0), span_rad=span)
@@ -558,7 +570,9 @@ def test_the_90_deg_twin_is_told_apart_by_the_modulation_depth():
     orientation field nearly as well), and the modulation depths, which reach the true cone's edges
     (layers go black), violate the twin's cone [-DoP_T, DoP_R] by far more chi^2 than the true pane's."""
     from generator.pane_fit import PaneModelAD
-    from polspike.pipeline.calibrate_pane import CalibratePaneConfig, _cone_violation, find_twin, fit_geometry
+    from polspike.pipeline.pane_config import CalibratePaneConfig
+    from polspike.pipeline.pane_glass import _cone_violation
+    from polspike.pipeline.pane_geometry import find_twin, fit_geometry
     from reconstruct.pane.orientation import orientation_field
 
     tilt, az, fov, H, W = 72.0, 30.0, 20.0, 48, 72
@@ -581,7 +595,7 @@ def test_the_90_deg_twin_is_told_apart_by_the_modulation_depth():
 
 def test_unknown_geometry_weighting_is_refused():
     from polinfra.errors import ConfigError
-    from polspike.pipeline.calibrate_pane import fit_geometry
+    from polspike.pipeline.pane_geometry import fit_geometry
 
     of = {"s4": np.ones((4, 4), complex), "q": np.ones((4, 4)), "psi": np.zeros((4, 4))}
     with pytest.raises(ConfigError, match="weighting"):
@@ -656,7 +670,9 @@ def test_a_narrowly_chosen_twin_is_overturned_by_the_cone_along_the_other_family
     import dataclasses
 
     import reconstruct.pane.selfcal as sc
-    from polspike.pipeline.calibrate_pane import CalibratePaneConfig, calibrate_frames, find_twin
+    from polspike.pipeline.pane_config import CalibratePaneConfig
+    from polspike.pipeline.calibrate_pane import calibrate_frames
+    from polspike.pipeline.pane_geometry import find_twin
     from reconstruct.pane.orientation import orientation_field
 
     tilt, az, fov, H, W = 72.0, 30.0, 20.0, 48, 72
@@ -685,7 +701,7 @@ def test_a_narrowly_chosen_twin_is_overturned_by_the_cone_along_the_other_family
 def test_content_parts_follow_the_span_in_half_turns():
     """The content test's time parts (content_parts = 0): one per 3 half turns of the polarizer (0.05 s at 30 rev/s),
     at least 2, so 0.1 s of back-to-back 13-step windows gives 2 parts and 0.2 s gives 4; a given count is kept."""
-    from polspike.pipeline.calibrate_pane import content_parts_for
+    from polspike.pipeline.pane_content import content_parts_for
 
     step = 2 * math.pi * 30.0 * 13 / 20000.0  # polarizer sweep per window
     for span_s, want in ((0.05, 2), (0.1, 2), (0.2, 4), (0.4, 8)):
