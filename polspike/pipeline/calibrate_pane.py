@@ -49,13 +49,33 @@ from pathlib import Path
 import numpy as np
 
 from polinfra.errors import ConfigError
-from polspike.pipeline.pane_content import CONTENT_N_GRID, _one_sigma_geometries, content_glass, content_n_sigma_from_geometry
-from polspike.pipeline.pane_geometry import INCIDENCE_QUANTILE, _angles_deg, _degenerate_view, find_twin, fit_geometry, max_incidence_deg
-from polspike.pipeline.pane_glass import TWIN_FOVS_DEG, _cone_violation, _select_glass, dop_fov_profile, edge_statistics, twin_fov_profile
-from polspike.pipeline.pane_outputs import _json_safe, _normal
 from polspike.pipeline.pane_config import CalibratePaneConfig
-from polspike.pipeline.pane_geometry import _wrap90
-from polspike.pipeline.pane_glass import fit_glass_to_edges
+from polspike.pipeline.pane_content import (
+    CONTENT_N_GRID,
+    _one_sigma_geometries,
+    content_glass,
+    content_n_sigma_from_geometry,
+)
+from polspike.pipeline.pane_geometry import (
+    INCIDENCE_QUANTILE,
+    _angles_deg,
+    _degenerate_view,
+    _wrap90,
+    find_twin,
+    fit_geometry,
+    max_incidence_deg,
+)
+from polspike.pipeline.pane_glass import (
+    TWIN_FOVS_DEG,
+    _cone_violation,
+    _select_glass,
+    dop_fov_profile,
+    edge_statistics,
+    fit_glass_to_edges,
+    twin_fov_profile,
+)
+from polspike.pipeline.pane_outputs import _json_safe, _normal
+from reconstruct.pane.camera import FOV_INNER_DEG
 
 __all__ = ["calibrate_frames", "calibrate_input"]
 
@@ -67,11 +87,10 @@ def calibrate_frames(I: np.ndarray, phi: np.ndarray, cfg: CalibratePaneConfig = 
     (``ok``, ``params``, ``maps`` (full-resolution dict), ``report`` (JSON-ready), ``figures`` data)."""
     import dataclasses as dc
 
-    from polphysics.fresnel import glass_index
-    from reconstruct.pane.selfcal import SelfCalConfig, self_calibrate
-    from reconstruct.pane.orientation import orientation_field
-
     from generator.pane_fit import PaneModelAD
+    from polphysics.fresnel import glass_index
+    from reconstruct.pane.orientation import orientation_field
+    from reconstruct.pane.selfcal import SelfCalConfig, self_calibrate
 
     t_all = time.perf_counter()
     M, H, W = I.shape
@@ -194,7 +213,7 @@ def calibrate_frames(I: np.ndarray, phi: np.ndarray, cfg: CalibratePaneConfig = 
         if mi_fit > cfg.max_incidence_deg:
             # the fov-tilt valley ran to a view in which modulating blocks would see the pane edge-on or not at all:
             # impossible.  Bisect the fov for the widest view whose orientation fit (fov fixed) keeps them in front
-            lo, hi, best = math.radians(5.5), float(geo["x"][2]), None
+            lo, hi, best = math.radians(FOV_INNER_DEG[0]), float(geo["x"][2]), None
             for _ in range(8):
                 mid = 0.5 * (lo + hi)
                 g = fit_geometry(of, W, H, block, np.r_[geo["x"][:2], mid, x0[3]], fit_fov=False)
@@ -362,11 +381,15 @@ def calibrate_frames(I: np.ndarray, phi: np.ndarray, cfg: CalibratePaneConfig = 
 def calibrate_input(input: Path, cfg: CalibratePaneConfig, *, height: int | None = None, width: int | None = None, phi0_deg: float | None = None,
                     rev_per_s: float | None = None, rate_hz: float = 20000.0, progress=None) -> tuple[dict, dict | None, int, int]:
     """Load a group store or a raw .dat and run :func:`calibrate_frames`; returns (result, base scene dict, W, H)."""
-    from reconstruct.stream.sources import frames_exposure, span_frames
-    from reconstruct.stream.sources import StreamTooShortError
-    from reconstruct.stream.groups import fov_from_group_dir
     from reconstruct.pane.selfcal import leave_out_saturated
-    from reconstruct.stream.sources import dat_source, group_source
+    from reconstruct.stream.groups import fov_from_group_dir
+    from reconstruct.stream.sources import (
+        StreamTooShortError,
+        dat_source,
+        frames_exposure,
+        group_source,
+        span_frames,
+    )
 
     base = None
     input = Path(input)

@@ -79,7 +79,6 @@ import numpy as np
 from polinfra.atomic import ensure_dir, write_bytes, write_json
 from polinfra.errors import ConfigError, DataFormatError, OutputError, PolspikeError
 from polinfra.faults import fault_point
-
 from polspike.pipeline.manifest import Manifest, ResolvedGroup, load_manifest
 
 __all__ = [
@@ -269,11 +268,10 @@ def _keyframe_source(scene, tier: str, duration_s: float, fps: float, work: Path
     The analytic source caches the keyframes of about one simulation chunk (``chunk_s``
     seconds) plus 4, so the GT writer, which trails the spikes by up to a chunk, finds them.
     """
+    from generator.objects3d import require_full_tier
     from generator.render import RenderOptions, frame_times, render
     from generator.scene import scene_hash
     from spike_sim.simulate import KeyframeSource, keyframes_from_render
-
-    from generator.objects3d import require_full_tier
 
     require_full_tier(scene, tier)  # 3-D object scenes: full tier only
     opts = RenderOptions(tier=tier, fps=fps, duration_s=duration_s, seed=scene.render.seed)

@@ -1,8 +1,10 @@
 """Options of polspike calibrate-pane."""
 
 from __future__ import annotations
+
 import dataclasses
 import logging
+
 from polinfra.config import opt
 
 log = logging.getLogger(__name__)

@@ -1,10 +1,13 @@
 """calibrate-pane's content test: where the cone leaves n or the pane model open, the layers solved under each hypothesis should be independent."""
 
 from __future__ import annotations
+
 import logging
 import math
 import time
+
 import numpy as np
+
 from polinfra.errors import ConfigError
 from polspike.pipeline.pane_config import CalibratePaneConfig
 
@@ -97,7 +100,12 @@ def content_glass(I: np.ndarray, phi: np.ndarray, theta: np.ndarray, phi_perp: n
     than ``max_n_sigma`` away is rejected in the same way.  Featureless layers leave every score at the noise level
     and nothing is claimed.  Returns the scores, the choice and the two verdicts."""
     from polphysics.fresnel import pane_coefficients
-    from reconstruct.physics.exclusion import cross_gradient_sums, label_correlations, part_harmonics, rotate_parts
+    from reconstruct.physics.exclusion import (
+        cross_gradient_sums,
+        label_correlations,
+        part_harmonics,
+        rotate_parts,
+    )
 
     t0 = time.perf_counter()
     H, W = theta.shape

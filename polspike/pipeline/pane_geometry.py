@@ -1,11 +1,15 @@
 """calibrate-pane's geometry: the bounded Gauss-Newton fit of (tilt, azimuth, fov) to the block orientation field, its uncertainty maps, and the 90 deg twin."""
 
 from __future__ import annotations
+
 import logging
 import math
 import time
+
 import numpy as np
+
 from polinfra.errors import ConfigError
+from reconstruct.pane.camera import CHI2_1_MEDIAN, FOV_BOUNDS_DEG, FOV_INNER_DEG
 
 log = logging.getLogger(__name__)
 
@@ -40,9 +44,9 @@ def _wmedian(v: np.ndarray, w: np.ndarray) -> float:
 
 # --------------------------------------------------------------------------- geometry
 def _degenerate_view(x: np.ndarray, fit_fov: bool) -> bool:
-    """A geometry pushed against the fit's bounds (tilt >= 89 deg; a fitted fov outside 5.5-149 deg): a degenerate
+    """A geometry pushed against the fit's bounds (tilt >= 89 deg; a fitted fov outside FOV_INNER_DEG): a degenerate
     view in which theta hardly varies across the image, so any index fits any modulation depth."""
-    return bool(x[0] >= math.radians(89.0) or (fit_fov and not math.radians(5.5) < x[2] < math.radians(149.0)))
+    return bool(x[0] >= math.radians(89.0) or (fit_fov and not math.radians(FOV_INNER_DEG[0]) < x[2] < math.radians(FOV_INNER_DEG[1])))
 
 
 def max_incidence_deg(x: np.ndarray, width: int, height: int, block: int, mask: np.ndarray, quantile: float = 1.0) -> float:
@@ -153,8 +157,8 @@ def fit_geometry(of: dict, width: int, height: int, block: int, x0: np.ndarray, 
             d = np.abs(f(xs, u)[2])
             if weighting in ("floor", "scatter"):
                 # misfit floor: the best-measured blocks scatter by more than their noise (content moving through
-                # the harmonic fit); every block's variance is its noise plus that floor (median of chi^2_1: 0.455)
-                sys2 = max(math.radians(0.1) ** 2, float(np.median(d[snr_top] ** 2)) / 0.455 - float(np.median(v_noise[snr_top])))
+                # the harmonic fit); every block's variance is its noise plus that floor (CHI2_1_MEDIAN)
+                sys2 = max(math.radians(0.1) ** 2, float(np.median(d[snr_top] ** 2)) / CHI2_1_MEDIAN - float(np.median(v_noise[snr_top])))
                 w = _weights(sys2)
                 sw = np.sqrt(w)
                 u = 1.0 / (1.0 + (d / (_ROBUST_C * np.sqrt(v_noise + sys2))) ** 2)  # Cauchy on standardised residuals
@@ -164,8 +168,8 @@ def fit_geometry(of: dict, width: int, height: int, block: int, x0: np.ndarray, 
         res.robust_weights = u
         return res
 
-    lb = np.array([0.0, x0[1] - math.pi, math.radians(5.0)])[list(wrt)]
-    ub = np.array([math.radians(89.5), x0[1] + math.pi, math.radians(150.0)])[list(wrt)]
+    lb = np.array([0.0, x0[1] - math.pi, math.radians(FOV_BOUNDS_DEG[0])])[list(wrt)]
+    ub = np.array([math.radians(89.5), x0[1] + math.pi, math.radians(FOV_BOUNDS_DEG[1])])[list(wrt)]
     t0 = time.perf_counter()
     # multi-start: the self-calibration's pane, and (fov fitted) the same normal at other fields of view,
     # since tilt and fov trade off along a shallow valley of the orientation cost

@@ -1,12 +1,22 @@
 """calibrate-pane's glass: edge statistics of the DoP cone, the index / pane-model fit on them, and the fov profiles judged by the cone."""
 
 from __future__ import annotations
+
 import logging
 import math
+
 import numpy as np
+
 from polinfra.errors import ConfigError
-from polspike.pipeline.pane_geometry import _degenerate_view, _expected_max, _sigma_maps, _turned_against, fit_geometry
 from polspike.pipeline.pane_config import CalibratePaneConfig
+from polspike.pipeline.pane_geometry import (
+    _degenerate_view,
+    _expected_max,
+    _sigma_maps,
+    _turned_against,
+    fit_geometry,
+)
+from reconstruct.pane.camera import FOV_INNER_DEG
 from reconstruct.pane.orientation import block_sum
 
 log = logging.getLogger(__name__)
@@ -152,7 +162,7 @@ def dop_fov_profile(of: dict, st: dict, width: int, height: int, block: int, gbl
 
     f0 = float(geo["x"][2])
     fovs = f0 * np.linspace(rel[0], rel[1], points)
-    fovs = fovs[(fovs > math.radians(5.5)) & (fovs < math.radians(149.0))]
+    fovs = fovs[(fovs > math.radians(FOV_INNER_DEG[0])) & (fovs < math.radians(FOV_INNER_DEG[1]))]
     rows = []
     for f in fovs:
         xs = geo["x"].copy()

@@ -1,10 +1,12 @@
 """calibrate-pane's outputs: the fitted scene file, figures, report and maps, and the synthetic bench stream."""
 
 from __future__ import annotations
+
 import json
 import logging
 import math
 from pathlib import Path
+
 import numpy as np
 
 log = logging.getLogger(__name__)
@@ -20,10 +22,9 @@ def _normal(x) -> np.ndarray:
 def fitted_scene_dict(params: dict, width: int, height: int, base: dict | None = None, name: str = "fitted_pane") -> dict:
     """Scene data (``generator.scene`` schema) of the fitted setup: the base scene (a group's, or the defaults)
     with the camera's fov and size and the pane's tilt, tilt axis, index and model replaced."""
+    from generator.scene import SceneConfig, check_scene_geometry, scene_from_dict
     from polinfra.config import to_dict
     from polinfra.errors import SceneError
-
-    from generator.scene import SceneConfig, check_scene_geometry, scene_from_dict
 
     d = json.loads(json.dumps(base)) if base else to_dict(SceneConfig())
     d.pop("objects", None)

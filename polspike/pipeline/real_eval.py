@@ -99,10 +99,10 @@ def evaluate_real(out: str | Path, folder: str | Path | None = None, *, weights:
     from polinfra.atomic import ensure_dir
     from polinfra.exr import read_exr
     from reconstruct.net.checkpoint import DEFAULT_WEIGHTS, load_model
-    from reconstruct.stream.exposure import estimate_exposure
     from reconstruct.net.net_zeta import build_net_zeta_model
-    from reconstruct.video.stream import ReconstructConfig, reconstruct_stream
+    from reconstruct.stream.exposure import estimate_exposure
     from reconstruct.stream.sources import array_source
+    from reconstruct.video.stream import ReconstructConfig, reconstruct_stream
     from spike_sim.aggregate import AggregateConfig, frame_centres
 
     folder = Path(folder) if folder is not None else default_real_dir()

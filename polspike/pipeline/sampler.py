@@ -89,7 +89,6 @@ import math
 import numpy as np
 
 from polinfra.errors import ConfigError, SceneError
-
 from polspike.pipeline.manifest import MANIFEST_FORMAT, checked_manifest_text
 
 __all__ = ["sample_manifest", "sample_manifest_text", "RANGES", "RANGES_V1", "PROFILES", "CONTENT_POOLS"]
@@ -243,7 +242,6 @@ def _pane_need(scene_d: dict, max_incidence_deg: float) -> tuple[float, float] |
     """Pane size (m) that just covers the view, or None when the geometry is rejected."""
     from generator.scene import check_scene_geometry, scene_from_dict
     from polphysics.geometry import incidence_geometry
-
     from polspike.pipeline.manifest import _coarse
 
     sc = _coarse(scene_from_dict(scene_d, where="sampled scene"))

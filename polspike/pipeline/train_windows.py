@@ -196,9 +196,8 @@ class GeneratorWindows:
 
     def window_group(self, seed: int, index: int) -> dict:
         """The window group of item ``(seed, index)``: keyframe source, duration, sim seed and config, maps."""
-        from spike_sim.simulate import KeyframeSource
-
         from generator.analytic import frame_stokes, sample_layers
+        from spike_sim.simulate import KeyframeSource
 
         w = self.window
         rng = np.random.default_rng([int(seed), int(index)])
@@ -245,11 +244,10 @@ class GeneratorWindows:
     def __call__(self, seed: int, index: int):
         import numba
 
-        from spike_sim.aggregate import AggregateConfig, frame_centres
-        from spike_sim.simulate import _interp_layers, simulate
-
         from polphysics.polarizer import phi_nominal, step_phi_edges
         from reconstruct.net.onthefly import flip_item, item_from_stream
+        from spike_sim.aggregate import AggregateConfig, frame_centres
+        from spike_sim.simulate import _interp_layers, simulate
 
         g = self.window_group(seed, index)
         src, cfg, w = g["source"], g["config"], self.window
@@ -286,9 +284,8 @@ def manifest_scenes(path: str, split: str, with_sensor: bool = False) -> list:
     from generator.scene import scene_from_dict
     from polinfra.config import from_dict
     from polinfra.errors import ConfigError
-    from spike_sim.config import SpikeSimConfig
-
     from polspike.pipeline.manifest import load_manifest
+    from spike_sim.config import SpikeSimConfig
 
     m = load_manifest(path)
     out, sims = [], []

@@ -1,8 +1,10 @@
 """The camera and pane-normal conventions of the self-calibration: pinhole camera, normal from (tilt, azimuth), phi_perp maps, fov bounds."""
 
 from __future__ import annotations
+
 import logging
 import math
+
 import numpy as np
 
 log = logging.getLogger(__name__)
@@ -54,3 +56,12 @@ def _pane_phi_perp(width: int, height: int, tilt: float, az: float, fov_deg: flo
 FOV_BOUNDS_DEG = (5.0, 150.0)
 """Search bounds (degrees) of a fitted field of view: :func:`fit_normal`, :func:`polish_geometry` and
 :func:`valley_candidates`, which leaves out candidates that ran into them."""
+
+
+FOV_INNER_DEG = (FOV_BOUNDS_DEG[0] + 0.5, FOV_BOUNDS_DEG[1] - 1.0)
+"""A fitted fov strictly inside this range is off the search bounds (:data:`FOV_BOUNDS_DEG`); one outside it ran
+into them: a degenerate view, not a fitted value."""
+
+CHI2_1_MEDIAN = 0.4549364
+"""The median of the chi-square distribution with one degree of freedom: a median of squared unit-variance
+residuals over it estimates their variance."""

@@ -1,14 +1,18 @@
 """The DoP cone: the modulation a pane of index n can make at each incidence angle, and how many blocks a hypothesis violates."""
 
 from __future__ import annotations
+
 import logging
+import functools
 import math
+
 import numpy as np
 import torch
+
 from polinfra.errors import ConfigError
-from reconstruct.physics.harmonic_fit import half_turn_frames, harmonic_fit
-from reconstruct.pane.camera import camera_for, normal_from_angles
+from reconstruct.pane.camera import CHI2_1_MEDIAN, camera_for, normal_from_angles
 from reconstruct.pane.orientation import block_sum
+from reconstruct.physics.harmonic_fit import half_turn_frames, harmonic_fit
 
 log = logging.getLogger(__name__)
 
@@ -95,7 +99,7 @@ def cone_aggregates(a0: np.ndarray, c: np.ndarray, phi_perp: np.ndarray, theta: 
             a, m, o, t = a[keep], m[keep], o[keep], t[keep]
             if a.size < 4:
                 continue
-            kappa = float(np.median(o * o / a)) / 0.4549  # median of chi^2_1
+            kappa = float(np.median(o * o / a)) / CHI2_1_MEDIAN
             out.append({"scale": s, "a": a, "m": m, "theta": t, "sigma": np.sqrt(max(kappa, 1e-30) * a + (systematic * a) ** 2)})
     return out
 
@@ -104,11 +108,16 @@ _THETA_TABLE = np.linspace(0.0, 0.5 * math.pi, 1801)
 
 
 def _bounds_table(n: float, model: str, span_factor: float) -> tuple[np.ndarray, np.ndarray]:
-    key = (float(n), model, float(span_factor))
-    tab = _bounds_table.cache.get(key)
-    if tab is None:
-        tab = _bounds_table.cache[key] = cone_bounds(_THETA_TABLE, n, model, span_factor)
-    return tab
+    return _bounds_table_cached(float(n), model, float(span_factor))
+
+
+@functools.lru_cache(maxsize=256)
+def _bounds_table_cached(n: float, model: str, span_factor: float) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`cone_bounds` on the fine theta table, once per (n, model, span factor); read-only arrays."""
+    lo, hi = cone_bounds(_THETA_TABLE, n, model, span_factor)
+    lo.setflags(write=False)
+    hi.setflags(write=False)
+    return lo, hi
 
 
 def cone_violation(aggs: list[dict], n: float, model: str, span_factor: float = 1.0, cap: float = 8.0, slack: float = 0.0) -> float:
@@ -151,7 +160,7 @@ def modulating_fraction(s4_px: np.ndarray, q_px: np.ndarray, phi_perp: np.ndarra
     if block > 1:
         p, o, q = block_sum(p, block), block_sum(o, block), block_sum(q, block)
     q = np.maximum(q, 1e-300)
-    kappa = float(np.median(o * o / q)) / 0.4549  # the orthogonal part carries no pane signal: it calibrates the noise scale
+    kappa = float(np.median(o * o / q)) / CHI2_1_MEDIAN  # the orthogonal part carries no pane signal: it calibrates the noise scale
     z = p / np.sqrt(max(kappa, 1e-300) * q)
     return float(max(0.0, np.mean(z > sigmas) - np.mean(z < -sigmas)))
 

@@ -1,13 +1,16 @@
 """The content test: two layers that a right zeta separates share no edges; the crossed gradient correlation of the separated layers."""
 
 from __future__ import annotations
+
 import logging
 import math
+
 import numpy as np
 import torch
+
+from reconstruct.pane.cone import CONE_MODELS, _span_factor_of
 from reconstruct.physics.exclusion import cross_gradient_sums
 from reconstruct.physics.harmonic_fit import half_turn_frames, harmonic_fit
-from reconstruct.pane.cone import CONE_MODELS, _span_factor_of
 
 log = logging.getLogger(__name__)
 

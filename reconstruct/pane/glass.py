@@ -1,6 +1,7 @@
 """The glass: index and pane model (single interface or thin slab) from the cone scores, with a prior where the data do not decide."""
 
 from __future__ import annotations
+
 import logging
 
 log = logging.getLogger(__name__)

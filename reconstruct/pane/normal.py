@@ -1,11 +1,21 @@
 """The pane normal (and fov) from the orientation field: the robust fit, the scatter-weighted polish, the valley candidates along the fov-tilt valley."""
 
 from __future__ import annotations
+
 import logging
 import math
+
 import numpy as np
-from reconstruct.pane.camera import FOV_BOUNDS_DEG, _pane_phi_perp, _phi_perp_many, camera_for, normal_from_angles
-from reconstruct.pane.orientation import block_sum, block_orientation_variance
+
+from reconstruct.pane.camera import (
+    CHI2_1_MEDIAN,
+    FOV_BOUNDS_DEG,
+    _pane_phi_perp,
+    _phi_perp_many,
+    camera_for,
+    normal_from_angles,
+)
+from reconstruct.pane.orientation import block_orientation_variance, block_sum
 
 log = logging.getLogger(__name__)
 
@@ -160,7 +170,7 @@ def polish_geometry(of: dict, block: int, tilt: float, az: float, fov_deg: float
                           x_scale=[0.1, 0.1] + ([10.0] if fit_fov else []))
         x = r.x
         d = 0.5 * np.abs(np.sin(2.0 * (psi - pp(x))))
-        sys2 = max(math.radians(0.1) ** 2, float(np.median(d[top] ** 2)) / 0.455 - float(np.median(v[top])))
+        sys2 = max(math.radians(0.1) ** 2, float(np.median(d[top] ** 2)) / CHI2_1_MEDIAN - float(np.median(v[top])))
     return {"tilt": float(x[0]), "azimuth": float(x[1]) % (2 * math.pi), "fov_deg": float(x[2]) if fit_fov else float(fov_deg)}
 
 

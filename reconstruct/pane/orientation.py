@@ -1,10 +1,13 @@
 """The orientation field: the AoLP of the modulated light per block, modulo 90 deg, and its scatter."""
 
 from __future__ import annotations
+
 import logging
 import math
+
 import numpy as np
 import torch
+
 from polinfra.errors import ShapeError
 from reconstruct.physics.harmonic_fit import half_turn_frames, harmonic_fit
 from reconstruct.stream.sources import StreamTooShortError

@@ -1,11 +1,25 @@
 """The twin decision: which of the candidate geometries along the fov-tilt valley, and which 90 deg family, the DoP cone and then the layers' content prefer."""
 
 from __future__ import annotations
+
 import logging
 import math
+
 import numpy as np
-from reconstruct.pane.cone import CONE_MODELS, _hypothesis_maps, _span_factor_of, chunk_harmonics, cone_aggregates, glass_scores
-from reconstruct.pane.content import _content_claims_model, _content_parts, layer_gradient_correlation
+
+from reconstruct.pane.cone import (
+    CONE_MODELS,
+    _hypothesis_maps,
+    _span_factor_of,
+    chunk_harmonics,
+    cone_aggregates,
+    glass_scores,
+)
+from reconstruct.pane.content import (
+    _content_claims_model,
+    _content_parts,
+    layer_gradient_correlation,
+)
 from reconstruct.pane.normal import valley_candidates
 
 log = logging.getLogger(__name__)

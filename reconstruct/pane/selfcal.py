@@ -107,15 +107,22 @@ import torch
 
 from polinfra.config import opt
 from polinfra.errors import ConfigError, ShapeError
-
-from reconstruct.physics.zeta import PaneMaps, pane_maps_from_geometry, zeta_from_maps
 from reconstruct.pane.camera import _pane_phi_perp, camera_for, normal_from_angles
-from reconstruct.pane.cone import GLASS_SLACK, _bounds_table, _hypothesis_maps, _span_factor_of, chunk_harmonics, cone_aggregates, glass_scores, modulating_fraction
+from reconstruct.pane.cone import (
+    GLASS_SLACK,
+    _hypothesis_maps,
+    _span_factor_of,
+    chunk_harmonics,
+    cone_aggregates,
+    glass_scores,
+    modulating_fraction,
+)
 from reconstruct.pane.content import content_model
 from reconstruct.pane.glass import fit_glass
 from reconstruct.pane.normal import _sep, fit_normal, polish_geometry
 from reconstruct.pane.orientation import orientation_field
 from reconstruct.pane.resolve import _resolve_by_cone
+from reconstruct.physics.zeta import PaneMaps, pane_maps_from_geometry, zeta_from_maps
 
 __all__ = ["SelfCalConfig", "SelfCalResult", "self_calibrate", "self_zeta", "group_self_zeta"]
 
@@ -227,7 +234,6 @@ def _plain(x):
     return x
 
 
-_bounds_table.cache = {}
 
 
 def leave_out_saturated(I: np.ndarray, exposure: float | None) -> tuple[np.ndarray, float]:
@@ -446,8 +452,11 @@ def group_self_zeta(group, n: float | None = None, model: str | None = None, cfg
     src_dir = getattr(group, "source_dir", None)
     if src_dir and (Path(src_dir) / "spikes.h5").is_file():
         # a stored group: every spike of the first span_s (back-to-back windows), not only the strided output frames
-        from reconstruct.stream.sources import frames_exposure, span_frames
-        from reconstruct.stream.sources import group_source
+        from reconstruct.stream.sources import (
+            frames_exposure,
+            group_source,
+            span_frames,
+        )
 
         src = group_source(src_dir)
         exposure = frames_exposure(src)

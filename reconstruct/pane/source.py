@@ -1,8 +1,10 @@
 """Self-calibration of a spike source: the first span of a stream as Eq. (3) frames, handed to the self-calibration."""
 
 from __future__ import annotations
+
 import dataclasses
 import logging
+
 from reconstruct.pane.selfcal import SelfCalConfig, SelfCalResult, self_calibrate
 from reconstruct.stream.sources import frames_exposure, span_frames
 
