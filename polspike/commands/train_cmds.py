@@ -21,6 +21,9 @@ def on_the_fly_sets(cfg):
 
     return window_sets(cfg.window, cfg.train_items, cfg.val_items, cfg.seed, cfg.train_scenes, cfg.test_scenes, cfg.scene_seed, cfg.manifest, cfg.val_manifest, cfg.val_split)
 
+ARCH_BASE_PRESETS = {"v1": "v1_base.toml", "v2": "v2_lowres_branch.toml"}
+"""The training preset each architecture was first trained with (its data and window settings)."""
+
 
 def _limit_numba_threads(threads: int) -> None:
     """Cap spike_sim's parallel numba kernel at ``threads`` too: with more, its idle OpenMP threads
@@ -387,7 +390,7 @@ def bench_reconstruct_net_cmd(
         model, data = load_model(path, "cpu", use_rir=False)
         name = f"{model.cfg.arch} ({Path(path).name})"
         models[name] = model
-        base = from_dict(TrainConfig, load_toml(Path(__file__).resolve().parents[2] / "reconstruct" / "configs" / f"cpu_{model.cfg.arch}.toml"))
+        base = from_dict(TrainConfig, load_toml(Path(__file__).resolve().parents[2] / "reconstruct" / "configs" / ARCH_BASE_PRESETS[model.cfg.arch]))
         # the items a network reads: the long spike mean / wide windows where its config takes them
         train_cfgs[name] = dataclasses.replace(base, net=model.cfg, seed=0, window=dataclasses.replace(base.window, **heldout_inputs(model)))
     names = list(models)
