@@ -295,7 +295,7 @@ def bench_exposure_cmd(
     out: Path = typer.Option(Path("out/bench/exposure"), "--out", help="output folder (exposure.json, exposure.md)"),
     max_steps: int = typer.Option(4000, "--max-steps", help="steps of each group the estimate reads (as polspike reconstruct: 4000)"),
 ) -> None:
-    """Exposure estimated from the spikes (reconstruct/exposure.py) vs the exposure each group was simulated with: log error per dataset."""
+    """Exposure estimated from the spikes (reconstruct/stream/exposure.py) vs the exposure each group was simulated with: log error per dataset."""
     import numpy as np
     from rich.console import Console
 
@@ -382,7 +382,7 @@ def fit_rwps_cmd(
     max_frames: int = typer.Option(3, "--max-frames", help="output frames per group"),
     quiet: bool = typer.Option(False, "--quiet", help="no progress bar"),
 ) -> None:
-    """Fit the adaptive RWPS constants (snr_kappa, lambda_low, lambda_high) on training groups with the true zeta (reconstruct/rwps_fit.py)."""
+    """Fit the adaptive RWPS constants (snr_kappa, lambda_low, lambda_high) on training groups with the true zeta (reconstruct/evaluate/rwps_fit.py)."""
     from rich.console import Console
 
     from polinfra.atomic import write_json, write_text

@@ -96,7 +96,7 @@ def reconstruct_cmd(
     phi0_deg: Optional[float] = typer.Option(None, "--phi0-deg", help=".dat: polarizer angle at t = 0 (calibration), degrees"),
     rev_per_s: Optional[float] = typer.Option(None, "--rev-per-s", help=".dat: polarizer rotation rate (calibration), rev/s"),
     rate_hz: float = typer.Option(20000.0, "--rate-hz", help=".dat: camera steps per second"),
-    exposure: Optional[float] = typer.Option(None, "--exposure", help="thresholds per step per unit radiance [default: a group's stored exposure; a .dat's estimated from its firing rates (reconstruct/exposure.py)]"),
+    exposure: Optional[float] = typer.Option(None, "--exposure", help="thresholds per step per unit radiance [default: a group's stored exposure; a .dat's estimated from its firing rates (reconstruct/stream/exposure.py)]"),
     window_steps: int = typer.Option(13, "--window-steps", help="Eq. (3) window in steps (13 = 0.65 ms)"),
     stride_deg: float = typer.Option(31.5, "--stride-deg", help="polarizer rotation between output frames (31.5 deg -> 342.9 FPS at 30 rev/s)"),
     frames: str = typer.Option("none", "--frames", help="also write frames: none | png | exr"),

@@ -275,7 +275,7 @@ SHARE_NOTE = (
     "rho>=0.2: R scored over the pixels where the reflected share rho = zbar R / (zbar R + (1 - zbar) T) >= 0.2 "
     "(true layers, zbar = half-turn mean of the true zeta); frac = their fraction. R bound (LS, true zeta): PSNR of R over "
     "those pixels implied by the variance of the unbiased least-squares (T, R) from the window's N observations with the "
-    "true zeta and the simulator's spike noise (reconstruct/identifiability.py; unclipped, one window)."
+    "true zeta and the simulator's spike noise (reconstruct/physics/identifiability.py; unclipped, one window)."
 )
 """Legend of the reflected-share columns."""
 

@@ -1,4 +1,4 @@
-"""Exposure of a raw stream of unknown scale (reconstruct/exposure.py) and the per-video display gain.
+"""Exposure of a raw stream of unknown scale (reconstruct/stream/exposure.py) and the per-video display gain.
 
 Oracles: the time-averaged intensity behind a rotating ideal polarizer is S0 / 2 of the scene
 (closed form), so a noise-free sensor at exposure e fires e * S0 / 2 spikes per step on average

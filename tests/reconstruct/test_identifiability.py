@@ -1,4 +1,4 @@
-"""The reflected share and the noise floor of R (reconstruct/identifiability.py): closed forms, a Monte-Carlo of the
+"""The reflected share and the noise floor of R (reconstruct/physics/identifiability.py): closed forms, a Monte-Carlo of the
 least-squares estimate, the integrate-and-fire count variance against the simulator itself, and an end-to-end check
 on a stored integrate-and-fire group (the unclipped LS error of R equals the bound the evaluation reports)."""
 

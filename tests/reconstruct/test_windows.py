@@ -1,4 +1,4 @@
-"""reconstruct/windows.py: dense training windows from stored spike groups (paper Sec. 3.5, Eq. (3))."""
+"""reconstruct/net/windows.py: dense training windows from stored spike groups (paper Sec. 3.5, Eq. (3))."""
 
 from __future__ import annotations
 
