@@ -124,7 +124,7 @@ from reconstruct.pane.orientation import orientation_field
 from reconstruct.pane.resolve import _resolve_by_cone
 from reconstruct.physics.zeta import PaneMaps, pane_maps_from_geometry, zeta_from_maps
 
-__all__ = ["SelfCalConfig", "SelfCalResult", "self_calibrate", "self_zeta", "group_self_zeta"]
+__all__ = ["SelfCalConfig", "SelfCalResult", "StageOutcome", "CASCADE", "self_calibrate", "self_zeta", "group_self_zeta"]
 
 log = logging.getLogger(__name__)
 
@@ -255,6 +255,211 @@ def leave_out_saturated(I: np.ndarray, exposure: float | None) -> tuple[np.ndarr
     return np.where(sat[None], np.zeros((), np.asarray(I).dtype), I), float(sat.mean())
 
 
+@dataclasses.dataclass(frozen=True)
+class StageOutcome:
+    """One stage's verdict in the self-calibration cascade (:data:`CASCADE`).
+
+    Attributes:
+        stage: the stage's name.
+        verdict: ``"pass"`` (the geometry stands), ``"moved"`` (the stage changed it), ``"skipped"`` (the stage does
+            not apply to this stream) or ``"fail"`` (the cascade stops: no self-calibrated zeta).
+        reason: why, in words.
+        tilt_deg, azimuth_deg, fov_deg: the geometry after the stage (degrees).
+    """
+
+    stage: str
+    verdict: str
+    reason: str
+    tilt_deg: float
+    azimuth_deg: float
+    fov_deg: float
+
+
+class _Calibration:
+    """What one run of the cascade reads and updates: the frames, the orientation field, the current geometry, the
+    diagnostics, and the glass once fitted."""
+
+    def __init__(self, I, phi, cfg: SelfCalConfig, name: str, f: dict, mask: np.ndarray, diag: dict, fit: dict, fov_given: float | None):
+        self.I, self.phi, self.cfg, self.name = I, phi, cfg, name
+        self.f, self.mask, self.diag, self.fit, self.fov_given = f, mask, diag, fit, fov_given
+        self.H, self.W = I.shape[-2:]
+        self.h, self.w = f["psi"].shape
+        self.frac = float(mask.mean())
+        self.auto = cfg.model == "auto"
+        self.aggs = None
+        self.n_used, self.model_used = cfg.n, cfg.model
+        self.modulation()
+        self.res_deg = self.residual()
+
+    def modulation(self) -> None:
+        pp = _hypothesis_maps(self.W, self.H, self.fit["tilt"], self.fit["azimuth"], self.fit["fov_deg"])[0]
+        self.diag["modulating_px"] = modulating_fraction(self.f["s4_px"], self.f["q_px"], pp, 1)
+        self.diag["modulating_blocks"] = modulating_fraction(self.f["s4_px"], self.f["q_px"], pp, 4)
+
+    def residual(self) -> float | None:
+        """Weighted median orientation residual over the coherent blocks, degrees (a report, not a gate)."""
+        if not self.mask.any():
+            return None
+        d = self.f["psi"] - _pane_phi_perp(self.w, self.h, self.fit["tilt"], self.fit["azimuth"], self.fit["fov_deg"])
+        d = np.abs(np.mod(d + math.pi / 4, math.pi / 2) - math.pi / 4)[self.mask]
+        wv = np.abs(self.f["s4"])[self.mask]
+        o = np.argsort(d)
+        cw = np.cumsum(wv[o])
+        return float(np.degrees(d[o][min(len(o) - 1, int(np.searchsorted(cw, 0.5 * cw[-1])))]))
+
+    def move(self, **geometry) -> None:
+        """Take a new geometry (tilt, azimuth radians; fov_deg) and refresh what depends on it."""
+        self.fit = {**self.fit, **geometry}
+        self.modulation()
+        self.res_deg = self.residual()
+
+    def incidence(self):
+        """The camera, the pane's normal and plane, and their incidence geometry (theta, phi_perp) at the current fit."""
+        key = (self.fit["tilt"], self.fit["azimuth"], self.fit["fov_deg"])
+        if getattr(self, "_incidence_key", None) != key:
+            from polphysics.geometry import Plane, incidence_geometry
+
+            cam = camera_for(self.W, self.H, self.fit["fov_deg"])
+            N = normal_from_angles(self.fit["tilt"], self.fit["azimuth"], cam)
+            plane = Plane(cam.position + cam.forward, N)
+            self._incidence_key, self._incidence = key, (cam, N, plane, incidence_geometry(cam, plane))
+        return self._incidence
+
+    def outcome(self, stage: str, verdict: str, reason: str = "") -> StageOutcome:
+        return StageOutcome(stage, verdict, reason, math.degrees(self.fit["tilt"]), math.degrees(self.fit["azimuth"]) % 360.0, float(self.fit["fov_deg"]))
+
+    def failed(self, reason: str) -> SelfCalResult:
+        log.warning("self-calibrated zeta for %s: %s; no self-calibrated zeta (the caller's fallback: zeta = 0 for the network, the learned zeta for the physics solvers)", self.name, reason)
+        cfg, fit = self.cfg, self.fit
+        return SelfCalResult(False, reason, None, None, None, None, float(fit["fov_deg"]), False, cfg.n, cfg.prior_model if self.auto else cfg.model, None, None,
+                             self.frac, self.res_deg, fit["twin_ratio"], self.diag)
+
+
+def _stage_detection(c: _Calibration) -> StageOutcome:
+    """Something must modulate: the orientation field's detection z and the share of 4 x 4 blocks above noise."""
+    fit, cfg, diag = c.fit, c.cfg, c.diag
+    if not fit["z"] >= cfg.z_min:
+        return c.outcome("detection", "fail", f"nothing modulates: the best planar pane explains the polarization orientation only {fit['z']:.1f} noise sigmas above chance (need {cfg.z_min:g}; "
+                         f"{100 * diag['modulating_px']:.1f} % of pixels modulate above noise); no reflection, R = T, or near-normal incidence")
+    if not diag["modulating_blocks"] >= cfg.min_modulating_blocks:
+        return c.outcome("detection", "fail", f"nothing modulates: the best planar pane explains the orientation field {fit['z']:.1f} noise sigmas above chance, yet only "
+                         f"{100 * diag['modulating_blocks']:.2f} % of 4 x 4 pixel blocks modulate above noise (need {100 * cfg.min_modulating_blocks:g} %): "
+                         "motion aliasing into the polarizer's harmonic, no polarizer, or near-normal incidence")
+    return c.outcome("detection", "pass", f"z {fit['z']:.1f}, {100 * diag['modulating_blocks']:.1f} % of blocks modulate")
+
+
+def _stage_twin(c: _Calibration) -> StageOutcome:
+    """The 90 deg twin: where the orientation field cannot tell the pane from its twin (``max_twin_ratio``) the DoP cone,
+    then the layers' content, decide; where it prefers one only narrowly with the fov free (``twin_check_ratio``), the
+    twin is taken only on both votes."""
+    fit, cfg, diag = c.fit, c.cfg, c.diag
+    I, phi = c.I, c.phi
+    if c.fov_given is None and cfg.twin_check_ratio <= fit["twin_ratio"] <= cfg.max_twin_ratio:
+        # with the fov free the twin family can bend along its own fov-tilt valley and the orientation field's preference
+        # is narrow: a twin handed over swaps R and T. Overturn only on two independent votes for the twin
+        chk = _resolve_by_cone(I, phi, c.f, fit, c.W, c.H, c.fov_given, dataclasses.replace(cfg, valley_step_deg=cfg.twin_check_step_deg))
+        v0, v1 = chk["v_family"]
+        cc = (chk.get("content") or {}).get("corr_family") or [None, None]
+        content_twin = cc[0] is not None and cc[1] is not None and np.isfinite(cc[1]) and cc[1] < cc[0]
+        overturn = bool(v0 - v1 > cfg.cone_margin and content_twin)
+        diag["twin_check"] = {"v_family": [v0, v1], "corr_family": cc, "overturned": overturn}
+        if not overturn:
+            return c.outcome("twin", "pass", "a narrow orientation choice, kept: the cone and the layers' content do not both prefer the twin")
+        c.aggs = chk.pop("aggs")
+        diag["cone"] = {**chk, "resolved": True, "by": "twin_check", "chosen_family": 1}
+        c.move(tilt=chk["tilt"], azimuth=chk["azimuth"], fov_deg=chk["fov_deg"])
+        return c.outcome("twin", "moved", "the orientation field's narrow choice overturned: the DoP cone and the layers' content both prefer its 90 deg twin")
+    if not fit["twin_ratio"] > cfg.max_twin_ratio:
+        return c.outcome("twin", "skipped", f"the orientation field prefers the pane over its 90 deg twin (ratio {fit['twin_ratio']:.3f})")
+    # the orientation field cannot separate the pane from its 90 deg twin (nor pin the tilt of a narrow view):
+    # the DoP must stay inside the cone [-DoP_T(theta), DoP_R(theta)] (R, T >= 0), which the wrong family breaks
+    cone = _resolve_by_cone(I, phi, c.f, fit, c.W, c.H, c.fov_given, cfg)
+    c.aggs = cone.pop("aggs")
+    diag["cone"] = cone
+    if not cone["resolved"]:
+        ct = cone.get("content")
+        if cone.get("conflict"):
+            return c.outcome("twin", "fail", f"ambiguous: a pane with phi_perp turned by 90 deg explains the orientation field {100 * fit['twin_ratio']:.1f} % as well, and the "
+                             f"DoP cone (violations {cone['v_family'][0]:.1f} / {cone['v_family'][1]:.1f}) and the layers' content (gradient |correlation| "
+                             f"{ct['corr_family'][0]:.2f} / {ct['corr_family'][1]:.2f}) pick different families")
+        ctxt = (f"; nor does the layers' content (gradient |correlation| of R^ and T^ {ct['corr_family'][0]:.2f} / {ct['corr_family'][1]:.2f}, "
+                f"need the other family {cfg.content_margin:g} above and {cfg.content_ratio:g} times the chosen one, which must hold the cone)") if ct else ""
+        return c.outcome("twin", "fail", f"ambiguous: a pane with phi_perp turned by 90 deg explains the orientation field {100 * fit['twin_ratio']:.1f} % as well "
+                         f"(narrow field of view or glancing pane), and both keep the DoP inside the Fresnel cone (violations {cone['v_family'][0]:.1f} / "
+                         f"{cone['v_family'][1]:.1f}, need the other family {cfg.cone_margin:g} above and {cfg.cone_ratio:g} times the chosen one): "
+                         f"no part of the view shows the reflection dominating beyond DoP_T, or neither family fits" + ctxt)
+    c.move(tilt=cone["tilt"], azimuth=cone["azimuth"], fov_deg=cone["fov_deg"])
+    return c.outcome("twin", "moved", "90 deg twin resolved by the layers' content" if cone.get("by") == "content" else "90 deg twin resolved by the cone")
+
+
+def _stage_polish(c: _Calibration) -> StageOutcome:
+    """The scatter-weighted fit from the chosen geometry, kept only inside the chosen family and within ``polish_max_move_deg``."""
+    cfg, fit, diag = c.cfg, c.fit, c.diag
+    if cfg.geometry_weighting != "scatter":
+        return c.outcome("polish", "skipped", f"geometry_weighting = {cfg.geometry_weighting}")
+    # the grid search and the twin / cone decisions weigh blocks by |sum z4|, which holds the signal's power: the final
+    # geometry is the scatter-weighted fit from there, kept in the chosen family (a local move, no 90 deg flip)
+    pol = polish_geometry(c.f, diag["block_px"], fit["tilt"], fit["azimuth"], fit["fov_deg"], c.fov_given is None and "cone" not in diag)  # the cone chose along the tilt-fov valley: keep its fov
+    if pol is None:
+        return c.outcome("polish", "skipped", "too few blocks for the scatter-weighted fit")
+    pp0 = _pane_phi_perp(c.w, c.h, fit["tilt"], fit["azimuth"], fit["fov_deg"])
+    pp1 = _pane_phi_perp(c.w, c.h, pol["tilt"], pol["azimuth"], pol["fov_deg"])
+    a4 = np.abs(c.f["s4"])
+    same = float(np.sum(a4 * np.cos(2.0 * (pp1 - pp0))) / max(float(a4.sum()), 1e-300))
+    moved = math.degrees(_sep(fit["tilt"], fit["azimuth"], pol["tilt"], pol["azimuth"]))
+    diag["polish"] = {"from": [math.degrees(fit["tilt"]), math.degrees(fit["azimuth"]) % 360.0, float(fit["fov_deg"])],
+                      "to": [math.degrees(pol["tilt"]), math.degrees(pol["azimuth"]), pol["fov_deg"]], "same_family": same, "moved_deg": moved}
+    if same > 0.5 and moved < cfg.polish_max_move_deg:
+        c.move(**pol)
+        return c.outcome("polish", "moved", f"the normal moved {moved:.2f} deg within its family")
+    diag["polish"]["kept"] = f"the cone's / grid's pane (the polish left the family or moved > {cfg.polish_max_move_deg:g} deg)"
+    return c.outcome("polish", "pass", diag["polish"]["kept"])
+
+
+def _stage_tilt(c: _Calibration) -> StageOutcome:
+    """A pane seen near normal incidence modulates too little to calibrate (``min_tilt_deg``)."""
+    tilt_deg = math.degrees(c.fit["tilt"])
+    if tilt_deg < c.cfg.min_tilt_deg:
+        return c.outcome("tilt", "fail", f"near-normal incidence (fitted tilt {tilt_deg:.1f} deg): no usable modulation")
+    return c.outcome("tilt", "pass", f"tilt {tilt_deg:.1f} deg")
+
+
+def _stage_glass(c: _Calibration) -> StageOutcome:
+    """Index and pane model (``model = auto``): the DoP cone where it constrains them, else the layers' content for the
+    model, else the priors."""
+    cfg, diag = c.cfg, c.diag
+    if not c.auto:
+        return c.outcome("glass", "skipped", f"given: {cfg.model}, n {cfg.n:g}")
+    _, _, _, geo = c.incidence()
+    theta = geo["theta"]
+    if c.aggs is None:
+        a0, cc = chunk_harmonics(c.I, c.phi)
+        c.aggs = cone_aggregates(a0, cc, geo["phi_perp"], theta)
+    gl = fit_glass(glass_scores(c.aggs, _span_factor_of(c.phi), slack=GLASS_SLACK), cfg.n, cfg.prior_model, cfg.cone_margin)
+    ct = (diag.get("cone") or {}).get("content")
+    if not gl["model_identified"] and ct and diag["cone"].get("by") == "content" and ct["model_identified"]:
+        # the cone does not tell single from slab, the layers' content did (the pane model's scale leaks T into R^)
+        gl["model"], gl["model_by_content"] = ct["model"], True
+    elif not gl["model_identified"]:
+        cm = content_model(c.I, c.phi, geo["phi_perp"], theta, gl["n"])
+        gl["content"] = cm
+        if cm["identified"]:
+            gl["model"], gl["model_by_content"] = cm["model"], True
+    c.n_used, c.model_used = gl["n"], gl["model"]
+    gl["scores_by_model"] = {k: float(v) for k, v in gl["scores_by_model"].items()}
+    gl["why"] = (("model from the cone" if gl["model_identified"] else "model from the layers' content (the cone does not separate single from slab)" if gl.get("model_by_content")
+                  else f"model not identified (no cone edge separates single from slab): assumed {cfg.prior_model}")
+                 + "; " + (f"index from the cone (range {gl['n_range'][0]:g}-{gl['n_range'][1]:g})" if gl["n_identified"]
+                           else f"index not identified (the data fit {gl['n_range'][0]:g}-{gl['n_range'][1]:g}): {c.n_used:g}"))
+    diag["glass"] = gl
+    return c.outcome("glass", "pass", f"{c.model_used}, n {c.n_used:g}: {gl['why']}")
+
+
+CASCADE = (("detection", _stage_detection), ("twin", _stage_twin), ("polish", _stage_polish), ("tilt", _stage_tilt), ("glass", _stage_glass))
+"""The self-calibration's stages, in order: each reads the geometry the stages before it left and returns a
+:class:`StageOutcome`; the first ``"fail"`` ends the cascade with no self-calibrated zeta."""
+
+
 def self_calibrate(I: np.ndarray, phi: np.ndarray, cfg: SelfCalConfig = SelfCalConfig(), *, frames_per_s: float | None = None, name: str = "stream",
                    exposure: float | None = None) -> SelfCalResult:
     """Estimate the pane (normal, field of view, and where the data constrain them index and pane model)
@@ -274,7 +479,8 @@ def self_calibrate(I: np.ndarray, phi: np.ndarray, cfg: SelfCalConfig = SelfCalC
         geometry stays ambiguous.  ``diagnostics`` carries ``modulating_px`` / ``modulating_blocks``
         (share of pixels / 4 x 4 blocks modulating above noise, :func:`modulating_fraction`), ``cone``
         (the 90 deg / tilt-valley resolution, when needed), ``twin_check`` (with the fov fitted, the cone's and the
-        content's votes on a narrow orientation choice, and whether they overturned it) and ``glass`` (the index / model fit).
+        content's votes on a narrow orientation choice, and whether they overturned it) and ``glass`` (the index / model fit); ``stages``: each stage of
+        :data:`CASCADE` as a plain :class:`StageOutcome` (name, verdict, reason, the geometry after it).
     """
     I = np.asarray(I)
     if I.ndim != 3:
@@ -284,144 +490,33 @@ def self_calibrate(I: np.ndarray, phi: np.ndarray, cfg: SelfCalConfig = SelfCalC
     I, sat_px = leave_out_saturated(I[:m], exposure)
     s = cfg.block_px or max(1, W // 48)
     s = max(1, min(s, max(1, H // 4), max(1, W // 4)))
-    f = orientation_field(I[:m], np.asarray(phi)[:m], s)
-    h, w = f["psi"].shape
+    I, phi = I[:m], np.asarray(phi)[:m]
+    f = orientation_field(I, phi, s)
     thr = cfg.coherence_sigmas
     mask = np.abs(f["s4"]) > thr * np.sqrt(0.5 * np.maximum(f["q"], 1e-300))  # blocks that modulate on their own
-    frac = float(mask.mean())
     diag = {"psi": f["psi"], "coherence": f["coherence"], "mask": mask, "block_px": s, "threshold": thr, "frames": m, "chunks": f["chunks"], "dop": f["dop"], "s4": f["s4"], "saturated_px": sat_px}
     fov_given = cfg.fov_deg if cfg.fov_deg > 0 else None
-    fit = fit_normal(f["s4"], f["q"], w, h, fov_given, cfg.fov_init_deg)
+    fit = fit_normal(f["s4"], f["q"], f["psi"].shape[1], f["psi"].shape[0], fov_given, cfg.fov_init_deg)
     diag.update({"z": fit["z"], "alignment": fit["alignment"]})
-
-    def modulation(tilt, az, fov):
-        pp = _hypothesis_maps(W, H, tilt, az, fov)[0]
-        diag["modulating_px"] = modulating_fraction(f["s4_px"], f["q_px"], pp, 1)
-        diag["modulating_blocks"] = modulating_fraction(f["s4_px"], f["q_px"], pp, 4)
-
-    modulation(fit["tilt"], fit["azimuth"], fit["fov_deg"])
-
-    def residual():
-        # weighted median orientation residual over the coherent blocks (a report, not a gate)
-        if not mask.any():
-            return None
-        d = f["psi"] - _pane_phi_perp(w, h, fit["tilt"], fit["azimuth"], fit["fov_deg"])
-        d = np.abs(np.mod(d + math.pi / 4, math.pi / 2) - math.pi / 4)[mask]
-        wv = np.abs(f["s4"])[mask]
-        o = np.argsort(d)
-        cw = np.cumsum(wv[o])
-        return float(np.degrees(d[o][min(len(o) - 1, int(np.searchsorted(cw, 0.5 * cw[-1])))]))
-
-    res_deg = residual()
-    auto = cfg.model == "auto"
-
-    def fail(reason):
-        log.warning("self-calibrated zeta for %s: %s; no self-calibrated zeta (the caller's fallback: zeta = 0 for the network, the learned zeta for the physics solvers)", name, reason)
-        return SelfCalResult(False, reason, None, None, None, None, float(fit["fov_deg"]), False, cfg.n, cfg.prior_model if auto else cfg.model, None, None, frac, res_deg, fit["twin_ratio"], diag)
-
-    if not fit["z"] >= cfg.z_min:
-        return fail(f"nothing modulates: the best planar pane explains the polarization orientation only {fit['z']:.1f} noise sigmas above chance (need {cfg.z_min:g}; "
-                    f"{100 * diag['modulating_px']:.1f} % of pixels modulate above noise); no reflection, R = T, or near-normal incidence")
-    if not diag["modulating_blocks"] >= cfg.min_modulating_blocks:
-        return fail(f"nothing modulates: the best planar pane explains the orientation field {fit['z']:.1f} noise sigmas above chance, yet only "
-                    f"{100 * diag['modulating_blocks']:.2f} % of 4 x 4 pixel blocks modulate above noise (need {100 * cfg.min_modulating_blocks:g} %): "
-                    "motion aliasing into the polarizer's harmonic, no polarizer, or near-normal incidence")
-    aggs = None
-    if fov_given is None and cfg.twin_check_ratio <= fit["twin_ratio"] <= cfg.max_twin_ratio:
-        # the fov is free, so the twin family can bend along its own fov-tilt valley and the orientation field's
-        # preference is narrow: a twin handed over swaps R and T (eval_paper_val train_004 with the fov withheld: the
-        # network's T 17.6 dB against 36.3 on the right pane).  Overturn only on two independent votes for the twin
-        chk = _resolve_by_cone(I[:m], np.asarray(phi)[:m], f, fit, W, H, fov_given, dataclasses.replace(cfg, valley_step_deg=cfg.twin_check_step_deg))
-        v0, v1 = chk["v_family"]
-        cc = (chk.get("content") or {}).get("corr_family") or [None, None]
-        content_twin = cc[0] is not None and cc[1] is not None and np.isfinite(cc[1]) and cc[1] < cc[0]
-        overturn = bool(v0 - v1 > cfg.cone_margin and content_twin)
-        diag["twin_check"] = {"v_family": [v0, v1], "corr_family": cc, "overturned": overturn}
-        if overturn:
-            aggs = chk.pop("aggs")
-            diag["cone"] = {**chk, "resolved": True, "by": "twin_check", "chosen_family": 1}
-            fit = {**fit, "tilt": chk["tilt"], "azimuth": chk["azimuth"], "fov_deg": chk["fov_deg"]}
-            modulation(fit["tilt"], fit["azimuth"], fit["fov_deg"])
-            res_deg = residual()
-    elif fit["twin_ratio"] > cfg.max_twin_ratio:
-        # the orientation field cannot separate the pane from its 90 deg twin (nor pin the tilt of a narrow view):
-        # the DoP must stay inside the cone [-DoP_T(theta), DoP_R(theta)] (R, T >= 0), which the wrong family breaks
-        cone = _resolve_by_cone(I[:m], np.asarray(phi)[:m], f, fit, W, H, fov_given, cfg)
-        aggs = cone.pop("aggs")
-        diag["cone"] = cone
-        if not cone["resolved"]:
-            ct = cone.get("content")
-            if cone.get("conflict"):
-                return fail(f"ambiguous: a pane with phi_perp turned by 90 deg explains the orientation field {100 * fit['twin_ratio']:.1f} % as well, and the "
-                            f"DoP cone (violations {cone['v_family'][0]:.1f} / {cone['v_family'][1]:.1f}) and the layers' content (gradient |correlation| "
-                            f"{ct['corr_family'][0]:.2f} / {ct['corr_family'][1]:.2f}) pick different families")
-            ctxt = (f"; nor does the layers' content (gradient |correlation| of R^ and T^ {ct['corr_family'][0]:.2f} / {ct['corr_family'][1]:.2f}, "
-                    f"need the other family {cfg.content_margin:g} above and {cfg.content_ratio:g} times the chosen one, which must hold the cone)") if ct else ""
-            return fail(f"ambiguous: a pane with phi_perp turned by 90 deg explains the orientation field {100 * fit['twin_ratio']:.1f} % as well "
-                        f"(narrow field of view or glancing pane), and both keep the DoP inside the Fresnel cone (violations {cone['v_family'][0]:.1f} / "
-                        f"{cone['v_family'][1]:.1f}, need the other family {cfg.cone_margin:g} above and {cfg.cone_ratio:g} times the chosen one): "
-                        f"no part of the view shows the reflection dominating beyond DoP_T, or neither family fits" + ctxt)
-        fit = {**fit, "tilt": cone["tilt"], "azimuth": cone["azimuth"], "fov_deg": cone["fov_deg"]}
-        modulation(fit["tilt"], fit["azimuth"], fit["fov_deg"])
-        res_deg = residual()
-    if cfg.geometry_weighting == "scatter":
-        # the grid search and the twin / cone decisions weigh blocks by |sum z4|, which holds the signal's power: the final
-        # geometry is the scatter-weighted fit from there, kept in the chosen family (a local move, no 90 deg flip)
-        pol = polish_geometry(f, s, fit["tilt"], fit["azimuth"], fit["fov_deg"], fov_given is None and "cone" not in diag)  # the cone chose along the tilt-fov valley: keep its fov
-        if pol is not None:
-            pp0 = _pane_phi_perp(w, h, fit["tilt"], fit["azimuth"], fit["fov_deg"])
-            pp1 = _pane_phi_perp(w, h, pol["tilt"], pol["azimuth"], pol["fov_deg"])
-            a4 = np.abs(f["s4"])
-            same = float(np.sum(a4 * np.cos(2.0 * (pp1 - pp0))) / max(float(a4.sum()), 1e-300))
-            moved = math.degrees(_sep(fit["tilt"], fit["azimuth"], pol["tilt"], pol["azimuth"]))
-            diag["polish"] = {"from": [math.degrees(fit["tilt"]), math.degrees(fit["azimuth"]) % 360.0, float(fit["fov_deg"])],
-                              "to": [math.degrees(pol["tilt"]), math.degrees(pol["azimuth"]), pol["fov_deg"]], "same_family": same, "moved_deg": moved}
-            if same > 0.5 and moved < cfg.polish_max_move_deg:
-                fit = {**fit, **pol}
-                modulation(fit["tilt"], fit["azimuth"], fit["fov_deg"])
-                res_deg = residual()
-            else:
-                diag["polish"]["kept"] = f"the cone's / grid's pane (the polish left the family or moved > {cfg.polish_max_move_deg:g} deg)"
-    tilt_deg = math.degrees(fit["tilt"])
-    if tilt_deg < cfg.min_tilt_deg:
-        return fail(f"near-normal incidence (fitted tilt {tilt_deg:.1f} deg): no usable modulation")
-    from polphysics.geometry import Plane, incidence_geometry
-
-    cam = camera_for(W, H, fit["fov_deg"])
-    N = normal_from_angles(fit["tilt"], fit["azimuth"], cam)
-    plane = Plane(cam.position + cam.forward, N)
-    geo = incidence_geometry(cam, plane)
+    c = _Calibration(I, phi, cfg, name, f, mask, diag, fit, fov_given)
+    diag["stages"] = []
+    for _, stage in CASCADE:
+        outcome = stage(c)
+        diag["stages"].append(dataclasses.asdict(outcome))
+        if outcome.verdict == "fail":
+            return c.failed(outcome.reason)
+    fit = c.fit
+    cam, N, plane, geo = c.incidence()
     theta = geo["theta"]
-    n_used, model_used = cfg.n, cfg.model
-    if auto:
-        if aggs is None:
-            a0, c = chunk_harmonics(I[:m], np.asarray(phi)[:m])
-            aggs = cone_aggregates(a0, c, geo["phi_perp"], theta)
-        gl = fit_glass(glass_scores(aggs, _span_factor_of(np.asarray(phi)[:m]), slack=GLASS_SLACK), cfg.n, cfg.prior_model, cfg.cone_margin)
-        ct = (diag.get("cone") or {}).get("content")
-        if not gl["model_identified"] and ct and diag["cone"].get("by") == "content" and ct["model_identified"]:
-            # the cone does not tell single from slab, the layers' content did (the pane model's scale leaks T into R^)
-            gl["model"], gl["model_by_content"] = ct["model"], True
-        elif not gl["model_identified"]:
-            cm = content_model(I[:m], np.asarray(phi)[:m], geo["phi_perp"], theta, gl["n"])
-            gl["content"] = cm
-            if cm["identified"]:
-                gl["model"], gl["model_by_content"] = cm["model"], True
-        n_used, model_used = gl["n"], gl["model"]
-        gl["scores_by_model"] = {k: float(v) for k, v in gl["scores_by_model"].items()}
-        gl["why"] = (("model from the cone" if gl["model_identified"] else "model from the layers' content (the cone does not separate single from slab)" if gl.get("model_by_content")
-                      else f"model not identified (no cone edge separates single from slab): assumed {cfg.prior_model}")
-                     + "; " + (f"index from the cone (range {gl['n_range'][0]:g}-{gl['n_range'][1]:g})" if gl["n_identified"]
-                               else f"index not identified (the data fit {gl['n_range'][0]:g}-{gl['n_range'][1]:g}): {n_used:g}"))
-        diag["glass"] = gl
-    maps = pane_maps_from_geometry(cam, plane, n_used, model=model_used)
+    maps = pane_maps_from_geometry(cam, plane, c.n_used, model=c.model_used)
     vp = None
     if float(N @ cam.forward) > 1e-6:
         x, y = cam.project(cam.position + N)
         vp = (float(x), float(y))
+    tilt_deg = math.degrees(fit["tilt"])
     res = SelfCalResult(
-        True, "", N, tilt_deg, math.degrees(fit["azimuth"]) % 360.0, vp, float(fit["fov_deg"]), fov_given is None, n_used, model_used, maps, theta, frac,
-        res_deg, fit["twin_ratio"], diag,
+        True, "", N, tilt_deg, math.degrees(fit["azimuth"]) % 360.0, vp, float(fit["fov_deg"]), fov_given is None, c.n_used, c.model_used, maps, theta, c.frac,
+        c.res_deg, fit["twin_ratio"], diag,
     )
     how = ""
     if "cone" in diag:
@@ -430,7 +525,7 @@ def self_calibrate(I: np.ndarray, phi: np.ndarray, cfg: SelfCalConfig = SelfCalC
                f"against {ct['corr_family'][1 - diag['cone']['chosen_family']]:.2f} for the twin; the cone held both)") if diag["cone"].get("by") == "content" else (
             " (the orientation field's narrow choice overturned: the DoP cone and the layers' content both prefer its 90 deg twin)" if diag["cone"].get("by") == "twin_check" else " (90 deg twin resolved by the cone)")
     log.info("self-calibrated pane for %s: tilt %.1f deg, azimuth %.1f deg, fov %.1f deg%s, z %.1f, %.0f %% of pixels modulating, %s n %.2f%s",
-             name, tilt_deg, res.azimuth_deg, res.fov_deg, " (fitted)" if res.fov_fitted else "", fit["z"], 100 * diag["modulating_px"], model_used, n_used, how)
+             name, tilt_deg, res.azimuth_deg, res.fov_deg, " (fitted)" if res.fov_fitted else "", fit["z"], 100 * diag["modulating_px"], c.model_used, c.n_used, how)
     return res
 
 
