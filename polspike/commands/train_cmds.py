@@ -434,3 +434,26 @@ def bench_reconstruct_net_cmd(
     if json_out:
         write_json(json_out, res)
         write_text(Path(json_out).with_suffix(".md"), table)
+
+
+@bench_app.command("train-ddp")
+def bench_train_ddp_cmd(
+    out: Path = typer.Option(Path("out/bench_train_ddp"), "--out", help="working directory of the benchmark runs"),
+    steps: int = typer.Option(40, "--steps", help="training steps per setting"),
+    warmup: int = typer.Option(5, "--warmup", help="steps left out of the timing"),
+    batch: int = typer.Option(8, "--batch", help="global batch (windows per step, every setting)"),
+    crop: int = typer.Option(32, "--crop", help="window side (multiple of 4)"),
+    json_out: Optional[Path] = typer.Option(None, "--json", help="write the results here as JSON (and the table beside it as .md) [default: OUT/bench_train_ddp.json]"),
+) -> None:
+    """Training throughput of 2 data-parallel processes against 1 process (1 and 2 threads), at equal global batch, in one run."""
+    from rich.console import Console
+
+    from polinfra.atomic import write_json, write_text
+    from polspike.pipeline.train_bench import bench_train_ddp, ddp_table
+
+    res = bench_train_ddp(out, steps=steps, warmup=warmup, batch=batch, crop=crop)
+    table = ddp_table(res)
+    Console().print(table)
+    jp = json_out or out / "bench_train_ddp.json"
+    write_json(jp, res)
+    write_text(Path(jp).with_suffix(".md"), table)
