@@ -12,7 +12,10 @@ Points:
   final file called NAME has been written completely and before it is renamed over NAME
   (e.g. ``atomic:dataset.json``, ``atomic:last.pt``, ``atomic:checksums.json``);
 * ``dataset.publish`` - in ``polspike.pipeline.dataset.build_group``, a finished group in
-  ``DIR/.tmp`` just before the rename that publishes it under ``DIR/groups``.
+  ``DIR/.tmp`` just before the rename that publishes it under ``DIR/groups``;
+* ``train.step.rank<R>`` - in a data-parallel training run (``reconstruct.net.distributed``), rank R after each
+  of its optimizer steps (e.g. ``train.step.rank1@3``: rank 1 dies after its 3rd step; the other ranks
+  see it when their next collective fails and torchrun stops them).
 """
 
 from __future__ import annotations

@@ -58,7 +58,6 @@ def test_readme_has_a_command_per_subcommand():
 def test_readme_command_parses(args):
     """Option names, types and ranges are accepted by the real CLI (the command body is not run)."""
     import typer.main
-    from typer.testing import CliRunner
 
     from polspike.cli import get_app
 

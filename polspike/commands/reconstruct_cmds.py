@@ -46,6 +46,9 @@ def evaluate_cmd(
     synthetic_noise: str = typer.Option("poisson", "--synthetic-noise", help="synthetic: poisson, integrate_fire or none"),
     synthetic_size: str = typer.Option("200x125", "--synthetic-size", help="synthetic: WxH"),
     quiet: bool = typer.Option(False, "--quiet", help="no progress bar"),
+    executor: str = typer.Option("local", "--executor", help="local (the groups one after another in this process) or dask (one task per group on a Dask cluster; the same tables)"),
+    scheduler: Optional[str] = typer.Option(None, "--scheduler", help="Dask scheduler address tcp://HOST:8786 (implies --executor dask; the workers must see the dataset, e.g. on a shared filesystem) [default with --executor dask: a local cluster of --workers processes]"),
+    workers: int = typer.Option(2, "--workers", help="--executor dask without --scheduler: worker processes of the local cluster (one thread each)"),
 ) -> None:
     """Score the physics solvers and/or the network (with TFP / best-frame baselines) on every test group: PSNR/SSIM of T and R."""
     from rich.console import Console
@@ -68,8 +71,14 @@ def evaluate_cmd(
         raise ConfigError(f"--synthetic-size {synthetic_size!r} is not WxH; write e.g. 200x125") from None
     syn = from_dict(SyntheticConfig, {"n_groups": synthetic_groups, "n_frames": synthetic_frames, "noise": synthetic_noise, "width": w, "height": h}, where="command line")
     con = Console()
-    with rich_progress("load groups", enabled=not quiet) as cb:
-        groups = load_groups(dataset, split, cfg, syn, progress=cb)
+    if executor not in ("local", "dask"):
+        raise ConfigError(f"--executor {executor!r} is unknown; choose local or dask")
+    dask = executor == "dask" or bool(scheduler)
+    if dask and by_regime:
+        raise ConfigError("--by-regime runs in this process; drop --executor dask / --scheduler")
+    if not dask:
+        with rich_progress("load groups", enabled=not quiet) as cb:
+            groups = load_groups(dataset, split, cfg, syn, progress=cb)
     from reconstruct.physics.solvers import PHYSICS_SOLVER_CONFIG, SolverConfig
 
     if lambda_map not in ("adaptive", "fixed"):
@@ -90,7 +99,13 @@ def evaluate_cmd(
         Console().print(f"[green]wrote[/] {out / 'by_regime.md'}, {out / 'by_regime.json'}")
         return
     with rich_progress("evaluate", enabled=not quiet) as cb:
-        report = evaluate_groups(groups, cfg, solver_cfg, progress=cb)
+        if dask:
+            from reconstruct.evaluate.harness import group_loaders
+            from reconstruct.evaluate.parallel import evaluate_groups_dask
+
+            report = evaluate_groups_dask(group_loaders(dataset, split, cfg, syn), cfg, solver_cfg, scheduler=scheduler, workers=workers, progress=cb)
+        else:
+            report = evaluate_groups(groups, cfg, solver_cfg, progress=cb)
     paths = write_report(report, out)
     con.print(markdown_table(report, overall_only=True))
     if sweep:

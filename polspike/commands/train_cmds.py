@@ -48,9 +48,27 @@ def train_cmd(
     quiet: bool = typer.Option(False, "--quiet", help="no progress bar"),
     threads: int = typer.Option(0, "--threads", help="torch CPU threads (0 = torch default); use 1 on a shared machine: oversubscribed threads run ~20x slower"),
     workers: int = typer.Option(1, "--workers", help="processes building batches ahead of the optimizer (0 = in the training process); the trajectory does not depend on it"),
+    nproc: int = typer.Option(1, "--nproc", help="data-parallel training processes on this machine (torchrun --standalone; gloo on CPU, nccl on CUDA): each takes batch_size / N windows of every step, so N must divide batch_size; the global batch and the learning rate stay the config's. Several machines: start torchrun yourself (docs/scaling_out.md)"),
 ) -> None:
     """Train the reconstructor (paper Sec. 3.4 curriculum); resumable, deterministic for a seed on CPU."""
     import dataclasses
+
+    from reconstruct.net.distributed import check_world, world_from_env
+
+    ranks = world_from_env()
+    if nproc < 1:
+        check_world(nproc, 1)
+    if nproc > 1 and ranks.active:
+        raise ConfigError(f"--nproc {nproc} inside a torchrun launch: the processes are torchrun's (--nproc-per-node); drop --nproc")
+    if nproc > 1:
+        from polinfra.config import from_dict, load_toml
+        from polspike.pipeline.train_launch import launch_local
+        from reconstruct.net.train import TrainConfig
+
+        check_world(nproc, (from_dict(TrainConfig, load_toml(config), where=str(config)) if config else TrainConfig()).batch_size)
+        args = [*([str(config)] if config else []), "--out", str(out), *(["--data", str(data)] if data else []), *(["--minutes", str(minutes)] if minutes is not None else []),
+                *(["--device", device] if device else []), *(["--quiet"] if quiet else []), "--threads", str(threads), "--workers", str(workers)]
+        raise typer.Exit(launch_local(nproc, args))
 
     import torch
 
@@ -63,11 +81,16 @@ def train_cmd(
 
     from polinfra.config import from_dict, load_toml
     from polinfra.progress import rich_progress
+    from reconstruct.net.distributed import init_ranks, shutdown
     from reconstruct.net.train import TrainConfig, train
 
     cfg = from_dict(TrainConfig, load_toml(config), where=str(config)) if config else TrainConfig()
     if device:
         cfg = dataclasses.replace(cfg, device=device)
+    if ranks.active:
+        check_world(ranks.world, cfg.batch_size, "world size")
+        init_ranks(ranks, cfg.device)
+        quiet = quiet or not ranks.is_writer
     if data is None:
         train_set, val_set = on_the_fly_sets(cfg)
         src = f"on-the-fly windows ({('scenes of ' + cfg.manifest) if cfg.manifest else f'{cfg.train_scenes} train / {cfg.test_scenes} validation sampled scenes'}, generator analytic tier + spike_sim)"
@@ -76,10 +99,15 @@ def train_cmd(
 
         train_set, val_set = open_window_datasets(data, cfg)
         src = f"stored windows in {data}"
-    with rich_progress("train", enabled=not quiet) as cb:
-        res = train(cfg, train_set, val_set, out, progress=cb, max_seconds=None if minutes is None else 60.0 * minutes, workers=max(0, workers))
+    try:
+        with rich_progress("train", enabled=not quiet) as cb:
+            res = train(cfg, train_set, val_set, out, progress=cb, max_seconds=None if minutes is None else 60.0 * minutes, workers=max(0, workers), ranks=ranks)
+    finally:
+        shutdown(ranks)
+    if not ranks.is_writer:
+        return
     c = Console()
-    c.print(f"data: {src}")
+    c.print(f"data: {src}" + (f"; {ranks.world} data-parallel processes, {cfg.batch_size // ranks.world} windows each per step" if ranks.active else ""))
     c.print(f"PolSpikeNet: {res['param_count']:,} trainable parameters; step {res['step']}/{res['total_steps']}")
     m = res["metrics"]
     if m:
@@ -410,3 +438,26 @@ def bench_reconstruct_net_cmd(
     if json_out:
         write_json(json_out, res)
         write_text(Path(json_out).with_suffix(".md"), table)
+
+
+@bench_app.command("train-ddp")
+def bench_train_ddp_cmd(
+    out: Path = typer.Option(Path("out/bench_train_ddp"), "--out", help="working directory of the benchmark runs"),
+    steps: int = typer.Option(40, "--steps", help="training steps per setting"),
+    warmup: int = typer.Option(5, "--warmup", help="steps left out of the timing"),
+    batch: int = typer.Option(8, "--batch", help="global batch (windows per step, every setting)"),
+    crop: int = typer.Option(32, "--crop", help="window side (multiple of 4)"),
+    json_out: Optional[Path] = typer.Option(None, "--json", help="write the results here as JSON (and the table beside it as .md) [default: OUT/bench_train_ddp.json]"),
+) -> None:
+    """Training throughput of 2 data-parallel processes against 1 process (1 and 2 threads), at equal global batch, in one run."""
+    from rich.console import Console
+
+    from polinfra.atomic import write_json, write_text
+    from polspike.pipeline.train_bench import bench_train_ddp, ddp_table
+
+    res = bench_train_ddp(out, steps=steps, warmup=warmup, batch=batch, crop=crop)
+    table = ddp_table(res)
+    Console().print(table)
+    jp = json_out or out / "bench_train_ddp.json"
+    write_json(jp, res)
+    write_text(Path(jp).with_suffix(".md"), table)

@@ -204,6 +204,7 @@ class EvalReport:
         figure: {"frames": [...], "columns": [...], "images": [[(H, W) arrays]]}.
         timings: seconds per stage.
         config: resolved configuration (plain data).
+        order: the row methods in table order (:func:`summary_rows`).
     """
 
     frames: list[dict]
@@ -211,6 +212,7 @@ class EvalReport:
     figure: dict
     timings: dict
     config: dict
+    order: list[str] = dataclasses.field(default_factory=list)
 
 
 def group_zeta(group: EvalGroup, cfg: EvalConfig) -> np.ndarray | None:
@@ -498,8 +500,17 @@ def evaluate_groups(
             t["metrics"] += time.perf_counter() - t0
         if progress is not None:
             progress(gi + 1, len(groups))
-    keys = ("psnr_T", "ssim_T", "psnr_R", "ssim_R", *SHARE_KEYS)
     order = [*BASELINES, *[x for m in [*solvers, *net_rows] for x in (m, m + ANCHOR_SUFFIX)], SPAN_METHOD]
+    conf = {"eval": to_dict(cfg), "solver": to_dict(solver_cfg), "rir": to_dict(rir_cfg), "groups": [g.name for g in groups]}
+    if net_info is not None:
+        conf["network"] = net_info
+    return EvalReport(frames=frames, rows=summary_rows(frames, order), figure=fig, timings=dict(t), config=conf, order=order)
+
+
+def summary_rows(frames: list[dict], order: list[str]) -> list[dict]:
+    """Per-(group, method) means of the per-frame scores, groups in their first appearance, then the ``overall`` rows;
+    methods in ``order``."""
+    keys = ("psnr_T", "ssim_T", "psnr_R", "ssim_R", *SHARE_KEYS)
     rows = []
     by = defaultdict(list)
     for f in frames:
@@ -513,10 +524,7 @@ def evaluate_groups(
         items = [f for f in frames if f["method"] == m]
         if items:
             rows.append({"group": "overall", "method": m, "n_frames": len(items), **finite_means(items, keys), "lpips_T": lpips_status()})
-    conf = {"eval": to_dict(cfg), "solver": to_dict(solver_cfg), "rir": to_dict(rir_cfg), "groups": [g.name for g in groups]}
-    if net_info is not None:
-        conf["network"] = net_info
-    return EvalReport(frames=frames, rows=rows, figure=fig, timings=dict(t), config=conf)
+    return rows
 
 
 ANCHOR_SUFFIX = "+mean"
@@ -606,7 +614,21 @@ def load_groups(dataset: str, split: str, cfg: EvalConfig, synthetic=None, progr
     :mod:`reconstruct.stream.synthetic` in-process (``synthetic`` is its config, window
     and stride are taken from cfg).
     """
-    from reconstruct.stream.groups import list_groups, load_store_group, window_steps_from_ms
+    loaders = group_loaders(dataset, split, cfg, synthetic)
+    out = []
+    for j, load in enumerate(loaders):
+        out.append(load())
+        if progress:
+            progress(j + 1, len(loaders))
+    return out
+
+
+def group_loaders(dataset: str, split: str, cfg: EvalConfig, synthetic=None) -> list[Callable[[], EvalGroup]]:
+    """One picklable loader per group of :func:`load_groups` (``loader()`` -> :class:`EvalGroup`): a group can be
+    loaded where it is evaluated (a Dask worker that sees the dataset)."""
+    import functools
+
+    from reconstruct.stream.groups import list_groups, window_steps_from_ms
 
     if dataset.startswith("synthetic"):
         from reconstruct.stream.synthetic import SyntheticConfig, make_group
@@ -614,24 +636,18 @@ def load_groups(dataset: str, split: str, cfg: EvalConfig, synthetic=None, progr
         sc = synthetic or SyntheticConfig()
         seed = int(dataset.split(":", 1)[1]) if ":" in dataset else sc.seed
         sc = dataclasses.replace(sc, seed=seed, window_steps=window_steps_from_ms(cfg.dt_ms, sc.rate_hz), stride_deg=cfg.stride_deg)
-        out = []
-        for g in range(sc.n_groups):
-            out.append(make_group(sc, g))
-            if progress:
-                progress(g + 1, sc.n_groups)
-        return out
-    listed = list_groups(dataset, split)
-    out = []
-    for j, (name, path) in enumerate(listed):
-        from spike_sim.store import open_group
+        return [functools.partial(make_group, sc, g) for g in range(sc.n_groups)]
+    frames = cfg.max_frames + 2 * (cfg.n_obs // 2) if cfg.max_frames else 0
+    return [functools.partial(_load_store, str(path), cfg.dt_ms, cfg.stride_deg, cfg.n_obs, frames, name) for name, path in list_groups(dataset, split)]
 
-        with open_group(path) as g:
-            rate = g.rate_hz
-        frames = cfg.max_frames + 2 * (cfg.n_obs // 2) if cfg.max_frames else 0
-        out.append(load_store_group(path, window_steps_from_ms(cfg.dt_ms, rate), cfg.stride_deg, cfg.n_obs, frames, name))
-        if progress:
-            progress(j + 1, len(listed))
-    return out
+
+def _load_store(path: str, dt_ms: float, stride_deg: float, n_obs: int, frames: int, name: str) -> EvalGroup:
+    from reconstruct.stream.groups import load_store_group, window_steps_from_ms
+    from spike_sim.store import open_group
+
+    with open_group(path) as g:
+        rate = g.rate_hz
+    return load_store_group(path, window_steps_from_ms(dt_ms, rate), stride_deg, n_obs, frames, name)
 
 
 def window_sweep(groups: list[EvalGroup] | None, dataset: str, split: str, cfg: EvalConfig, n_values=(5, 7, 9), dt_values=(0.30, 0.65, 1.10), synthetic=None, solver_cfg: SolverConfig = PHYSICS_SOLVER_CONFIG, rir_cfg: RirConfig = RirConfig()) -> list[dict]:

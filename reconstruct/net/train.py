@@ -37,6 +37,7 @@ from polinfra.config import opt, to_dict
 from polinfra.errors import CheckpointError, ConfigError
 
 from reconstruct.net.checkpoint import read_checkpoint, save_checkpoint
+from reconstruct.net.distributed import SINGLE, Ranks, check_world
 from reconstruct.physics.identifiability import SHARE_MIN
 from reconstruct.net.losses import LossConfig, total_loss
 from reconstruct.net.network import NetConfig, PolSpikeNet, count_parameters, init_weights
@@ -216,21 +217,22 @@ def evaluate_model(model: PolSpikeNet, dataset, batch_size: int = 8, device: tor
     return res
 
 
-def assumed_glass_feed(batch: dict[str, torch.Tensor], zeta: torch.Tensor, scale: torch.Tensor, cfg: "TrainConfig", g: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
+def assumed_glass_feed(batch: dict[str, torch.Tensor], zeta: torch.Tensor, scale: torch.Tensor, cfg: "TrainConfig", g: torch.Generator, draws: int | None = None, rows: slice = slice(None)) -> tuple[torch.Tensor, torch.Tensor]:
     """The forced zeta of a batch with assumed-glass items (:attr:`TrainConfig.assumed_prob`) -> (zeta_feed, scale).
 
     Each item is, with probability ``assumed_prob``, fed its zeta under the assumed glass (``zeta_a_<model>``,
     ``window.assumed_n``): with probability ``assumed_right`` the model whose mean zeta is closer to the true one in
     log scale (what a right claim or prior gives), else the other; such an item's scale jitter is reset to 1 (its
-    error is the glass').  Other items keep the true zeta and their jitter."""
+    error is the glass').  Other items keep the true zeta and their jitter.  ``draws``, ``rows``: the per-item draws are
+    made for a global batch of ``draws`` items and this batch takes their ``rows`` (one rank of a data-parallel run)."""
     from reconstruct.net.onthefly import ASSUMED_MODELS
 
     keys = [f"zeta_a_{m}" for m in ASSUMED_MODELS]
     if any(k not in batch for k in keys):
         raise ConfigError("assumed_prob > 0 needs items with the assumed-glass zeta: set [window] assumed_n (e.g. 1.5)")
     B = zeta.shape[0]
-    use = torch.rand(B, generator=g) < cfg.assumed_prob
-    right = torch.rand(B, generator=g) < cfg.assumed_right
+    use = (torch.rand(draws or B, generator=g) < cfg.assumed_prob)[rows]
+    right = (torch.rand(draws or B, generator=g) < cfg.assumed_right)[rows]
     cand = torch.stack([batch[k].to(zeta.device, zeta.dtype) for k in keys], 1)  # (B, M, N, H, W)
     err = (torch.log(cand.mean((2, 3, 4)).clamp_min(1e-9)) - torch.log(zeta.mean((1, 2, 3)).clamp_min(1e-9))[:, None]).abs()  # (B, M)
     closest = err.argmin(1)
@@ -315,8 +317,8 @@ def _read_log(run: Path, max_step: int) -> list[dict[str, Any]]:
 class _BatchOrder:
     """Item indices of steps ``start`` .. ``end`` - 1: batch b of step s is a pure function of (seed, epoch, position)."""
 
-    def __init__(self, cfg: TrainConfig, n_items: int, spe: int, start: int, end: int):
-        self.cfg, self.n, self.spe, self.start, self.end = cfg, n_items, spe, start, end
+    def __init__(self, cfg: TrainConfig, n_items: int, spe: int, start: int, end: int, ranks: Ranks = SINGLE):
+        self.cfg, self.n, self.spe, self.start, self.end, self.ranks = cfg, n_items, spe, start, end, ranks
 
     def __len__(self) -> int:
         return max(0, self.end - self.start)
@@ -329,7 +331,7 @@ class _BatchOrder:
                 g = torch.Generator().manual_seed(self.cfg.seed * 1_000_003 + epoch)
                 perm = torch.randperm(self.n, generator=g)
                 perm_epoch = epoch
-            yield [int(perm[(pos * self.cfg.batch_size + j) % self.n]) for j in range(self.cfg.batch_size)]
+            yield self.ranks.shard([int(perm[(pos * self.cfg.batch_size + j) % self.n]) for j in range(self.cfg.batch_size)])
 
 
 def _widened(src: dict[str, torch.Tensor], dst: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
@@ -361,6 +363,7 @@ def train(
     max_seconds: float | None = None,
     workers: int = 0,
     mp_context: str | None = None,
+    ranks: Ranks = SINGLE,
 ) -> dict[str, Any]:
     """Train (or resume) a :class:`PolSpikeNet`.
 
@@ -386,10 +389,14 @@ def train(
         mp_context: multiprocessing start method of the workers (None = the platform's,
             fork on Linux; "forkserver" / "spawn" need a picklable dataset but are safe
             in a process that already ran OpenMP code).
+        ranks: this process's rank among data-parallel training processes (:mod:`reconstruct.net.distributed`;
+            its process group already joined); the default is the single-process run.
 
     Returns:
         dict with ``step``, ``total_steps``, ``param_count`` and the last validation metrics.
     """
+    if ranks.active:
+        check_world(ranks.world, cfg.batch_size, "world size")
     run = ensure_dir(run_dir)
     dev = _device(cfg.device)
     spe = cfg.steps_per_epoch or max(1, len(train_set) // cfg.batch_size)
@@ -439,12 +446,15 @@ def train(
             bm = bd.get("metrics", {})
             best = {"step": int(bd.get("step", 0)), "psnr_T": float(bm.get("psnr_T", -math.inf)), "score": float(bm.get("score", bm.get("psnr_T", -math.inf)))}
         log.info("resumed %s at step %d/%d", ck, step, total)
-    write_json(run / "config.json", to_dict(cfg))
+    if ranks.is_writer:
+        write_json(run / "config.json", to_dict(cfg))
     rows = _read_log(run, step)
     n_par = count_parameters(model)
     log.info("PolSpikeNet: %d trainable parameters; %d steps (%d epochs x %d)", n_par, total, cfg.epochs, spe)
 
     def checkpoint(plot: bool = False) -> None:
+        if not ranks.is_writer:
+            return
         save_checkpoint(ck, model, extra={"train": to_dict(cfg), "optimizer": opt_.state_dict(), "step": step, "metrics": metrics, "best": best})
         _write_log(run, rows)
         if plot:
@@ -453,7 +463,8 @@ def train(
     t0 = time.perf_counter()
     model.train()
     end = total if stop_after is None else min(total, stop_after)
-    batches = _BatchOrder(cfg, len(train_set), spe, step, end)
+    batches = _BatchOrder(cfg, len(train_set), spe, step, end, ranks)
+    net = ranks.wrap(model, dev)  # the module the step runs (DDP averages the ranks' gradients)
     if workers > 0:
         loader = torch.utils.data.DataLoader(train_set, batch_sampler=batches, num_workers=workers, collate_fn=collate, worker_init_fn=_worker_init, prefetch_factor=4, persistent_workers=False, multiprocessing_context=mp_context)
     else:
@@ -467,12 +478,13 @@ def train(
             g = torch.Generator().manual_seed(cfg.seed * 1_000_003 + step)
             if float(torch.rand((), generator=g)) < cfg.force_prob:
                 alpha = 1.0
-                scale = torch.exp(cfg.zeta_jitter * torch.randn(I.shape[0], generator=g)).to(dev)
+                rws = ranks.rows(cfg.batch_size)  # per-item draws of the global batch; this rank's rows
+                scale = torch.exp(cfg.zeta_jitter * torch.randn(cfg.batch_size, generator=g)[rws]).to(dev)
                 if cfg.zeta_shape_jitter > 0:  # drawn after scale: configs without it keep their trajectory
-                    shape = torch.exp(cfg.zeta_shape_jitter * torch.randn(I.shape[0], generator=g)).to(dev)
+                    shape = torch.exp(cfg.zeta_shape_jitter * torch.randn(cfg.batch_size, generator=g)[rws]).to(dev)
                 if cfg.assumed_prob > 0:  # drawn last, for the same reason
-                    feed, scale = assumed_glass_feed(b, z, scale, cfg, g)
-        out = model(I, phi, zeta_gt=z, alpha=alpha, **span_inputs(b, dev, cfg.net.span_level), zeta_scale=scale, zeta_shape=shape, zeta_feed=feed)
+                    feed, scale = assumed_glass_feed(b, z, scale, cfg, g, cfg.batch_size, rws)
+        out = net(I, phi, zeta_gt=z, alpha=alpha, **span_inputs(b, dev, cfg.net.span_level), zeta_scale=scale, zeta_shape=shape, zeta_feed=feed)
         loss, parts = total_loss(out, T, R, alpha, cfg.loss)
         if not math.isfinite(parts["loss"]):
             raise FloatingPointError(f"non-finite loss at step {step}: {parts}")
@@ -484,11 +496,13 @@ def train(
             torch.nn.utils.clip_grad_norm_([p for p in model.parameters() if p.requires_grad], cfg.grad_clip)
         opt_.step()
         step += 1
+        ranks.stepped()
         row: dict[str, Any] = {}
         if step % cfg.log_every == 0 or step == total:
+            parts = ranks.mean_parts(parts, dev)
             row = {"step": step, "epoch": epoch + 1, "alpha": alpha, **{k: f"{v:.6g}" for k, v in parts.items()}, "seconds": f"{time.perf_counter() - t0:.1f}"}
         val_now = (cfg.val_every and step % cfg.val_every == 0) or (not cfg.val_every and step % spe == 0) or step == total
-        if val_now and val_set is not None and len(val_set):
+        if val_now and val_set is not None and len(val_set) and ranks.is_writer:
             metrics = evaluate_model(model, val_set, cfg.batch_size, dev, forced=cfg.val_select != "learned", ssim=cfg.val_ssim or cfg.val_select == "ssim")
             metrics["score"] = val_score(metrics, cfg.val_select)
             row = row or {"step": step, "epoch": epoch + 1, "alpha": alpha, "seconds": f"{time.perf_counter() - t0:.1f}"}
@@ -500,7 +514,7 @@ def train(
                 log.info("step %d: new best validation, written %s", step, run / "best.pt")
         if row:
             rows.append(row)
-        out_of_time = max_seconds is not None and time.perf_counter() - t0 > max_seconds
+        out_of_time = max_seconds is not None and ranks.any_true(time.perf_counter() - t0 > max_seconds, dev)
         if step % cfg.ckpt_every == 0 or step == end or out_of_time:
             checkpoint(plot=step == end or out_of_time or step % (10 * cfg.ckpt_every) == 0)
         if progress is not None:
@@ -510,4 +524,5 @@ def train(
             break
     if step == end and not (run / "log.csv").exists():
         checkpoint(plot=True)
+    ranks.barrier()  # the last checkpoint is written before any rank reports the run done
     return {"step": step, "total_steps": total, "param_count": n_par, "metrics": metrics, "best": best, "run_dir": str(run)}

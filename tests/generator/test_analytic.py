@@ -5,9 +5,8 @@ from __future__ import annotations
 import json
 
 import numpy as np
-import pytest
 
-from generator.render import RenderOptions, render
+from generator.render import render
 from polinfra.exr import read_exr
 from polphysics.stokes import polarizer_intensity
 from polphysics.zeta import mix_eq1, zeta

@@ -66,7 +66,6 @@ def test_maps_absorbing_slab():
 def test_maps_spectral_is_band_weighted_sum():
     """Dispersive BK7 with --spectral: maps equal the response-weighted sum of per-band analytic maps."""
     require_mitsuba()
-    import dataclasses
 
     from generator import tiers_mitsuba as tm
     from generator.analytic import analytic_maps

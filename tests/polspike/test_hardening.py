@@ -12,7 +12,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from polinfra.errors import ConfigError, PolspikeError
+from polinfra.errors import PolspikeError
 
 REPO = Path(__file__).resolve().parents[2]
 CLI = [sys.executable, "-c", "from polspike.cli import app; app()"]

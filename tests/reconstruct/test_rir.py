@@ -3,11 +3,10 @@
 from __future__ import annotations
 
 import numpy as np
-import pytest
 import torch
 from skimage.registration import phase_cross_correlation
 
-from reconstruct.physics.rir import RirConfig, align_window, estimate_shifts, registration_mask, warp
+from reconstruct.physics.rir import align_window, estimate_shifts, registration_mask, warp
 
 from ._synth import periodic_texture
 

@@ -73,7 +73,6 @@ def test_tiles_keep_the_r_level_blur_inside_their_margin():
     import types
 
     import numpy as np
-    import torch
 
     from reconstruct.net.network import gaussian_blur
     from reconstruct.video.tiling import run_model_on_windows
