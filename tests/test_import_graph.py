@@ -138,3 +138,19 @@ def test_stages_do_not_import_orchestration():
         for f in _files(pkg):
             src = f.read_text()
             assert "polspike.pipeline" not in src and "polspike.cli" not in src and "polspike.commands" not in src, f
+
+
+def test_every_random_draw_in_the_tests_is_seeded():
+    """No test draws from torch's global generator or numpy's legacy global one: torch.rand / randn / randint /
+    randperm (and *_like) take ``generator=``, numpy draws come from a seeded ``default_rng(seed)``."""
+    import re
+
+    tests = Path(__file__).resolve().parent
+    torch_draw = re.compile(r"torch\.(rand|randn|randint|randperm|rand_like|randn_like|randint_like)\(")
+    numpy_global = re.compile(r"np\.random\.(rand|randn|random|randint|normal|uniform|choice|permutation|shuffle|seed)\(|default_rng\(\)")
+    bad = []
+    for p in sorted(tests.rglob("*.py")):
+        for n, line in enumerate(p.read_text().splitlines(), 1):
+            if (torch_draw.search(line) and "generator=" not in line) or numpy_global.search(line):
+                bad.append(f"{p.relative_to(tests)}:{n}: {line.strip()}")
+    assert not bad, "unseeded random draws:\n" + "\n".join(bad)

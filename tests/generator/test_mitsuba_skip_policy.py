@@ -1,5 +1,5 @@
 """The Mitsuba tests' skip policy: skip only when mitsuba is not installed; under CI an
-unavailable backend fails instead of skipping (issue 20)."""
+unavailable backend fails instead of skipping; no test module skips Mitsuba on its own."""
 
 from __future__ import annotations
 
@@ -67,3 +67,15 @@ def test_a_broken_import_is_not_a_skip_under_ci(monkeypatch):
     monkeypatch.setenv("CI", "1")
     kind, msg = _outcome()
     assert kind == "fail" and "undefined symbol" in msg, (kind, msg)
+
+
+def test_no_test_module_skips_mitsuba_on_its_own():
+    """Every Mitsuba test goes through require_mitsuba: no ``importorskip`` of mitsuba or drjit anywhere in the
+    suite (at module level it would skip a whole file on a broken install even under CI)."""
+    import re
+    from pathlib import Path
+
+    tests = Path(__file__).resolve().parents[1]
+    pat = re.compile(r"""importorskip\(\s*['"](mitsuba|drjit)""")
+    offenders = [f"{p.relative_to(tests)}:{n}" for p in sorted(tests.rglob("*.py")) for n, line in enumerate(p.read_text().splitlines(), 1) if pat.search(line)]
+    assert not offenders, f"importorskip of mitsuba / drjit (use _mitsuba_common.require_mitsuba): {offenders}"

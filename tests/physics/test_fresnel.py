@@ -68,17 +68,33 @@ def test_total_internal_reflection():
     assert Rs_b < 1 and Rp_b < 1
 
 
-def test_energy_conservation_and_finiteness_on_closed_interval():
-    """R + T = 1 per polarization, values in [0, 1], no NaN/Inf over theta in [0, 90] and n in (0, 4]."""
+def test_finiteness_on_closed_interval():
+    """Values in [0, 1], no NaN/Inf over theta in [0, 90] and n in (0, 4] (the edges: grazing, n = 1, TIR)."""
     th = deg(np.linspace(0.0, 90.0, 361))[:, None]
     n = np.array([0.2, 0.5, 1 / 1.5, 0.999999, 1.0, 1.000001, 1.33, 1.5, 2.0, 4.0])[None, :]
     Rs, Rp, Ts, Tp = fresnel_power(th, n)
     for a in (Rs, Rp, Ts, Tp):
         assert np.all(np.isfinite(a)) and np.all(a >= 0) and np.all(a <= 1)
-    np.testing.assert_allclose(Rs + Ts, 1.0, atol=1e-15)
-    np.testing.assert_allclose(Rp + Tp, 1.0, atol=1e-15)
     for a in fresnel_amplitudes(th, n):
         assert np.all(np.isfinite(a))
+
+
+def test_power_coefficients_are_the_amplitudes_fluxes():
+    """Energy balance from the amplitudes, not from T = 1 - R: the transmitted flux is (n cos_t / cos_i) |t|^2
+    (n cos_t written here from Snell's law; 0 beyond the critical angle), and per polarization
+    |r|^2 + (n cos_t / cos_i) |t|^2 = 1; fresnel_power's R and T equal |r|^2 and that flux, over
+    theta in [0, 89.5] deg and n from 0.2 (TIR) to 4."""
+    th = deg(np.linspace(0.0, 89.5, 180))[:, None]
+    n = np.array([0.2, 0.5, 1 / 1.5, 0.999, 1.001, 1.33, 1.5, 2.0, 4.0])[None, :]
+    rs, rp, ts, tp = fresnel_amplitudes(th, n)
+    Rs, Rp, Ts, Tp = fresnel_power(th, n)
+    sin_t = np.sin(th) / n
+    k = n * np.sqrt(np.clip(1 - sin_t**2, 0, None)) / np.cos(th)
+    assert np.any(sin_t > 1) and np.any(k > 1)  # the grid holds TIR and flux gains
+    for r, t, R, T in ((rs, ts, Rs, Ts), (rp, tp, Rp, Tp)):
+        np.testing.assert_allclose(np.abs(r) ** 2 + k * np.abs(t) ** 2, 1.0, atol=1e-12)
+        np.testing.assert_allclose(R, np.abs(r) ** 2, atol=1e-12)
+        np.testing.assert_allclose(T, k * np.abs(t) ** 2, atol=1e-12)
 
 
 def test_amplitude_energy_balance():

@@ -232,7 +232,9 @@ def test_process_pool_and_process_cluster_match(built, tmp_path):
 @pytest.mark.mitsuba
 def test_maps_tier_group_builds_and_verifies(tmp_path):
     """A tiny maps-tier group: Mitsuba renders the pane maps into DIR/.tmp, which is removed after."""
-    pytest.importorskip("mitsuba")
+    from _mitsuba_common import require_mitsuba
+
+    require_mitsuba()
     data = {
         "name": "maps",
         "defaults": {"duration_s": 0.01, "camera": {"width": 24, "height": 16}, "render": {"spp": 1}},
@@ -282,7 +284,9 @@ def test_cli_build_with_progress_bars_and_verify_partial(built, tmp_path):
 @pytest.mark.mitsuba
 def test_mitsuba_tier_groups_are_byte_identical_in_process_and_in_a_pool(tmp_path):
     """maps, full and a 3-D object scene (full) groups: the same bytes in this process and on a spawn pool."""
-    pytest.importorskip("mitsuba")
+    from _mitsuba_common import require_mitsuba
+
+    require_mitsuba()
     man = {
         "format": "polspike-manifest/1", "name": "mi", "description": "Mitsuba tiers, byte identity",
         "defaults": {"duration_s": 0.01, "keyframe_fps": 100.0, "camera": {"width": 32, "height": 20}, "spike_sim": {"preset": "default"}},

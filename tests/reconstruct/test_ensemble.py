@@ -118,15 +118,23 @@ def test_bad_size_and_features_are_errors():
 
 def test_ensemble_runs_in_the_video_path():
     """run_model_on_windows with tiles: the ensemble goes through the tiled path (tiles are square or not) and its
-    T stays close to the single network's (same weights, averaged members)."""
+    T is the mean of its members, each computed here as the single network run through the same tiled path on the
+    mirrored window and mirrored back.  Measured: the members differ by up to 0.44 (an untrained network is far from
+    equivariant), the ensemble is within 0.009 of their mean (tile borders fall on other pixels of a mirrored
+    window); the bound 0.03 is 3x that and 7 % of the spread (an ensemble of one member, code 0 four times, is 0.44 off)."""
     from reconstruct.video.tiling import run_model_on_windows
 
     net = _net(4)
     I, phi = _window(B=1, H=40, W=56, seed=6)
-    one = run_model_on_windows(net, I.numpy(), phi.numpy(), tile=16, margin=16)
     ens = run_model_on_windows(SymmetryEnsemble(net, 4), I.numpy(), phi.numpy(), tile=16, margin=16)
-    assert ens["T"].shape == one["T"].shape and np.isfinite(ens["T"]).all()
-    assert np.abs(ens["T"] - one["T"]).mean() < 0.5 * np.abs(one["T"]).mean()
+    members = []
+    for code in SYMMETRY_CODES[4]:
+        r = run_model_on_windows(net, symmetry_image(I, code).numpy(), symmetry_angles(phi, code).numpy(), tile=16, margin=16)
+        members.append(symmetry_image(torch.as_tensor(r["T"]), code, inverse=True).numpy())
+    mean = np.mean(members, 0)
+    assert ens["T"].shape == mean.shape and np.isfinite(ens["T"]).all()
+    assert max(float(np.abs(m - mean).max()) for m in members) > 0.2  # the members do differ: the mean is a real check
+    assert float(np.abs(ens["T"] - mean).max()) < 0.03
 
 
 def test_cli_ensemble_usage_errors(tmp_path, polspike_cli, polspike_main):

@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 from types import SimpleNamespace
 
+import numpy as np
 import pytest
 import torch
 
@@ -136,3 +137,40 @@ def test_r_floor_weights_the_r_term_by_the_reflected_share():
     _, p1 = total_loss(out, T, R, 0.0, LossConfig(lambda_r=1.0))
     _, p2 = total_loss(out, T, R, 0.0, cfg)
     assert math.isclose(p1["l_rec"], float(err.mean()), rel_tol=1e-5) and math.isclose(p2["l_rec"], float(got), rel_tol=1e-5)
+
+
+@pytest.mark.parametrize("alpha", [1.0, 0.0])
+def test_total_equals_eq12_written_out_in_numpy(alpha):
+    """Paper Eq. (8)-(12) written out again here in float64 numpy, from the paper's formulas and the module's
+    documented choices (per-pixel means; M = m_floor + (1 - m_floor) clip(rho / rho_ref, 0, 1) with the centre-frame
+    true zeta; the gradient terms' M averaged onto the forward-difference grid and x / y halves averaged), plus the
+    solver-output term lambda_base (0.2 + 0.8 alpha) L_rec(T^, R^); every weight off its default so a swapped or
+    dropped weight shows, and the predicted zeta away from the true one so both L_phys terms count."""
+    from types import SimpleNamespace
+
+    g = torch.Generator().manual_seed(11)
+    B, N, H, W = 2, 7, 9, 10
+    rnd = lambda *s: torch.rand(*s, generator=g, dtype=torch.float64)  # noqa: E731
+    Tg, Rg, T, R, Tb, Rb = (rnd(B, H, W) for _ in range(6))
+    zg, zh, I = 0.5 * rnd(B, N, H, W), 0.5 * rnd(B, N, H, W), 0.5 * rnd(B, N, H, W)
+    cfg = LossConfig(lambda_r=0.3, lambda_g=0.7, lambda_p=0.2, lambda_e=0.05, lambda_zeta=1.5, lambda_ex=3.0, lambda_base=0.4, m_floor=0.4, rho_ref=0.25)
+    tot, _ = total_loss(SimpleNamespace(T=T, R=R, T_base=Tb, R_base=Rb, zeta_hat=zh, zeta_gt=zg, I=I), Tg, Rg, alpha, cfg)
+
+    Tg, Rg, T, R, Tb, Rb, zg, zh, I = (x.numpy() for x in (Tg, Rg, T, R, Tb, Rb, zg, zh, I))
+    zc = zg[:, N // 2]
+    rho = zc * Rg / (zc * Rg + (1 - zc) * Tg + 1e-6)
+    M = 0.4 + 0.6 * np.clip(rho / 0.25, 0, 1)
+
+    def rec(t, r):  # Eq. (8), first part
+        return np.mean(M * np.abs(t - Tg)) + 0.3 * np.mean(np.abs(r - Rg))
+
+    d = T - Tg  # Eq. (8), second part
+    l_grad = 0.5 * (np.mean(0.5 * (M[..., 1:] + M[..., :-1]) * np.abs(d[..., 1:] - d[..., :-1]))
+                    + np.mean(0.5 * (M[:, 1:] + M[:, :-1]) * np.abs(d[:, 1:] - d[:, :-1])))
+    I_hat = 0.5 * (zh * R[:, None] + (1 - zh) * T[:, None])  # Eq. (9)
+    l_phys = np.mean(np.abs(I_hat - I)) + 1.5 * np.mean(np.abs(zh - zg))  # Eq. (10)
+    th = lambda x, ax: np.tanh(3.0 * np.abs(np.diff(x, axis=ax)))  # noqa: E731
+    l_excl = 0.5 * (np.mean(th(T, 2) * th(R, 2)) + np.mean(th(T, 1) * th(R, 1)))  # Eq. (11)
+    eq12 = rec(T, R) + 0.7 * l_grad + 0.2 * l_phys + 0.05 * l_excl  # Eq. (12)
+    want = eq12 + 0.4 * (0.2 + 0.8 * alpha) * rec(Tb, Rb)
+    assert float(tot) == pytest.approx(want, rel=1e-12)

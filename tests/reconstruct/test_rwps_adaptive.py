@@ -82,8 +82,9 @@ def test_adaptive_conf_follows_conditioning_and_noise():
     cn = adaptive_confidence(zn, 2 * In, torch.ones_like(In)).mean()
     assert cs > 0.9 and cn < 0.2
     # same zeta, noise-free observations: the conditioning SNR is huge, Conf -> 1, and rwps is LS
-    R = torch.rand(zs.shape[0], 1, *zs.shape[-2:], dtype=zs.dtype)
-    T = torch.rand_like(R)
+    g = torch.Generator().manual_seed(6)
+    R = torch.rand(zs.shape[0], 1, *zs.shape[-2:], dtype=zs.dtype, generator=g)
+    T = torch.rand(R.shape, dtype=R.dtype, generator=g)
     I0 = 0.5 * (zs * R + (1 - zs) * T)
     assert adaptive_confidence(zs, 2 * I0, torch.ones_like(I0)).min() > 0.99
     out = solve("rwps", zs, I0, config=PHYSICS_SOLVER_CONFIG)
