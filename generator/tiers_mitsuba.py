@@ -38,6 +38,8 @@ import numpy as np
 
 from polinfra.errors import BackendUnavailableError, ConfigError
 
+from generator.mitsuba_scene import render_stokes_image
+
 __all__ = [
     "render_pane_maps",
     "FullRenderer",
@@ -231,20 +233,6 @@ def _coefficients_from_stokes(acc: dict[str, np.ndarray]) -> dict[str, np.ndarra
 
 
 # --------------------------------------------------------------------------- full tier
-def render_stokes_image(mi, scene_dict: dict, spp: int, seed: int) -> np.ndarray:
-    """Render a scene dict with the ``stokes`` integrator; Stokes (3, H, W) float64, camera frame.
-
-    Mono variants give identical R, G, B channels; spectral variants give sRGB
-    channels, combined here with the Rec. 709 luminance weights.
-    """
-    sc = mi.load_dict(scene_dict)
-    img = np.array(mi.render(sc, seed=int(seed), spp=int(spp)), dtype=np.float64)
-    # film channels (fixed layout of the stokes integrator): Y, S0.RGB, S1.RGB, S2.RGB, S3.RGB
-    lum = np.array([0.2126, 0.7152, 0.0722])
-    s = np.stack([img[..., 1 + 3 * i : 4 + 3 * i] @ lum for i in range(3)])
-    return np.nan_to_num(s, nan=0.0, posinf=0.0, neginf=0.0)
-
-
 def _layer_plane_spec(plane, cam_forward, texture: np.ndarray, name: str, keep_side=None, scale: float = 1.0):
     from generator.mitsuba_scene import LayerPlane as MiPlane
 
