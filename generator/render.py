@@ -121,13 +121,31 @@ def _tier_maps(scene: SceneConfig, opts: RenderOptions, info: dict, progress: Ca
     return tiers_mitsuba.render_pane_maps(scene, opts, info, progress=progress)
 
 
-def render(scene: SceneConfig, out_dir: str | os.PathLike, opts: RenderOptions = RenderOptions(), progress: Callable[[int, int], None] | None = None) -> dict:
+def render(
+    scene: SceneConfig,
+    out_dir: str | os.PathLike,
+    opts: RenderOptions = RenderOptions(),
+    progress: Callable[[int, int], None] | None = None,
+    tolerance: float | None = None,
+) -> dict:
     """Render ``scene`` with the chosen tier into ``out_dir`` and return the render.json dict.
+
+    ``opts.tier == 'auto'``: :func:`generator.planner.plan_tier` picks the cheapest tier (and spp)
+    whose predicted p99 error is <= ``tolerance``; render.json's ``tier_plan`` holds the choice, every
+    tier's prediction and the reasons.
 
     Resumable: frames already present for the same scene hash and tier are kept.
     """
+    plan = None
+    if opts.tier == "auto":
+        from generator.planner import apply_plan, plan_tier
+
+        if tolerance is None:
+            raise ConfigError("--tier auto needs --tolerance EPS (the largest acceptable p99 radiance error)")
+        plan = plan_tier(scene, tolerance)
+        opts = apply_plan(opts, plan)
     if opts.tier not in TIERS:
-        raise ConfigError(f"unknown tier {opts.tier!r}; choose one of {list(TIERS)}")
+        raise ConfigError(f"unknown tier {opts.tier!r}; choose one of {list(TIERS) + ['auto']}")
     from generator.objects3d import object_sides, require_full_tier
 
     require_full_tier(scene, opts.tier)
@@ -202,6 +220,10 @@ def render(scene: SceneConfig, out_dir: str | os.PathLike, opts: RenderOptions =
         "complete": False,
         "timings": timings,
     }
+    if plan is not None:
+        meta["tier_plan"] = plan.to_dict()
+    elif prev and prev.get("tier_plan"):
+        meta["tier_plan"] = prev["tier_plan"]
     write_json(meta_path, meta)
     tc = LayerContent(scene.layers.transmission, (scene.camera.height, scene.camera.width))
     rc = LayerContent(scene.layers.reflection, (scene.camera.height, scene.camera.width))
