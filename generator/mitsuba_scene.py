@@ -321,8 +321,11 @@ def render_stokes_image(mi, scene_dict: dict, spp: int, seed: int) -> np.ndarray
     Mono variants give identical R, G, B channels; spectral variants give sRGB
     channels, combined here with the Rec. 709 luminance weights.
     """
+    seed = int(seed) % (2**32)  # Mitsuba seeds are 32-bit; derived seeds (group seed x a prime + offsets) may exceed it
+    if isinstance(scene_dict.get("sensor"), dict) and isinstance(scene_dict["sensor"].get("sampler"), dict):
+        scene_dict = {**scene_dict, "sensor": {**scene_dict["sensor"], "sampler": {**scene_dict["sensor"]["sampler"], "seed": int(scene_dict["sensor"]["sampler"].get("seed", 0)) % (2**32)}}}
     sc = mi.load_dict(scene_dict)
-    img = np.array(mi.render(sc, seed=int(seed), spp=int(spp)), dtype=np.float64)
+    img = np.array(mi.render(sc, seed=seed, spp=int(spp)), dtype=np.float64)
     # film channels (fixed layout of the stokes integrator): Y, S0.RGB, S1.RGB, S2.RGB, S3.RGB
     lum = np.array([0.2126, 0.7152, 0.0722])
     s = np.stack([img[..., 1 + 3 * i : 4 + 3 * i] @ lum for i in range(3)])

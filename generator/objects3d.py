@@ -138,8 +138,17 @@ def object_sides(scene) -> tuple[list[str], list[str]]:
             return "behind"
         raise SceneError(f"{what} crosses the pane's plane; move it wholly in front of or behind the pane")
 
-    shapes = [side(*_shape_points(s), f"objects.shapes[{i}] ({s.type} at {list(s.center)})") for i, s in enumerate(scene.objects.shapes)]
-    lights = [side(_light_points(li), 0.0, f"objects.lights[{i}] (at {list(li.center)})") for i, li in enumerate(scene.objects.lights)]
+    ob = scene.objects
+    times = [0.0] if ob.is_static else list(np.linspace(0.0, float(scene.render.duration_s), 9))  # moving objects: along the clip
+    shapes: list[str] = []
+    for t_s in times:
+        got = [side(*_shape_points(s.at(t_s)), f"objects.shapes[{i}] ({s.type} at {[round(x, 4) for x in s.at(t_s).center]}{f', t = {t_s:.3g} s' if t_s else ''})")
+               for i, s in enumerate(ob.shapes)]
+        if shapes and got != shapes:
+            bad = next(i for i, (a, b) in enumerate(zip(shapes, got)) if a != b)
+            raise SceneError(f"objects.shapes[{bad}] moves from one side of the pane to the other during the clip; keep it on one side")
+        shapes = got
+    lights = [side(_light_points(li), 0.0, f"objects.lights[{i}] (at {list(li.center)})") for i, li in enumerate(ob.lights)]
     return shapes, lights
 
 

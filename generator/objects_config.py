@@ -40,6 +40,20 @@ class ShapeConfig:
     ior: float = opt(1.5, "refractive index (dielectric; plastic coat)", lo=1.0, hi=4.0, lo_open=True)
     metal: str = opt("Al", "conductor: Mitsuba material name (Al, Ag, Au, Cu, Cr, ...; none = ideal mirror)", choices=METALS)
     alpha: float = opt(0.1, "roughness of the rough materials (GGX alpha)", lo=0.001, hi=1.0)
+    velocity_m_per_s: Vec3 = opt((0.0, 0.0, 0.0), "constant velocity of the centre (m/s); the object must stay on its side of the pane", lo=-100.0, hi=100.0)
+    spin_deg_per_s: Vec3 = opt((0.0, 0.0, 0.0), "rotation rate about world x, y, z added to rotate_deg (degrees/s)", lo=-3600.0, hi=3600.0)
+
+    @property
+    def moving(self) -> bool:
+        return any(v != 0.0 for v in self.velocity_m_per_s) or any(v != 0.0 for v in self.spin_deg_per_s)
+
+    def at(self, t_s: float) -> "ShapeConfig":
+        """This shape at scene time ``t_s`` (s): centre moved, rotation advanced."""
+        if not self.moving:
+            return self
+        c = tuple(float(a + v * t_s) for a, v in zip(self.center, self.velocity_m_per_s))
+        r = tuple(float(a + w * t_s) for a, w in zip(self.rotate_deg, self.spin_deg_per_s))
+        return dataclasses.replace(self, center=c, rotate_deg=r)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -66,6 +80,16 @@ class ObjectsConfig:
             raise ConfigError("objects.shapes is empty; add at least one [[objects.shapes]] (or remove [objects] for a layer scene)")
         if not self.lights and self.environment <= 0:
             raise ConfigError("objects: no [[objects.lights]] and environment = 0: the scene would be black; add a light or an environment")
+
+    @property
+    def is_static(self) -> bool:
+        return not any(s.moving for s in self.shapes)
+
+    def at(self, t_s: float) -> "ObjectsConfig":
+        """The objects at scene time ``t_s`` (lights and environment do not move)."""
+        if self.is_static:
+            return self
+        return dataclasses.replace(self, shapes=tuple(s.at(t_s) for s in self.shapes))
 
 
 def require_full_tier(scene, tier: str) -> None:

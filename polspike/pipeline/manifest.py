@@ -34,6 +34,7 @@ Layout (format ``polspike-manifest/1``)::
     [groups.layers.reflection]       # overlays the R layer
     [groups.polarizer]               # overlays PolarizerConfig (rate_hz, phase_deg, extinction_ratio, ...)
     [groups.render]                  # overlays RenderSettings (spp, spectral: maps/full tiers)
+    [groups.objects]                 # SceneConfig.objects: 3-D shapes / lights (full tier; sampler profile objects3d)
     [groups.spike_sim]               # preset = "default" | "ideal" | "noisy", plus any SpikeSimConfig field
                                      # (or spike_sim = "ideal": a bare preset name)
 
@@ -84,7 +85,7 @@ MANIFESTS_DIR = REPO_ROOT / "datasets" / "manifests"
 """Folder of the shipped manifests."""
 
 _NAME_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,99}$")
-_SCENE_SECTIONS = ("camera", "pane", "layers", "polarizer", "render")
+_SCENE_SECTIONS = ("camera", "pane", "layers", "polarizer", "render", "objects")
 _CONTENT_ALIASES = {"skimage:cat": "skimage:chelsea"}  # skimage.data.cat() is the chelsea image
 _CONTENT_FREE = frozenset({"procedural:flat", "procedural:disk"})  # no texture: shared use is no leak
 
@@ -107,6 +108,7 @@ class GroupSpec:
     layers: Any = opt(None, "overlay on SceneConfig.layers (transmission / reflection tables)")
     polarizer: Any = opt(None, "overlay on SceneConfig.polarizer")
     render: Any = opt(None, "overlay on SceneConfig.render (spp, spectral)")
+    objects: Any = opt(None, "SceneConfig.objects: 3-D shapes and lights on both sides of the pane (full tier only)")
     spike_sim: Any = opt(None, "spike simulator: preset = default|ideal|noisy plus SpikeSimConfig overrides")
 
 
