@@ -151,17 +151,24 @@ def objects3d_group(rng: np.random.Generator, name: str, split: str, width: int,
     raise PolspikeError(f"objects3d group {name}: no valid arrangement in 50 draws")  # pragma: no cover
 
 
+SHIPPED_OBJECT_SCENES = ("glossy_street", "shop_window")
+"""The shipped 3-D scenes (static, strongly polarized T) appended to an objects3d manifest."""
+
+
 def objects3d_manifest(n_groups: int, seed: int, name: str = "objects3d", width: int = 200, height: int = 125, duration_s: float = 0.1,
-                       spp: int = 64, keyframe_fps: float = 50.0, split: str = "test") -> dict:
-    """Plain manifest data: ``n_groups`` object groups (all in ``split``), full tier."""
+                       spp: int = 64, keyframe_fps: float = 50.0, split: str = "test", shipped: tuple[str, ...] = SHIPPED_OBJECT_SCENES) -> dict:
+    """Plain manifest data: ``n_groups`` drawn object groups, then one group per ``shipped`` scene (all in ``split``), full tier."""
     from polspike.pipeline.manifest import MANIFEST_FORMAT
 
     rng = np.random.default_rng(seed)
     groups = [objects3d_group(rng, f"{split}_{i:03d}", split, width, height, duration_s, spp) for i in range(n_groups)]
+    for sc in shipped:  # drawn after the sampled groups: adding them leaves the sampled ones unchanged
+        groups.append({"name": sc, "split": split, "description": f"scenes/{sc}.toml (static)", "seed": int(rng.integers(0, 2**31 - 1)),
+                       "scene": sc, "camera": {"width": width, "height": height}, "render": {"spp": spp}})
     return {
         "format": MANIFEST_FORMAT,
         "name": name,
-        "description": f"{n_groups} 3-D object groups (sampler profile objects3d, seed {seed}), full tier, {spp} spp, {width} x {height}, {duration_s} s",
+        "description": f"{n_groups} 3-D object groups (sampler profile objects3d, seed {seed}) and {len(shipped)} shipped object scenes, full tier, {spp} spp, {width} x {height}, {duration_s} s",
         "defaults": {"tier": "full", "duration_s": float(duration_s), "keyframe_fps": float(keyframe_fps), "polarizer": {"rate_hz": 30.0}, "spike_sim": {"preset": "default"}},
         "groups": groups,
     }
@@ -173,7 +180,8 @@ def objects3d_manifest_text(n_groups: int, seed: int, **kw) -> str:
 
     data = objects3d_manifest(n_groups, seed, **kw)
     head = (
-        f"3-D object arrangements (sampler profile objects3d, polspike/pipeline/sampler_objects3d.py): {n_groups} test groups.\n"
+        f"3-D object arrangements (sampler profile objects3d, polspike/pipeline/sampler_objects3d.py): {n_groups} test groups,\n"
+        "then the shipped object scenes glossy_street and shop_window (static) at the same size and spp.\n"
         "Primitives (spheres, cubes) of polarizing and diffuse materials behind the pane and diffuse / plastic ones in front,\n"
         "moving, lit by an environment and one area light per side; rendered by the full tier (path tracing).\n"
         "Paper Eq. (1) assumes unpolarized T: these scenes measure where that model breaks.\n"
@@ -192,7 +200,7 @@ def sampled_scenes(n: int, seed: int, width: int, height: int, profile: str = "p
     from polspike.pipeline.sampler import sample_manifest
 
     if profile == "objects3d":
-        data = objects3d_manifest(n, seed, width=width, height=height, duration_s=0.05)
+        data = objects3d_manifest(n, seed, width=width, height=height, duration_s=0.05, shipped=())
     else:
         data = sample_manifest(n, seed, name="sampled", test_fraction=0.0, width=width, height=height, duration_s=0.05, profile=profile)
     m = parse_manifest(data, where="sampled scenes")
