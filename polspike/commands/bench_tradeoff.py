@@ -64,7 +64,11 @@ def tradeoff_cmd(
     with rich_progress("bench tradeoff", enabled=not json_out) as cb:
         res = run_tradeoff(scs, out, cands, ref=ref, progress=cb, refs=refs, keyframe_rates_hz=() if planner else (25.0, 50.0, 100.0, 200.0))
     if planner:
+        import numpy as np
+
         from polspike.pipeline.tradeoff_planner import check_planner, planner_markdown
+
+        np.savez_compressed(out / "references.npz", **{f"{k}__S": v[0] for k, v in refs.items()}, **{f"{k}__resolution": np.float64(v[1]) for k, v in refs.items()})
 
         chk = check_planner(scs, res["rows"], refs, tols)
         write_json(out / "planner.json", chk)

@@ -41,17 +41,20 @@ def _agree(pred: float, meas: float, resolution: float) -> bool:
     return 0.5 <= a / b <= 2.0
 
 
-def _match(e, row: dict) -> bool:
+def _spectral(row: dict, dispersive: bool) -> bool:
+    """A spectral render of a fixed-index pane is rendered mono (one band)."""
+    return bool(row.get("spectral")) and dispersive
+
+
+def _match(e, row: dict, dispersive: bool) -> bool:
     if row.get("tier") != e.tier:
         return False
-    if e.tier == "analytic":
+    if e.tier in ("analytic", "maps"):
         return True
-    if e.tier == "maps":
-        return True
-    return int(row.get("spp") or 0) == int(e.spp) and bool(row.get("spectral")) == bool(e.spectral)
+    return int(row.get("spp") or 0) == int(e.spp) and _spectral(row, dispersive) == bool(e.spectral)
 
 
-def check_planner(scenes: list, rows: list[dict], refs: dict, tolerances=DEFAULT_TOLERANCES, max_pick_spp: int = 1024) -> dict:
+def check_planner(scenes: list, rows: list[dict], refs: dict, tolerances=DEFAULT_TOLERANCES, max_pick_spp: int = 256) -> dict:
     """Predictions vs measurements and the auto picks, per scene (see the module docstring)."""
     from generator.planner import plan_tier, predict_tiers, scene_features
     from polspike.pipeline.tradeoff import Candidate, _radiance_error, _render_first, corrected_error
@@ -63,13 +66,14 @@ def check_planner(scenes: list, rows: list[dict], refs: dict, tolerances=DEFAULT
         S_ref, res = refs[scene.name]
         feats = scene_features(scene)
         ests = predict_tiers(scene, feats)
+        disp = scene.pane.glass is not None
         measured = [r for r in rows if r["scene"] == scene.name and "err_corrected" in r and r.get("tier") in ("analytic", "maps", "full")]
         for r in measured:
-            e = next((e for e in ests if _match(e, r)), None)
+            e = next((e for e in ests if _match(e, r, disp)), None)
             if e is None:
                 spp = int(r.get("spp") or 1)
-                e = next(x for x in predict_tiers(scene, feats, spp_grid=(spp,)) if x.tier == "full" and x.spectral == bool(r.get("spectral")))
-            pred_rows.append({"scene": scene.name, "candidate": r["candidate"], "tier": r["tier"], "spp": r.get("spp"), "spectral": bool(r.get("spectral")),
+                e = next(x for x in predict_tiers(scene, feats, spp_grid=(spp,)) if x.tier == "full" and x.spectral == _spectral(r, disp))
+            pred_rows.append({"scene": scene.name, "candidate": r["candidate"], "tier": r["tier"], "spp": r.get("spp"), "spectral": _spectral(r, disp),
                               "predicted_p99": e.predicted_p99, "measured_p99": r["err_corrected"], "resolution": r["resolution"],
                               "ratio": (max(e.predicted_p99, r["resolution"]) / max(r["err_corrected"], r["resolution"])) if max(r["err_corrected"], r["resolution"]) > 0 else None,
                               "agree_x2": _agree(e.predicted_p99, r["err_corrected"], r["resolution"])})
@@ -80,7 +84,7 @@ def check_planner(scenes: list, rows: list[dict], refs: dict, tolerances=DEFAULT
                 picks.append({"scene": scene.name, "tolerance": eps, "pick": "unreachable", "message": str(exc)})
                 continue
             c = plan.choice
-            row = next((r for r in measured if _match(c, r)), None)
+            row = next((r for r in measured if _match(c, r, disp)), None)
             if row is None and c.tier == "full" and c.spp <= max_pick_spp:
                 cand = Candidate(f"auto pick full {c.spp}spp", "full", int(c.spp), spectral=bool(c.spectral), variant="llvm")
                 S, _, per = _render_first(scene, cand, seed=5)
@@ -95,7 +99,7 @@ def check_planner(scenes: list, rows: list[dict], refs: dict, tolerances=DEFAULT
                               "met": None, "resolved": None, "cheapest": None, "note": f"not rendered (spp > {max_pick_spp})"})
                 continue
             met = row["err_corrected"] <= eps
-            better = [r for r in measured if r["err_corrected"] <= eps and _rank(r["tier"], r.get("spp"), bool(r.get("spectral"))) < _rank(c.tier, c.spp, c.spectral)]
+            better = [r for r in measured if r["err_corrected"] <= eps and _rank(r["tier"], r.get("spp"), _spectral(r, disp)) < _rank(c.tier, c.spp, c.spectral)]
             picks.append({"scene": scene.name, "tolerance": eps, "pick": label, "predicted_p99": c.predicted_p99, "measured_p99": row["err_corrected"],
                           "resolution": row["resolution"], "met": met, "resolved": row["resolution"] <= eps, "cheapest": not better,
                           "cheaper_that_met": [r["candidate"] for r in better]})
