@@ -35,17 +35,26 @@ def _departures(dataset: Path) -> dict[str, dict]:
     return out
 
 
-def _scores(eval_dir: Path) -> dict[tuple[str, str], dict]:
-    rows = json.loads((eval_dir / "results.json").read_text())["rows"]
-    return {(r["group"], r["method"]): r for r in rows}
+def _scores(eval_dirs: list[Path]) -> dict[tuple[str, str], dict]:
+    """Per (group, method) rows of one or more evaluations; "overall" = frame-weighted mean over all groups."""
+    out: dict[tuple[str, str], dict] = {}
+    for d in eval_dirs:
+        for r in json.loads((d / "results.json").read_text())["rows"]:
+            if r["group"] != "overall":
+                out[(r["group"], r["method"])] = r
+    for m in {k[1] for k in out}:
+        rs = [r for (g, mm), r in out.items() if mm == m]
+        n = np.array([r["n_frames"] for r in rs], float)
+        out[("overall", m)] = {k: float(np.sum(n * np.array([r[k] for r in rs])) / n.sum()) for k in ("psnr_T", "ssim_T", "psnr_R", "ssim_R")}
+    return out
 
 
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--objects", type=Path, required=True)
-    ap.add_argument("--objects-eval", type=Path, required=True)
+    ap.add_argument("--objects-eval", type=Path, nargs="+", required=True)
     ap.add_argument("--layers", type=Path, required=True)
-    ap.add_argument("--layers-eval", type=Path, required=True)
+    ap.add_argument("--layers-eval", type=Path, nargs="+", required=True)
     ap.add_argument("--out", type=Path, default=Path("docs"))
     a = ap.parse_args()
     sets = [("objects3d", _departures(a.objects), _scores(a.objects_eval)), ("layers", _departures(a.layers), _scores(a.layers_eval))]
