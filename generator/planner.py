@@ -54,7 +54,9 @@ NOISE_GAIN = 1.33
 SPP_MAX = 16384
 """Largest spp the planner proposes (a render beyond it is not a practical data generator)."""
 MAX_FEATURE_WIDTH = 200
-"""Scene features are computed at most this wide (same aspect): the per-pixel statistics barely change."""
+"""The noise proxy is computed at most this wide (same aspect): its per-pixel statistics barely change."""
+MAX_DISPERSION_WIDTH = 800
+"""The dispersion term grows with resolution (T's per-band shift in pixels): computed at the scene's own size up to this width."""
 Z99 = 2.5758
 """Two-sided normal 99 % point."""
 COST_ANALYTIC_PX = 4e-7
@@ -110,11 +112,11 @@ def _worst(A: np.ndarray, B: np.ndarray) -> np.ndarray:
     return np.max([np.abs(polarizer_intensity(*A, p) - polarizer_intensity(*B, p)) for p in PHIS], axis=0)
 
 
-def _small(scene):
+def _small(scene, max_width: int = MAX_FEATURE_WIDTH):
     W, H = scene.camera.width, scene.camera.height
-    if W <= MAX_FEATURE_WIDTH:
+    if W <= max_width:
         return scene
-    w = MAX_FEATURE_WIDTH
+    w = max_width
     h = max(2, int(round(H * w / W)))
     return dataclasses.replace(scene, camera=dataclasses.replace(scene.camera, width=w, height=h))
 
@@ -176,14 +178,18 @@ def scene_features(scene, pilot: bool = True) -> dict:
     f["dispersion_p99"] = 0.0
     f["spectral_noise_factor"] = 1.0
     if scene.pane.glass is not None:
+        from generator.analytic import spectral_frame
         from generator.tiers_mitsuba import spectral_bands
 
         wl, w = spectral_bands()
-        Ss = 0.0
-        for x, wi in zip(wl, w):
-            mb = analytic_maps(s, float(x))
-            Ss = Ss + wi * frame_stokes(mb, *sample_layers(mb, tc, rc, 0.0))
-        f["dispersion_p99"] = float(np.percentile(_worst(S, Ss), 99))
+        sd = _small(scene, MAX_DISPERSION_WIDTH)
+        hd = (sd.camera.height, sd.camera.width)
+        tcd, rcd = (tc, rc) if sd is s else (LayerContent(sd.layers.transmission, hd), LayerContent(sd.layers.reflection, hd))
+        md = m if sd is s else analytic_maps(sd)
+        Sd = frame_stokes(md, *sample_layers(md, tcd, rcd, 0.0))
+        Ss, _, _ = spectral_frame([(float(wi), analytic_maps(sd, float(x))) for x, wi in zip(wl, w)], tcd, rcd, 0.0)
+        f["dispersion_p99"] = float(np.percentile(_worst(Sd, Ss), 99))
+        f["dispersion_size"] = [sd.camera.width, sd.camera.height]
         f["spectral_noise_factor"] = float(math.sqrt(len(w) * float(np.sum(np.asarray(w) ** 2))))
     f["absorption_p99"] = 0.0
     if scene.pane.absorption_per_mm > 0:
@@ -226,7 +232,7 @@ def _full_error(f: dict, spp: int, spectral: bool) -> tuple[float, list[str]]:
     return float(math.sqrt(sum(t * t for t in terms))), reasons
 
 
-def predict_tiers(scene, features: dict | None = None, spp_grid: tuple[int, ...] | None = None) -> list[TierEstimate]:
+def predict_tiers(scene, features: dict | None = None, spp_grid: tuple[int, ...] | None = None, analytic_spectral: bool = True) -> list[TierEstimate]:
     """Every tier's prediction for ``scene`` (full tier: one row per spp in ``spp_grid``, mono and, for a
     dispersive glass, spectral)."""
     f = features if features is not None else scene_features(scene)
@@ -242,6 +248,9 @@ def predict_tiers(scene, features: dict | None = None, spp_grid: tuple[int, ...]
         if f["dispersive"]:
             reasons.append(f"dispersive glass evaluated at 550 nm: dispersion term {disp:.3g} (closed form over the spectral bands)")
         out.append(TierEstimate("analytic", None, False, disp, COST_ANALYTIC_PX * px, True, tuple(reasons)))
+        if f["dispersive"] and analytic_spectral:
+            out.append(TierEstimate("analytic", None, True, 0.0, COST_ANALYTIC_PX * px * 8.5, True, (
+                "analytic, spectral: Eq. (1)-(2) per wavelength band (8 bands), weighted by the sensor response: dispersion modelled",)))
         out.append(TierEstimate("maps", 1, False, disp, COST_MAPS_ONEOFF_PX * px + COST_ANALYTIC_PX * px, True,
                                 tuple(reasons) + ("maps rendered by Mitsuba: same model as analytic, costs more",)))
     grid = spp_grid or tuple(2**i for i in range(0, int(math.log2(SPP_MAX)) + 1))
@@ -253,7 +262,7 @@ def predict_tiers(scene, features: dict | None = None, spp_grid: tuple[int, ...]
     return out
 
 
-def plan_tier(scene, tolerance: float, features: dict | None = None) -> TierPlan:
+def plan_tier(scene, tolerance: float, features: dict | None = None, analytic_spectral: bool = True) -> TierPlan:
     """The cheapest tier (and spp) whose predicted p99 error is <= ``tolerance``.
 
     Raises:
@@ -263,7 +272,7 @@ def plan_tier(scene, tolerance: float, features: dict | None = None) -> TierPlan
     if not (isinstance(tolerance, (int, float)) and math.isfinite(tolerance) and tolerance > 0):
         raise ConfigError(f"--tolerance {tolerance!r} must be a positive p99 radiance error (e.g. 1e-2)")
     f = features if features is not None else scene_features(scene)
-    ests = predict_tiers(scene, f)
+    ests = predict_tiers(scene, f, analytic_spectral=analytic_spectral)
     ok = [e for e in ests if e.feasible and e.predicted_p99 <= tolerance]
     if not ok:
         best = min((e for e in ests if e.feasible), key=lambda e: e.predicted_p99)
@@ -282,7 +291,7 @@ def plan_tier(scene, tolerance: float, features: dict | None = None) -> TierPlan
 def apply_plan(opts, plan: TierPlan):
     """``opts`` (a :class:`generator.render.RenderOptions` with ``tier='auto'``) with the plan's tier, spp and spectral."""
     c = plan.choice
-    kw: dict = {"tier": c.tier}
+    kw: dict = {"tier": c.tier, "spectral": c.spectral}
     if c.tier == "full":
-        kw.update(spp=c.spp, spectral=c.spectral)
+        kw["spp"] = c.spp
     return dataclasses.replace(opts, **kw)

@@ -288,7 +288,7 @@ def _auto_tier(scene, tolerance: float | None, label: str):
     if tolerance is None:
         raise ConfigError(f"{label}: tier = 'auto' needs tolerance = EPS (largest acceptable p99 radiance error)")
     try:
-        plan = plan_tier(scene, tolerance)
+        plan = plan_tier(scene, tolerance, analytic_spectral=False)  # the dataset builder's analytic source is mono
     except PolspikeError as exc:
         raise type(exc)(f"{label}: {exc}") from None
     c = plan.choice

@@ -49,7 +49,9 @@ def _spectral(row: dict, dispersive: bool) -> bool:
 def _match(e, row: dict, dispersive: bool) -> bool:
     if row.get("tier") != e.tier:
         return False
-    if e.tier in ("analytic", "maps"):
+    if e.tier == "analytic":
+        return bool(e.spectral) == bool(row.get("spectral") and dispersive)
+    if e.tier == "maps":
         return True
     return int(row.get("spp") or 0) == int(e.spp) and _spectral(row, dispersive) == bool(e.spectral)
 
@@ -93,7 +95,21 @@ def check_planner(scenes: list, rows: list[dict], refs: dict, tolerances=DEFAULT
                 pred_rows.append({"scene": scene.name, "candidate": cand.label, "tier": "full", "spp": c.spp, "spectral": bool(c.spectral),
                                   "predicted_p99": c.predicted_p99, "measured_p99": row["err_corrected"], "resolution": res,
                                   "ratio": max(c.predicted_p99, res) / max(row["err_corrected"], res), "agree_x2": _agree(c.predicted_p99, row["err_corrected"], res)})
-            label = c.tier + (f" {c.spp}spp" + (" spectral" if c.spectral else "") if c.tier == "full" else "")
+            if row is None and c.tier == "analytic" and c.spectral:  # Eq. (1)-(2) per band, weighted
+                from generator.analytic import analytic_maps, spectral_frame
+                from generator.layers import LayerContent
+                from generator.tiers_mitsuba import spectral_bands
+
+                hw = (scene.camera.height, scene.camera.width)
+                wl, w = spectral_bands()
+                S, _, _ = spectral_frame([(float(wi), analytic_maps(scene, float(x))) for x, wi in zip(wl, w)],
+                                         LayerContent(scene.layers.transmission, hw), LayerContent(scene.layers.reflection, hw), 0.0)
+                row = {"candidate": "auto pick analytic spectral", **corrected_error(_radiance_error(S, S_ref), res)}
+                measured.append({**row, "scene": scene.name, "tier": "analytic", "spp": None, "spectral": True})
+                pred_rows.append({"scene": scene.name, "candidate": row["candidate"], "tier": "analytic", "spp": None, "spectral": True,
+                                  "predicted_p99": c.predicted_p99, "measured_p99": row["err_corrected"], "resolution": res,
+                                  "ratio": max(c.predicted_p99, res) / max(row["err_corrected"], res), "agree_x2": _agree(c.predicted_p99, row["err_corrected"], res)})
+            label = c.tier + (" spectral" if c.tier == "analytic" and c.spectral else "") + (f" {c.spp}spp" + (" spectral" if c.spectral else "") if c.tier == "full" else "")
             if row is None:
                 picks.append({"scene": scene.name, "tolerance": eps, "pick": label, "predicted_p99": c.predicted_p99, "measured_p99": None,
                               "met": None, "resolved": None, "cheapest": None, "note": f"not rendered (spp > {max_pick_spp})"})
