@@ -35,7 +35,7 @@ from polphysics.zeta import stokes_from_layers
 from generator.layers import LayerContent, LayerPlane
 from generator.scene import SceneConfig
 
-__all__ = ["PaneMaps", "analytic_maps", "layer_planes", "sample_layers", "frame_stokes", "MAP_CHANNELS", "ANALYTIC_MODELLED"]
+__all__ = ["PaneMaps", "analytic_maps", "layer_planes", "sample_layers", "frame_stokes", "spectral_frame", "MAP_CHANNELS", "ANALYTIC_MODELLED"]
 
 MAP_CHANNELS = ("theta", "phi_perp", "R_perp", "R_par", "T_perp", "T_par")
 """Channels of ``maps.exr`` (angles in radians)."""
@@ -142,3 +142,17 @@ def frame_stokes(maps: PaneMaps, L_T, L_R, L_G=None) -> np.ndarray:
         L_T, L_R, maps.R_perp, maps.R_par, maps.T_perp, maps.T_par, maps.phi_perp,
         L_R_ghost=L_G, G_perp=maps.G_perp if L_G is not None else None, G_par=maps.G_par if L_G is not None else None,
     )
+
+
+def spectral_frame(bands: list[tuple[float, PaneMaps]], t_content: LayerContent, r_content: LayerContent, t_s: float):
+    """Response-weighted sum over wavelength bands ``[(weight, maps at the band's index)]`` of a dispersive
+    pane: Stokes (3, H, W) and the weighted ground-truth layers (L_T, L_R) (T refracts per band)."""
+    S = 0.0
+    L_T = 0.0
+    L_R = 0.0
+    for w, m in bands:
+        lt, lr, lg = sample_layers(m, t_content, r_content, t_s)
+        S = S + w * frame_stokes(m, lt, lr, lg)
+        L_T = L_T + w * lt
+        L_R = L_R + w * lr
+    return S, L_T, L_R

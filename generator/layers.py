@@ -20,7 +20,6 @@ axis: translation, counter-clockwise rotation and exponential zoom.
 from __future__ import annotations
 
 import dataclasses
-import functools
 import logging
 from pathlib import Path
 

@@ -41,6 +41,7 @@ __all__ = [
     "pane_interfaces",
     "build_scene_dict",
     "specs_from_scene",
+    "render_stokes_image",
 ]
 
 
@@ -312,3 +313,20 @@ def specs_from_scene(scene, n: float | None = None) -> tuple[CameraSpec, PaneSpe
     )
     pane = PaneSpec(scene.pane.model, idx, tuple(map(float, center)), tuple(map(float, nrm)), tuple(map(float, scene.pane.size_m)), t, float(scene.pane.absorption_per_m), tuple(map(float, e_w)))
     return camera, pane
+
+
+def render_stokes_image(mi, scene_dict: dict, spp: int, seed: int) -> np.ndarray:
+    """Render a scene dict with the ``stokes`` integrator; Stokes (3, H, W) float64, camera frame.
+
+    Mono variants give identical R, G, B channels; spectral variants give sRGB
+    channels, combined here with the Rec. 709 luminance weights.
+    """
+    seed = int(seed) % (2**32)  # Mitsuba seeds are 32-bit; derived seeds (group seed x a prime + offsets) may exceed it
+    if isinstance(scene_dict.get("sensor"), dict) and isinstance(scene_dict["sensor"].get("sampler"), dict):
+        scene_dict = {**scene_dict, "sensor": {**scene_dict["sensor"], "sampler": {**scene_dict["sensor"]["sampler"], "seed": int(scene_dict["sensor"]["sampler"].get("seed", 0)) % (2**32)}}}
+    sc = mi.load_dict(scene_dict)
+    img = np.array(mi.render(sc, seed=seed, spp=int(spp)), dtype=np.float64)
+    # film channels (fixed layout of the stokes integrator): Y, S0.RGB, S1.RGB, S2.RGB, S3.RGB
+    lum = np.array([0.2126, 0.7152, 0.0722])
+    s = np.stack([img[..., 1 + 3 * i : 4 + 3 * i] @ lum for i in range(3)])
+    return np.nan_to_num(s, nan=0.0, posinf=0.0, neginf=0.0)

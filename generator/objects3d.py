@@ -45,13 +45,13 @@ assumption, and the Monte Carlo noise floor.
 
 from __future__ import annotations
 
-import dataclasses
 import math
 
 import numpy as np
 
-from polinfra.config import opt
 from polinfra.errors import ConfigError, SceneError
+
+from generator.objects_config import MATERIALS, METALS, SHAPES, LightConfig, ObjectsConfig, ShapeConfig, Vec3, require_full_tier
 
 __all__ = [
     "ShapeConfig",
@@ -59,6 +59,7 @@ __all__ = [
     "ObjectsConfig",
     "MATERIALS",
     "SHAPES",
+    "METALS",
     "object_sides",
     "objects_scene_dict",
     "render_object_layers",
@@ -67,16 +68,6 @@ __all__ = [
     "DEPARTURE_CHANNELS",
 ]
 
-Vec3 = tuple[float, float, float]
-
-SHAPES = ("sphere", "cube", "rectangle")
-MATERIALS = ("diffuse", "plastic", "roughplastic", "conductor", "roughconductor", "dielectric")
-METALS = (
-    "a-C", "Ag", "Al", "AlAs", "AlSb", "Au", "Be", "Cr", "CsI", "Cu", "Cu2O", "CuO", "d-C", "Hg", "HgTe", "Ir", "K", "Li",
-    "MgO", "Mo", "Na_palik", "Nb", "Ni_palik", "Rh", "Se", "SiC", "SnTe", "Ta", "Te", "ThF4", "TiC", "TiN", "TiO2", "VC",
-    "V_palik", "VN", "W", "none",
-)
-"""Metal names of Mitsuba's conductor BSDFs (measured complex indices; "none" = an ideal mirror)."""
 DEPARTURE_CHANNELS = ("dop_T", "dop_R", "eq12_err", "polT_model_err")
 """Extra ``maps.exr`` channels of an object scene (per pixel, keyframe 0): DoP of T alone and of R
 alone, worst case over phi of |I_rendered - I_Eq(1)-(2)|, and the same error of the polarized-T model."""
@@ -87,55 +78,6 @@ PLASTIC_SMOOTH_ALPHA = 0.02
 DEPARTURE_ANGLES = np.linspace(0.0, np.pi, 12, endpoint=False)
 
 
-@dataclasses.dataclass(frozen=True)
-class ShapeConfig:
-    """One 3-D object (world frame, metres)."""
-
-    type: str = opt("sphere", "sphere | cube | rectangle", choices=SHAPES)
-    center: Vec3 = opt((0.0, 0.0, -3.0), "centre (m)")
-    radius: float = opt(0.3, "sphere radius (m)", lo=1e-4, hi=1e4)
-    size: Vec3 = opt((0.5, 0.5, 0.5), "cube edge lengths x, y, z; rectangle width x, height y (z unused) (m)", lo=1e-4, hi=1e4)
-    rotate_deg: Vec3 = opt((0.0, 0.0, 0.0), "rotation about world x, then y, then z (degrees); a rectangle's front is its local +z", lo=-360.0, hi=360.0)
-    material: str = opt("diffuse", "diffuse | plastic | roughplastic | conductor | roughconductor | dielectric", choices=MATERIALS)
-    reflectance: float = opt(0.5, "diffuse albedo (diffuse; base of plastic)", lo=0.0, hi=1.0)
-    ior: float = opt(1.5, "refractive index (dielectric; plastic coat)", lo=1.0, hi=4.0, lo_open=True)
-    metal: str = opt("Al", "conductor: Mitsuba material name (Al, Ag, Au, Cu, Cr, ...; none = ideal mirror)", choices=METALS)
-    alpha: float = opt(0.1, "roughness of the rough materials (GGX alpha)", lo=0.001, hi=1.0)
-
-
-@dataclasses.dataclass(frozen=True)
-class LightConfig:
-    """A one-sided rectangular area light."""
-
-    center: Vec3 = opt((0.0, 2.0, -3.0), "centre (m)")
-    size: tuple[float, float] = opt((1.0, 1.0), "width, height (m)", lo=1e-4, hi=1e4)
-    target: Vec3 = opt((0.0, 0.0, -3.0), "a point the light faces (m)")
-    radiance: float = opt(5.0, "emitted radiance (linear)", lo=0.0, hi=1e6)
-
-
-@dataclasses.dataclass(frozen=True)
-class ObjectsConfig:
-    """3-D content on both sides of the pane (replaces the layer planes; full tier only)."""
-
-    shapes: tuple[ShapeConfig, ...] = opt((), "objects; each lies wholly behind the pane (T) or in front of it (R)")
-    lights: tuple[LightConfig, ...] = opt((), "area lights; each lies wholly on one side of the pane")
-    environment: float = opt(0.0, "radiance of a constant environment around everything (0 = none)", lo=0.0, hi=1e6)
-    max_depth: int = opt(24, "path depth of the renders", lo=2, hi=256)
-
-    def __post_init__(self) -> None:
-        if not self.shapes:
-            raise ConfigError("objects.shapes is empty; add at least one [[objects.shapes]] (or remove [objects] for a layer scene)")
-        if not self.lights and self.environment <= 0:
-            raise ConfigError("objects: no [[objects.lights]] and environment = 0: the scene would be black; add a light or an environment")
-
-
-def require_full_tier(scene, tier: str) -> None:
-    """ConfigError unless ``tier`` can render ``scene`` (object scenes: full only)."""
-    if getattr(scene, "objects", None) is not None and tier != "full":
-        raise ConfigError(f"scene {scene.name!r} holds 3-D objects: only --tier full renders it (got {tier!r})")
-
-
-# ---------------------------------------------------------------------------- geometry
 def _rot(deg: Vec3) -> np.ndarray:
     ax, ay, az = np.deg2rad(deg)
     rx = np.array([[1, 0, 0], [0, math.cos(ax), -math.sin(ax)], [0, math.sin(ax), math.cos(ax)]])
@@ -195,8 +137,17 @@ def object_sides(scene) -> tuple[list[str], list[str]]:
             return "behind"
         raise SceneError(f"{what} crosses the pane's plane; move it wholly in front of or behind the pane")
 
-    shapes = [side(*_shape_points(s), f"objects.shapes[{i}] ({s.type} at {list(s.center)})") for i, s in enumerate(scene.objects.shapes)]
-    lights = [side(_light_points(li), 0.0, f"objects.lights[{i}] (at {list(li.center)})") for i, li in enumerate(scene.objects.lights)]
+    ob = scene.objects
+    times = [0.0] if ob.is_static else list(np.linspace(0.0, float(scene.render.duration_s), 9))  # moving objects: along the clip
+    shapes: list[str] = []
+    for t_s in times:
+        got = [side(*_shape_points(s.at(t_s)), f"objects.shapes[{i}] ({s.type} at {[round(x, 4) for x in s.at(t_s).center]}{f', t = {t_s:.3g} s' if t_s else ''})")
+               for i, s in enumerate(ob.shapes)]
+        if shapes and got != shapes:
+            bad = next(i for i, (a, b) in enumerate(zip(shapes, got)) if a != b)
+            raise SceneError(f"objects.shapes[{bad}] moves from one side of the pane to the other during the clip; keep it on one side")
+        shapes = got
+    lights = [side(_light_points(li), 0.0, f"objects.lights[{i}] (at {list(li.center)})") for i, li in enumerate(ob.lights)]
     return shapes, lights
 
 
@@ -304,8 +255,7 @@ def render_object_layers(mi, scene, n_index: float, spp: int, seed: int) -> dict
     ``S_R`` is in the real camera's image frame (columns flipped back, S2 negated: the
     mirror reverses angles), so its S0 is the ground-truth R at each pixel.
     """
-    from generator.mitsuba_scene import specs_from_scene
-    from generator.tiers_mitsuba import render_stokes_image
+    from generator.mitsuba_scene import render_stokes_image, specs_from_scene
 
     cam, pane = specs_from_scene(scene, n=n_index)
     S = render_stokes_image(mi, objects_scene_dict(mi, scene, cam, pane, spp=spp, seed=seed), spp, seed)

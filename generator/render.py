@@ -29,9 +29,9 @@ import numpy as np
 from polinfra.atomic import ensure_dir, write_json
 from polinfra.config import to_dict
 from polinfra.errors import ConfigError, OutputError
-from polinfra.exr import read_exr, write_exr
+from polinfra.exr import write_exr
 
-from generator.analytic import ANALYTIC_MODELLED, MAP_CHANNELS, PaneMaps, analytic_maps, frame_stokes, sample_layers
+from generator.analytic import ANALYTIC_MODELLED, PaneMaps, analytic_maps, frame_stokes, sample_layers, spectral_frame
 from generator.layers import LayerContent
 from generator.scene import SceneConfig, check_scene_geometry, scene_hash
 
@@ -73,6 +73,10 @@ def _resume_key(scene: SceneConfig, opts: RenderOptions) -> dict:
         "fps": float(opts.fps or scene.render.fps),
         "seed": int(opts.seed if opts.seed is not None else scene.render.seed),
     }
+    if opts.tier == "analytic" and opts.spectral and scene.pane.glass is not None:
+        key["spectral"] = True  # the analytic tier integrates bands only when asked explicitly
+        key["response"] = str(opts.response)
+        key["n_bands"] = int(opts.n_bands)
     if opts.tier != "analytic":
         key["spp"] = int(opts.spp or scene.render.spp)
         spectral = bool(scene.render.spectral if opts.spectral is None else opts.spectral)
@@ -121,13 +125,31 @@ def _tier_maps(scene: SceneConfig, opts: RenderOptions, info: dict, progress: Ca
     return tiers_mitsuba.render_pane_maps(scene, opts, info, progress=progress)
 
 
-def render(scene: SceneConfig, out_dir: str | os.PathLike, opts: RenderOptions = RenderOptions(), progress: Callable[[int, int], None] | None = None) -> dict:
+def render(
+    scene: SceneConfig,
+    out_dir: str | os.PathLike,
+    opts: RenderOptions = RenderOptions(),
+    progress: Callable[[int, int], None] | None = None,
+    tolerance: float | None = None,
+) -> dict:
     """Render ``scene`` with the chosen tier into ``out_dir`` and return the render.json dict.
+
+    ``opts.tier == 'auto'``: :func:`generator.planner.plan_tier` picks the cheapest tier (and spp)
+    whose predicted p99 error is <= ``tolerance``; render.json's ``tier_plan`` holds the choice, every
+    tier's prediction and the reasons.
 
     Resumable: frames already present for the same scene hash and tier are kept.
     """
+    plan = None
+    if opts.tier == "auto":
+        from generator.planner import apply_plan, plan_tier
+
+        if tolerance is None:
+            raise ConfigError("--tier auto needs --tolerance EPS (the largest acceptable p99 radiance error)")
+        plan = plan_tier(scene, tolerance)
+        opts = apply_plan(opts, plan)
     if opts.tier not in TIERS:
-        raise ConfigError(f"unknown tier {opts.tier!r}; choose one of {list(TIERS)}")
+        raise ConfigError(f"unknown tier {opts.tier!r}; choose one of {list(TIERS) + ['auto']}")
     from generator.objects3d import object_sides, require_full_tier
 
     require_full_tier(scene, opts.tier)
@@ -202,9 +224,21 @@ def render(scene: SceneConfig, out_dir: str | os.PathLike, opts: RenderOptions =
         "complete": False,
         "timings": timings,
     }
+    if plan is not None:
+        meta["tier_plan"] = plan.to_dict()
+    elif prev and prev.get("tier_plan"):
+        meta["tier_plan"] = prev["tier_plan"]
     write_json(meta_path, meta)
     tc = LayerContent(scene.layers.transmission, (scene.camera.height, scene.camera.width))
     rc = LayerContent(scene.layers.reflection, (scene.camera.height, scene.camera.width))
+    bands = None
+    if opts.tier == "analytic" and opts.spectral and scene.pane.glass is not None:  # dispersion: Eq. (1)-(2) per band, weighted
+        from generator.tiers_mitsuba import spectral_bands
+
+        wl, w = spectral_bands(opts.n_bands, opts.response)
+        bands = [(float(wi), analytic_maps(scene, float(x))) for x, wi in zip(wl, w)]
+        info["modelled"]["spectral"] = f"{opts.n_bands} bands 400-700 nm, {scene.pane.glass} Sellmeier index, response {opts.response} (maps.exr at 550 nm)"
+        meta["modelled"] = info["modelled"]
     full = None
     if opts.tier == "full":
         from generator import tiers_mitsuba
@@ -224,6 +258,8 @@ def render(scene: SceneConfig, out_dir: str | os.PathLike, opts: RenderOptions =
         if full is not None and full.objects:
             S = full.stokes(t, k)
             L_T, L_R = full.layers(t)
+        elif bands is not None:
+            S, L_T, L_R = spectral_frame(bands, tc, rc, t)
         else:
             L_T, L_R, L_G = sample_layers(maps, tc, rc, t)
             S = full.stokes(t, k) if full is not None else frame_stokes(maps, L_T, L_R, L_G)

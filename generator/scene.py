@@ -30,7 +30,7 @@ from polphysics.fresnel import GLASSES, PANE_MODELS, glass_index
 from polphysics.geometry import PinholeCamera, Plane, normalize
 from polphysics.polarizer import PolarizerConfig
 
-from generator.objects3d import ObjectsConfig
+from generator.objects_config import ObjectsConfig
 
 __all__ = [
     "CameraConfig",

@@ -29,6 +29,7 @@ image right, S2 > 0 toward image up) equals the project convention; pinned in
 from __future__ import annotations
 
 import csv
+import dataclasses
 import logging
 import math
 import time
@@ -37,6 +38,8 @@ from pathlib import Path
 import numpy as np
 
 from polinfra.errors import BackendUnavailableError, ConfigError
+
+from generator.mitsuba_scene import render_stokes_image
 
 __all__ = [
     "render_pane_maps",
@@ -231,20 +234,6 @@ def _coefficients_from_stokes(acc: dict[str, np.ndarray]) -> dict[str, np.ndarra
 
 
 # --------------------------------------------------------------------------- full tier
-def render_stokes_image(mi, scene_dict: dict, spp: int, seed: int) -> np.ndarray:
-    """Render a scene dict with the ``stokes`` integrator; Stokes (3, H, W) float64, camera frame.
-
-    Mono variants give identical R, G, B channels; spectral variants give sRGB
-    channels, combined here with the Rec. 709 luminance weights.
-    """
-    sc = mi.load_dict(scene_dict)
-    img = np.array(mi.render(sc, seed=int(seed), spp=int(spp)), dtype=np.float64)
-    # film channels (fixed layout of the stokes integrator): Y, S0.RGB, S1.RGB, S2.RGB, S3.RGB
-    lum = np.array([0.2126, 0.7152, 0.0722])
-    s = np.stack([img[..., 1 + 3 * i : 4 + 3 * i] @ lum for i in range(3)])
-    return np.nan_to_num(s, nan=0.0, posinf=0.0, neginf=0.0)
-
-
 def _layer_plane_spec(plane, cam_forward, texture: np.ndarray, name: str, keep_side=None, scale: float = 1.0):
     from generator.mitsuba_scene import LayerPlane as MiPlane
 
@@ -370,7 +359,7 @@ class FullRenderer:
         self.tc = LayerContent(scene.layers.transmission, (H, W))
         self.rc = LayerContent(scene.layers.reflection, (H, W))
         self.objects = getattr(scene, "objects", None) is not None
-        self.static = (self.tc.is_static and self.rc.is_static) or self.objects  # object scenes have no motion
+        self.static = scene.objects.is_static if self.objects else (self.tc.is_static and self.rc.is_static)
         self._layers: dict[int, dict[str, np.ndarray]] = {}
         self.t_plane, self.r_plane = layer_planes(scene)
         cam = scene.camera_model()
@@ -405,7 +394,8 @@ class FullRenderer:
                 info["modelled"].pop(k, None)
             info["modelled"]["objects"] = (
                 f"3-D objects ({len(scene.objects.shapes)} shapes, {len(scene.objects.lights)} area lights, environment {scene.objects.environment:g}); "
-                "GT T = S0 of T alone (no pane, front removed), GT R = S0 of R alone (mirrored camera, back removed); static"
+                "GT T = S0 of T alone (no pane, front removed), GT R = S0 of R alone (mirrored camera, back removed); "
+                + ("static" if scene.objects.is_static else f"moving shapes path-traced at {self.kf_hz} Hz, mixture and GT interpolated between")
             )
             info["modelled"]["max_depth"] = scene.objects.max_depth
         warn = [] if self.objects else _layer_coverage_warnings(scene, self.tc, self.rc, self.t_scale)
@@ -456,8 +446,11 @@ class FullRenderer:
             return self._layers[j]["S"]
         t0 = time.perf_counter()
         acc: dict[str, np.ndarray] = {}
+        scene = self.scene
+        if not self.static:  # moving objects: the scene at this keyframe's time
+            scene = dataclasses.replace(scene, objects=scene.objects.at(j / self.kf_hz))
         for b, (n_b, w_b) in enumerate(zip(self.idx, self.wts)):
-            out = render_object_layers(self.mi, self.scene, n_b, self.spp_band, self.seed * 1000003 + j * 101 + b + seed_offset)
+            out = render_object_layers(self.mi, scene, n_b, self.spp_band, self.seed * 1000003 + j * 101 + b + seed_offset)
             for k, v in out.items():
                 acc[k] = acc.get(k, 0.0) + w_b * v
         self.render_s += time.perf_counter() - t0
@@ -466,15 +459,30 @@ class FullRenderer:
         self.n_keyframes_rendered += 1
         self.info["modelled"]["keyframes_rendered"] = self.n_keyframes_rendered
         self.info["modelled"]["path_trace_s"] = round(self.render_s, 4)
+        for cache in (self._layers, self._cache):
+            if len(cache) > 3:
+                cache.pop(min(cache))
         self._layers[j] = acc
         self._cache[j] = acc["S"]
         return acc["S"]
 
     def layers(self, t_s: float) -> tuple[np.ndarray, np.ndarray]:
-        """Object scenes: ground-truth (L_T, L_R), each (H, W): S0 of T alone and of R alone (static)."""
-        self._object_keyframe(0)
-        L = self._layers[0]
-        return L["S_T"][0], L["S_R"][0]
+        """Object scenes: ground-truth (L_T, L_R), each (H, W): S0 of T alone and of R alone
+        (moving objects: interpolated between keyframes like the mixture)."""
+        if self.static:
+            self._object_keyframe(0)
+            L = self._layers[0]
+            return L["S_T"][0], L["S_R"][0]
+        x = t_s * self.kf_hz
+        j0 = int(math.floor(x + 1e-9))
+        w = x - j0
+        self._object_keyframe(j0)
+        a = self._layers[j0]
+        if w < 1e-9:
+            return a["S_T"][0], a["S_R"][0]
+        self._object_keyframe(j0 + 1)
+        b = self._layers[j0 + 1]
+        return (1.0 - w) * a["S_T"][0] + w * b["S_T"][0], (1.0 - w) * a["S_R"][0] + w * b["S_R"][0]
 
     def departure(self, maps) -> tuple[dict[str, np.ndarray], dict]:
         """Object scenes: how far keyframe 0 departs from Eq. (1)-(2) (:func:`generator.objects3d.model_departure`),

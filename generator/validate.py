@@ -123,6 +123,12 @@ def validate_zeta(
         raise ConfigError(f"--model {model!r}: choose one of {list(PANE_MODELS)}")
     if not tolerance > 0:
         raise ConfigError(f"--tolerance {tolerance} must be > 0")
+    plan = None
+    if opts.tier == "auto":  # the planner picks the cheapest tier (and spp) predicted to meet the tolerance
+        from generator.planner import apply_plan, plan_tier
+
+        plan = plan_tier(scene, tolerance)
+        opts = apply_plan(opts, plan)
     out = ensure_dir(out_dir)
     steps = 4 if opts.tier == "full" else 3
     step = 0
@@ -221,5 +227,7 @@ def validate_zeta(
         smeta = json.loads((out / "scene" / "render.json").read_text())
         summary["scene_tier"] = "full"
         summary["eq12_departure"] = smeta.get("eq12_departure")
+    if plan is not None:
+        summary["tier_plan"] = plan.to_dict()
     write_json(out / "summary.json", summary)
     return summary

@@ -20,8 +20,9 @@ def dataset_new(
     width: int = typer.Option(400, "--width", help="image width in pixels"),
     height: int = typer.Option(250, "--height", help="image height in pixels"),
     duration_s: float = typer.Option(1.0, "--duration-s", help="stream length per group, seconds"),
-    tier: str = typer.Option("analytic", "--tier", help="generator tier: analytic, maps, full"),
-    ranges: str = typer.Option("paper", "--ranges", help="range profile: paper (the paper's difficulty, paper.toml) or v1 (the first, easier ranges, paper_v1.toml)"),
+    tier: str = typer.Option("analytic", "--tier", help="generator tier: analytic, maps, full, auto (with --tolerance)"),
+    tolerance: Optional[float] = typer.Option(None, "--tolerance", help="--tier auto: largest acceptable p99 radiance error; the planner picks each group's tier and spp"),
+    ranges: str = typer.Option("paper", "--ranges", help="range profile: paper (the paper's difficulty, paper.toml), v1 (the first, easier ranges, paper_v1.toml) or objects3d (3-D object arrangements with motion, full tier)"),
     like: Optional[Path] = typer.Option(None, "--like", help="a scene TOML (e.g. calibrate-pane's pane.toml): every group gets its pane and camera fov and size (polspike/pipeline/like.py)"),
     jitter: str = typer.Option("fit", "--jitter", help="with --like: fit (jitter within the 1-sigma of the report.json beside the scene, if any) or none"),
 ) -> None:
@@ -32,14 +33,20 @@ def dataset_new(
     from polinfra.errors import ConfigError
     from polspike.pipeline.sampler import sample_manifest_text
 
-    if tier not in ("analytic", "maps", "full"):
-        raise ConfigError(f"--tier {tier!r} is unknown; choose analytic, maps or full")
-    if like is not None:
+    if tier not in ("analytic", "maps", "full", "auto"):
+        raise ConfigError(f"--tier {tier!r} is unknown; choose analytic, maps, full or auto")
+    if ranges == "objects3d":  # 3-D object arrangements: full tier only
+        from polspike.pipeline.sampler_objects3d import objects3d_manifest_text
+
+        if like is not None or tier not in ("full", "analytic") or tolerance is not None:
+            raise ConfigError("--ranges objects3d renders on the full tier only; drop --like, --tier and --tolerance")
+        text = objects3d_manifest_text(groups, seed, name=name or out.stem, width=width, height=height, duration_s=duration_s)
+    elif like is not None:
         from polspike.pipeline.like import like_manifest_text
 
-        text = like_manifest_text(like, groups, seed, jitter=jitter, name=name or out.stem, test_fraction=test_fraction, duration_s=duration_s, tier=tier, profile=ranges)
+        text = like_manifest_text(like, groups, seed, jitter=jitter, name=name or out.stem, test_fraction=test_fraction, duration_s=duration_s, tier=tier, profile=ranges, tolerance=tolerance)
     else:
-        text = sample_manifest_text(groups, seed, name=name or out.stem, test_fraction=test_fraction, width=width, height=height, duration_s=duration_s, tier=tier, profile=ranges)
+        text = sample_manifest_text(groups, seed, name=name or out.stem, test_fraction=test_fraction, width=width, height=height, duration_s=duration_s, tier=tier, profile=ranges, tolerance=tolerance)
     write_text(out, text)
     Console().print(f"[green]wrote[/] {out}: {groups} groups (seed {seed})")
 

@@ -28,7 +28,8 @@ def _parse_frames(frames: str | None) -> tuple[int, int] | None:
 def render_cmd(
     scene: Path = typer.Argument(..., help="scene TOML file, or a default scene name (near_normal, brewster, oblique_diagonal, bk7_single)"),
     out: Path = typer.Option(..., "--out", help="output render directory (created; resumable)"),
-    tier: str = typer.Option("analytic", "--tier", help="analytic | maps | full (Mitsuba for maps/full)"),
+    tier: str = typer.Option("analytic", "--tier", help="analytic | maps | full (Mitsuba for maps/full) | auto (the cheapest meeting --tolerance)"),
+    tolerance: Optional[float] = typer.Option(None, "--tolerance", help="--tier auto: largest acceptable p99 radiance error (worst polarizer angle), e.g. 1e-2"),
     frames: Optional[str] = typer.Option(None, "--frames", help="render only keyframes A:B"),
     fps: Optional[float] = typer.Option(None, "--fps", help="keyframes per second [default: scene render.fps]"),
     duration: Optional[float] = typer.Option(None, "--duration", help="clip length in seconds [default: scene render.duration_s]"),
@@ -48,11 +49,18 @@ def render_cmd(
     from generator.scene import load_scene
     from polinfra.progress import rich_progress
 
+    if tolerance is not None and tier != "auto":
+        raise ConfigError("--tolerance is for --tier auto; drop it or use --tier auto")
     sc = load_scene(scene)
     opts = RenderOptions(tier=tier, fps=fps, duration_s=duration, frames=_parse_frames(frames), spp=spp, variant=variant, spectral=spectral, seed=seed, keyframe_hz=keyframe_hz, response=response, n_bands=bands)
     with rich_progress(f"render {sc.name} [{tier}]", enabled=not quiet) as cb:
-        meta = render(sc, out, opts, progress=cb)
+        meta = render(sc, out, opts, progress=cb, tolerance=tolerance)
     t = meta["timings"]
+    plan = meta.get("tier_plan")
+    if plan:
+        c = plan["choice"]
+        Console().print(f"tier auto at tolerance {plan['tolerance']:g}: {c['tier']}" + (f" {c['spp']} spp" + (" spectral" if c["spectral"] else "") if c["tier"] == "full" else "") + f" (predicted p99 {c['predicted_p99']:.3g})")
+    tier = meta["tier"]
     Console().print(f"wrote {len(meta['frames'])} frames to {out} (tier {tier}, maps {t.get('maps_s', 0):.2f} s, {t.get('per_frame_s', 0) * 1e3:.1f} ms/frame)")
 
 

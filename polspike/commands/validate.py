@@ -15,7 +15,7 @@ from polspike.cli import app_typer
 def validate_zeta_cmd(
     scene: Path = typer.Argument(..., help="scene TOML file or default scene name"),
     out: Path = typer.Option(..., "--out", help="output folder: error maps, histogram, summary.json"),
-    tier: str = typer.Option("maps", "--tier", help="tier under test: analytic | maps | full"),
+    tier: str = typer.Option("maps", "--tier", help="tier under test: analytic | maps | full | auto (the cheapest predicted to meet --tolerance)"),
     spp: Optional[int] = typer.Option(None, "--spp", help="samples per pixel [default: scene render.spp]"),
     variant: str = typer.Option("auto", "--variant", help="Mitsuba backend: auto | scalar | llvm | cuda"),
     spectral: Optional[bool] = typer.Option(None, "--spectral/--mono", help="spectral or mono rendering [default: scene]"),
@@ -38,6 +38,8 @@ def validate_zeta_cmd(
     opts = RenderOptions(tier=tier, spp=spp, variant=variant, spectral=spectral, seed=seed)
     with rich_progress(f"validate-zeta {sc.name} [{tier}]", enabled=not as_json) as cb:
         summary = validate_zeta(sc, out, opts, model=model, tolerance=tolerance, progress=cb)
+    if summary.get("tier_plan"):
+        tier = summary["tier_plan"]["choice"]["tier"]
     if as_json:
         typer.echo(json.dumps(summary, indent=2))
     else:

@@ -50,7 +50,7 @@ def _tn(rng: np.random.Generator, sigma: float) -> float:
             return v * sigma
 
 
-def like_manifest(scene_path: str | Path, n_groups: int, seed: int, *, jitter: str = "fit", name: str = "like", duration_s: float = 1.0, tier: str = "analytic",
+def like_manifest(scene_path: str | Path, n_groups: int, seed: int, *, jitter: str = "fit", name: str = "like", duration_s: float = 1.0, tier: str = "analytic", tolerance: float | None = None,
                   test_fraction: float = 0.2, profile: str = "paper") -> dict:
     """Manifest data whose groups share the scene's pane and camera field of view (module docstring)."""
     from generator.scene import load_scene
@@ -63,7 +63,7 @@ def like_manifest(scene_path: str | Path, n_groups: int, seed: int, *, jitter: s
         raise ConfigError(f"{scene_path}: --like takes a layer scene (a fitted pane.toml); 3-D object scenes have no sampled layers")
     sig = fit_sigmas(Path(scene_path)) if jitter == "fit" else {}
     W, H = sc.camera.width, sc.camera.height
-    data = sample_manifest(n_groups, seed, name=name, test_fraction=test_fraction, width=W, height=H, duration_s=duration_s, tier=tier, profile=profile)
+    data = sample_manifest(n_groups, seed, name=name, test_fraction=test_fraction, width=W, height=H, duration_s=duration_s, tier=tier, profile=profile, tolerance=tolerance)
     rng = np.random.default_rng([int(seed), 21])
     p = sc.pane
     if p.normal is not None:

@@ -23,7 +23,8 @@ Layout (format ``polspike-manifest/1``)::
     name = "train_000"               # folder name: letters, digits, '_', '-', '.'
     split = "train"                  # train | test
     scene = "scenes/brewster.toml"   # optional base scene (manifest folder, then repo root, then a default name)
-    tier = "analytic"                # analytic | maps | full
+    tier = "analytic"                # analytic | maps | full | auto (with tolerance = EPS: the planner picks
+                                     # the cheapest tier and spp predicted to meet it; recorded as tier_plan)
     seed = 1                         # sensor/noise seed and render seed
     duration_s = 1.0                 # stream length (s)
     keyframe_fps = 100.0             # radiance keyframes per second (default: the scene's render.fps)
@@ -33,6 +34,7 @@ Layout (format ``polspike-manifest/1``)::
     [groups.layers.reflection]       # overlays the R layer
     [groups.polarizer]               # overlays PolarizerConfig (rate_hz, phase_deg, extinction_ratio, ...)
     [groups.render]                  # overlays RenderSettings (spp, spectral: maps/full tiers)
+    [groups.objects]                 # SceneConfig.objects: 3-D shapes / lights (full tier; sampler profile objects3d)
     [groups.spike_sim]               # preset = "default" | "ideal" | "noisy", plus any SpikeSimConfig field
                                      # (or spike_sim = "ideal": a bare preset name)
 
@@ -83,7 +85,7 @@ MANIFESTS_DIR = REPO_ROOT / "datasets" / "manifests"
 """Folder of the shipped manifests."""
 
 _NAME_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,99}$")
-_SCENE_SECTIONS = ("camera", "pane", "layers", "polarizer", "render")
+_SCENE_SECTIONS = ("camera", "pane", "layers", "polarizer", "render", "objects")
 _CONTENT_ALIASES = {"skimage:cat": "skimage:chelsea"}  # skimage.data.cat() is the chelsea image
 _CONTENT_FREE = frozenset({"procedural:flat", "procedural:disk"})  # no texture: shared use is no leak
 
@@ -96,7 +98,8 @@ class GroupSpec:
     split: str = opt(doc="train or test", choices=("train", "test"))
     scene: str | None = opt(None, "base scene TOML (path relative to the manifest, the repo root, or a default scene name)")
     description: str = opt("", "free text")
-    tier: str = opt("analytic", "generator tier: analytic | maps | full", choices=("analytic", "maps", "full"))
+    tier: str = opt("analytic", "generator tier: analytic | maps | full | auto (the cheapest predicted to meet tolerance)", choices=("analytic", "maps", "full", "auto"))
+    tolerance: float | None = opt(None, "tier = auto: largest acceptable p99 radiance error (generator.planner)", lo=0.0, hi=10.0, lo_open=True)
     seed: int = opt(0, "sensor/noise seed (also the render seed)", lo=0, hi=2**31 - 1)
     duration_s: float = opt(1.0, "stream length in seconds", lo=0.0, hi=3600.0, lo_open=True)
     keyframe_fps: float | None = opt(None, "radiance keyframes per second (default: the scene's render.fps)", lo=0.01, hi=20000.0)
@@ -105,6 +108,7 @@ class GroupSpec:
     layers: Any = opt(None, "overlay on SceneConfig.layers (transmission / reflection tables)")
     polarizer: Any = opt(None, "overlay on SceneConfig.polarizer")
     render: Any = opt(None, "overlay on SceneConfig.render (spp, spectral)")
+    objects: Any = opt(None, "SceneConfig.objects: 3-D shapes and lights on both sides of the pane (full tier only)")
     spike_sim: Any = opt(None, "spike simulator: preset = default|ideal|noisy plus SpikeSimConfig overrides")
 
 
@@ -129,6 +133,8 @@ class ResolvedGroup:
     scene: dict
     spike_sim: dict
     spec_sha256: str
+    tier_plan: dict | None = None
+    """``tier = auto``: the planner's choice, predictions and reasons (:mod:`generator.planner`)."""
 
     def build_spec(self) -> dict:
         """Plain data sent to a build worker (and stored as GROUP/group_spec.json)."""
@@ -142,6 +148,7 @@ class ResolvedGroup:
             "scene": self.scene,
             "spike_sim": self.spike_sim,
             "spec_sha256": self.spec_sha256,
+            **({"tier_plan": self.tier_plan} if self.tier_plan is not None else {}),
         }
 
 
@@ -263,10 +270,31 @@ def _resolve_group(raw: dict, defaults: dict, base_dir: Path | None, where: str)
     sim_base.update(ss)
     sim_base["width"], sim_base["height"] = scene.camera.width, scene.camera.height
     sim = from_dict(SpikeSimConfig, sim_base, where=f"{label} [spike_sim]")
+    tier, plan = spec.tier, None
+    if spec.tier == "auto":
+        scene, tier, plan = _auto_tier(scene, spec.tolerance, label)
+    elif spec.tolerance is not None:
+        raise ConfigError(f"{label}: tolerance is for tier = 'auto' (tier is {spec.tier!r})")
     scene_d, sim_d = to_dict(scene), to_dict(sim)
-    key = {"tier": spec.tier, "seed": spec.seed, "duration_s": spec.duration_s, "keyframe_fps": fps, "scene": scene_d, "spike_sim": sim_d}
+    key = {"tier": tier, "seed": spec.seed, "duration_s": spec.duration_s, "keyframe_fps": fps, "scene": scene_d, "spike_sim": sim_d}
     h = hashlib.sha256(_canon(key).encode()).hexdigest()
-    return ResolvedGroup(spec.name, spec.split, spec.tier, spec.seed, spec.duration_s, float(fps), scene_d, sim_d, h)
+    return ResolvedGroup(spec.name, spec.split, tier, spec.seed, spec.duration_s, float(fps), scene_d, sim_d, h, plan)
+
+
+def _auto_tier(scene, tolerance: float | None, label: str):
+    """(scene with the planned spp / spectral, tier, plan dict) of a ``tier = auto`` group."""
+    from generator.planner import plan_tier
+
+    if tolerance is None:
+        raise ConfigError(f"{label}: tier = 'auto' needs tolerance = EPS (largest acceptable p99 radiance error)")
+    try:
+        plan = plan_tier(scene, tolerance, analytic_spectral=False)  # the dataset builder's analytic source is mono
+    except PolspikeError as exc:
+        raise type(exc)(f"{label}: {exc}") from None
+    c = plan.choice
+    if c.tier == "full":
+        scene = dataclasses.replace(scene, render=dataclasses.replace(scene.render, spp=int(c.spp), spectral=bool(c.spectral)))
+    return scene, c.tier, plan.to_dict()
 
 
 def _coarse(scene):

@@ -430,6 +430,7 @@ def sample_manifest(
     rate_hz: float = 30.0,
     spike_sim_preset: str = "default",
     profile: str = "paper",
+    tolerance: float | None = None,
 ) -> dict:
     """Plain manifest data with ``n_groups`` groups drawn from :data:`RANGES`.
 
@@ -440,7 +441,8 @@ def sample_manifest(
         test_fraction: share of test groups (the last ones), in [0, 1].
         width, height: image size in pixels.
         duration_s: stream length per group (s).
-        tier: generator tier of every group.
+        tier: generator tier of every group (``auto``: the planner picks per group, given ``tolerance``).
+        tolerance: ``tier = auto``: largest acceptable p99 radiance error (:mod:`generator.planner`).
         keyframe_fps: radiance keyframes per second.
         rate_hz: polarizer revolutions per second.
         spike_sim_preset: simulator preset name.
@@ -452,6 +454,10 @@ def sample_manifest(
     """
     if profile not in PROFILES:
         raise ConfigError(f"--ranges {profile!r} is unknown; choose one of {list(PROFILES)}")
+    if (tier == "auto") != (tolerance is not None):
+        raise ConfigError("--tier auto and --tolerance EPS go together" + (f" (--tolerance given with --tier {tier})" if tolerance is not None else ""))
+    if tolerance is not None and not tolerance > 0:
+        raise ConfigError(f"--tolerance {tolerance!r} must be a positive p99 radiance error (e.g. 1e-2)")
     if n_groups < 1:
         raise ConfigError(f"--groups = {n_groups} must be >= 1")
     if not 0.0 <= test_fraction <= 1.0:
@@ -473,6 +479,7 @@ def sample_manifest(
         "description": f"{n_groups} groups sampled by `polspike dataset new --groups {n_groups} --seed {seed}{'' if profile == 'paper' else ' --ranges ' + profile}` ({n_train} train / {n_test} test)",
         "defaults": {
             "tier": tier,
+            **({"tolerance": float(tolerance)} if tolerance is not None else {}),
             "duration_s": float(duration_s),
             "keyframe_fps": float(keyframe_fps),
             "polarizer": {"rate_hz": float(rate_hz)},

@@ -37,7 +37,7 @@ from polphysics.stokes import polarizer_intensity
 
 log = logging.getLogger(__name__)
 
-__all__ = ["Candidate", "run_tradeoff", "default_candidates"]
+__all__ = ["Candidate", "run_tradeoff", "default_candidates", "corrected_error", "planner_candidates"]
 
 PHIS = np.deg2rad([0.0, 45.0, 90.0, 135.0])
 
@@ -73,6 +73,15 @@ def default_candidates(quick: bool = False) -> list[Candidate]:
     ]
 
 
+def planner_candidates(spectral: bool = False) -> list[Candidate]:
+    """The grid that checks the planner's predictions: analytic, maps and full at 4 / 16 / 64 spp (+ spectral 16)."""
+    c = [Candidate("analytic", "analytic"), Candidate("maps 1spp", "maps", 1)]
+    c += [Candidate(f"full {n}spp mono llvm", "full", n, variant="llvm") for n in (4, 16, 64)]
+    if spectral:
+        c.append(Candidate("full 16spp spectral llvm", "full", 16, spectral=True, variant="llvm"))
+    return c
+
+
 def _render_first(scene, cand: Candidate, seed: int = 0) -> tuple[np.ndarray, float, float]:
     """Stokes (3, H, W) of the first keyframe, one-off seconds, per-frame seconds."""
     from generator.analytic import analytic_maps, frame_stokes, sample_layers
@@ -103,6 +112,13 @@ def _render_first(scene, cand: Candidate, seed: int = 0) -> tuple[np.ndarray, fl
     L_T, L_R, L_G = sample_layers(maps, tc, rc, 0.0)
     S = frame_stokes(maps, L_T, L_R, L_G)
     return S, (t1 - t0) + (t2 - t1), time.perf_counter() - t2
+
+
+def corrected_error(err_p99: float, resolution: float) -> dict:
+    """The error with the reference's own noise taken out (p99s combined in quadrature, an approximation):
+    ``err_corrected = sqrt(max(err^2 - resolution^2, 0))``; errors near ``resolution`` are unresolved."""
+    return {"err_vs_ref_p99": float(err_p99), "resolution": float(resolution),
+            "err_corrected": float(math.sqrt(max(err_p99 * err_p99 - resolution * resolution, 0.0)))}
 
 
 def _radiance_error(S: np.ndarray, ref: np.ndarray) -> float:
@@ -140,8 +156,12 @@ def run_tradeoff(
     keyframe_rates_hz: tuple[float, ...] = (25.0, 50.0, 100.0, 200.0),
     spike_steps: int = 260,
     progress: Callable[[int, int], None] | None = None,
+    refs: dict | None = None,
 ) -> dict:
-    """Measure the trade for each scene; write ``tradeoff.json``, ``tradeoff.md`` and ``pareto.png``."""
+    """Measure the trade for each scene; write ``tradeoff.json``, ``tradeoff.md`` and ``pareto.png``.
+
+    ``refs`` (optional dict): filled with ``scene name -> (reference Stokes, resolution)``, what a
+    further candidate is compared with (:mod:`polspike.pipeline.tradeoff_planner`)."""
     out = ensure_dir(out_dir)
     cands = candidates or default_candidates()
     rows: list[dict] = []
@@ -149,7 +169,7 @@ def run_tradeoff(
     done = 0
     for scene in scenes:
         if getattr(scene, "objects", None) is not None:  # 3-D objects: full tier only, plus the Eq. (1)-(2) rows
-            rows.extend(_objects_rows(scene, ref, cands, spike_steps))
+            rows.extend(_objects_rows(scene, ref, cands, spike_steps, refs))
             done += len(cands) + 1 + len(keyframe_rates_hz)
             if progress:
                 progress(done, total)
@@ -157,6 +177,9 @@ def run_tradeoff(
         S_ref, one_ref, frame_ref = _render_first(scene, ref, seed=1)
         S_ref2, _, _ = _render_first(scene, ref, seed=2)
         ref_noise = _radiance_error(S_ref, S_ref2) / math.sqrt(2.0)  # the reference's own Monte Carlo noise
+        S_mean, resolution = 0.5 * (S_ref + S_ref2), ref_noise / math.sqrt(2.0)  # noise-corrected errors: against the seeds' mean
+        if refs is not None:
+            refs[scene.name] = (S_mean, resolution)
         rows.append({"scene": scene.name, "candidate": ref.label + " (its own noise: seed 1 vs 2, / sqrt 2)", "tier": "full", "spp": ref.spp,
                      "spectral": ref.spectral, "variant": ref.variant, "one_off_s": one_ref, "per_frame_s": frame_ref,
                      "per_1s_group_s": one_ref + scene.render.fps * frame_ref, "radiance_err_p99": ref_noise,
@@ -187,6 +210,7 @@ def run_tradeoff(
                 "radiance_err_mean": float(np.mean(np.abs(S[0] - S_ref[0]))),
                 "spike_frame_rmse": float(np.sqrt(np.mean((spk - spk_ref) ** 2))),
                 "spike_noise_rmse": spike_noise,
+                **corrected_error(_radiance_error(S, S_mean), resolution),
             })
             done += 1
             if progress:
@@ -203,7 +227,7 @@ def run_tradeoff(
     return result
 
 
-def _objects_rows(scene, ref: Candidate, cands: list[Candidate], spike_steps: int) -> list[dict]:
+def _objects_rows(scene, ref: Candidate, cands: list[Candidate], spike_steps: int, refs: dict | None = None) -> list[dict]:
     """A 3-D object scene (:mod:`generator.objects3d`): the reference's noise, paper Eq. (1)-(2) mixing the
     rendered layers (unpolarized T: the paper's assumption) and with T's polarization carried through the
     pane, and the full-tier candidates.  The models take their layers from the seed-1 reference and are
@@ -234,6 +258,8 @@ def _objects_rows(scene, ref: Candidate, cands: list[Candidate], spike_steps: in
              "variant": ref.variant, "one_off_s": one, "per_frame_s": per, "per_1s_group_s": one + per,  # static: one keyframe
              "radiance_err_p99": _radiance_error(S1, S2) / math.sqrt(2.0), "radiance_err_mean": float(np.mean(np.abs(S1[0] - S2[0]))) / math.sqrt(2.0),
              "spike_frame_rmse": None, "spike_noise_rmse": None}]
+    if refs is not None:
+        refs[scene.name] = (S2, rows[0]["radiance_err_p99"])
     R_part = stokes_from_layers(np.zeros_like(L_T), L_R, maps.R_perp, maps.R_par, maps.T_perp, maps.T_par, maps.phi_perp)
     models = [("Eq. (1)-(2) on the rendered layers (unpolarized T: the paper's assumption)", stokes_from_layers(L_T, L_R, maps.R_perp, maps.R_par, maps.T_perp, maps.T_par, maps.phi_perp))]
     polT = _transmit_polarized(L["S_T"], maps, scene.pane.model, float(scene.pane.index(550.0)))
@@ -252,9 +278,11 @@ def _objects_rows(scene, ref: Candidate, cands: list[Candidate], spike_steps: in
         except Exception as exc:  # a backend missing on this machine: reported, not fatal
             rows.append({**base, "candidate": c.label, "skipped": str(exc).splitlines()[0]})
             continue
+        e = _radiance_error(S, S2)
         rows.append({**base, "candidate": c.label, "tier": "full", "spp": c.spp, "variant": c.variant, "one_off_s": one_c, "per_frame_s": per_c,
-                     "per_1s_group_s": one_c + per_c, "radiance_err_p99": _radiance_error(S, S2), "radiance_err_mean": float(np.mean(np.abs(S[0] - S2[0]))),
-                     "spike_frame_rmse": float(np.sqrt(np.mean((_spike_frames(S, 7, spike_steps, pol) - spk_ref) ** 2))), "spike_noise_rmse": spike_noise})
+                     "per_1s_group_s": one_c + per_c, "radiance_err_p99": e, "radiance_err_mean": float(np.mean(np.abs(S[0] - S2[0]))),
+                     "spike_frame_rmse": float(np.sqrt(np.mean((_spike_frames(S, 7, spike_steps, pol) - spk_ref) ** 2))), "spike_noise_rmse": spike_noise,
+                     **corrected_error(e, rows[0]["radiance_err_p99"])})
     return rows
 
 

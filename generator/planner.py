@@ -1,0 +1,297 @@
+"""Fidelity planner: ``--tier auto --tolerance EPS`` picks the cheapest tier (and spp) whose predicted error is <= EPS.
+
+Error measure (the one ``polspike bench tradeoff`` measures): the p99 over pixels of the
+worst case over the polarizer angles {0, 45, 90, 135} deg of |I(phi) - I_true(phi)|, radiance
+units (1.0 = brightest layer value).  The planner predicts it per tier from what the scene holds:
+
+* **analytic / maps** (paper Eq. (1)-(2) with the pane's Fresnel maps).  The pane models match the
+  path tracer's physics (measured: the analytic image agrees with the full tier's to its Monte Carlo
+  noise on every layer scene), so what remains is what the model leaves out, each term computed in
+  closed form on the scene's own layers:
+
+  - dispersion: a named glass is evaluated at 550 nm; the term is the p99 difference between that
+    image and the response-weighted sum over the spectral bands (T refracts differently per band);
+  - absorption: the full tier does not model it, so it is a term of the full tier, not of these;
+  - 3-D objects: these tiers cannot render them (and paper Eq. (1) departs from the rendered
+    mixture where the transmitted light is polarized); never chosen.
+
+  The maps tier computes the same maps with Mitsuba and costs more: predicted like analytic, never
+  cheaper, so it is chosen only when asked for by name.
+* **full** (Mitsuba path tracing at ``spp``).  Monte Carlo noise: p99 = ``k / sqrt(spp)``.  For a layer
+  scene ``k`` is predicted from the lobe choice at the pane: a camera path reflects with probability
+  about R and transmits otherwise, so one sample's intensity is ``L_R`` or ``T L_T / (1 - R)`` and its
+  variance per pixel is ``R L_R^2 + T^2 L_T^2 / (1 - R) - (R L_R + T L_T)^2``; with the polarizer's
+  worst-angle factor ``(1 + DoP) / 2`` and a normal tail the p99 over pixels follows, times
+  :data:`NOISE_GAIN` fitted on the measured trade table (the proxy alone is within a factor 1.1-1.65
+  of every layer scene's measured ``k``).  A spectral render of a dispersive glass spreads spp over
+  the bands: ``k`` grows by ``sqrt(n_bands * sum w_b^2)``; a mono render of it adds the dispersion
+  term.  For a 3-D object scene ``k`` is measured by a small pilot render (two seeds, few spp) since
+  the noise depends on lights and BSDFs no closed form covers.
+
+Cost (seconds per keyframe, for the choice only): per pixel, from the trade table's order of
+magnitude; the order analytic < maps < full(spp) is what matters.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import math
+
+import numpy as np
+
+from polinfra.errors import ConfigError
+
+__all__ = ["TierEstimate", "TierPlan", "plan_tier", "scene_features", "predict_tiers", "apply_plan", "NOISE_GAIN", "SPP_MAX", "PHIS"]
+
+log = logging.getLogger(__name__)
+
+PHIS = np.deg2rad([0.0, 45.0, 90.0, 135.0])
+"""Polarizer angles of the error measure (as in :mod:`polspike.pipeline.tradeoff`)."""
+NOISE_GAIN = 1.33
+"""Measured full-tier noise coefficient / lobe-choice proxy, geometric mean over the layer scenes
+(near_normal 1.10, brewster 1.27, oblique_diagonal 1.33, bk7_single 1.65; docs/tradeoff.md)."""
+SPP_MAX = 16384
+"""Largest spp the planner proposes (a render beyond it is not a practical data generator)."""
+MAX_FEATURE_WIDTH = 200
+"""The noise proxy is computed at most this wide (same aspect): its per-pixel statistics barely change."""
+MAX_DISPERSION_WIDTH = 800
+"""The dispersion term grows with resolution (T's per-band shift in pixels): computed at the scene's own size up to this width."""
+Z99 = 2.5758
+"""Two-sided normal 99 % point."""
+COST_ANALYTIC_PX = 4e-7
+COST_MAPS_ONEOFF_PX = 4e-5
+COST_FULL_PX_SPP = 6e-7
+"""Seconds per pixel (per spp for the full tier) on this 2-core machine (orders of magnitude from the trade table)."""
+PILOT_SPP = 16
+PILOT_WIDTH = 100
+
+
+@dataclasses.dataclass(frozen=True)
+class TierEstimate:
+    """One tier's predicted error and cost for a scene."""
+
+    tier: str
+    spp: int | None
+    spectral: bool
+    predicted_p99: float
+    cost_s_per_frame: float
+    feasible: bool
+    reasons: tuple[str, ...]
+
+    def to_dict(self) -> dict:
+        d = dataclasses.asdict(self)
+        d["reasons"] = list(self.reasons)
+        d["predicted_p99"] = None if math.isinf(self.predicted_p99) else float(self.predicted_p99)
+        return d
+
+
+@dataclasses.dataclass(frozen=True)
+class TierPlan:
+    """The planner's choice for a tolerance, with every tier's prediction."""
+
+    tolerance: float
+    choice: TierEstimate
+    estimates: tuple[TierEstimate, ...]
+    features: dict
+
+    def to_dict(self) -> dict:
+        return {
+            "tolerance": self.tolerance,
+            "choice": {"tier": self.choice.tier, "spp": self.choice.spp, "spectral": self.choice.spectral, "predicted_p99": self.choice.predicted_p99},
+            "reasons": list(self.choice.reasons),
+            "estimates": [e.to_dict() for e in self.estimates],
+            "features": self.features,
+            "error_measure": "p99 over pixels of the worst case over phi in {0,45,90,135} deg of |I(phi) - I_true(phi)| (radiance)",
+        }
+
+
+def _worst(A: np.ndarray, B: np.ndarray) -> np.ndarray:
+    from polphysics.stokes import polarizer_intensity
+
+    return np.max([np.abs(polarizer_intensity(*A, p) - polarizer_intensity(*B, p)) for p in PHIS], axis=0)
+
+
+def _small(scene, max_width: int = MAX_FEATURE_WIDTH):
+    W, H = scene.camera.width, scene.camera.height
+    if W <= max_width:
+        return scene
+    w = max_width
+    h = max(2, int(round(H * w / W)))
+    return dataclasses.replace(scene, camera=dataclasses.replace(scene.camera, width=w, height=h))
+
+
+def _p99_abs_normal(sigma: np.ndarray) -> float:
+    """p99 over pixels of |N(0, sigma_px^2)| (a mixture of normals: quantile by bisection)."""
+    from scipy.special import erf
+
+    s = np.asarray(sigma, np.float64).ravel()
+    n_zero = int(np.sum(s <= 0))
+    s = s[s > 0]
+    if s.size == 0:
+        return 0.0
+    total = s.size + n_zero
+    lo, hi = 0.0, float(s.max()) * 6.0
+    for _ in range(60):
+        mid = 0.5 * (lo + hi)
+        frac = (n_zero + float(np.sum(erf(mid / (s * math.sqrt(2.0)))))) / total  # P(|x| <= mid) over pixels
+        lo, hi = (mid, hi) if frac < 0.99 else (lo, mid)
+    return 0.5 * (lo + hi)
+
+
+def scene_features(scene, pilot: bool = True) -> dict:
+    """What the planner needs to know of a scene (computed on the first keyframe).
+
+    Layer scenes: the lobe-choice noise proxy, the dispersion and absorption terms (closed forms,
+    numpy only).  Object scenes: the pilot-measured noise coefficient (Mitsuba, ``pilot``)."""
+    f: dict = {"pane_model": scene.pane.model, "dispersive": scene.pane.glass is not None, "objects": scene.objects is not None,
+               "absorption_per_mm": float(scene.pane.absorption_per_mm)}
+    if scene.objects is not None:
+        ob = scene.objects
+        f["materials"] = sorted({s.material for s in ob.shapes})
+        f["lights"] = len(ob.lights)
+        f["environment"] = float(ob.environment)
+        f["noise_k"] = _object_noise_pilot(scene) if pilot else None
+        f["noise_source"] = f"pilot: full tier {PILOT_SPP} spp, two seeds, {PILOT_WIDTH} px wide" if pilot else "not measured"
+        return f
+    from generator.analytic import analytic_maps, frame_stokes, sample_layers
+    from generator.layers import LayerContent
+
+    s = _small(scene)
+    H, W = s.camera.height, s.camera.width
+    tc = LayerContent(s.layers.transmission, (H, W))
+    rc = LayerContent(s.layers.reflection, (H, W))
+    m = analytic_maps(s)
+    L_T, L_R, L_G = sample_layers(m, tc, rc, 0.0)
+    S = frame_stokes(m, L_T, L_R, L_G)
+    R = 0.5 * (m.R_perp + m.R_par)
+    T = 0.5 * (m.T_perp + m.T_par)
+    p = np.clip(R, 1e-3, 1.0 - 1e-3)
+    mean = R * L_R + T * L_T
+    var = np.maximum(R * L_R**2 + T**2 / (1.0 - p) * L_T**2 - mean**2, 0.0)
+    dop = np.hypot(S[1], S[2]) / np.maximum(S[0], 1e-9)
+    proxy = _p99_abs_normal(np.sqrt(var) * 0.5 * (1.0 + np.clip(dop, 0.0, 1.0)))
+    f["noise_proxy"] = proxy
+    f["noise_k"] = NOISE_GAIN * proxy
+    f["noise_source"] = f"lobe-choice proxy {proxy:.3g} x NOISE_GAIN {NOISE_GAIN}"
+    f["feature_size"] = [W, H]
+    f["dispersion_p99"] = 0.0
+    f["spectral_noise_factor"] = 1.0
+    if scene.pane.glass is not None:
+        from generator.analytic import spectral_frame
+        from generator.tiers_mitsuba import spectral_bands
+
+        wl, w = spectral_bands()
+        sd = _small(scene, MAX_DISPERSION_WIDTH)
+        hd = (sd.camera.height, sd.camera.width)
+        tcd, rcd = (tc, rc) if sd is s else (LayerContent(sd.layers.transmission, hd), LayerContent(sd.layers.reflection, hd))
+        md = m if sd is s else analytic_maps(sd)
+        Sd = frame_stokes(md, *sample_layers(md, tcd, rcd, 0.0))
+        Ss, _, _ = spectral_frame([(float(wi), analytic_maps(sd, float(x))) for x, wi in zip(wl, w)], tcd, rcd, 0.0)
+        f["dispersion_p99"] = float(np.percentile(_worst(Sd, Ss), 99))
+        f["dispersion_size"] = [sd.camera.width, sd.camera.height]
+        f["spectral_noise_factor"] = float(math.sqrt(len(w) * float(np.sum(np.asarray(w) ** 2))))
+    f["absorption_p99"] = 0.0
+    if scene.pane.absorption_per_mm > 0:
+        m0 = analytic_maps(dataclasses.replace(s, pane=dataclasses.replace(s.pane, absorption_per_mm=0.0)))
+        f["absorption_p99"] = float(np.percentile(_worst(S, frame_stokes(m0, *sample_layers(m0, tc, rc, 0.0))), 99))
+    return f
+
+
+def _object_noise_pilot(scene) -> float:
+    """Noise coefficient k (p99 = k / sqrt(spp)) of a 3-D object scene's mixture, from two small renders."""
+    from generator.mitsuba_scene import render_stokes_image, specs_from_scene
+    from generator.objects3d import objects_scene_dict
+    from generator.render import RenderOptions
+    from generator.tiers_mitsuba import _resolve
+
+    W, H = scene.camera.width, scene.camera.height
+    w = min(W, PILOT_WIDTH)
+    s = dataclasses.replace(scene, camera=dataclasses.replace(scene.camera, width=w, height=max(2, int(round(H * w / W)))))
+    _, mi = _resolve(RenderOptions(tier="full"), need_jit=False)
+    cam, pane = specs_from_scene(s, n=float(s.pane.index(550.0)))
+    S1, S2 = (render_stokes_image(mi, objects_scene_dict(mi, s, cam, pane, spp=PILOT_SPP, seed=sd), PILOT_SPP, sd) for sd in (11, 12))
+    return float(np.percentile(_worst(S1, S2), 99)) / math.sqrt(2.0) * math.sqrt(PILOT_SPP)
+
+
+def _full_error(f: dict, spp: int, spectral: bool) -> tuple[float, list[str]]:
+    k = f["noise_k"]
+    reasons = []
+    if spectral and f["dispersive"]:
+        k = k * f.get("spectral_noise_factor", 1.0)
+        reasons.append(f"spectral: spp spread over the bands, noise x{f.get('spectral_noise_factor', 1.0):.2f}")
+    noise = k / math.sqrt(spp)
+    reasons.insert(0, f"Monte Carlo noise {k:.3g}/sqrt({spp}) = {noise:.3g} ({f['noise_source']})")
+    terms = [noise]
+    if f["dispersive"] and not spectral:
+        terms.append(f.get("dispersion_p99", 0.0))
+        reasons.append(f"mono render of a dispersive glass: dispersion term {f.get('dispersion_p99', 0.0):.3g}")
+    if f.get("absorption_p99", 0.0) > 0:
+        terms.append(f["absorption_p99"])
+        reasons.append(f"absorption not modelled by the full tier: {f['absorption_p99']:.3g}")
+    return float(math.sqrt(sum(t * t for t in terms))), reasons
+
+
+def predict_tiers(scene, features: dict | None = None, spp_grid: tuple[int, ...] | None = None, analytic_spectral: bool = True) -> list[TierEstimate]:
+    """Every tier's prediction for ``scene`` (full tier: one row per spp in ``spp_grid``, mono and, for a
+    dispersive glass, spectral)."""
+    f = features if features is not None else scene_features(scene)
+    px = scene.camera.width * scene.camera.height
+    out: list[TierEstimate] = []
+    if f["objects"]:
+        why = "3-D objects: only the full tier renders them (paper Eq. (1) departs from the mixture where T is polarized)"
+        out.append(TierEstimate("analytic", None, False, math.inf, COST_ANALYTIC_PX * px, False, (why,)))
+        out.append(TierEstimate("maps", 1, False, math.inf, COST_MAPS_ONEOFF_PX * px, False, (why,)))
+    else:
+        disp = f.get("dispersion_p99", 0.0)
+        reasons = ["pane model, single-interface refraction and ghost modelled exactly as the path tracer does (measured: agreement to its noise)"]
+        if f["dispersive"]:
+            reasons.append(f"dispersive glass evaluated at 550 nm: dispersion term {disp:.3g} (closed form over the spectral bands)")
+        out.append(TierEstimate("analytic", None, False, disp, COST_ANALYTIC_PX * px, True, tuple(reasons)))
+        if f["dispersive"] and analytic_spectral:
+            out.append(TierEstimate("analytic", None, True, 0.0, COST_ANALYTIC_PX * px * 8.5, True, (
+                "analytic, spectral: Eq. (1)-(2) per wavelength band (8 bands), weighted by the sensor response: dispersion modelled",)))
+        out.append(TierEstimate("maps", 1, False, disp, COST_MAPS_ONEOFF_PX * px + COST_ANALYTIC_PX * px, True,
+                                tuple(reasons) + ("maps rendered by Mitsuba: same model as analytic, costs more",)))
+    grid = spp_grid or tuple(2**i for i in range(0, int(math.log2(SPP_MAX)) + 1))
+    mult = 3.0 if f["objects"] else 1.0  # object keyframes: the mixture plus T alone and R alone
+    for spectral in ((False, True) if f["dispersive"] else (False,)):
+        for spp in grid:
+            err, reasons = _full_error(f, spp, spectral)
+            out.append(TierEstimate("full", int(spp), spectral, err, mult * COST_FULL_PX_SPP * px * spp * (1.15 if spectral else 1.0), True, tuple(reasons)))
+    return out
+
+
+def plan_tier(scene, tolerance: float, features: dict | None = None, analytic_spectral: bool = True) -> TierPlan:
+    """The cheapest tier (and spp) whose predicted p99 error is <= ``tolerance``.
+
+    Raises:
+        ConfigError: ``tolerance`` <= 0 (or not finite), or no tier can reach it (the message names the
+            best reachable error).
+    """
+    if not (isinstance(tolerance, (int, float)) and math.isfinite(tolerance) and tolerance > 0):
+        raise ConfigError(f"--tolerance {tolerance!r} must be a positive p99 radiance error (e.g. 1e-2)")
+    f = features if features is not None else scene_features(scene)
+    ests = predict_tiers(scene, f, analytic_spectral=analytic_spectral)
+    ok = [e for e in ests if e.feasible and e.predicted_p99 <= tolerance]
+    if not ok:
+        best = min((e for e in ests if e.feasible), key=lambda e: e.predicted_p99)
+        raise ConfigError(
+            f"--tolerance {tolerance:g} cannot be reached for scene {scene.name!r}: the best reachable p99 error is "
+            f"{best.predicted_p99:.3g} (tier {best.tier}{f' at {best.spp} spp' if best.tier == 'full' else ''})"
+        )
+    choice = min(ok, key=lambda e: (e.cost_s_per_frame, e.predicted_p99))
+    reasons = (f"cheapest tier with predicted p99 {choice.predicted_p99:.3g} <= tolerance {tolerance:g}",) + choice.reasons
+    choice = dataclasses.replace(choice, reasons=reasons)
+    log.info("tier auto for %s at tolerance %g: %s%s (predicted p99 %.3g)", scene.name, tolerance, choice.tier,
+             f" {choice.spp} spp" if choice.tier == "full" else "", choice.predicted_p99)
+    return TierPlan(float(tolerance), choice, tuple(ests), {k: v for k, v in f.items()})
+
+
+def apply_plan(opts, plan: TierPlan):
+    """``opts`` (a :class:`generator.render.RenderOptions` with ``tier='auto'``) with the plan's tier, spp and spectral."""
+    c = plan.choice
+    kw: dict = {"tier": c.tier, "spectral": c.spectral}
+    if c.tier == "full":
+        kw["spp"] = c.spp
+    return dataclasses.replace(opts, **kw)
