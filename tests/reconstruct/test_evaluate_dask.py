@@ -43,7 +43,7 @@ def test_dask_tables_equal_in_process_tables(tmp_path):
         r = _evaluate(tmp_path / "dask", "--scheduler", cluster.scheduler_address)
     assert r.returncode == 0, r.stderr[-3000:]
     a, b = _tables(tmp_path / "local"), _tables(tmp_path / "dask")
-    assert len(a[1]) == 3 * 5 + 5  # 3 groups x (3 solvers + tfp + best_frame), then the overall rows
+    assert len(a[1]) == 3 * 6 + 6  # 3 groups x (3 solvers, tfp, best_frame, spike_mean), then the overall rows
     assert [x["group"] for x in a[1]][-1] == "overall" and a[2]["groups"] == ["synthetic-5-000", "synthetic-5-001", "synthetic-5-002"]
     assert a == b
     assert (tmp_path / "dask" / "figure.png").is_file()
