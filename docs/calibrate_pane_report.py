@@ -46,11 +46,11 @@ def main() -> None:
         return identifiability(Path(a.dataset), a.content_power, a.span_s, a.content_sigma)
     if a.content_true_geometry:
         return content_on_true_geometry(Path(a.dataset))
-    from polspike.pipeline.pane_config import CalibratePaneConfig
     from polspike.pipeline.calibrate_pane import calibrate_input
     from reconstruct.evaluate.harness import EvalConfig, evaluate_groups
-    from reconstruct.stream.groups import load_store_group
+    from reconstruct.pane.calibrate_config import CalibratePaneConfig
     from reconstruct.physics.zeta import PaneMaps
+    from reconstruct.stream.groups import load_store_group
     from spike_sim.store import open_group
 
     rows = []
@@ -153,8 +153,7 @@ def _group_spans(dataset: Path, cfg):
     stored group of ``dataset`` (the spikes calibrate-pane reads with ``cfg``)."""
     import math
 
-    from reconstruct.stream.sources import span_frames
-    from reconstruct.stream.sources import group_source
+    from reconstruct.stream.sources import group_source, span_frames
 
     for gd in sorted((dataset / "groups").iterdir()):
         spec = json.loads((gd / "group_spec.json").read_text())["scene"]
@@ -168,8 +167,8 @@ def content_on_true_geometry(dataset: Path) -> None:
     tells the model and n when the geometry is right."""
     import math
 
-    from polspike.pipeline.pane_config import CalibratePaneConfig
-    from polspike.pipeline.pane_content import content_glass
+    from reconstruct.pane.calibrate_config import CalibratePaneConfig
+    from reconstruct.pane.content_glass import content_glass
     from spike_sim.store import open_group
 
     cfg = CalibratePaneConfig()
@@ -203,14 +202,13 @@ def valley(dataset: Path, weightings: list[str]) -> None:
     import dataclasses as dc
     import math
 
-    from generator.pane_fit import PaneModelAD, gauss_newton
-    from polspike.pipeline.pane_config import CalibratePaneConfig
-    from polspike.pipeline.pane_geometry import _wrap90, fit_geometry
-    from reconstruct.pane.orientation import block_orientation_variance
-    from reconstruct.stream.sources import span_frames
+    from generator.pane_fit import PaneModelAD
+    from reconstruct.pane.calibrate_config import CalibratePaneConfig
+    from reconstruct.pane.geometry_fit import _wrap90, fit_geometry
+    from reconstruct.pane.levenberg import gauss_newton
+    from reconstruct.pane.orientation import block_orientation_variance, orientation_field
     from reconstruct.pane.selfcal import SelfCalConfig, self_calibrate
-    from reconstruct.pane.orientation import orientation_field
-    from reconstruct.stream.sources import group_source
+    from reconstruct.stream.sources import group_source, span_frames
     from spike_sim.store import open_group
 
     cfg = CalibratePaneConfig()
@@ -250,8 +248,8 @@ def valley(dataset: Path, weightings: list[str]) -> None:
         th_err = lambda x: float(np.degrees(np.median(np.abs(pmf.maps(x)["theta"] - mp["theta"]))))  # noqa: E731
         row = {"group": gd.name, "tilt_fov_true": [spec["pane"]["tilt_deg"], spec["camera"]["fov_deg"]], "truth_fit_theta_err": th_err(xt)}
         for wname in weightings:
-            geo = fit_geometry(of, W, H, block, x0, fit_fov=True, weighting=wname)
-            giv = fit_geometry(of, W, H, block, np.r_[x0[:2], fov_t, cfg.prior_n], fit_fov=False, weighting=wname)
+            geo = fit_geometry(of, W, H, block, x0, fit_fov=True, weighting=wname, pane_model=PaneModelAD)
+            giv = fit_geometry(of, W, H, block, np.r_[x0[:2], fov_t, cfg.prior_n], fit_fov=False, weighting=wname, pane_model=PaneModelAD)
             mask = geo["mask"]
             if wname == "scatter":
                 v = block_orientation_variance(of, block)[0][mask]
@@ -266,7 +264,7 @@ def valley(dataset: Path, weightings: list[str]) -> None:
             cost = lambda x: float(np.sum(w * (1.0 - np.cos(4.0 * resid(x)))))  # noqa: E731
             prof = []
             for rel in (0.75, 0.9, 1.0, 1.1, 1.25):
-                gp = fit_geometry(of, W, H, block, np.r_[geo["x"][:2], fov_t * rel, cfg.prior_n], fit_fov=False, rounds=1, weighting=wname)
+                gp = fit_geometry(of, W, H, block, np.r_[geo["x"][:2], fov_t * rel, cfg.prior_n], fit_fov=False, rounds=1, weighting=wname, pane_model=PaneModelAD)
                 prof.append([round(math.degrees(fov_t * rel), 2), round(cost(gp["x"]), 3), round(th_err(gp["x"]), 2)])
             row[wname] = {"fitted": {"theta_err": round(th_err(geo["x"]), 3), "theta_sigma": round(geo["sigma_theta_deg_median"], 3), "fov": round(math.degrees(geo["x"][2]), 2),
                                      "starts_end_fov": [round(t["end"][2], 2) for t in geo["starts"]]},
@@ -287,8 +285,8 @@ def identifiability(dataset: Path, content_power: str = "same", span_s: float = 
     the spike noise removed: where (b) does not claim, no amount of spikes lets this test claim."""
     import math
 
-    from polspike.pipeline.pane_config import CalibratePaneConfig
-    from polspike.pipeline.pane_content import content_glass, content_parts_for
+    from reconstruct.pane.calibrate_config import CalibratePaneConfig
+    from reconstruct.pane.content_glass import content_glass, content_parts_for
     from spike_sim.store import open_group
 
     cfg = CalibratePaneConfig(content_power=content_power, span_s=span_s)

@@ -30,7 +30,7 @@ def calibrate_pane_cmd(
     from rich.console import Console
 
     from polinfra.errors import ConfigError
-    from polspike.pipeline.pane_config import PANE_CHOICES, CalibratePaneConfig
+    from reconstruct.pane.calibrate_config import PANE_CHOICES, CalibratePaneConfig
     from polspike.pipeline.calibrate_pane import calibrate_input
     from polspike.pipeline.pane_outputs import write_outputs
 

@@ -78,7 +78,6 @@ import numpy as np
 from polinfra.atomic import ensure_dir, write_bytes, write_json
 from polinfra.errors import ConfigError, DataFormatError, OutputError, PolspikeError
 from polinfra.faults import fault_point
-
 from polspike.pipeline.dataset_checksums import (
     CHECKSUM_DEFINITION,
     CHECKSUMS_FILE,

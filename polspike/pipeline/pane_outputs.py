@@ -9,14 +9,9 @@ from pathlib import Path
 
 import numpy as np
 
+from reconstruct.pane.calibrate import _json_safe, _normal
+
 log = logging.getLogger(__name__)
-
-
-def _normal(x) -> np.ndarray:
-    """Unit pane normal in the reference camera frame (forward +z, up +y, right -x), N . forward > 0."""
-    t, a = x[0], x[1]
-    st = math.sin(t)
-    return np.array([-st * math.cos(a), st * math.sin(a), math.cos(t)])
 
 
 def fitted_scene_dict(params: dict, width: int, height: int, base: dict | None = None, name: str = "fitted_pane") -> dict:
@@ -125,21 +120,6 @@ def _figures(out: Path, res: dict) -> list[str]:
     plt.close(fig)
     names.append("modulation_depth.png")
     return names
-
-
-def _json_safe(o):
-    """Non-finite floats -> None (JSON has no inf / NaN); numpy scalars -> Python."""
-    if isinstance(o, dict):
-        return {k: _json_safe(v) for k, v in o.items()}
-    if isinstance(o, (list, tuple)):
-        return [_json_safe(v) for v in o]
-    if isinstance(o, (np.floating, float)):
-        return float(o) if math.isfinite(float(o)) else None
-    if isinstance(o, np.integer):
-        return int(o)
-    if isinstance(o, np.bool_):
-        return bool(o)
-    return o
 
 
 def write_outputs(out: Path, res: dict, *, base_scene: dict | None = None, width: int, height: int) -> dict:

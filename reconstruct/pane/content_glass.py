@@ -9,7 +9,7 @@ import time
 import numpy as np
 
 from polinfra.errors import ConfigError
-from polspike.pipeline.pane_config import CalibratePaneConfig
+from reconstruct.pane.calibrate_config import CalibratePaneConfig
 
 log = logging.getLogger(__name__)
 

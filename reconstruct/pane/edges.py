@@ -8,15 +8,16 @@ import math
 import numpy as np
 
 from polinfra.errors import ConfigError
-from polspike.pipeline.pane_config import CalibratePaneConfig
-from polspike.pipeline.pane_geometry import (
+from reconstruct.pane.calibrate_config import CalibratePaneConfig
+from reconstruct.pane.camera import FOV_INNER_DEG
+from reconstruct.pane.geometry_fit import (
     _degenerate_view,
     _expected_max,
     _sigma_maps,
     _turned_against,
     fit_geometry,
 )
-from reconstruct.pane.camera import FOV_INNER_DEG
+from reconstruct.pane.levenberg import PaneModelFactory
 from reconstruct.pane.orientation import block_sum
 
 log = logging.getLogger(__name__)
@@ -83,13 +84,13 @@ def _edge_loss(st: dict, dR: np.ndarray, dT: np.ndarray, slack: float = 0.05) ->
     return loss, eu, el
 
 
-def fit_glass_to_edges(st: dict, width: int, height: int, block: int, x_geo: np.ndarray, models: tuple[str, ...], fixed_n: float | None, cfg: CalibratePaneConfig, n_grid: np.ndarray | None = None) -> dict:
+def fit_glass_to_edges(st: dict, width: int, height: int, block: int, x_geo: np.ndarray, models: tuple[str, ...], fixed_n: float | None, cfg: CalibratePaneConfig, n_grid: np.ndarray | None = None, *, pane_model: PaneModelFactory) -> dict:
     """Index and pane model from the cone's edges (module docstring, step 4)."""
-    from generator.pane_fit import PaneModelAD, gauss_newton
+    from reconstruct.pane.levenberg import gauss_newton
 
     out: dict = {"models": {}}
     for model in models:
-        pm = PaneModelAD(width, height, model, block=block)
+        pm = pane_model(width, height, model, block=block)
         grid = np.array([fixed_n]) if fixed_n else (N_GRID if n_grid is None else n_grid)
         losses = []
         for n in grid:
@@ -146,7 +147,7 @@ def fit_glass_to_edges(st: dict, width: int, height: int, block: int, x_geo: np.
 
 
 def dop_fov_profile(of: dict, st: dict, width: int, height: int, block: int, gblock: int, geo: dict, model: str, fixed_n: float | None,
-                    cfg: CalibratePaneConfig, rel: tuple[float, float] = (0.85, 1.15), points: int = 9) -> dict:
+                    cfg: CalibratePaneConfig, rel: tuple[float, float] = (0.85, 1.15), points: int = 9, *, pane_model: PaneModelFactory) -> dict:
     """Profile the fov-tilt valley of the orientation fit with the modulation depth's theta dependence.
 
     The orientation field pins the vanishing point of the normal, f tan(tilt), well and the focal length f
@@ -158,7 +159,6 @@ def dop_fov_profile(of: dict, st: dict, width: int, height: int, block: int, gbl
     minimum inside the grid and the violations at both ends at least ``dop_fov_delta_chi2`` above it.
     Returns the profile and, when used, the geometry at the minimum with a 3 x 3 covariance (the fov's
     variance from the profile's curvature, carried along the valley)."""
-    from generator.pane_fit import PaneModelAD
 
     f0 = float(geo["x"][2])
     fovs = f0 * np.linspace(rel[0], rel[1], points)
@@ -167,8 +167,8 @@ def dop_fov_profile(of: dict, st: dict, width: int, height: int, block: int, gbl
     for f in fovs:
         xs = geo["x"].copy()
         xs[2] = f
-        g = fit_geometry(of, width, height, block, xs, fit_fov=False, fov_starts=(), rounds=1)
-        gg = fit_glass_to_edges(st, width, height, gblock, g["x"], (model,), fixed_n, cfg)
+        g = fit_geometry(of, width, height, block, xs, fit_fov=False, fov_starts=(), rounds=1, pane_model=pane_model)
+        gg = fit_glass_to_edges(st, width, height, gblock, g["x"], (model,), fixed_n, cfg, pane_model=pane_model)
         rows.append((float(f), float(g["chi2"]), float(gg["models"][model]["violation_chi2"]), float(gg["models"][model]["n"]), g))
     o = np.array([r[1] for r in rows])
     dof = max(1, int(geo["mask"].sum()) - 2)
@@ -191,8 +191,8 @@ def dop_fov_profile(of: dict, st: dict, width: int, height: int, block: int, gbl
     def total(f):
         xs_ = rows[i][4]["x"].copy()
         xs_[2] = f
-        g_ = fit_geometry(of, width, height, block, xs_, fit_fov=False, fov_starts=(), rounds=1)
-        v_ = fit_glass_to_edges(st, width, height, gblock, g_["x"], (model,), fixed_n, cfg)["models"][model]["violation_chi2"]
+        g_ = fit_geometry(of, width, height, block, xs_, fit_fov=False, fov_starts=(), rounds=1, pane_model=pane_model)
+        v_ = fit_glass_to_edges(st, width, height, gblock, g_["x"], (model,), fixed_n, cfg, pane_model=pane_model)["models"][model]["violation_chi2"]
         return (g_["chi2"] - o.min()) / max(o.min() / dof, 1e-300) / max(float(geo["covariance_inflation"]), 1.0) + v_
 
     opt_ = minimize_scalar(total, bounds=(float(F[0]), float(F[2])), method="bounded", options={"xatol": math.radians(0.05), "maxiter": 12})
@@ -201,7 +201,7 @@ def dop_fov_profile(of: dict, st: dict, width: int, height: int, block: int, gbl
     s_f = max(float(math.sqrt(1.0 / a)) if a > 0 else float(F[2] - F[0]), 0.5 * float(F[1] - F[0]))
     xs = rows[i][4]["x"].copy()
     xs[2] = f_hat
-    g = fit_geometry(of, width, height, block, xs, fit_fov=False, fov_starts=(), rounds=0)
+    g = fit_geometry(of, width, height, block, xs, fit_fov=False, fov_starts=(), rounds=0, pane_model=pane_model)
     # slope of (tilt, azimuth) along the valley: the fov's uncertainty carried into them
     T = np.array([r[4]["x"][0] for r in rows[i - 1:i + 2]])
     A = np.array([r[4]["x"][1] for r in rows[i - 1:i + 2]])
@@ -211,7 +211,7 @@ def dop_fov_profile(of: dict, st: dict, width: int, height: int, block: int, gbl
     cov3 += s_f**2 * np.outer(dv, dv)
     sig = np.sqrt(np.maximum(np.diag(cov3), 0.0))
     g.update({"cov": cov3, "wrt": (0, 1, 2), "sigma": np.concatenate([sig, [0.0]]), "corr": (cov3 / np.outer(sig, sig)).tolist() if np.all(sig > 0) else None})
-    g.update(_sigma_maps(g, PaneModelAD(width, height, "single", block=block), cov3, (0, 1, 2)))
+    g.update(_sigma_maps(g, pane_model(width, height, "single", block=block), cov3, (0, 1, 2)))
     prof.update({"used": True, "fov_fitted_deg": math.degrees(f_hat), "fov_sigma_deg": math.degrees(s_f),
                  "why": f"the cone's violations and the orientation together are least at fov {math.degrees(f_hat):.2f} +- {math.degrees(s_f):.2f} deg "
                         f"(violation chi^2 {v[i]:.1f} there, {v[0]:.1f} / {v[-1]:.1f} at the ends of the profile)"})
@@ -219,7 +219,7 @@ def dop_fov_profile(of: dict, st: dict, width: int, height: int, block: int, gbl
 
 
 def twin_fov_profile(I, phi, of: dict, width: int, height: int, block: int, gblock: int, gain: float, x_best: np.ndarray, best_score: float,
-                     models: tuple[str, ...], fixed_n: float | None, cfg: CalibratePaneConfig) -> dict:
+                     models: tuple[str, ...], fixed_n: float | None, cfg: CalibratePaneConfig, *, pane_model: PaneModelFactory) -> dict:
     """The 90 deg twin family profiled along the field of view, each point judged by the cone.
 
     With the fov free, a family's orientation optimum slides along its fov-tilt valley, and the twin family's optimum
@@ -229,7 +229,7 @@ def twin_fov_profile(I, phi, of: dict, width: int, height: int, block: int, gblo
     turned against ``x_best``'s), and the points whose orientation cost is within ``twin_profile_cost_tol`` of the
     chosen pane's get the cone's violation.  Returns ``points`` and ``best``: among the judged points whose violation is within
     ``twin_delta_chi2`` of the least, the best explanation of the orientation field (None when none is judged)."""
-    turned = _turned_against(of, width, height, block, x_best)
+    turned = _turned_against(of, width, height, block, x_best, pane_model=pane_model)
     points, judged, best, prev = [], [], None, None
     for f in TWIN_FOVS_DEG:
         top = None
@@ -238,7 +238,7 @@ def twin_fov_profile(I, phi, of: dict, width: int, height: int, block: int, gblo
         for tl, az in starts:
             xs = np.asarray(x_best, np.float64).copy()
             xs[0], xs[1], xs[2] = tl, az, math.radians(f)
-            g = fit_geometry(of, width, height, block, xs, False, fov_starts=(), rounds=1)
+            g = fit_geometry(of, width, height, block, xs, False, fov_starts=(), rounds=1, pane_model=pane_model)
             if turned(g["x"]) and not _degenerate_view(g["x"], False) and (top is None or g["score"] < top["score"]):
                 top = g
         prev = None if top is None else top["x"]
@@ -247,7 +247,7 @@ def twin_fov_profile(I, phi, of: dict, width: int, height: int, block: int, gblo
         row = {"fov_deg": f, "tilt_deg": math.degrees(top["x"][0]), "azimuth_deg": math.degrees(top["x"][1]) % 360.0, "orientation_cost": top["score"],
                "cost_ratio": top["score"] / max(best_score, 1e-300)}
         if top["score"] <= (1.0 + cfg.twin_profile_cost_tol) * best_score:
-            row["cone_violation_chi2"] = _cone_violation(I, phi, top["x"], width, height, gblock, gain, models, fixed_n, cfg)[0]
+            row["cone_violation_chi2"] = _cone_violation(I, phi, top["x"], width, height, gblock, gain, models, fixed_n, cfg, pane_model=pane_model)[0]
             judged.append((row, top))
         points.append(row)
     if judged:
@@ -261,12 +261,11 @@ TWIN_FOVS_DEG = (15.0, 20.0, 25.0, 30.0, 40.0, 50.0, 65.0, 90.0)
 """Fields of view (degrees) at which :func:`twin_fov_profile` fits the twin family."""
 
 
-def _cone_violation(I, phi, x, width, height, gblock, gain, models, fixed_n, cfg) -> tuple[float, dict, dict]:
+def _cone_violation(I, phi, x, width, height, gblock, gain, models, fixed_n, cfg, *, pane_model: PaneModelFactory) -> tuple[float, dict, dict]:
     """Least chi^2 of the modulation depths' excursions beyond the cone of pane ``x`` (over the models and n)."""
-    from generator.pane_fit import PaneModelAD
 
-    st = edge_statistics(I, phi, PaneModelAD(width, height, "single", sub=1).maps(x)["phi_perp"], gblock, gain)
-    gl = fit_glass_to_edges(st, width, height, gblock, x, models, fixed_n, cfg)
+    st = edge_statistics(I, phi, pane_model(width, height, "single", sub=1).maps(x)["phi_perp"], gblock, gain)
+    gl = fit_glass_to_edges(st, width, height, gblock, x, models, fixed_n, cfg, pane_model=pane_model)
     return min(v["violation_chi2"] for v in gl["models"].values()), st, gl
 
 

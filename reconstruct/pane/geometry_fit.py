@@ -10,6 +10,7 @@ import numpy as np
 
 from polinfra.errors import ConfigError
 from reconstruct.pane.camera import CHI2_1_MEDIAN, FOV_BOUNDS_DEG, FOV_INNER_DEG
+from reconstruct.pane.levenberg import PaneModelFactory
 
 log = logging.getLogger(__name__)
 
@@ -76,7 +77,7 @@ which noise can flag at the image's edge, do not decide)."""
 
 
 def fit_geometry(of: dict, width: int, height: int, block: int, x0: np.ndarray, fit_fov: bool, coherence_sigmas: float = 4.0, weighting: str = "scatter",
-                 fov_starts: tuple[float, ...] = (25.0, 40.0, 55.0, 70.0), rounds: int = 0) -> dict:
+                 fov_starts: tuple[float, ...] = (25.0, 40.0, 55.0, 70.0), rounds: int = 0, *, pane_model: PaneModelFactory) -> dict:
     """Gauss-Newton of (tilt, azimuth[, fov]) on the block orientation field (module docstring, step 3).
 
     ``weighting``: ``scatter`` (default) weighs each block by 1 / (its measured orientation variance
@@ -89,7 +90,7 @@ def fit_geometry(of: dict, width: int, height: int, block: int, x0: np.ndarray, 
     in it that separates the field of view from the tilt, is read where it is measured precisely;
     ``s4`` weighs by |sum z4| (the matched-filter weight of the self-calibration).
     ``fov_starts``: extra starts (degrees) of a fitted field of view; ``rounds``: robust re-weighting rounds."""
-    from generator.pane_fit import PaneModelAD, gauss_newton
+    from reconstruct.pane.levenberg import gauss_newton
     from reconstruct.pane.orientation import block_orientation_variance
 
     s4, q = of["s4"], of["q"]
@@ -127,7 +128,7 @@ def fit_geometry(of: dict, width: int, height: int, block: int, x0: np.ndarray, 
     w = _weights(sys2)
     sw = np.sqrt(w)
     psi = of["psi"][mask]
-    pm = PaneModelAD(width, height, "single", block=block)  # phi_perp depends on the geometry only
+    pm = pane_model(width, height, "single", block=block)  # phi_perp depends on the geometry only
     wrt = (0, 1, 2) if fit_fov else (0, 1)
     x_full = np.asarray(x0, np.float64).copy()
 
@@ -229,12 +230,11 @@ def _sigma_maps(geo: dict, pm, cov: np.ndarray, wrt: tuple[int, ...]) -> dict:
 
 
 # --------------------------------------------------------------------------- the 90 deg twin
-def _turned_against(of: dict, width: int, height: int, block: int, x_best: np.ndarray):
+def _turned_against(of: dict, width: int, height: int, block: int, x_best: np.ndarray, *, pane_model: PaneModelFactory):
     """A test of whether a pane ``x`` belongs to ``x_best``'s 90 deg twin family: its phi_perp field turned against
     ``x_best``'s (the orientation field's weighted mean of cos 2 delta below 0)."""
-    from generator.pane_fit import PaneModelAD
 
-    pm = PaneModelAD(width, height, "single", block=block)
+    pm = pane_model(width, height, "single", block=block)
     p1 = pm.maps(x_best)["phi_perp"]
     w = np.abs(of["s4"])
     return lambda x: float(np.sum(w * np.cos(2.0 * (pm.maps(x)["phi_perp"] - p1)))) < 0
@@ -245,18 +245,18 @@ def _angles_deg(x: np.ndarray) -> dict:
     return {"tilt_deg": math.degrees(x[0]), "azimuth_deg": math.degrees(x[1]), "fov_deg": math.degrees(x[2])}
 
 
-def find_twin(of: dict, width: int, height: int, block: int, x_best: np.ndarray, fit_fov: bool) -> dict | None:
+def find_twin(of: dict, width: int, height: int, block: int, x_best: np.ndarray, fit_fov: bool, *, pane_model: PaneModelFactory) -> dict | None:
     """The best pane whose phi_perp field runs along ``x_best``'s p-directions (its 90 deg twin: modulo 90 deg
     the two fields agree up to the field's curvature), as a :func:`fit_geometry` result, or None."""
-    turned = _turned_against(of, width, height, block, x_best)
+    turned = _turned_against(of, width, height, block, x_best, pane_model=pane_model)
     found = None
     for tl in sorted({float(x_best[0]), math.radians(30.0), math.radians(55.0), math.radians(75.0)}):
         for da in (0.5 * math.pi, -0.5 * math.pi):
             xs = np.asarray(x_best, np.float64).copy()
             xs[0], xs[1] = tl, x_best[1] + da
-            g = fit_geometry(of, width, height, block, xs, fit_fov, fov_starts=(), rounds=1)
+            g = fit_geometry(of, width, height, block, xs, fit_fov, fov_starts=(), rounds=1, pane_model=pane_model)
             if turned(g["x"]) and (found is None or g["score"] < found["score"]):
                 found = g
     if found is None:
         return None
-    return fit_geometry(of, width, height, block, found["x"], fit_fov)
+    return fit_geometry(of, width, height, block, found["x"], fit_fov, pane_model=pane_model)

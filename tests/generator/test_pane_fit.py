@@ -166,7 +166,7 @@ def test_gradients_match_torch_autograd_of_the_analytic_formulas(ad, model):
 
 def test_gauss_newton_recovers_a_known_optimum_and_its_covariance():
     """Linear least squares with known noise: GN's x and covariance equal the closed form."""
-    from generator.pane_fit import gauss_newton
+    from reconstruct.pane.levenberg import gauss_newton
 
     rng = np.random.default_rng(3)
     A = rng.normal(size=(200, 3))

@@ -88,8 +88,8 @@ def test_geometry_recovered_with_fitted_fov(tilt, az, model, n):
     reported 1-sigma uncertainties cover the truth (tilt, azimuth, fov within 4 sigma; theta's median error
     within 3 of its median 1-sigma, and within 1 deg), and the fov is claimed exactly when theta's 1-sigma
     passes the 0.5 deg gate."""
-    from polspike.pipeline.pane_config import CalibratePaneConfig
     from polspike.pipeline.calibrate_pane import calibrate_frames
+    from reconstruct.pane.calibrate_config import CalibratePaneConfig
 
     I, phi, span, geo = pane_stream(tilt, az, n=n, model=model)
     res = calibrate_frames(I, phi, CalibratePaneConfig(), span_rad=span)
@@ -109,8 +109,8 @@ def test_a_narrow_view_reports_the_fov_tilt_trade_off_instead_of_claiming_theta(
     """Narrow view (fov 15 deg), fov fitted: phi_perp's curvature barely changes along the fov-tilt valley,
     so the fit must not claim theta: the fov is reported NOT identified, theta's 1-sigma exceeds the 0.5 deg
     gate, and the truth lies within 4 reported sigmas (honest error bars)."""
-    from polspike.pipeline.pane_config import CalibratePaneConfig
     from polspike.pipeline.calibrate_pane import calibrate_frames
+    from reconstruct.pane.calibrate_config import CalibratePaneConfig
 
     tilt, az = 50.0, 60.0
     I, phi, span, geo = pane_stream(tilt, az, fov_deg=15.0, n=1.5, model="single", H=48, W=72)
@@ -131,8 +131,9 @@ def test_a_fov_fit_that_ends_in_a_degenerate_view_keeps_the_self_calibrated_fov(
     34 deg), calibrate-pane keeps the self-calibration's fov and fits the orientation at it instead of refusing:
     the result is usable (phi_perp within the goal) and the fov is reported NOT identified with the reason."""
     import polspike.pipeline.calibrate_pane as cp
+    import reconstruct.pane.calibrate as core
 
-    real = cp.fit_geometry
+    real = core.fit_geometry
     calls = []
 
     def sliding(of, width, height, block, x0, fit_fov, **kw):
@@ -143,7 +144,7 @@ def test_a_fov_fit_that_ends_in_a_degenerate_view_keeps_the_self_calibrated_fov(
             geo["x"][2] = math.radians(5.0)
         return geo
 
-    monkeypatch.setattr(cp, "fit_geometry", sliding)
+    monkeypatch.setattr(core, "fit_geometry", sliding)
     tilt, az = CASES[0][:2]
     I, phi, span, geo = pane_stream(tilt, az, n=1.5, model="single")
     res = cp.calibrate_frames(I, phi, cp.CalibratePaneConfig(), span_rad=span)
@@ -157,7 +158,7 @@ def test_a_fov_fit_that_ends_in_a_degenerate_view_keeps_the_self_calibrated_fov(
     th, ph = _errors(res, geo)
     assert ph <= 0.5 and th <= 1.0  # this stream's self-calibrated fov is close to the truth (55 deg)
     # without the degenerate end nothing is kept
-    monkeypatch.setattr(cp, "fit_geometry", real)
+    monkeypatch.setattr(core, "fit_geometry", real)
     assert cp.calibrate_frames(I, phi, cp.CalibratePaneConfig(), span_rad=span)["report"]["geometry"]["fov_kept"] is None
 
 
@@ -165,7 +166,7 @@ def test_max_incidence_is_the_maps_theta_where_every_ray_meets_the_pane_and_exce
     """max_incidence_deg against the differentiable tracer's own theta (block centres): equal where every ray meets
     the pane in front; a steep pane seen wide (tilt 80, fov 60) has rays beyond 90 deg, which the maps fold back."""
     from generator.pane_fit import PaneModelAD
-    from polspike.pipeline.pane_geometry import max_incidence_deg
+    from reconstruct.pane.geometry_fit import max_incidence_deg
 
     W, H, block = 96, 64, 4
     pm = PaneModelAD(W, H, "single", block=block)
@@ -187,8 +188,9 @@ def test_a_fov_fit_that_ends_where_modulating_blocks_could_not_see_the_pane_is_n
     max_incidence_deg (89), on that boundary to the bisection's resolution, and reported NOT identified, why said.
     Unpatched, nothing is narrowed."""
     import polspike.pipeline.calibrate_pane as cp
+    import reconstruct.pane.calibrate as core
 
-    real = cp.fit_geometry
+    real = core.fit_geometry
 
     def too_wide(of, width, height, block, x0, fit_fov, **kw):
         geo = real(of, width, height, block, x0, fit_fov, **kw)
@@ -200,7 +202,7 @@ def test_a_fov_fit_that_ends_where_modulating_blocks_could_not_see_the_pane_is_n
     tilt, az = CASES[2][:2]
     I, phi, span, geo = pane_stream(tilt, az, n=1.52, model="single")
     assert cp.calibrate_frames(I, phi, cp.CalibratePaneConfig(), span_rad=span)["report"]["geometry"]["fov_kept"] is None
-    monkeypatch.setattr(cp, "fit_geometry", too_wide)
+    monkeypatch.setattr(core, "fit_geometry", too_wide)
     res = cp.calibrate_frames(I, phi, cp.CalibratePaneConfig(), span_rad=span)
     assert res["ok"], res["report"].get("reason")
     rep = res["report"]
@@ -210,7 +212,7 @@ def test_a_fov_fit_that_ends_where_modulating_blocks_could_not_see_the_pane_is_n
     x = np.radians([rep["params"]["tilt_deg"], rep["params"]["azimuth_deg"], rep["params"]["fov_deg"]])
     block = rep["geometry"]["block_px"]
     gh, gw = rep["geometry"]["blocks"][1], rep["geometry"]["blocks"][0]
-    mi = cp.max_incidence_deg(x, 96, 64, block, np.ones((gh, gw), bool))  # every block of this stream modulates
+    mi = core.max_incidence_deg(x, 96, 64, block, np.ones((gh, gw), bool))  # every block of this stream modulates
     assert 87.0 <= mi <= 89.0 + 1e-6, mi  # on the boundary, to the bisection's resolution
     fv = rep["identifiability"]["fov"]
     assert fv["identified"] is False and "edge-on or behind" in fv["why"] and "--fov-deg" in fv["why"]
@@ -219,8 +221,8 @@ def test_a_fov_fit_that_ends_where_modulating_blocks_could_not_see_the_pane_is_n
 def test_geometry_with_known_fov():
     """fov given (a low tilt, 30 deg): theta and phi_perp within the goal (0.5 deg median), tilt within
     1 deg and 4 reported sigmas."""
-    from polspike.pipeline.pane_config import CalibratePaneConfig
     from polspike.pipeline.calibrate_pane import calibrate_frames
+    from reconstruct.pane.calibrate_config import CalibratePaneConfig
 
     tilt, az = CASES[2][:2]
     I, phi, span, geo = pane_stream(tilt, az, n=1.52, model="single")
@@ -238,8 +240,8 @@ def test_refuses_to_claim_the_glass_when_no_layer_is_ever_black():
     """Layers never black (the cone's edges are not reached): n and the model are reported as NOT
     identified and the priors are kept (not the truth, 1.6 / single, by luck); the geometry's truth lies
     within 4 reported sigmas even on this weakly modulating stream."""
-    from polspike.pipeline.pane_config import CalibratePaneConfig
     from polspike.pipeline.calibrate_pane import calibrate_frames
+    from reconstruct.pane.calibrate_config import CalibratePaneConfig
 
     tilt, az = CASES[2][:2]
     I, phi, span, geo = pane_stream(tilt, az, n=1.6, model="single", black=False)
@@ -264,10 +266,11 @@ def test_an_unclaimed_model_guess_stands_when_its_best_index_is_at_the_end_of_th
     comparison holds over the same range of indices, so above content_best_z (1) the maps use single; the index is
     no estimate, so the prior 1.5 stays and the report says why.  Below it, the prior model stays."""
     import polspike.pipeline.calibrate_pane as cp
+    import reconstruct.pane.calibrate as core
 
     tilt, az = CASES[2][:2]
     I, phi, span, _ = pane_stream(tilt, az, n=1.6, model="single", black=False)
-    grid = cp.CONTENT_N_GRID
+    grid = core.CONTENT_N_GRID
 
     def fake(*a, **kw):
         sc = {"single": [0.1] * grid.size, "thin_slab": [0.2] * grid.size}
@@ -275,7 +278,7 @@ def test_an_unclaimed_model_guess_stands_when_its_best_index_is_at_the_end_of_th
                 "model": {"identified": False, "value": "single", "z": z, "other": "thin_slab", "other_n": 1.5, "other_score": 0.2, "why": "fake"},
                 "n": {"identified": False, "value": float(grid[0]), "accepted_range": [1.4, 1.46], "why": "fake"}}
 
-    monkeypatch.setattr(cp, "content_glass", fake)
+    monkeypatch.setattr(core, "content_glass", fake)
     rep = cp.calibrate_frames(I, phi, cp.CalibratePaneConfig(fov_deg=55.0), span_rad=span)["report"]
     ident = rep["identifiability"]
     assert ident["model"]["identified"] is False and ident["n"]["identified"] is False
@@ -312,8 +315,8 @@ def test_content_test_picks_the_pane_model_from_textured_layers(model):
     """Textured independent layers, wide view of a tilted pane (theta 31-90 deg), n 1.5, no layer black (the cone
     says nothing): the layers solved under the true model are the least mixed; the other model's best index scores
     clearly worse (>= 2 standard errors over the tiles), and the true index is inside the accepted range."""
-    from polspike.pipeline.pane_config import CalibratePaneConfig
-    from polspike.pipeline.pane_content import content_glass
+    from reconstruct.pane.calibrate_config import CalibratePaneConfig
+    from reconstruct.pane.content_glass import content_glass
 
     I, phi, g, geo = textured_stream(70.0, 30.0, model, 1.5)
     r = content_glass(I, phi, geo["theta"], geo["phi_perp"], g, ("single", "thin_slab"), CalibratePaneConfig())
@@ -328,8 +331,8 @@ def test_content_pixels_auto_splits_where_the_span_holds_enough_parts():
     split (the checkerboard sets, which drop the fixed pattern's pull on the index).  Explicit choices are kept."""
     import dataclasses
 
-    from polspike.pipeline.pane_content import CONTENT_SPLIT_PARTS, content_glass, content_pixels_for
-    from polspike.pipeline.pane_config import CalibratePaneConfig
+    from reconstruct.pane.calibrate_config import CalibratePaneConfig
+    from reconstruct.pane.content_glass import CONTENT_SPLIT_PARTS, content_glass, content_pixels_for
 
     assert [content_pixels_for("auto", p) for p in (2, 3, 4, 6)] == ["same", "same", "split", "split"] and CONTENT_SPLIT_PARTS == 4
     assert content_pixels_for("same", 8) == "same" and content_pixels_for("split", 2) == "split"
@@ -350,7 +353,7 @@ def test_content_index_uncertainty_from_the_geometry_matches_the_dop_slope(tilt,
     formulas at the centre, an independent oracle), to the 0.0025 grid of the search."""
     from generator.pane_fit import PaneModelAD
     from polphysics.fresnel import pane_coefficients
-    from polspike.pipeline.pane_content import content_n_sigma_from_geometry
+    from reconstruct.pane.content_glass import content_n_sigma_from_geometry
 
     pm = PaneModelAD(64, 40, "single", sub=1)
     x = np.array([math.radians(tilt), 0.3, math.radians(10.0), n])
@@ -370,8 +373,8 @@ def test_content_index_uncertainty_from_the_geometry_matches_the_dop_slope(tilt,
 def test_content_test_claims_nothing_without_content():
     """R = T everywhere (flat, equal): the pane changes nothing in the solved layers, whose gradients are only spike
     noise, independent across time parts: neither the model nor n is claimed."""
-    from polspike.pipeline.pane_config import CalibratePaneConfig
-    from polspike.pipeline.pane_content import content_glass
+    from reconstruct.pane.calibrate_config import CalibratePaneConfig
+    from reconstruct.pane.content_glass import content_glass
 
     I, phi, g, geo = textured_stream(70.0, 30.0, "single", 1.5, R_level=0.6, T_level=0.6, contrast=False)
     r = content_glass(I, phi, geo["theta"], geo["phi_perp"], g, ("single", "thin_slab"), CalibratePaneConfig())
@@ -385,9 +388,9 @@ def test_outputs_pane_toml_reproduces_the_fit_and_maps_exr_has_the_render_channe
     from generator.analytic import MAP_CHANNELS
     from generator.scene import load_scene
     from polinfra.exr import read_exr
-    from polspike.pipeline.pane_config import CalibratePaneConfig
     from polspike.pipeline.calibrate_pane import calibrate_frames
     from polspike.pipeline.pane_outputs import write_outputs
+    from reconstruct.pane.calibrate_config import CalibratePaneConfig
 
     I, phi, span, geo = pane_stream(50.0, 300.0, n=1.55, model="single", H=48, W=72)
     res = calibrate_frames(I, phi, CalibratePaneConfig(n=1.55, pane_model="single"), span_rad=span)
@@ -541,8 +544,8 @@ def test_pane_model_from_the_cone_edges_when_layers_go_black(tilt, az, model, n)
     """0.1 s of back-to-back windows (120 x 80) where T and R are each black somewhere: the model, when
     claimed, is the true one; n, when claimed, is within 0.03 (here its 1-sigma exceeds the 0.03 gate,
     so it is not claimed and the prior is kept)."""
-    from polspike.pipeline.pane_config import CalibratePaneConfig
     from polspike.pipeline.calibrate_pane import calibrate_frames
+    from reconstruct.pane.calibrate_config import CalibratePaneConfig
 
     I, phi, span, geo = pane_stream(tilt, az, n=n, model=model, H=80, W=120, M=153, stride_deg=360 * 30 * 13 / 20000, exposure=4.0, motion=0.2)
     rep = calibrate_frames(I, phi, CalibratePaneConfig(), span_rad=span)["report"]
@@ -556,9 +559,9 @@ def test_pane_model_from_the_cone_edges_when_layers_go_black(tilt, az, model, n)
 
 def test_nothing_modulates_is_reported_not_fitted(tmp_path):
     """Near-normal incidence: no pane is claimed; report.json says why and nothing else is written."""
-    from polspike.pipeline.pane_config import CalibratePaneConfig
     from polspike.pipeline.calibrate_pane import calibrate_frames
     from polspike.pipeline.pane_outputs import write_outputs
+    from reconstruct.pane.calibrate_config import CalibratePaneConfig
 
     I, phi, span, _ = pane_stream(1.0, 0.0, H=48, W=72)
     res = calibrate_frames(I, phi, CalibratePaneConfig(fov_deg=55.0), span_rad=span)
@@ -576,9 +579,9 @@ def test_the_90_deg_twin_is_told_apart_by_the_modulation_depth():
     orientation field nearly as well), and the modulation depths, which reach the true cone's edges
     (layers go black), violate the twin's cone [-DoP_T, DoP_R] by far more chi^2 than the true pane's."""
     from generator.pane_fit import PaneModelAD
-    from polspike.pipeline.pane_config import CalibratePaneConfig
-    from polspike.pipeline.pane_glass import _cone_violation
-    from polspike.pipeline.pane_geometry import find_twin, fit_geometry
+    from reconstruct.pane.calibrate_config import CalibratePaneConfig
+    from reconstruct.pane.edges import _cone_violation
+    from reconstruct.pane.geometry_fit import find_twin, fit_geometry
     from reconstruct.pane.orientation import orientation_field
 
     tilt, az, fov, H, W = 72.0, 30.0, 20.0, 48, 72
@@ -586,26 +589,27 @@ def test_the_90_deg_twin_is_told_apart_by_the_modulation_depth():
     block = 4
     of = orientation_field(I, phi, block)
     x_true = np.array([math.radians(tilt), math.radians(az), math.radians(fov), 1.5])
-    g_true = fit_geometry(of, W, H, block, x_true, fit_fov=False)
-    tw = find_twin(of, W, H, block, g_true["x"], fit_fov=False)
+    g_true = fit_geometry(of, W, H, block, x_true, fit_fov=False, pane_model=PaneModelAD)
+    tw = find_twin(of, W, H, block, g_true["x"], fit_fov=False, pane_model=PaneModelAD)
     assert tw is not None
     pm = PaneModelAD(W, H, "single", block=block)
     w = np.abs(of["s4"])
     assert np.sum(w * np.cos(2 * (pm.maps(tw["x"])["phi_perp"] - pm.maps(g_true["x"])["phi_perp"]))) < 0
     assert tw["score"] < 1.5 * g_true["score"] + 1.0  # nearly as good an explanation of the orientation field
     gain = math.sin(span) / span
-    v_true = _cone_violation(I, phi, g_true["x"], W, H, block, gain, ("single", "thin_slab"), None, CalibratePaneConfig())[0]
-    v_twin = _cone_violation(I, phi, tw["x"], W, H, block, gain, ("single", "thin_slab"), None, CalibratePaneConfig())[0]
+    v_true = _cone_violation(I, phi, g_true["x"], W, H, block, gain, ("single", "thin_slab"), None, CalibratePaneConfig(), pane_model=PaneModelAD)[0]
+    v_twin = _cone_violation(I, phi, tw["x"], W, H, block, gain, ("single", "thin_slab"), None, CalibratePaneConfig(), pane_model=PaneModelAD)[0]
     assert v_twin - v_true >= CalibratePaneConfig().twin_delta_chi2, (v_true, v_twin)
 
 
 def test_unknown_geometry_weighting_is_refused():
+    from generator.pane_fit import PaneModelAD
     from polinfra.errors import ConfigError
-    from polspike.pipeline.pane_geometry import fit_geometry
+    from reconstruct.pane.geometry_fit import fit_geometry
 
     of = {"s4": np.ones((4, 4), complex), "q": np.ones((4, 4)), "psi": np.zeros((4, 4))}
     with pytest.raises(ConfigError, match="weighting"):
-        fit_geometry(of, 16, 16, 4, np.array([0.5, 0.0, 1.0, 1.5]), fit_fov=False, weighting="bogus")
+        fit_geometry(of, 16, 16, 4, np.array([0.5, 0.0, 1.0, 1.5]), fit_fov=False, weighting="bogus", pane_model=PaneModelAD)
 
 
 def test_block_orientation_variance_matches_the_monte_carlo_spread_of_psi():
@@ -676,9 +680,10 @@ def test_a_narrowly_chosen_twin_is_overturned_by_the_cone_along_the_other_family
     import dataclasses
 
     import reconstruct.pane.selfcal as sc
-    from polspike.pipeline.pane_config import CalibratePaneConfig
+    from generator.pane_fit import PaneModelAD
     from polspike.pipeline.calibrate_pane import calibrate_frames
-    from polspike.pipeline.pane_geometry import find_twin
+    from reconstruct.pane.calibrate_config import CalibratePaneConfig
+    from reconstruct.pane.geometry_fit import find_twin
     from reconstruct.pane.orientation import orientation_field
 
     tilt, az, fov, H, W = 72.0, 30.0, 20.0, 48, 72
@@ -686,7 +691,7 @@ def test_a_narrowly_chosen_twin_is_overturned_by_the_cone_along_the_other_family
     right = calibrate_frames(I, phi, CalibratePaneConfig(), span_rad=span)
     assert right["ok"] and _errors(right, geo)[1] <= 0.5
     assert right["report"].get("twin", {}).get("chosen", "best") == "best"
-    tw = find_twin(orientation_field(I, phi, 4), W, H, 4, np.array([math.radians(tilt), math.radians(az), math.radians(fov), 1.5]), fit_fov=True)
+    tw = find_twin(orientation_field(I, phi, 4), W, H, 4, np.array([math.radians(tilt), math.radians(az), math.radians(fov), 1.5]), fit_fov=True, pane_model=PaneModelAD)
     real = sc.self_calibrate
 
     def handing_over_the_twin(*a, **kw):
@@ -707,7 +712,7 @@ def test_a_narrowly_chosen_twin_is_overturned_by_the_cone_along_the_other_family
 def test_content_parts_follow_the_span_in_half_turns():
     """The content test's time parts (content_parts = 0): one per 3 half turns of the polarizer (0.05 s at 30 rev/s),
     at least 2, so 0.1 s of back-to-back 13-step windows gives 2 parts and 0.2 s gives 4; a given count is kept."""
-    from polspike.pipeline.pane_content import content_parts_for
+    from reconstruct.pane.content_glass import content_parts_for
 
     step = 2 * math.pi * 30.0 * 13 / 20000.0  # polarizer sweep per window
     for span_s, want in ((0.05, 2), (0.1, 2), (0.2, 4), (0.4, 8)):
