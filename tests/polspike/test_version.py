@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 import subprocess
 import sys
 import tomllib
@@ -19,7 +20,7 @@ def test_version_prints_package_version_and_default_checkpoint(polspike_cli):
     assert r.returncode == 0, (r.stdout, r.stderr[-1500:])
     lines = [ln for ln in r.stdout.splitlines() if ln.strip()]
     assert len(lines) == 1, r.stdout
-    assert declared in lines[0].split(), (declared, lines[0])
+    assert declared in re.split(r"[\s,]+", lines[0]), (declared, lines[0])
     assert DEFAULT_WEIGHTS.name in lines[0], (DEFAULT_WEIGHTS.name, lines[0])
     assert DEFAULT_WEIGHTS.is_file(), f"the default checkpoint {DEFAULT_WEIGHTS} is not shipped"
 
