@@ -1,4 +1,4 @@
-"""``polspike train`` and ``polspike reconstruct``: the learned reconstructor's CLI (issue 9).
+"""``polspike train`` and ``polspike reconstruct``: the learned reconstructor's CLI.
 
 The CLI is the one place that wires the generator's layer content into
 ``reconstruct``'s on-the-fly window source (``reconstruct`` never imports

@@ -1,6 +1,6 @@
 """``polspike calibrate-pane``: fit the pane and the camera's field of view to a recording.
 
-Pipeline (issue 21; physics in ../shared/RECONSTRUCTION_NOTES.md):
+Pipeline (physics in ../shared/RECONSTRUCTION_NOTES.md):
 
 1. **Frames**: the first ``span_s`` (default 0.1 s) of the stream as back-to-back Eq. (3) windows
    (:func:`reconstruct.physics_video.span_frames`).
@@ -93,7 +93,7 @@ class CalibratePaneConfig:
     content_tiles: int = opt(6, "the content score's tiles per image axis (its spread across tiles gives the margin)", lo=2, hi=64)
     content_parts: int = opt(0, "time parts of the span: R^ of one part is correlated with T^ of another (independent spike noise); 0 = one part per CONTENT_PART_HALF_TURNS half turns of the polarizer, at least 2 (0.1 s at 30 rev/s: 2; 0.2 s: 4), so a longer span adds pairs instead of blurring the moving layers", lo=0, hi=64)
     content_power: str = opt("same", "normalisation of the content test's tile correlations: same (each part's own gradient power: content + spike noise, so hypotheses that amplify the noise score lower) or cross (the power crossed between time parts: content only)", choices=("same", "cross"))
-    content_pixels: str = opt("auto", "pixels of the content test: same (both layers' gradients from every pixel), split (R^ from one checkerboard set, T^ from the other: the sensor's static fixed pattern, common to both layers at a pixel, drops out, which unbiases the index but widens its spread; docs/calibrate_pane.md round 5) or auto (split where the span holds CONTENT_SPLIT_PARTS time parts or more, whose extra pairs pay for the halved pixels: 0.2 s at 30 rev/s; same below; round 6)", choices=("auto", "same", "split"))
+    content_pixels: str = opt("auto", "pixels of the content test: same (both layers' gradients from every pixel), split (R^ from one checkerboard set, T^ from the other: the sensor's static fixed pattern, common to both layers at a pixel, drops out, which unbiases the index but widens its spread) or auto (split where the span holds CONTENT_SPLIT_PARTS time parts or more, whose extra pairs pay for the halved pixels: 0.2 s at 30 rev/s; same below; docs/calibrate_pane.md)", choices=("auto", "same", "split"))
     content_best: bool = opt(True, "where the content test does not claim n / the model, its best hypothesis (still reported NOT identified) replaces the prior in the written maps")
     content_best_z: float = opt(1.0, "the content test's unclaimed best model replaces the prior only when the other model scores higher by at least this many standard errors (below: a coin flip, the prior stays)", lo=0.0, hi=100.0)
     content_z: float = opt(3.0, "a content claim needs the alternatives' score higher by this many standard errors (across tiles)", lo=0.0, hi=100.0)
@@ -646,7 +646,7 @@ CONTENT_N_GRID = np.round(np.arange(1.40, 2.0001, 0.02), 4)
 CONTENT_PART_HALF_TURNS = 3
 """Half turns of the polarizer per time part of the content test when ``content_parts`` is 0 (0.05 s at 30 rev/s):
 parts much longer than that blur the moving layers (an eval_fresh_val build at 0.2 s, every solver within 0.3 dB:
-11 of 16 with 2 parts of 0.1 s, 12 of 16 with 4 of 0.05 s; docs/calibrate_pane.md, round 5)."""
+11 of 16 with 2 parts of 0.1 s, 12 of 16 with 4 of 0.05 s)."""
 
 
 def _one_sigma_geometries(x: np.ndarray, geo: dict) -> list[np.ndarray]:
@@ -665,7 +665,7 @@ def _one_sigma_geometries(x: np.ndarray, geo: dict) -> list[np.ndarray]:
 def content_n_sigma_from_geometry(pm, x: np.ndarray, geo: dict, model: str, n_hat: float, step: int = 4) -> float:
     """1-sigma of a content-test index from the geometry's uncertainty.  The content test finds the zeta under
     which the layers do not leak into each other, i.e. the reflection's DoP (R_perp - R_par) / (R_perp + R_par)
-    per pixel (the leak is alpha = A - A' B / B', docs/calibrate_pane.md round 3); so for each principal direction
+    per pixel (the leak is alpha = A - A' B / B'); so for each principal direction
     of the geometry's covariance, the geometry moved by one standard deviation, the index whose DoP map best matches
     the fitted one (least squares over the view, every ``step``-th pixel) is the shifted reading.  Returns the
     root sum of squares of the shifts."""
@@ -692,7 +692,7 @@ CONTENT_SPLIT_PARTS = 4
 split removes the fixed pattern's pull on the index but halves each layer's pixels; with 2 parts (0.1 s) the spread
 costs more than the bias (validation builds, every solver within 0.3 dB: same 18, split 17 of 28), with 4 (0.2 s)
 the other way round (stress regimes and eval_fresh_val's scenes built at 0.2 s: same 25, split 28 of 34;
-docs/calibrate_pane.md, round 6)."""
+docs/calibrate_pane.md)."""
 
 
 def content_pixels_for(pixels: str, parts: int) -> str:
@@ -803,7 +803,7 @@ def calibrate_frames(I: np.ndarray, phi: np.ndarray, cfg: CalibratePaneConfig = 
     forced_model = None if cfg.pane_model == "auto" else cfg.pane_model
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
-    # the start as the round-6 tables were measured: the self-calibration's session-13 changes for a fitted fov are off
+    # the start as docs/calibrate_pane.md's tables were measured: the self-calibration's later options for a fitted fov are off
     # (its narrow-twin check: the twin profile below asks the full forward model's cone, the stronger test; its 45 deg
     # polish and its dropping of valley candidates at the fov bounds: not measured through this fit)
     sc_cfg = SelfCalConfig(span_s=max(cfg.span_s, 0.001), block_px=cfg.block_px, fov_deg=cfg.fov_deg, n=fixed_n or cfg.prior_n, model=forced_model or cfg.prior_model,
@@ -998,7 +998,7 @@ def calibrate_frames(I: np.ndarray, phi: np.ndarray, cfg: CalibratePaneConfig = 
         model_known = sel["model"]["identified"] is not False
         if content["ok"] and sel["n"]["identified"] is False and model_known and content.get("n", {}).get("identified") and content["best_model"] == sel["model_key"]:
             # the content test read n at the fitted geometry; a theta off by its uncertainty moves the index whose
-            # reflection DoP it matches (round 6: eval_fresh_val train_015, theta 1.3 deg off, claimed 1.54 vs 1.585).
+            # reflection DoP it matches (eval_fresh_val train_015: theta 1.3 deg off, claimed 1.54 vs 1.585).
             # Its own 1-sigma: indices max_n_sigma away are rejected by content_z standard errors
             s_geo = content_n_sigma_from_geometry(pm_full, x, geo, sel["model_key"], content["n"]["value"])
             content["n"]["sigma_from_geometry"] = s_geo
@@ -1011,7 +1011,7 @@ def calibrate_frames(I: np.ndarray, phi: np.ndarray, cfg: CalibratePaneConfig = 
         if content["ok"] and cfg.content_best:
             # not claimed, but the least-mixed layers are a better estimate of zeta than the prior (docs/calibrate_pane.md).
             # The model's guess compares each model's best over the same range of indices, so it stands where the best
-            # index sits at the range's end (round 6: the fixed pattern reads n low); that index is no minimum, so the
+            # index sits at the range's end (the fixed pattern reads n low); that index is no minimum, so the
             # prior index stays then
             if sel["model"]["identified"] is False and content.get("model", {}).get("z", 0.0) >= cfg.content_best_z:
                 v = content["best_model"]
