@@ -2,8 +2,8 @@
 
 * ``mkdocs build --strict`` (skipped only when mkdocs and its plugins are not installed; the ``test``
   extra installs them).
-* Every ``polspike`` line of a fenced ``bash`` block in the getting-started page and the how-to
-  guides parses against the real CLI; the blocks of each page then run for real, in page order, in a
+* Every ``polspike`` line of a fenced ``bash`` block of any page parses against the real CLI; in the
+  getting-started page and the how-to guides the blocks then run for real, in page order, in a
   scratch folder that sees the repository's scenes/, datasets/ and reconstruct/configs/. A ``toml``
   block with ``title="PATH"`` is written to PATH first (the page's own example file). Blocks fenced
   ``{.bash .long}`` (hours on a CPU, or needing a cluster or a recording you bring) are parsed only.
@@ -62,7 +62,9 @@ def commands(body: str) -> list[tuple[list[str], int]]:
     return out
 
 
-ALL = [(page, argv) for page in PAGES for kind, _, body in blocks(page) if kind in ("run", "long") for argv, _ in commands(body)]
+#: every page with commands: the run pages and the rest (concepts, reference, results), whose commands are parsed
+ALL_PAGES = sorted(p.relative_to(DOCS).as_posix() for p in DOCS.rglob("*.md") if "scripts" not in p.parts)
+ALL = [(page, argv) for page in ALL_PAGES for kind, _, body in blocks(page) if kind in ("run", "long") for argv, _ in commands(body)]
 
 
 def test_every_how_to_page_has_commands():

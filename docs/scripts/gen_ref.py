@@ -33,6 +33,13 @@ PACKAGE_ROLE = {
     "polspike": "the CLI, the dataset pipeline, benches, the demo and its report",
 }
 #: Where each top-level schema is written, by class name (not module path: modules move).
+SCHEMA_TITLES = {
+    "SceneConfig": "Scene file",
+    "_ManifestHead": "Dataset manifest",
+    "GroupSpec": "Manifest group",
+    "SpikeSimConfig": "Spike simulator",
+    "TrainConfig": "Training config",
+}
 SCHEMA_FILES = {
     "SceneConfig": "a scene file, `scenes/*.toml` (`polspike render`, `validate-zeta`, manifests' `scene = ...`)",
     "_ManifestHead": "the head of a dataset manifest, `datasets/manifests/*.toml` (`polspike dataset build`)",
@@ -162,12 +169,16 @@ def _default(f) -> str:
     return "required"
 
 
-def _schema_table(cls: type, section: str, seen: set) -> list[str]:
+def _schema_table(cls: type, section: str) -> list[str]:
     from polinfra.config import describe
 
     hints = typing.get_type_hints(cls)
-    title = f"`[{section}]`" if section else "top level"
-    out = [f"#### {title}", "", _md((cls.__doc__ or "").strip().split("\n\n")[0]) if cls.__doc__ and not cls.__doc__.startswith(cls.__name__ + "(") else "", ""]
+    out = []
+    if section:
+        out += [f"### `[{section}]`", ""]
+    doc = (cls.__doc__ or "").strip()
+    if doc and not doc.startswith(cls.__name__ + "("):  # a dataclass without a docstring gets its signature
+        out += [_md(doc.split("\n\n")[0]), ""]
     out += ["| key | type | default | meaning, unit, range |", "|---|---|---|---|"]
     subs = []
     rows = {r[0]: r for r in describe(cls)}
@@ -176,16 +187,18 @@ def _schema_table(cls: type, section: str, seen: set) -> list[str]:
             continue
         nested = _nested(hints[f.name])
         tp = "table" if nested else _md(rows[f.name][1])
-        doc = rows[f.name][3]
+        text = f.metadata.get("doc", "")
+        rng = rows[f.name][3][len(text):].strip()
+        if rng:
+            text += f"; {rng}"
         if f.metadata.get("choices"):
-            doc += " (one of " + ", ".join(map(str, f.metadata["choices"])) + ")"
-        out.append(f"| `{f.name}` | {tp} | {_md(_default(f))} | {_md(doc)} |")
+            text += "; one of " + ", ".join(map(str, f.metadata["choices"]))
+        out.append(f"| `{f.name}` | {tp} | {_md(_default(f))} | {_md(text)} |")
         for n in nested:
             subs.append((n, f"{section}.{f.name}" if section else f.name))
     out.append("")
     for n, sec in subs:
-        seen.add(n)
-        out += _schema_table(n, sec, seen)
+        out += _schema_table(n, sec)
     return out
 
 
@@ -207,11 +220,12 @@ def configs_page() -> str:
         "and what is allowed. Nested tables are the dotted sections below each schema.",
         "",
     ]
-    seen: set = set()
     for qual, cls in roots:
-        where = SCHEMA_FILES.get(cls.__name__, "options of the command or library call that takes it (also usable as a TOML table)")
-        out += [f"## `{cls.__name__}`", "", f"Written in: {where}. Defined in `{cls.__module__}`.", ""]
-        out += _schema_table(cls, "", seen)
+        where = SCHEMA_FILES.get(cls.__name__, "the options of the command or library call that takes it")
+        name = cls.__name__.lstrip("_")
+        title = f"{SCHEMA_TITLES[cls.__name__]} (`{name}`)" if cls.__name__ in SCHEMA_TITLES else f"`{name}`"
+        out += [f"## {title} {{#{name.lower()}}}", "", f"Written in: {where}. Defined in `{cls.__module__}`.", ""]
+        out += _schema_table(cls, "")
     return "\n".join(out)
 
 
