@@ -7,6 +7,7 @@
   scratch folder that sees the repository's scenes/, datasets/ and reconstruct/configs/. A ``toml``
   block with ``title="PATH"`` is written to PATH first (the page's own example file). Blocks fenced
   ``{.bash .long}`` (hours on a CPU, or needing a cluster or a recording you bring) are parsed only.
+  A ``python`` block of those pages runs too, where it stands in the page.
   A line ending in ``# exit N`` must exit with code N.
 """
 
@@ -32,7 +33,7 @@ FENCE = re.compile(r"^```([^\n]*)\n(.*?)^```", re.S | re.M)
 
 
 def blocks(page: str) -> list[tuple[str, str, str]]:
-    """(kind, title, body) of every fenced block: kind is run, long, file or other."""
+    """(kind, title, body) of every fenced block: kind is run, long, file, python or other."""
     out = []
     for info, body in FENCE.findall((DOCS / page).read_text()):
         info = info.strip()
@@ -43,6 +44,8 @@ def blocks(page: str) -> list[tuple[str, str, str]]:
             out.append(("long", "", body))
         elif info.startswith("toml") and m:
             out.append(("file", m.group(1), body))
+        elif info == "python":
+            out.append(("python", "", body))
         else:
             out.append(("other", "", body))
     return out
@@ -114,6 +117,9 @@ def _run_page(page: str, tmp_path: Path) -> None:
             target = cwd / title
             target.parent.mkdir(parents=True, exist_ok=True)
             target.write_text(body)
+        if kind == "python":
+            r = subprocess.run([sys.executable, "-c", body], capture_output=True, text=True, cwd=cwd, timeout=900, env=env)
+            assert r.returncode == 0, (page, body, r.stderr[-3000:])
         if kind != "run":
             continue
         for argv, code in commands(body):
