@@ -171,3 +171,47 @@ def test_site_builds_strict_without_warning(tmp_path):
     cli = (tmp_path / "site" / "reference" / "cli" / "index.html").read_text()
     for cmd in ("polspike render", "polspike dataset build", "polspike reconstruct", "--tier"):
         assert cmd in cli, f"the generated CLI reference misses {cmd!r}"
+
+
+
+PACKAGES = ("polinfra", "polphysics", "generator", "spike_sim", "reconstruct", "polspike")
+_DOTTED = re.compile(r"(?<![\w/.-])((?:%s)(?:\.[A-Za-z_]\w*)+)" % "|".join(PACKAGES))
+_PATH = re.compile(r"(?<![\w/.-])((?:%s)/[\w/]+\.py)" % "|".join(PACKAGES))
+_FILE_SUFFIXES = {"json", "toml", "h5", "md", "py", "csv", "png", "mp4", "exr", "npz", "dat"}
+#: run in a clean interpreter (tests/ on sys.path here shadows the package names): the names that do not resolve
+_PROBE = """
+import importlib, json, sys
+def ok(name):
+    parts = name.split(".")
+    for i in range(len(parts), 0, -1):
+        try:
+            obj = importlib.import_module(".".join(parts[:i]))
+        except ModuleNotFoundError:
+            continue
+        for attr in parts[i:]:
+            if not hasattr(obj, attr):
+                return False
+            obj = getattr(obj, attr)
+        return True
+    return False
+print(json.dumps([n for n in json.loads(sys.argv[1]) if not ok(n)]))
+"""
+
+
+def test_code_names_in_the_docs_exist():
+    """Every module, function or file of the packages that README.md or a docs page names in code
+    (``reconstruct.solvers.zbar_of``, ``generator/pane_fit.py``) exists: a module that moves must take
+    its mentions along."""
+    import json
+
+    names, paths = set(), set()
+    for page in [REPO / "README.md", *DOCS.rglob("*.md")]:
+        for code in re.findall(r"`([^`\n]+)`", page.read_text()):
+            names.update(n for n in _DOTTED.findall(code) if n.rsplit(".", 1)[-1] not in _FILE_SUFFIXES)
+            paths.update(_PATH.findall(code))
+    assert len(names) >= 10 and len(paths) >= 3, (len(names), len(paths))  # the search finds them
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(REPO), os.environ.get("PYTHONPATH", "")]))
+    r = subprocess.run([sys.executable, "-c", _PROBE, json.dumps(sorted(names))], capture_output=True, text=True, cwd=REPO, env=env, timeout=600)
+    assert r.returncode == 0, r.stderr[-2000:]
+    missing = json.loads(r.stdout.strip().splitlines()[-1]) + sorted(p for p in paths if not (REPO / p).is_file())
+    assert not missing, f"named in the docs but not in the code: {missing}"
