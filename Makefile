@@ -1,6 +1,7 @@
 # polspike: two commands set everything up on a fresh Debian 12 machine.
 #   make demo  -> install (venv, pip, apt) then run the end-to-end demo
 #   make test  -> install then run the test suite
+#   make docs  -> install then build the documentation site (site/index.html)
 SHELL := /bin/bash
 PY ?= python3
 VENV := .venv
@@ -10,7 +11,7 @@ OUT ?= out/demo
 export DRJIT_LIBLLVM_PATH ?= /usr/lib/x86_64-linux-gnu/libLLVM.so.19.1
 export MPLBACKEND := Agg
 
-.PHONY: install demo test test-quick test-all bench clean system-deps
+.PHONY: install demo test test-quick test-all bench docs docs-serve clean system-deps
 
 install: $(STAMP)
 
@@ -47,5 +48,12 @@ bench: install  # every benchmark, JSON + table each under out/bench/ (tens of m
 	[ -f out/datasets/eval_paper_val/dataset.json ] || $(BIN)/polspike dataset build datasets/manifests/eval_paper_val.toml --out out/datasets/eval_paper_val
 	$(BIN)/polspike bench ensemble out/datasets/eval_paper_val --split train --out out/bench/ensemble
 
+docs: install  # the documentation site under site/ (strict: any warning fails the build)
+	$(BIN)/pip install --quiet -e '.[docs]'
+	NO_MKDOCS_2_WARNING=1 DISABLE_MKDOCS_2_WARNING=true $(BIN)/mkdocs build --strict
+
+docs-serve: docs  # the site at http://127.0.0.1:8000, rebuilt on every edit
+	NO_MKDOCS_2_WARNING=1 DISABLE_MKDOCS_2_WARNING=true $(BIN)/mkdocs serve
+
 clean:
-	rm -rf out build *.egg-info
+	rm -rf out build site *.egg-info

@@ -1,4 +1,4 @@
-"""Reproduce the tables of docs/calibrate_pane.md (issue 21).
+"""Reproduce the tables of docs/calibrate_pane.md.
 
     PYTHONPATH=. python docs/calibrate_pane_report.py out/datasets/eval_paper [--fov-given] [--solvers [--compare-prior]] [--no-content] [--frames 40] [--span-s 0.1]
 
@@ -110,7 +110,7 @@ def main() -> None:
             if a.compare_prior:
                 line += " prior: " + " / ".join(f"{r['psnr_T_prior'][k] - r['psnr_T_true'][k]:+.2f}" for k in ("ls", "ridge", "irls", "rwps")) + " |"
         print(line)
-    # the goals of issue 21, counted over every group of the dataset (a refused group meets none)
+    # the goals of the pane calibration, counted over every group of the dataset (a refused group meets none)
     ok = [r for r in rows if "refused" not in r]
     geo = [r for r in ok if r["theta_err_median"] <= 0.5 and r["phi_perp_err_median"] <= 0.5]
     claimed = [r for r in ok if r["theta_claimed"]]
@@ -192,7 +192,7 @@ def content_on_true_geometry(dataset: Path) -> None:
 
 
 def valley(dataset: Path, weightings: list[str]) -> None:
-    """The fov-tilt valley of the orientation fit (round 4 of docs/calibrate_pane.md).
+    """The fov-tilt valley of the orientation fit (docs/calibrate_pane.md).
 
     Per group: the pipeline's self-calibrated start and orientation field; the truth (tilt, azimuth, fov fitted to the
     group's stored theta / phi_perp maps by Gauss-Newton); for each weighting, fit_geometry with the fov fitted and with

@@ -86,8 +86,25 @@ app_typer.add_typer(bench_app, name="bench")
 app_typer.add_typer(dataset_app, name="dataset")
 
 
+def version_line() -> str:
+    """``polspike <version>, checkpoint <name>``: the package version and the default checkpoint's file name."""
+    from polspike import __version__
+    from reconstruct.net.checkpoint import DEFAULT_WEIGHTS
+
+    return f"polspike {__version__}, checkpoint {DEFAULT_WEIGHTS.name}"
+
+
+def _print_version(value: bool) -> None:
+    if value:
+        typer.echo(version_line())
+        raise typer.Exit()
+
+
 @app_typer.callback()
-def _main(verbose: int = typer.Option(0, "--verbose", "-v", count=True, help="More logging (-v info, -vv debug).")) -> None:
+def _main(
+    verbose: int = typer.Option(0, "--verbose", "-v", count=True, help="More logging (-v info, -vv debug)."),
+    version: bool = typer.Option(False, "--version", callback=_print_version, is_eager=True, help="Print the package version and the default checkpoint's name, then exit."),
+) -> None:
     from rich.logging import RichHandler
 
     level = logging.WARNING if verbose == 0 else logging.INFO if verbose == 1 else logging.DEBUG

@@ -32,11 +32,10 @@ def tradeoff_cmd(
     from rich.console import Console
 
     from generator.scene import default_scenes, load_scene
-    from polspike.pipeline.tradeoff import Candidate, default_candidates, run_tradeoff
-    from polinfra.progress import rich_progress
-
     from polinfra.atomic import write_json, write_text
     from polinfra.errors import ConfigError
+    from polinfra.progress import rich_progress
+    from polspike.pipeline.tradeoff import Candidate, default_candidates, run_tradeoff
 
     names = scenes if scenes is not None else ([] if sampled else default_scenes())
     scs = []

@@ -30,9 +30,9 @@ def calibrate_pane_cmd(
     from rich.console import Console
 
     from polinfra.errors import ConfigError
-    from reconstruct.pane.calibrate_config import PANE_CHOICES, CalibratePaneConfig
     from polspike.pipeline.calibrate_pane import calibrate_input
     from polspike.pipeline.pane_outputs import write_outputs
+    from reconstruct.pane.calibrate_config import PANE_CHOICES, CalibratePaneConfig
 
     if pane_model not in PANE_CHOICES:
         raise ConfigError(f"--pane-model {pane_model!r}: choose one of {', '.join(PANE_CHOICES)}")

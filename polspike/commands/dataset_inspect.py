@@ -25,8 +25,8 @@ def inspect_cmd(
     """Plot theta, phi_perp, R_perp/R_par, zeta, Stokes/DoP/AoLP, the layers, a spike raster and a window's observations."""
     from rich.console import Console
 
-    from polspike.pipeline.inspect import inspect_group
     from polinfra.progress import rich_progress
+    from polspike.pipeline.inspect import inspect_group
 
     with rich_progress("video", enabled=video and not quiet) as cb:
         s = inspect_group(dir, out, group=group, time_s=time, video=video, video_frames=video_frames, n_pixels=pixels, dpi=dpi, progress=cb)

@@ -149,12 +149,11 @@ def reconstruct_and_score(group_dir: Path, figs: Path, n_frames: int, crop: int)
     import torch
 
     from polinfra.plotting import image_grid, save_figure
-    from reconstruct.net.checkpoint import DEFAULT_WEIGHTS, load_model
-    from reconstruct.stream.groups import load_store_group, network_inputs
     from reconstruct.evaluate.metrics import score
-    from reconstruct.video.tiling import run_model_on_windows
-
+    from reconstruct.net.checkpoint import DEFAULT_WEIGHTS, load_model
     from reconstruct.net.net_zeta import NET_DEFAULT_ZETA
+    from reconstruct.stream.groups import load_store_group, network_inputs
+    from reconstruct.video.tiling import run_model_on_windows
 
     model, _ = load_model(DEFAULT_WEIGHTS, "cpu")
     K = model.cfg.n_obs // 2
@@ -200,9 +199,9 @@ def overview_figure(rd, group_dir: Path, rec: dict, png: Path) -> Path:
     frame, an Eq. (3) observation, and the network's T and R beside ground truth, all on the demo's crop."""
     import numpy as np
 
+    from polinfra.plotting import image_grid, save_figure
     from polphysics.stokes import polarizer_intensity
     from polphysics.zeta import zeta
-    from polinfra.plotting import image_grid, save_figure
     from spike_sim.store import open_group
 
     a = rec["arrays"]

@@ -152,9 +152,9 @@ def evaluate_paper_cmd(
     from polinfra.config import from_dict
     from polinfra.errors import CheckpointError
     from polinfra.progress import rich_progress
-    from reconstruct.net.checkpoint import DEFAULT_WEIGHTS
     from reconstruct.evaluate.harness import EvalConfig, load_groups
     from reconstruct.evaluate.paper_table import paper_csv, paper_markdown, paper_tables
+    from reconstruct.net.checkpoint import DEFAULT_WEIGHTS
 
     if threads > 0:
         torch.set_num_threads(threads)
@@ -214,7 +214,6 @@ def evaluate_real_cmd(
     from polinfra.errors import CheckpointError, ConfigError
     from polinfra.progress import rich_progress
     from polspike.pipeline.real_eval import default_real_dir, evaluate_real, real_markdown
-
     from reconstruct.net.net_zeta import NET_DEFAULT_ZETA, NET_ZETA_SOURCES
 
     if threads > 0:
@@ -356,9 +355,8 @@ def bench_reconstruct_cmd(
     from rich.table import Table
 
     from polinfra.atomic import write_json, write_text
-    from reconstruct.evaluate.bench import bench_reconstruct
-
     from polinfra.errors import ConfigError
+    from reconstruct.evaluate.bench import bench_reconstruct
 
     devices = {"auto": ("cpu", "cuda"), "cpu": ("cpu",), "cuda": ("cuda",)}.get(device)
     if devices is None:

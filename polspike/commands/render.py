@@ -8,8 +8,8 @@ from typing import Optional
 
 import typer
 
-from polspike.cli import app_typer
 from polinfra.errors import ConfigError
+from polspike.cli import app_typer
 
 
 def _parse_frames(frames: str | None) -> tuple[int, int] | None:

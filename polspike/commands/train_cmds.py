@@ -1,4 +1,4 @@
-"""``polspike train`` and ``polspike reconstruct``: the learned reconstructor's CLI (issue 9).
+"""``polspike train`` and ``polspike reconstruct``: the learned reconstructor's CLI.
 
 The CLI is the one place that wires the generator's layer content into
 ``reconstruct``'s on-the-fly window source (``reconstruct`` never imports
@@ -12,8 +12,9 @@ from typing import Optional
 
 import typer
 
-from polspike.cli import app_typer
 from polinfra.errors import ConfigError
+from polspike.cli import app_typer
+
 
 def on_the_fly_sets(cfg):
     """(train set, validation set) of on-the-fly windows: generator analytic tier + spike_sim, disjoint scenes and content."""
@@ -153,11 +154,10 @@ def reconstruct_cmd(
 
     from polinfra.progress import rich_progress
     from reconstruct.net.checkpoint import DEFAULT_WEIGHTS, load_model
-    from reconstruct.video.stream import ReconstructConfig, reconstruct_stream
-    from reconstruct.stream.sources import dat_source, group_source
-
-    from reconstruct.video.physics import PHYSICS_METHODS, STREAM_ZETA_SOURCES
     from reconstruct.pane.selfcal import SelfCalConfig
+    from reconstruct.stream.sources import dat_source, group_source
+    from reconstruct.video.physics import PHYSICS_METHODS, STREAM_ZETA_SOURCES
+    from reconstruct.video.stream import ReconstructConfig, reconstruct_stream
 
     if method not in ("net", *PHYSICS_METHODS):
         raise ConfigError(f"--method {method!r}: choose net or one of {', '.join(PHYSICS_METHODS)}")

@@ -6,9 +6,9 @@ same (N, seed, options) always writes the same manifest.  The last ``round(test_
 groups (at least one when N >= 2) are the test split.  Each group's ``description`` lists its
 draws (R/T ratio, centre incidence, pane model, haze, sprites, highlights, pan, light, sensor).
 
-Profile ``paper`` (default; ``paper.toml``): the paper's difficulty (issue 15), calibrated so
+Profile ``paper`` (default; ``paper.toml``): the paper's difficulty, calibrated so
 that with the true zeta the solver-only table on its test split (``eval_paper.toml``) lands within
-1.5 dB of supp. Table 3 (README).  U = uniform, LU = log-uniform; all drawn per group:
+1.5 dB of supp. Table 3 (docs/results/solvers.md).  U = uniform, LU = log-uniform; all drawn per group:
 
 ==========================  =====================================================
 pane.model                  single, thin_slab, thick_slab: 1/3 each

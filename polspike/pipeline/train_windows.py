@@ -1,4 +1,4 @@
-"""On-the-fly training windows from the generator and the spike simulator (issue 9).
+"""On-the-fly training windows from the generator and the spike simulator.
 
 This module is the bridge ``reconstruct`` may not cross itself: it renders
 crops with the generator's **analytic tier** (:func:`generator.analytic.analytic_maps`,
