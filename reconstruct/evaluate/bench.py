@@ -111,7 +111,7 @@ def bench_reconstruct(width: int = 400, height: int = 250, n_obs: int = 7, batch
 
 
 # ---------------------------------------------------------------------------
-# The learned reconstructor (issue 19): v1 against v2 in one run
+# The learned reconstructor: v1 against v2 in one run
 
 
 def count_flops(model, height: int = 250, width: int = 400) -> float:
@@ -200,7 +200,7 @@ def bench_reconstruct_net(
     compile_: bool = False,
     work_dir=None,
 ) -> dict:
-    """Cost and speed of learned reconstructors measured in one process (issue 19).
+    """Cost and speed of learned reconstructors measured in one process.
 
     Args:
         models: name -> model (eval mode, CPU), e.g. {"v1": ..., "v2": ...}; the first is the reference of the ratios.

@@ -14,9 +14,9 @@ Baselines, in the same table:
   selects one frame).
 * ``spike_mean``: the plain spike mean, 2 x spikes per step / exposure over
   17.5 ms centred on the frame (``EvalGroup.I_mean``; stored groups only): the
-  "doing nothing" reference of issue 16.
+  "doing nothing" reference.
 
-The learned reconstructor (issue 9) from a checkpoint (:func:`load_network`):
+The learned reconstructor from a checkpoint (:func:`load_network`):
 
 * method ``full``: the whole network (its own RIR, parameter branch, RWPS,
   refinement) on the unaligned window; two rows, ``full`` (final T, R) and

@@ -10,7 +10,7 @@ for it (e.g. two training seeds); the per-checkpoint numbers are listed too.
 Columns of Table 1:
 
 * ``TFP``: 2 x the window mean (what the stream shows, reflection included);
-* ``Spike mean`` (stored groups): 2 x the spikes per step / exposure over 17.5 ms (issue 16's
+* ``Spike mean`` (stored groups): 2 x the spikes per step / exposure over 17.5 ms (the
   "doing nothing" reference);
 * ``RWPS (zeta Z)``: the physics solver alone on the zeta source of ``--zeta`` (default ``self``,
   the pane fitted to each group's stream: no oracle);

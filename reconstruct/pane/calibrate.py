@@ -92,7 +92,7 @@ def calibrate_frames(I: np.ndarray, phi: np.ndarray, cfg: CalibratePaneConfig = 
     forced_model = None if cfg.pane_model == "auto" else cfg.pane_model
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
-    # the start as the round-6 tables were measured: the self-calibration's session-13 changes for a fitted fov are off
+    # the start as calibrate-pane's tables were measured: the self-calibration's checks for a fitted fov are off
     # (its narrow-twin check: the twin profile below asks the full forward model's cone, the stronger test; its 45 deg
     # polish and its dropping of valley candidates at the fov bounds: not measured through this fit)
     sc_cfg = SelfCalConfig(span_s=max(cfg.span_s, 0.001), block_px=cfg.block_px, fov_deg=cfg.fov_deg, n=fixed_n or cfg.prior_n, model=forced_model or cfg.prior_model,
@@ -287,7 +287,7 @@ def calibrate_frames(I: np.ndarray, phi: np.ndarray, cfg: CalibratePaneConfig = 
         model_known = sel["model"]["identified"] is not False
         if content["ok"] and sel["n"]["identified"] is False and model_known and content.get("n", {}).get("identified") and content["best_model"] == sel["model_key"]:
             # the content test read n at the fitted geometry; a theta off by its uncertainty moves the index whose
-            # reflection DoP it matches (round 6: eval_fresh_val train_015, theta 1.3 deg off, claimed 1.54 vs 1.585).
+            # reflection DoP it matches (a view 1.3 deg off in theta claimed 1.54 for a true 1.585).
             # Its own 1-sigma: indices max_n_sigma away are rejected by content_z standard errors
             s_geo = content_n_sigma_from_geometry(pm_full, x, geo, sel["model_key"], content["n"]["value"])
             content["n"]["sigma_from_geometry"] = s_geo
@@ -300,7 +300,7 @@ def calibrate_frames(I: np.ndarray, phi: np.ndarray, cfg: CalibratePaneConfig = 
         if content["ok"] and cfg.content_best:
             # not claimed, but the least-mixed layers are a better estimate of zeta than the prior (docs/calibrate_pane.md).
             # The model's guess compares each model's best over the same range of indices, so it stands where the best
-            # index sits at the range's end (round 6: the fixed pattern reads n low); that index is no minimum, so the
+            # index sits at the range's end (the fixed pattern reads n low); that index is no minimum, so the
             # prior index stays then
             if sel["model"]["identified"] is False and content.get("model", {}).get("z", 0.0) >= cfg.content_best_z:
                 v = content["best_model"]

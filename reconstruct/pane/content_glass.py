@@ -40,7 +40,7 @@ def _one_sigma_geometries(x: np.ndarray, geo: dict) -> list[np.ndarray]:
 def content_n_sigma_from_geometry(pm, x: np.ndarray, geo: dict, model: str, n_hat: float, step: int = 4) -> float:
     """1-sigma of a content-test index from the geometry's uncertainty.  The content test finds the zeta under
     which the layers do not leak into each other, i.e. the reflection's DoP (R_perp - R_par) / (R_perp + R_par)
-    per pixel (the leak is alpha = A - A' B / B', docs/calibrate_pane.md round 3); so for each principal direction
+    per pixel (the leak is alpha = A - A' B / B', docs/calibrate_pane.md); so for each principal direction
     of the geometry's covariance, the geometry moved by one standard deviation, the index whose DoP map best matches
     the fitted one (least squares over the view, every ``step``-th pixel) is the shifted reading.  Returns the
     root sum of squares of the shifts."""

@@ -1,4 +1,4 @@
-"""Gradient exclusion of the solved layers: a content criterion for the pane's zeta (issue 21).
+"""Gradient exclusion of the solved layers: a content criterion for the pane's zeta.
 
 Paper Eq. (1): I_k = 1/2 [T + zeta_k (R - T)], zeta_k = A + B cos 2(phi_k - phi_perp) (Eq. (2); A, B the mean and
 half difference of R_perp, R_par).  Over a half polarizer turn the harmonic fit (supp. Eq. (1)) gives the mean
@@ -135,7 +135,7 @@ def cross_gradient_sums(parts, phi_perp: np.ndarray | None, A: np.ndarray, B: np
     pixel carries into both layers drops out of their correlation.  That is the sensor's fixed pattern: a static
     per-pixel gain (threshold and gain mismatch, ~7 % in the default sensor) multiplies R' and T' alike and, being
     static, survives the crossing of time parts; it correlates their gradients positively at the right zeta, which
-    a wrong zeta's leak of the opposite sign cancels (docs/calibrate_pane.md, round 5: the index was read low)."""
+    a wrong zeta's leak of the opposite sign cancels (docs/calibrate_pane.md: the index was read low)."""
     from scipy.ndimage import gaussian_filter
 
     if pairs not in ("all", "adjacent"):

@@ -1,7 +1,7 @@
 """Where is the reflection R identifiable from one window?  The reflected share and a noise floor for R.
 
 Paper Eq. (1) in the solvers' units: b_k = 2 I_k = (1 - zeta_k) T + zeta_k R, k = 1..N (N = 7 windows
-of one output frame, zeta_k the true mixing coefficient of window k).  Two quantities answer issue 16's
+of one output frame, zeta_k the true mixing coefficient of window k).  Two quantities answer the
 "R >= 22 dB where the reflection is at least 20 % of the light":
 
 * the **reflected share** of the light, rho = zbar R / (zbar R + (1 - zbar) T) (:func:`reflected_share`),

@@ -5,7 +5,7 @@
 * ``physics``: a calibrated pane geometry (camera, pane plane, index, pane
   model) -> theta(p), phi_perp(p) by :mod:`polphysics.geometry`, Fresnel
   reflectances by :mod:`polphysics.fresnel`, then paper Eq. (2).
-* ``learned``: the parameter branch of the network of issue 9 (:func:`zeta_learned`).
+* ``learned``: the parameter branch of the network (:func:`zeta_learned`).
 * ``self``: the pane geometry estimated from the stream itself (:mod:`reconstruct.pane.selfcal`;
   the 90 deg twin of narrow glancing views resolved by the DoP cone, or where the cone holds both by
   the layers' content, R^ and T^ gradients uncorrelated under the right pane; the index and pane

@@ -38,7 +38,7 @@ def _compare(scene, tol, **kw):
 
 
 def test_maps_single_interface_matches_analytic_1e4():
-    """Issue 4 target: rendered maps vs analytic for a single interface within 1e-4 over the pane."""
+    """Rendered maps vs analytic for a single interface within 1e-4 over the pane."""
     require_mitsuba()
     sc = small_scene("oblique_diagonal", model="single")
     m, info, errs = _compare(sc, 1e-4)

@@ -161,7 +161,7 @@ def test_ground_truth_layers_are_the_analytic_tiers(tmp_path):
 @pytest.mark.parametrize("tier", ["maps", "full"])
 @pytest.mark.parametrize("name", ["near_normal", "brewster", "oblique_diagonal", "bk7_single"])
 def test_every_default_scene_renders_in_both_mitsuba_tiers(tmp_path, name, tier):
-    """Done criterion of issue 4 at 16x10: each default scene renders in each Mitsuba tier, finite output;
+    """At 16x10: each default scene renders in each Mitsuba tier, finite output;
     maps agree with the analytic tier (mono scenes within 1e-4, dispersive BK7 within 2e-3)."""
     require_mitsuba()
     from generator.analytic import analytic_maps

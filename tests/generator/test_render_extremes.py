@@ -1,4 +1,4 @@
-"""Rendering at the extremes (issue 5): spp 1 and 1024, n -> 1, normal and steep incidence, through the
+"""Rendering at the extremes: spp 1 and 1024, n -> 1, normal and steep incidence, through the
 real tiers. Every output is finite, S0 >= 0, the degree of polarization stays <= 1, and the limits match
 closed forms (no reflection at n = 1, R_perp = R_par at normal incidence)."""
 

@@ -1,4 +1,4 @@
-"""calibrate-pane (issue 21): the pane and field of view fitted to spikes behind a pane of known truth.
+"""calibrate-pane: the pane and field of view fitted to spikes behind a pane of known truth.
 
 The truth is built independently of the fit: polphysics' camera, plane and Fresnel formulas and paper
 Eq. (1)-(2) (window-averaged), Poisson spike counts; the fit differentiates generator.pane_fit's Dr.Jit

@@ -317,7 +317,7 @@ def test_stress_manifest_is_a_named_grid_of_regimes():
 
 
 def test_eval_fresh_val_is_the_sampler_at_its_seed():
-    """eval_fresh_val (a second validation build, session 9): exactly `polspike dataset new` at seed 90909, 16 groups,
+    """eval_fresh_val (a second validation build): exactly `polspike dataset new` at seed 90909, 16 groups,
     200 x 125, 0.1 s, no test split; none of its groups is a paper.toml group."""
     from polspike.pipeline.sampler import sample_manifest_text
 

@@ -1,4 +1,4 @@
-"""Issue 10 hardening, one test per bad input of the spike/reconstruct half of the CLI.
+"""Hardening: one test per bad input of the spike/reconstruct half of the CLI.
 
 Each case must give exit code 2, one line on stderr that names what to fix, no
 traceback, and nothing half-written under a final name.  The scene-file cases

@@ -1,4 +1,4 @@
-"""Usage errors and help text through the installed console script (issue 18).
+"""Usage errors and help text through the installed console script.
 
 The command tree is read from the real app (``typer.main.get_command(get_app())``), never
 hard-coded, so commands and options added later are covered without editing this file.  Every
@@ -204,7 +204,7 @@ def test_every_usage_error_is_short_exit_2_no_traceback(tmp_path):
 
 
 def test_issue_examples_exit_2(tmp_path):
-    """The examples of issue 18, where today's tree still makes them errors."""
+    """Usage examples that are still errors."""
     tree = dict(_tree())
     examples = [(["nosuchcmd"], "No such command")]
     zeta = tree.get(("zeta",))

@@ -1,4 +1,4 @@
-"""Every command and every option of the CLI explains itself (issue 10: help with units and defaults)."""
+"""Every command and every option of the CLI explains itself (help with units and defaults)."""
 
 from __future__ import annotations
 

@@ -47,7 +47,7 @@ def test_two_model_run_gives_ratios_and_a_table(tmp_path):
 
 def test_cli_bench_with_the_shipped_default_times_its_training(tmp_path, polspike_cli):
     """`polspike bench reconstruct-net` on the shipped default (a network that reads the long spike mean and the wide
-    windows) against v1: its training items carry what each network reads (before session 9 the run stopped with
+    windows) against v1: its training items carry what each network reads (without them the run stopped with
     "a use_mean network needs I_mean"); tiny frames, a few steps."""
     import json
 

@@ -1,4 +1,4 @@
-"""Issue 16 training knobs: mirror / transpose augmentation with the angles carried along (checked
+"""Training knobs: mirror / transpose augmentation with the angles carried along (checked
 against paper Eq. (2) recomputed on the mirrored inputs), fine-tuning from given weights, best.pt."""
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""The long span's first harmonic (net.use_harm, issue 16): the spikes of the whole 17.5 ms span of the long spike
+"""The long span's first harmonic (net.use_harm): the spikes of the whole 17.5 ms span of the long spike
 mean, not only the N windows', give R - T.  Checked against closed forms (a first harmonic, paper Eq. (1)-(2) on a
 static scene), a direct least-squares fit of the raw spikes, the sign rule of the image symmetries, and the
 stream / store / training-item paths agreeing with each other."""

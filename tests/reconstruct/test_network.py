@@ -28,7 +28,7 @@ def test_parameter_count_matches_paper():
 
 
 def test_v2_flops_per_frame_within_issue_budget():
-    """Issue 19: <= 25 GFLOP per 400x250 frame (counted), >= 10x fewer than v1 (measured on a 64x64 window, FLOPs scale with area)."""
+    """<= 25 GFLOP per 400x250 frame (counted), >= 10x fewer than v1 (measured on a 64x64 window, FLOPs scale with area)."""
     from torch.utils.flop_counter import FlopCounterMode
 
     I, phi = _window(B=1, H=64, W=64)

@@ -58,7 +58,7 @@ def test_recovers_pane_normal_theta_and_zeta_with_noise(tilt, azimuth):
     z = self_zeta(r, g.phi_true, g.span_rad)
     assert z.shape == g.gt_zeta.shape
     # zeta within 12 % (mean abs). On the (40, 20) pane of this 96 x 64 group (34 frames, 2 px blocks) the tilt is weakly
-    # pinned: theta 2.5 deg / zeta 10.2 % off with the scatter-weighted polish (the default since session 7, which takes
+    # pinned: theta 2.5 deg / zeta 10.2 % off with the scatter-weighted polish (the default, which takes
     # theta from 0.33-6.7 to 0.05-0.31 deg on eval_paper), 2.0 deg / 9 % with |sum z4| weights alone
     assert float(np.abs(z - g.gt_zeta).mean()) < 0.12 * float(g.gt_zeta.mean())
 

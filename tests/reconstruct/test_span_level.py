@@ -1,4 +1,4 @@
-"""D = R - T from every spike of the long span (net.span_level, issue 16): the span's inverse-variance weights against a
+"""D = R - T from every spike of the long span (net.span_level): the span's inverse-variance weights against a
 Monte Carlo of the spikes, the blend against its closed form (it keeps the long mean, takes an exact span's D, leaves
 pixels without weight alone), and the wiring: only on an external zeta, the stream hands the network what the store
 does, tiles agree with whole frames, training items carry the span's length and exposure per image."""

@@ -1,4 +1,4 @@
-"""A network that also sees the long spike mean (net.use_mean, issue 16): its input in training items, in
+"""A network that also sees the long spike mean (net.use_mean): its input in training items, in
 evaluation and in the streaming reconstructor equals the raw-spike mean of the store; widening a trained
 network's refinement for it starts from exactly the same outputs."""
 
