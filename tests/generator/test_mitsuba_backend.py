@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import pytest
-
 from _mitsuba_common import require_mitsuba
 
 from polinfra.errors import BackendUnavailableError

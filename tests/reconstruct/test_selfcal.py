@@ -299,6 +299,23 @@ def test_cone_bounds_are_the_dop_of_either_layer_alone(model):
         np.testing.assert_allclose(rho, edge, atol=2e-3)
 
 
+
+@pytest.mark.slow
+def test_the_near_black_reflection_is_never_given_the_wrong_family_over_five_noise_draws():
+    """The group of the test above under five noise draws (seeds 110-114): the calibration refuses or picks the true
+    family (phi_perp within 3 deg), never the twin.  The cone alone picking the twin is one draw's event, not a
+    property: measured, the cone alone took the twin at seed 110 only (89.2 deg off) and refused at 111-114, while
+    the calibration refused at 110, 112, 113 and was right at 111 and 114 (0.2 deg).  Run with content_margin = 0
+    (the cone alone) this test fails at seed 110."""
+    wrong = []
+    for seed in range(110, 115):
+        g, _ = make_pane_group(75.45894911989473, 207.78390161863172, fov_deg=19.16270642992466, r_gain=0.15081105912306855, t_level=1.0,
+                               exposure=3.0, motion_px=0.0, model="thin_slab", seed=seed, **SMALL)
+        r = self_calibrate(g.I, g.phi_nominal, SelfCalConfig(fov_deg=g.fov_deg, valley_step_deg=4.0))
+        if r.ok and abs(_family_and_theta_err(r, g)[0]) > 3.0:
+            wrong.append((seed, round(_family_and_theta_err(r, g)[0], 1)))
+    assert not wrong, f"calibrations that took the wrong family (seed, phi_perp error deg): {wrong}"
+
 def test_cone_violation_tells_the_pane_from_its_90_deg_flip():
     # a steep pane, the reflection dominating (static layers, bright): the true phi_perp keeps every aggregate in the
     # cone; the same field turned by 90 deg puts the strong modulation on the T side, beyond DoP_T
