@@ -17,7 +17,8 @@ from pathlib import Path
 
 import numpy as np
 
-METHODS = ("ls", "ridge", "irls", "rwps", "full")
+METHODS = ("ls", "ridge", "irls", "rwps", "full-norir")
+"""Physics solvers and the shipped network (evaluated without RIR, as it was trained)."""
 
 
 def _departures(dataset: Path) -> dict[str, dict]:
@@ -45,7 +46,8 @@ def _scores(eval_dirs: list[Path]) -> dict[tuple[str, str], dict]:
     for m in {k[1] for k in out}:
         rs = [r for (g, mm), r in out.items() if mm == m]
         n = np.array([r["n_frames"] for r in rs], float)
-        out[("overall", m)] = {k: float(np.sum(n * np.array([r[k] for r in rs])) / n.sum()) for k in ("psnr_T", "ssim_T", "psnr_R", "ssim_R")}
+        out[("overall", m)] = {k: (float(np.sum(n * np.array([r[k] for r in rs], float)) / n.sum()) if all(r.get(k) is not None for r in rs) else None)
+                               for k in ("psnr_T", "ssim_T", "psnr_R", "ssim_R")}
     return out
 
 
@@ -81,7 +83,7 @@ def main() -> None:
     import matplotlib.pyplot as plt
 
     fig, axes = plt.subplots(1, 2, figsize=(11, 4.2))
-    colours = dict(zip(METHODS, ("C0", "C1", "C2", "C3", "k")))
+    colours = dict(zip(METHODS, ("C0", "C1", "C2", "C3", "k")))  # network: black
     for ax, key, xl in ((axes[0], "eq12_p99", "departure from Eq. (1): p99 worst-phi |I - I_Eq(1)| (radiance)"), (axes[1], "dop_T_mean", "DoP of T alone (mean over pixels)")):
         for label, dep, sc in sets:
             for m in methods:

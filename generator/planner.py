@@ -201,14 +201,15 @@ def scene_features(scene, pilot: bool = True) -> dict:
 def _object_noise_pilot(scene) -> float:
     """Noise coefficient k (p99 = k / sqrt(spp)) of a 3-D object scene's mixture, from two small renders."""
     from generator.mitsuba_scene import render_stokes_image, specs_from_scene
+    from types import SimpleNamespace
+
     from generator.objects3d import objects_scene_dict
-    from generator.render import RenderOptions
     from generator.tiers_mitsuba import _resolve
 
     W, H = scene.camera.width, scene.camera.height
     w = min(W, PILOT_WIDTH)
     s = dataclasses.replace(scene, camera=dataclasses.replace(scene.camera, width=w, height=max(2, int(round(H * w / W)))))
-    _, mi = _resolve(RenderOptions(tier="full"), need_jit=False)
+    _, mi = _resolve(SimpleNamespace(variant="auto"), need_jit=False)  # the render options' backend choice
     cam, pane = specs_from_scene(s, n=float(s.pane.index(550.0)))
     S1, S2 = (render_stokes_image(mi, objects_scene_dict(mi, s, cam, pane, spp=PILOT_SPP, seed=sd), PILOT_SPP, sd) for sd in (11, 12))
     return float(np.percentile(_worst(S1, S2), 99)) / math.sqrt(2.0) * math.sqrt(PILOT_SPP)

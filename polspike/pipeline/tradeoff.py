@@ -372,7 +372,7 @@ def _pareto_plot(rows: list[dict], path: Path) -> None:
 
     fig, ax = plt.subplots(figsize=(8, 5))
     scenes = sorted({r["scene"] for r in rows})
-    markers = dict(zip(scenes, "osD^v<>"))
+    markers = {s: "osD^v<>ph*XP"[i % 12] for i, s in enumerate(scenes)}
     for r in rows:
         if "skipped" in r or r["radiance_err_p99"] is None or r.get("per_1s_group_s") is None:
             continue
