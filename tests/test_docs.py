@@ -55,6 +55,7 @@ def blocks(page: str) -> list[tuple[str, str, str]]:
 def commands(body: str) -> list[tuple[list[str], int]]:
     """(argv after 'polspike', expected exit code) of each polspike line."""
     out = []
+    body = re.sub(r"\\\n\s*", " ", body)  # a command continued over lines with a backslash is one command
     for line in body.splitlines():
         code = 0
         m = re.search(r"#\s*exit (\d+)\s*$", line)
