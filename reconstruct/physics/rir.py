@@ -248,3 +248,8 @@ def align_window(
     sI = warp(I, shifts.to(I.dtype))
     sc = None if coeffs is None else warp(coeffs, shifts.to(coeffs.dtype))
     return sI, sc, shifts
+
+
+def estimate_shifts_fast(I: torch.Tensor, phi: torch.Tensor, center: int | None = None, config: RirConfig = RirConfig()) -> torch.Tensor:
+    """:func:`estimate_shifts` for the real-time stream (same shifts for now)."""
+    return estimate_shifts(I, phi, center, config=config)
