@@ -29,7 +29,6 @@ import os
 import queue
 import threading
 import time
-from collections import deque
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -273,7 +272,6 @@ def reconstruct_live(
 
     if getattr(model, "maps", None) is None or getattr(model.cfg, "use_mean", False):
         raise ConfigError("the real-time path takes a physics solver on pane maps (--zeta self, gt, physics or --pane) without --anchor mean")
-    from reconstruct.physics.zeta import zeta_eq2
 
     out = ensure_dir(out_dir)
     times = times if times is not None else StageTimes()
@@ -285,12 +283,11 @@ def reconstruct_live(
     H, W = reader.height, reader.width
     fused = model.method == "ls" and not model.rir
     maps = model.maps
-    # the maps as zeta_from_maps converts them for every window, converted once
-    mp32 = [torch.as_tensor(np.asarray(a), dtype=torch.float32) for a in (maps.R_perp, maps.R_par, maps.phi_perp)]
+    zeta_of = _ZetaFrames(maps, model.span_rad)
     scale = np.float32(cfg.window_steps * exposure)
-    frames_I: deque = deque(maxlen=N)
-    frames_Z: deque = deque(maxlen=N)
-    frames_phi: deque = deque(maxlen=N)
+    ring_I = np.zeros((N, H, W), np.float32)  # Eq. (3) frame j in slot j % N
+    ring_Z = np.zeros((N, H, W), np.float32)
+    ring_phi = np.zeros(N, np.float32)
     arrived: dict[int, float] = {}  # Eq. (3) frame -> when its last step was seen
     pending: list[tuple[np.ndarray, np.ndarray, np.ndarray, float | None]] = []
     lat: list[float] = []
@@ -362,24 +359,25 @@ def reconstruct_live(
                 c = int(cen.c[nxt])
                 with times("aggregate"):
                     I_j = reader.counts(c - agg.half, c + agg.half + 1).astype(np.float32) / scale  # Eq. (3), radiance units
-                ph32 = np.float32(cen.phi[nxt])
+                slot = nxt % N
+                ring_I[slot] = I_j
+                ring_phi[slot] = np.float32(cen.phi[nxt])
                 with times("zeta"):
-                    Z_j = zeta_eq2(torch.tensor([ph32]), *mp32, model.span_rad)[0].numpy()  # paper Eq. (2)
-                frames_I.append(I_j)
-                frames_Z.append(Z_j)
-                frames_phi.append(ph32)
+                    zeta_of(float(ring_phi[slot]), ring_Z[slot])  # paper Eq. (2)
                 nxt += 1
                 progressed = True
-                if len(frames_I) == N:
+                if nxt >= N:
                     arr = arrived.pop(nxt - 1, None) if follow else None
                     for k in [k for k in arrived if k < nxt - 1]:
                         arrived.pop(k)
-                    if fused:
+                    centre = (nxt - 1 - K) % N
+                    if fused:  # the least-squares sums do not depend on the order of the frames: the ring as it is
                         with times("solve"):
-                            T, R = _ls(np.stack(frames_Z), np.stack(frames_I))
-                        emit(writers, frames_I[K], T, R, arr)
+                            T, R = _ls(ring_Z, ring_I)
+                        emit(writers, ring_I[centre].copy(), T, R, arr)
                     else:
-                        pending.append((np.stack(frames_I), np.stack(frames_Z), np.array(frames_phi, np.float32), arr))
+                        order = [(nxt - N + k) % N for k in range(N)]
+                        pending.append((ring_I[order], ring_Z[order], ring_phi[order], arr))
                         if len(pending) >= (1 if follow else cfg.batch):
                             flush(writers)
             if cfg.max_frames and done + len(pending) >= cfg.max_frames:
@@ -428,6 +426,27 @@ def reconstruct_live(
     }
     write_json(out / "reconstruct.json", summary)
     return summary
+
+
+class _ZetaFrames:
+    """zeta (paper Eq. (2), window-averaged) of one Eq. (3) frame at angle phi, as
+    :func:`reconstruct.physics.zeta.zeta_eq2` computes it, by the angle-sum identity on maps prepared once:
+    zeta = mean + f amp (cos 2 phi cos 2 phi_perp + sin 2 phi sin 2 phi_perp) (float32; agrees to rounding)."""
+
+    def __init__(self, maps, span_rad: float):
+        from reconstruct.physics.zeta import _span_factor
+
+        rp, rl, pp = (np.asarray(a, np.float64) for a in (maps.R_perp, maps.R_par, maps.phi_perp))
+        a = 0.5 * (rp - rl) * _span_factor(span_rad)
+        self.mean = (0.5 * (rp + rl)).astype(np.float32)
+        self.ac = (a * np.cos(2 * pp)).astype(np.float32)
+        self.as_ = (a * np.sin(2 * pp)).astype(np.float32)
+
+    def __call__(self, phi: float, out: np.ndarray) -> np.ndarray:
+        np.multiply(self.ac, np.float32(math.cos(2 * phi)), out=out)
+        out += np.float32(math.sin(2 * phi)) * self.as_
+        out += self.mean
+        return out
 
 
 def _ls(Z: np.ndarray, I: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

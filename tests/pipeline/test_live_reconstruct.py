@@ -144,7 +144,6 @@ def test_follow_reads_a_growing_dat_and_stops_on_sigint_with_complete_outputs(tm
     n_png = len(list((out / "frames").glob("T_*.png")))
     assert n_png == s["frames"]
     for name in ("T", "R", "preview"):
-        v = iio.imread(out / f"{name}.mp4", plugin="pyav") if False else None  # noqa: F841
         frames = sum(1 for _ in iio.imiter(out / f"{name}.mp4"))
         assert frames == s["frames"], (name, frames)
     assert not list(out.glob("*.tmp*")) and not list(out.glob(".*"))  # no partial file left
