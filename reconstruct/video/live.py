@@ -8,8 +8,10 @@ linear T and R equal to float32 rounding, tested), by a path that keeps up with 
   windows;
 * zeta (paper Eq. (2)) once per Eq. (3) frame, not once per window it appears in;
 * ``ls`` without RIR as one fused pass per pixel (:func:`reconstruct.physics.fused.ls_fused`); other solvers and
-  RIR through the torch solver on batches of windows, RIR by the fast whole-frame alignment
-  (:func:`reconstruct.physics.rir.estimate_shifts_fast`);
+  RIR through the torch solver on batches of windows, RIR by the chained whole-frame alignment
+  (:class:`reconstruct.physics.rir.ChainedRir`: each frame registered once onto the one before; the shifts
+  differ from :func:`reconstruct.physics.rir.estimate_shifts`'s, the quality change is measured in
+  docs/realtime.md); torch on one thread;
 * display gains from the running histogram of the first ``gain_frames`` frames (the whole video when it is
   shorter; a longer one keeps those gains: the display can be shown live), 8-bit conversion by a table and
   H.264 encoding on a background thread.
@@ -284,6 +286,11 @@ def reconstruct_live(
     fused = model.method == "ls" and not model.rir
     maps = model.maps
     zeta_of = _ZetaFrames(maps, model.span_rad)
+    chained = None
+    if model.rir:
+        from reconstruct.physics.rir import ChainedRir
+
+        chained = ChainedRir()
     scale = np.float32(cfg.window_steps * exposure)
     ring_I = np.zeros((N, H, W), np.float32)  # Eq. (3) frame j in slot j % N
     ring_Z = np.zeros((N, H, W), np.float32)
@@ -320,10 +327,10 @@ def reconstruct_live(
         Z = torch.from_numpy(np.stack([p[1] for p in pending]))
         ph = torch.from_numpy(np.stack([p[2] for p in pending]))
         if model.rir and N > 1:
-            from reconstruct.physics.rir import estimate_shifts_fast, warp
+            from reconstruct.physics.rir import warp
 
             with times("rir"):
-                sh = torch.stack([estimate_shifts_fast(I[b], ph[b]) for b in range(I.shape[0])]).to(I.dtype)
+                sh = torch.stack([chained.window_shifts(I[b], ph[b], p[4]) for b, p in enumerate(pending)]).to(I.dtype)
                 I = warp(I, sh)
                 Z = warp(Z, sh)
         from reconstruct.physics.solvers import solve
@@ -337,6 +344,8 @@ def reconstruct_live(
 
     writers = _LiveWriters(out, fps, cfg, times)
     ok = False
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)  # small per-frame tensors: one thread (more spin-wait on a shared machine and gain nothing)
     try:
         while True:
             if stop is not None and stop.is_set():
@@ -377,7 +386,7 @@ def reconstruct_live(
                         emit(writers, ring_I[centre].copy(), T, R, arr)
                     else:
                         order = [(nxt - N + k) % N for k in range(N)]
-                        pending.append((ring_I[order], ring_Z[order], ring_phi[order], arr))
+                        pending.append((ring_I[order], ring_Z[order], ring_phi[order], arr, np.arange(nxt - N, nxt)))
                         if len(pending) >= (1 if follow else cfg.batch):
                             flush(writers)
             if cfg.max_frames and done + len(pending) >= cfg.max_frames:
@@ -396,6 +405,7 @@ def reconstruct_live(
         flush(writers)
         ok = True
     finally:
+        torch.set_num_threads(threads)
         reader.close()
         writers.close(ok)
     if done == 0:
