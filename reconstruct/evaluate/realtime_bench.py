@@ -146,7 +146,8 @@ def bench_realtime(width: int = 400, height: int = 250, short_s: float = 0.25, l
     from reconstruct.stream.packed import packed_source, PackedDat
     from reconstruct.pane.source import calibrate_stream
 
-    cfg = PaneStreamConfig(width=width, height=height, exposure=2.0, motion_px_s=(0.0, 20.0))
+    # a pan of 20 px/s for RIR to follow (0.06 px per output frame); static where no method registers
+    cfg = PaneStreamConfig(width=width, height=height, exposure=2.0, motion_px_s=(0.0, 20.0) if any(m.endswith("+rir") for m in methods) else (0.0, 0.0))
     res: dict[str, Any] = {"config": {"width": width, "height": height, "short_s": short_s, "long_s": long_s, "camera_fps": CAMERA_FPS, "video": video,
                                       "stream": dataclasses.asdict(cfg), "cpu_count": os.cpu_count(), "load_avg_start": os.getloadavg()}, "methods": {}}
     tick = (lambda s: progress(s)) if progress else (lambda s: None)
