@@ -93,13 +93,24 @@ def chunks():
         a = s % block.shape[0]
         yield block[a:a + m] if a + m <= block.shape[0] else np.concatenate([block[a:], block[:a + m - block.shape[0]]])
         s += m
+import os, threading
+def rss():
+    return int(open("/proc/self/statm").read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2**20
 rss0 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+run = {{"start": rss(), "max": 0.0}}
+done = threading.Event()
+def sample():
+    while not done.wait(0.05):
+        run["max"] = max(run["max"], rss())
+threading.Thread(target=sample, daemon=True).start()
 mp = pane_stream_maps(cfg)
 model = PhysicsModel("ls", 7, maps=PaneMaps(R_perp=mp["R_perp"], R_par=mp["R_par"], phi_perp=mp["phi_perp"]), span_rad=2 * math.pi * 30 * 13 / 20000, rir=False)
 t0 = time.perf_counter(); c0 = time.process_time()
 with tempfile.TemporaryDirectory() as d:
     s = reconstruct_live(PackedChunks(chunks(), cfg.height, cfg.width, steps), model, d, LiveConfig(video={video}), phi0_rad=cfg.phi0_rad, rev_per_s=30.0, rate_hz=cfg.rate_hz, exposure=cfg.exposure)
+done.set()
 print(json.dumps({{"seconds": {seconds}, "frames": s["frames"], "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+                  "run_rss_start_mb": run["start"], "run_rss_max_mb": max(run["max"], rss()), "run_rss_end_mb": rss(),
                   "rss_before_mb": rss0 / 1024, "wall_s": time.perf_counter() - t0, "cpu_s": time.process_time() - c0}}))
 """
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env={**os.environ, "PYTHONPATH": os.pathsep.join(p for p in sys.path if p)})
@@ -222,6 +233,8 @@ def realtime_markdown(res: dict[str, Any]) -> str:
               f"p95 {1e3 * la['p95']:.0f} ms, max {1e3 * la['max']:.0f} ms over {la['frames']} frames."]
     if "memory" in res:
         ms, ml = res["memory"]["short"], res["memory"]["long"]
-        L += ["", f"Memory (live ls, no video, stream made on the fly): peak RSS {ms['peak_rss_mb']:.0f} MB for {ms['seconds']:g} s ({ms['frames']} frames), "
-              f"{ml['peak_rss_mb']:.0f} MB for {ml['seconds']:g} s ({ml['frames']} frames; {ml['frames'] / ml['cpu_s']:.0f} frames per CPU second)."]
+        L += ["", "Memory (live ls, no video, one second of packed spikes made once and repeated on the fly; RSS sampled every 50 ms during the run):", "",
+              "| recording | frames | RSS at the start | largest RSS during the run | RSS at the end | frames per CPU second |", "|---:|---:|---:|---:|---:|---:|"]
+        for m in (ms, ml):
+            L.append(f"| {m['seconds']:g} s | {m['frames']} | {m['run_rss_start_mb']:.0f} MB | {m['run_rss_max_mb']:.0f} MB | {m['run_rss_end_mb']:.0f} MB | {m['frames'] / m['cpu_s']:.0f} |")
     return "\n".join(L) + "\n"
