@@ -144,6 +144,9 @@ def reconstruct_cmd(
     fov_deg: Optional[float] = typer.Option(None, "--fov-deg", help="--zeta self: the camera's horizontal field of view in degrees where the lens is known [default: a group's scene fov; a .dat: fitted from the spikes, which on narrow views trades against the pane's tilt (docs/selfcal.md)]"),
     pane: Optional[Path] = typer.Option(None, "--pane", help="zeta from the maps of polspike calibrate-pane (its output directory or maps.exr) of this camera and pane, instead of --zeta: e.g. fitted once on a long static recording, then used for every recording of the setup"),
     ensemble: int = typer.Option(1, "--ensemble", help="the network averaged over 1, 2, 4 or 8 mirror / transpose symmetries of each window (test-time self-ensemble: that many forward passes, no feature cache; measured by polspike bench ensemble)"),
+    follow: bool = typer.Option(False, "--follow", help=".dat: the file is still being written (a camera): output frames as their spikes arrive, the latency on stderr and in reconstruct.json; Ctrl-C stops with every output complete (physics methods on pane maps)"),
+    follow_idle: float = typer.Option(5.0, "--follow-idle", help="--follow: stop when the file has not grown for this many seconds (0 = only Ctrl-C stops)"),
+    path: str = typer.Option("auto", "--path", help="live (packed reads, fused solver, background encoding: the real-time path; physics methods on pane maps over a .dat) | stream (the general streaming path) | auto (live where it applies)"),
 ) -> None:
     """Turn a spike group or a .dat into reflection-free T and R video at the output cadence (~343 FPS)."""
     import dataclasses
@@ -203,11 +206,29 @@ def reconstruct_cmd(
         if pane_n is not None or pane_model != "auto":
             raise ConfigError("--pane fixes the index and the pane model (they are in its maps): drop --pane-n / --pane-model")
     cfg = ReconstructConfig(window_steps=window_steps, stride_deg=stride_deg, exposure=exposure or 1.0, frames=frames, max_frames=max_frames, precision=precision)
-    if input.suffix.lower() == ".dat":
+    if path not in ("auto", "live", "stream"):
+        raise ConfigError(f"--path {path!r}: choose auto, live or stream")
+    is_dat = input.suffix.lower() == ".dat"
+    if (follow or path == "live") and (not is_dat or method == "net" or anchor != "none"):
+        raise ConfigError(f"{'--follow' if follow else '--path live'} runs a physics solver (--method ls, ridge, irls, rwps) on pane maps over a .dat, without --anchor mean")
+    if follow and path == "stream":
+        raise ConfigError("--follow runs on the live path: drop --path stream")
+    if follow_idle < 0:
+        raise ConfigError(f"--follow-idle {follow_idle}: seconds >= 0")
+    reader = None
+    if is_dat:
         missing = [n for n, v in (("--height", height), ("--width", width), ("--phi0-deg", phi0_deg), ("--rev-per-s", rev_per_s)) if v is None]
         if missing:
             raise ConfigError(f"a .dat input needs {', '.join(missing)} (frame size and polarizer calibration)")
-        src = dat_source(input, height, width, math.radians(phi0_deg), rev_per_s, rate_hz, cfg.chunk_steps)
+        if follow:
+            from polspike.commands.live_cmd import wait_for_dat
+            from reconstruct.stream.packed import packed_source
+
+            start = max(4000, int(round(0.2 * rate_hz)))  # the exposure estimate's steps (and the self-calibration's 0.1 s)
+            reader = wait_for_dat(input, height, width, start, follow_idle)
+            src = packed_source(reader, start, math.radians(phi0_deg), rev_per_s, rate_hz, input.name)
+        else:
+            src = dat_source(input, height, width, math.radians(phi0_deg), rev_per_s, rate_hz, cfg.chunk_steps)
     elif input.is_dir():
         src = group_source(input, cfg.chunk_steps)
     else:
@@ -256,8 +277,23 @@ def reconstruct_cmd(
         model, info = build_physics_model(method, zeta or "self", src, group_dir=None if input.suffix.lower() == ".dat" else input, window_steps=window_steps,
                                           exposure=None if src.exposure is not None else cfg.exposure, rir=True if rir is None else rir, load_learned=load, anchor=anchor,
                                           pane_n=pane_n, pane_model=pane_model, selfcal=selfcal)
-    with rich_progress("reconstruct", enabled=not quiet) as cb:
-        s = reconstruct_stream(src, model, out, cfg, device=dev, progress=cb, meta={**exposure_info, "method": method, "anchor": anchor, "ensemble": ensemble, "zeta": info["zeta"] if info is not None else "learned"})
+    meta = {**exposure_info, "method": method, "anchor": anchor, "ensemble": ensemble, "zeta": info["zeta"] if info is not None else "learned"}
+    live = is_dat and path != "stream" and method != "net" and getattr(model, "maps", None) is not None and anchor == "none" and dev == "cpu"
+    if (follow or path == "live") and not live:
+        raise ConfigError(f"{'--follow' if follow else '--path live'} needs pane maps (zeta {info['zeta'] if info else 'learned'} is not) on the CPU")
+    if live:
+        from polspike.commands.live_cmd import run_live
+        from reconstruct.stream.packed import PackedDat
+        from reconstruct.video.live import LiveConfig
+
+        lcfg = LiveConfig(window_steps=window_steps, stride_deg=stride_deg, frames=frames, max_frames=max_frames, idle_s=follow_idle)
+        reader = reader or PackedDat(input, height, width)
+        s = run_live(reader, model, out, lcfg, phi0_rad=math.radians(phi0_deg), rev_per_s=rev_per_s, rate_hz=rate_hz,
+                     exposure=src.exposure if src.exposure is not None else cfg.exposure, name=input.name, follow=follow, meta=meta, quiet=quiet)
+        s["tfp_corr_mean"] = None
+    else:
+        with rich_progress("reconstruct", enabled=not quiet) as cb:
+            s = reconstruct_stream(src, model, out, cfg, device=dev, progress=cb, meta=meta)
     c = Console()
     if info is not None:
         from polinfra.atomic import write_json

@@ -34,7 +34,7 @@ from polinfra.errors import ShapeError
 
 from reconstruct.physics.harmonic_fit import dop, harmonic_fit
 
-__all__ = ["RirConfig", "registration_mask", "warp", "estimate_shifts", "align_window"]
+__all__ = ["RirConfig", "registration_mask", "warp", "estimate_shifts", "align_window", "ChainedRir"]
 
 log = logging.getLogger(__name__)
 
@@ -151,16 +151,29 @@ def _refine(ref: torch.Tensor, mov: torch.Tensor, mask: torch.Tensor, s0: torch.
     the moving image and its gradients are sampled there with the same
     bilinear interpolation as :func:`warp`.  float64 (H, W) inputs.
     """
-    pts = mask.nonzero().to(ref.dtype)  # (P, 2) as (y, x)
+    pts = _mask_points(mask, max_points).to(ref.dtype)
     if pts.shape[0] < 16:
         return s0
+    return _gauss_newton(ref[pts[:, 0].long(), pts[:, 1].long()], _with_gradient(mov), pts, s0, iters)
+
+
+def _mask_points(mask: torch.Tensor, max_points: int) -> torch.Tensor:
+    """(P, 2) (y, x) of the mask's pixels, at most ``max_points`` (evenly strided)."""
+    pts = mask.nonzero()
     if pts.shape[0] > max_points:
         pts = pts[:: int(np.ceil(pts.shape[0] / max_points))]
-    r_ref = ref[pts[:, 0].long(), pts[:, 1].long()]
-    gy, gx = torch.gradient(mov)
-    stack = torch.stack([mov, gy, gx])
+    return pts
+
+
+def _with_gradient(img: torch.Tensor) -> torch.Tensor:
+    gy, gx = torch.gradient(img)
+    return torch.stack([img, gy, gx])
+
+
+def _gauss_newton(r_ref: torch.Tensor, stack: torch.Tensor, pts: torch.Tensor, s0: torch.Tensor, iters: int) -> torch.Tensor:
+    """The iterations of :func:`_refine`: reference values at ``pts``, the moving image with its gradient (3, H, W)."""
     s = s0.clone()
-    eye = torch.eye(2, dtype=ref.dtype)
+    eye = torch.eye(2, dtype=r_ref.dtype)
     r_ref = (r_ref - r_ref.mean()) / r_ref.std().clamp_min(1e-30)
     for _ in range(iters):
         J, Jy, Jx = _sample(stack, pts - s)  # warp(mov, s)(p) = mov(p - s) and its gradient there
@@ -248,3 +261,84 @@ def align_window(
     sI = warp(I, shifts.to(I.dtype))
     sc = None if coeffs is None else warp(coeffs, shifts.to(coeffs.dtype))
     return sI, sc, shifts
+
+
+
+class ChainedRir:
+    """RIR for a stream whose motion is global: each new frame is registered once, onto the frame before it, and a
+    window's shifts are differences of the running sums (translations add), instead of six masked phase
+    correlations per window.
+
+    Per new frame: the frames are smoothed (``smooth_sigma_px``) and block-averaged by ``factor``; the
+    shift onto the previous frame is a masked Gauss-Newton fit (the refinement of :func:`estimate_shifts`),
+    coarse to fine (block sizes ``4 factor``, then ``factor``, then full resolution on at most ``points`` mask
+    pixels), from zero: inter-frame motion at the output cadence is small (a few pixels at most).  The
+    registration mask (:func:`registration_mask`, low-DoP well-exposed pixels) is computed on the block-averaged
+    window every ``mask_every`` windows and kept in between (it follows the scene, which moves slowly).
+
+    Args:
+        config: RIR parameters (mask thresholds, smoothing, iterations, max shift).
+    """
+
+    def __init__(self, config: RirConfig = RirConfig(), factor: int = 2, mask_every: int = 8, points: int = 4000):
+        self.config, self.factor, self.mask_every, self.points = config, int(factor), int(mask_every), int(points)
+        self.levels = (4 * self.factor, self.factor, 1)
+        self.q: dict[int, torch.Tensor] = {}
+        self.prev: tuple[int, dict] | None = None  # (frame index, its pyramid)
+        self.pts: dict[int, torch.Tensor] | None = None  # mask points per level
+        self.windows = 0
+
+    def _mask(self, I: torch.Tensor, phi: torch.Tensor) -> None:
+        f = self.factor
+        co = torch.from_numpy(np.stack([_block_mean(x, f) for x in I.detach().cpu().double().numpy()]))
+        cfg = dataclasses.replace(self.config, mask_sigma_px=self.config.mask_sigma_px / f)
+        m = registration_mask(co, phi, cfg).numpy().astype(np.float64)
+        up = np.repeat(np.repeat(m, f, 0), f, 1)
+        full = np.zeros(I.shape[-2:], bool)
+        full[: up.shape[0], : up.shape[1]] = up > 0.5
+        self.pts = {}
+        for lv in self.levels:
+            m = _block_mean(full.astype(np.float64), lv) > 0.99 if lv > 1 else full
+            m = _erode(m, max(1, self.config.erode_px // lv))
+            self.pts[lv] = _mask_points(torch.from_numpy(m), self.points).double()
+
+    def _pyramid(self, frame: np.ndarray) -> dict:
+        sm = _smooth(frame, self.config.smooth_sigma_px)
+        return {lv: _with_gradient(torch.from_numpy(_block_mean(sm, lv) if lv > 1 else sm)) for lv in self.levels}
+
+    def _pair(self, ref: dict, mov: dict) -> torch.Tensor:
+        s = torch.zeros(2, dtype=torch.float64)
+        for lv in self.levels:
+            pts = self.pts[lv]
+            if pts.shape[0] < 16:
+                continue
+            r = ref[lv][0][pts[:, 0].long(), pts[:, 1].long()]
+            s = lv * _gauss_newton(r, mov[lv], pts, s / lv, max(self.config.refine_iters, 1))
+        if not torch.isfinite(s).all() or float(s.abs().max()) > self.config.max_shift_px:
+            return torch.zeros(2, dtype=torch.float64)
+        return s
+
+    def window_shifts(self, I: torch.Tensor, phi: torch.Tensor, index: np.ndarray) -> torch.Tensor:
+        """Shifts (N, 2) registering each frame of the window onto its centre; ``index`` (N,) the frames' indices in
+        the stream, consecutive."""
+        N = I.shape[0]
+        if self.pts is None or self.windows % self.mask_every == 0:
+            self._mask(I, phi)
+        self.windows += 1
+        frames = I.detach().cpu().double().numpy()
+        for k in range(N):
+            j = int(index[k])
+            if j in self.q:
+                continue
+            sm = self._pyramid(frames[k])
+            if self.prev is None or self.prev[0] != j - 1:
+                self.q[j] = torch.zeros(2, dtype=torch.float64)
+            else:
+                self.q[j] = self.q[j - 1] + self._pair(self.prev[1], sm)
+            self.prev = (j, sm)
+        lo = int(index[0])
+        for j in [j for j in self.q if j < lo]:
+            del self.q[j]
+        c = N // 2
+        qc = self.q[int(index[c])]
+        return torch.stack([self.q[int(j)] - qc for j in index]).to(I.device)

@@ -1,0 +1,465 @@
+"""The real-time physics stream: packed reads, a fused solver, background encoding; also on a growing .dat.
+
+:func:`reconstruct_live` gives the output of :func:`reconstruct.video.stream.reconstruct_stream` for a
+:class:`reconstruct.video.physics.PhysicsModel` on pane maps (the same Eq. (3) frames, centres, zeta and solver;
+linear T and R equal to float32 rounding, tested), by a path that keeps up with the camera:
+
+* Eq. (3) counts summed on the packed bits (:mod:`reconstruct.stream.packed`), reading only the steps inside
+  windows;
+* zeta (paper Eq. (2)) once per Eq. (3) frame, not once per window it appears in;
+* ``ls`` without RIR as one fused pass per pixel (:func:`reconstruct.physics.fused.ls_fused`); other solvers and
+  RIR through the torch solver on batches of windows, RIR by the chained whole-frame alignment
+  (:class:`reconstruct.physics.rir.ChainedRir`: each frame registered once onto the one before; the shifts
+  differ from :func:`reconstruct.physics.rir.estimate_shifts`'s, the quality change is measured in
+  docs/realtime.md); torch on one thread;
+* display gains from the running histogram of the first ``gain_frames`` frames (the whole video when it is
+  shorter; a longer one keeps those gains: the display can be shown live), 8-bit conversion by a table and
+  H.264 encoding on a background thread.
+
+With ``follow`` the .dat may still be growing: frames are made as their last step arrives, and the latency (the
+time from the arrival of a window's last step to its output) is measured per frame.  ``stop`` (an event, set by
+Ctrl-C) ends the run between frames; every output file is still completed (atomic writes).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import logging
+import math
+import os
+import queue
+import threading
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from polinfra.atomic import atomic_path, ensure_dir, write_json
+from polinfra.config import opt
+from polinfra.errors import ConfigError
+
+from reconstruct.stream.display import DisplayHistogram, display_gain
+
+__all__ = ["LiveConfig", "reconstruct_live", "StageTimes", "to8_table"]
+
+log = logging.getLogger(__name__)
+
+
+@dataclasses.dataclass(frozen=True)
+class LiveConfig:
+    """Options of :func:`reconstruct_live`."""
+
+    window_steps: int = opt(13, "Eq. (3) window in steps, odd", lo=1, hi=255)
+    stride_deg: float = opt(31.5, "polarizer rotation between output frames, degrees", lo=0.01, hi=360.0)
+    batch: int = opt(8, "windows per torch solver call (solvers other than plain ls, or RIR on)", lo=1, hi=1024)
+    frames: str = opt("none", "also write frames: none | png | exr", choices=("none", "png", "exr"))
+    video: bool = opt(True, "write T.mp4, R.mp4 and preview.mp4")
+    max_frames: int = opt(0, "stop after this many output frames (0 = all)", lo=0, hi=10**9)
+    gain_frames: int = opt(64, "display gains from the histogram of the first this many frames, then kept", lo=1, hi=10**9)
+    preset: str = opt("ultrafast", "x264 preset of the videos", choices=("ultrafast", "superfast", "veryfast", "faster", "fast", "medium"))
+    poll_s: float = opt(0.01, "follow: wait between looks at the growing file, seconds", lo=0.0, hi=10.0)
+    idle_s: float = opt(5.0, "follow: stop when the file has not grown for this long, seconds (0 = only Ctrl-C stops)", lo=0.0, hi=1e6)
+
+
+class StageTimes:
+    """Wall-clock and CPU seconds per stage (CPU: this thread's, so a loaded machine does not inflate it)."""
+
+    def __init__(self):
+        self.wall: dict[str, float] = {}
+        self.cpu: dict[str, float] = {}
+
+    @contextlib.contextmanager
+    def __call__(self, name: str):
+        w, c = time.perf_counter(), time.thread_time()
+        try:
+            yield
+        finally:
+            self.wall[name] = self.wall.get(name, 0.0) + time.perf_counter() - w
+            self.cpu[name] = self.cpu.get(name, 0.0) + time.thread_time() - c
+
+    def add(self, name: str, wall: float, cpu: float) -> None:
+        self.wall[name] = self.wall.get(name, 0.0) + wall
+        self.cpu[name] = self.cpu.get(name, 0.0) + cpu
+
+
+_TABLE_N = 1 << 16
+
+
+def to8_table() -> np.ndarray:
+    """8-bit display values of linear x = i / (2^16 - 1) after the gain: the 1/2.2 gamma of
+    :func:`reconstruct.stream.display._to8`, tabulated (one level at most apart from the exact mapping)."""
+    x = np.arange(_TABLE_N, dtype=np.float64) / (_TABLE_N - 1)
+    return (x ** (1 / 2.2) * 255 + 0.5).astype(np.uint8)
+
+
+_TO8 = to8_table()
+
+
+def _to8_fast(x: np.ndarray, gain: float) -> np.ndarray:
+    idx = np.clip(x * np.float32(gain * (_TABLE_N - 1)) + np.float32(0.5), 0, _TABLE_N - 1).astype(np.uint16)
+    return _TO8[idx]
+
+
+class _LiveWriters:
+    """Outputs of a live stream: EXR frames at once, display outputs (MP4s, PNG frames) on a background thread
+    once the gains are known (after ``gain_frames`` frames or at the end)."""
+
+    def __init__(self, out: Path, fps: float, cfg: LiveConfig, times: StageTimes):
+        self.out, self.fps, self.cfg, self.times = out, fps, cfg, times
+        self.display = cfg.video or cfg.frames == "png"
+        self.hist = {k: DisplayHistogram() for k in ("T", "R", "input")}
+        self.gain: dict[str, float] | None = None
+        self.held: list[tuple[int, np.ndarray, np.ndarray, np.ndarray]] = []
+        self.q: queue.Queue = queue.Queue(maxsize=64)
+        self.stack = contextlib.ExitStack()
+        self.vw: dict[str, Any] = {}
+        self.err: BaseException | None = None
+        self.thread: threading.Thread | None = None
+        self.n = 0
+
+    def _open(self, name: str):
+        import imageio.v2 as iio
+
+        tmp = self.stack.enter_context(atomic_path(self.out / f"{name}.mp4"))
+        w = iio.get_writer(str(tmp), format="FFMPEG", mode="I", fps=self.fps, codec="libx264", quality=8, macro_block_size=1, pixelformat="yuv420p",
+                           ffmpeg_log_level="error", output_params=["-preset", self.cfg.preset])
+        self.stack.callback(w.close)
+        return w
+
+    def _encode_loop(self) -> None:
+        cpu = 0.0
+        wall = 0.0
+        try:
+            while True:
+                item = self.q.get()
+                if item is None:
+                    break
+                w0, c0 = time.perf_counter(), time.thread_time()
+                self._encode(*item)
+                wall += time.perf_counter() - w0
+                cpu += time.thread_time() - c0
+        except BaseException as e:  # noqa: BLE001 - handed to the main thread in close()
+            self.err = e
+            while self.q.get() is not None:  # drain so the producer never blocks
+                pass
+        finally:
+            self.times.add("encode", wall, cpu)
+
+    def _encode(self, i: int, I2: np.ndarray, T: np.ndarray, R: np.ndarray) -> None:
+        g = self.gain
+        even = lambda a: a[: a.shape[0] // 2 * 2, : a.shape[1] // 2 * 2]  # noqa: E731
+        t8, r8 = _to8_fast(T, g["T"]), _to8_fast(R, g["R"])
+        if self.cfg.video:
+            gP = g["preview"]
+            prev = np.concatenate([_to8_fast(I2, gP), _to8_fast(T, gP), _to8_fast(R, gP)], 1)
+            for name, img in (("T", t8), ("R", r8), ("preview", prev)):
+                if name not in self.vw:
+                    self.vw[name] = self._open(name)
+                self.vw[name].append_data(even(img))
+        if self.cfg.frames == "png":
+            import imageio.v3 as iio3
+
+            d = ensure_dir(self.out / "frames")
+            for name, img in (("T", t8), ("R", r8)):
+                with atomic_path(d / f"{name}_{i:06d}.png") as tmp:
+                    iio3.imwrite(tmp, img, extension=".png")
+
+    def _start(self) -> None:
+        gT, gR, gI = (display_gain(self.hist[k]) for k in ("T", "R", "input"))
+        self.gain = {"T": gT, "R": gR, "preview": min(gT, gR, gI)}
+        self.thread = threading.Thread(target=self._encode_loop, name="polspike-encode", daemon=True)
+        self.thread.start()
+        for item in self.held:
+            self.q.put(item)
+        self.held.clear()
+
+    def write(self, Ic: np.ndarray, T: np.ndarray, R: np.ndarray) -> None:
+        if self.cfg.frames == "exr":
+            from polinfra.exr import write_exr
+
+            d = ensure_dir(self.out / "frames")
+            write_exr(d / f"{self.n:06d}.exr", {"T": T.astype(np.float32), "R": R.astype(np.float32)}, {"units": "linear radiance, 1.0 = brightest layer"})
+        if self.display:
+            I2 = 2 * Ic
+            if self.gain is None:
+                self.hist["input"].add(I2)
+                self.hist["T"].add(T)
+                self.hist["R"].add(R)
+                self.held.append((self.n, I2, T, R))
+                if len(self.held) >= self.cfg.gain_frames:
+                    self._start()
+            else:
+                self.q.put((self.n, I2, T, R))
+                if self.err is not None:
+                    raise self.err
+        self.n += 1
+
+    def close(self, ok: bool) -> None:
+        try:
+            if self.display and self.gain is None and self.n > 0 and ok:
+                self._start()
+            if self.thread is not None:
+                self.q.put(None)
+                self.thread.join()
+            if self.err is not None and ok:
+                raise self.err
+        finally:
+            exc = (None, None, None) if ok else (RuntimeError, RuntimeError("stream failed"), None)
+            self.stack.__exit__(*exc)
+
+
+class _Centres:
+    """Eq. (3) frame centres of a stream whose length grows: those of
+    :func:`spike_sim.aggregate.frame_centres` on the calibrated angle phi0 + 2 pi f t, which do not depend on
+    how far the stream goes (computed on a horizon that doubles)."""
+
+    def __init__(self, phi0_rad: float, rev_per_s: float, rate_hz: float, agg):
+        self.phi0, self.rev, self.rate, self.agg = phi0_rad, rev_per_s, rate_hz, agg
+        self.horizon = 0
+        self.c = np.zeros(0, np.int64)
+        self.phi = np.zeros(0)
+
+    def ready(self, n_steps: int) -> int:
+        """How many frames have their whole window inside the first ``n_steps`` steps."""
+        from spike_sim.aggregate import frame_centres
+
+        if n_steps + self.agg.half + 2 > self.horizon:
+            self.horizon = max(2 * self.horizon, n_steps + int(self.rate), 4 * self.agg.window_steps)
+            t = (np.arange(self.horizon) + 0.5) / self.rate
+            self.c, self.phi = frame_centres(self.phi0 + 2 * math.pi * self.rev * t, self.agg)
+        return int(np.searchsorted(self.c + self.agg.half, n_steps - 1, side="right"))
+
+
+def reconstruct_live(
+    reader,
+    model,
+    out_dir: str | os.PathLike,
+    cfg: LiveConfig,
+    *,
+    phi0_rad: float,
+    rev_per_s: float,
+    rate_hz: float,
+    exposure: float,
+    name: str = "stream",
+    follow: bool = False,
+    stop: threading.Event | None = None,
+    on_frame: Callable[[int, float | None], None] | None = None,
+    meta: dict[str, Any] | None = None,
+    times: StageTimes | None = None,
+) -> dict[str, Any]:
+    """Reconstruct a packed spike stream with a physics model on pane maps (module docstring).
+
+    Args:
+        reader: :class:`reconstruct.stream.packed.PackedDat` (also a growing one) or another packed reader
+            (``refresh()`` -> steps available, ``counts(a, b)`` -> upright (H, W) counts, ``height``, ``width``).
+        model: :class:`reconstruct.video.physics.PhysicsModel` with pane maps (no learned zeta, no mean anchor).
+        out_dir: output directory (created).
+        cfg: options.
+        phi0_rad, rev_per_s, rate_hz: polarizer calibration and camera rate.
+        exposure: thresholds per step per unit radiance.
+        follow: wait for the stream to grow (until ``stop``, or ``cfg.idle_s`` without growth).
+        stop: an event that ends the run between frames (outputs completed).
+        on_frame: called (frames done, latency seconds or None) after each output frame.
+        meta: extra summary entries.
+        times: stage timer to fill (read, aggregate, zeta, rir, solve, write, encode).
+
+    Returns:
+        the summary written to ``reconstruct.json``.
+    """
+    from spike_sim.aggregate import AggregateConfig, output_fps
+
+    if getattr(model, "maps", None) is None or getattr(model.cfg, "use_mean", False):
+        raise ConfigError("the real-time path takes a physics solver on pane maps (--zeta self, gt, physics or --pane) without --anchor mean")
+
+    out = ensure_dir(out_dir)
+    times = times if times is not None else StageTimes()
+    N = model.cfg.n_obs
+    K = N // 2
+    agg = AggregateConfig(window_steps=cfg.window_steps, stride_deg=cfg.stride_deg, n_obs=N)
+    cen = _Centres(phi0_rad, rev_per_s, rate_hz, agg)
+    fps = output_fps(rev_per_s, cfg.stride_deg) if rev_per_s > 0 else 1.0
+    H, W = reader.height, reader.width
+    fused = model.method == "ls" and not model.rir
+    maps = model.maps
+    zeta_of = _ZetaFrames(maps, model.span_rad)
+    chained = None
+    if model.rir:
+        from reconstruct.physics.rir import ChainedRir
+
+        chained = ChainedRir()
+    scale = np.float32(cfg.window_steps * exposure)
+    ring_I = np.zeros((N, H, W), np.float32)  # Eq. (3) frame j in slot j % N
+    ring_Z = np.zeros((N, H, W), np.float32)
+    ring_phi = np.zeros(N, np.float32)
+    arrived: dict[int, float] = {}  # Eq. (3) frame -> when its last step was seen
+    pending: list[tuple[np.ndarray, np.ndarray, np.ndarray, float | None]] = []
+    lat: list[float] = []
+    stats = {"nan_frames": 0}
+    done = 0
+    nxt = 0
+    stopped = "end of stream"
+    t0 = time.perf_counter()
+    last_growth = time.perf_counter()
+    n_seen = -1
+
+    def emit(writers, Ic, T, R, arr):
+        nonlocal done
+        if not (np.isfinite(T).all() and np.isfinite(R).all()):
+            stats["nan_frames"] += 1
+            T, R = np.nan_to_num(T), np.nan_to_num(R)
+        with times("write"):
+            writers.write(Ic, T, R)
+        done += 1
+        la = None if arr is None else time.perf_counter() - arr
+        if la is not None:
+            lat.append(la)
+        if on_frame is not None:
+            on_frame(done, la)
+
+    def flush(writers):
+        if not pending:
+            return
+        I = torch.from_numpy(np.stack([p[0] for p in pending]))
+        Z = torch.from_numpy(np.stack([p[1] for p in pending]))
+        ph = torch.from_numpy(np.stack([p[2] for p in pending]))
+        if model.rir and N > 1:
+            from reconstruct.physics.rir import warp
+
+            with times("rir"):
+                sh = torch.stack([chained.window_shifts(I[b], ph[b], p[4]) for b, p in enumerate(pending)]).to(I.dtype)
+                I = warp(I, sh)
+                Z = warp(Z, sh)
+        from reconstruct.physics.solvers import solve
+
+        with times("solve"):
+            r = solve(model.method, Z, I, config=model.solver_cfg)
+            T, R = r.T.clamp_min(0.0).numpy(), r.R.clamp_min(0.0).numpy()
+        for b, p in enumerate(pending):
+            emit(writers, p[0][K], T[b], R[b], p[3])
+        pending.clear()
+
+    writers = _LiveWriters(out, fps, cfg, times)
+    ok = False
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)  # small per-frame tensors: one thread (more spin-wait on a shared machine and gain nothing)
+    try:
+        while True:
+            if stop is not None and stop.is_set():
+                stopped = "interrupt"
+                break
+            with times("read"):
+                n = reader.refresh()
+            now = time.perf_counter()
+            if n != n_seen:
+                n_seen, last_growth = n, now
+            with times("centres"):
+                m = cen.ready(n)
+            if follow:
+                for j in range(nxt, m):
+                    arrived.setdefault(j, now)
+            progressed = False
+            while nxt < m and (cfg.max_frames == 0 or done + len(pending) < cfg.max_frames):
+                if stop is not None and stop.is_set():
+                    break
+                c = int(cen.c[nxt])
+                with times("aggregate"):
+                    I_j = reader.counts(c - agg.half, c + agg.half + 1).astype(np.float32) / scale  # Eq. (3), radiance units
+                slot = nxt % N
+                ring_I[slot] = I_j
+                ring_phi[slot] = np.float32(cen.phi[nxt])
+                with times("zeta"):
+                    zeta_of(float(ring_phi[slot]), ring_Z[slot])  # paper Eq. (2)
+                nxt += 1
+                progressed = True
+                if nxt >= N:
+                    arr = arrived.pop(nxt - 1, None) if follow else None
+                    for k in [k for k in arrived if k < nxt - 1]:
+                        arrived.pop(k)
+                    centre = (nxt - 1 - K) % N
+                    if fused:  # the least-squares sums do not depend on the order of the frames: the ring as it is
+                        with times("solve"):
+                            T, R = _ls(ring_Z, ring_I)
+                        emit(writers, ring_I[centre].copy(), T, R, arr)
+                    else:
+                        order = [(nxt - N + k) % N for k in range(N)]
+                        pending.append((ring_I[order], ring_Z[order], ring_phi[order], arr, np.arange(nxt - N, nxt)))
+                        if len(pending) >= (1 if follow else cfg.batch):
+                            flush(writers)
+            if cfg.max_frames and done + len(pending) >= cfg.max_frames:
+                stopped = "max frames"
+                break
+            if not follow:
+                break
+            if not progressed:
+                if cfg.idle_s > 0 and time.perf_counter() - last_growth > cfg.idle_s:
+                    stopped = "idle"
+                    break
+                if stop is not None:
+                    stop.wait(cfg.poll_s)
+                else:
+                    time.sleep(cfg.poll_s)
+        flush(writers)
+        ok = True
+    finally:
+        torch.set_num_threads(threads)
+        reader.close()
+        writers.close(ok)
+    if done == 0:
+        raise ConfigError(f"{name}: no output frame (the stream holds fewer than the N = {N} Eq. (3) frames a window needs)")
+    secs = time.perf_counter() - t0
+    la = np.asarray(lat) if lat else None
+    summary = {
+        "input": name,
+        "frames": done,
+        "fps": fps,
+        "size": [H, W],
+        "exposure": exposure,
+        "window_steps": cfg.window_steps,
+        "stride_deg": cfg.stride_deg,
+        "n_obs": N,
+        "nan_frames": stats["nan_frames"],
+        "seconds": secs,
+        "frames_per_second_processed": done / secs if secs > 0 else None,
+        "outputs": sorted(p.name for p in out.iterdir() if p.is_file() and p.suffix == ".mp4"),
+        "display_gain": writers.gain,
+        "display_gain_frames": min(cfg.gain_frames, done),
+        "path": "live",
+        "follow": follow,
+        "stopped": stopped,
+        "latency_s": None if la is None else {"mean": float(la.mean()), "median": float(np.median(la)), "p95": float(np.quantile(la, 0.95)), "max": float(la.max()), "frames": int(la.size)},
+        "stage_seconds": {"wall": dict(times.wall), "cpu": dict(times.cpu)},
+        **(meta or {}),
+    }
+    write_json(out / "reconstruct.json", summary)
+    return summary
+
+
+class _ZetaFrames:
+    """zeta (paper Eq. (2), window-averaged) of one Eq. (3) frame at angle phi, as
+    :func:`reconstruct.physics.zeta.zeta_eq2` computes it, by the angle-sum identity on maps prepared once:
+    zeta = mean + f amp (cos 2 phi cos 2 phi_perp + sin 2 phi sin 2 phi_perp) (float32; agrees to rounding)."""
+
+    def __init__(self, maps, span_rad: float):
+        from reconstruct.physics.zeta import _span_factor
+
+        rp, rl, pp = (np.asarray(a, np.float64) for a in (maps.R_perp, maps.R_par, maps.phi_perp))
+        a = 0.5 * (rp - rl) * _span_factor(span_rad)
+        self.mean = (0.5 * (rp + rl)).astype(np.float32)
+        self.ac = (a * np.cos(2 * pp)).astype(np.float32)
+        self.as_ = (a * np.sin(2 * pp)).astype(np.float32)
+
+    def __call__(self, phi: float, out: np.ndarray) -> np.ndarray:
+        np.multiply(self.ac, np.float32(math.cos(2 * phi)), out=out)
+        out += np.float32(math.sin(2 * phi)) * self.as_
+        out += self.mean
+        return out
+
+
+def _ls(Z: np.ndarray, I: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    from reconstruct.physics.fused import ls_fused
+
+    return ls_fused(Z, I)
