@@ -47,7 +47,7 @@ __all__ = ["TierEstimate", "TierPlan", "plan_tier", "scene_features", "predict_t
 log = logging.getLogger(__name__)
 
 PHIS = np.deg2rad([0.0, 45.0, 90.0, 135.0])
-"""Polarizer angles of the error measure (as in :mod:`polspike.pipeline.tradeoff`)."""
+"""Polarizer angles of the error measure (as in `polspike bench tradeoff`)."""
 NOISE_GAIN = 1.33
 """Measured full-tier noise coefficient / lobe-choice proxy, geometric mean over the layer scenes
 (near_normal 1.10, brewster 1.27, oblique_diagonal 1.33, bk7_single 1.65; docs/tradeoff.md)."""
