@@ -1,4 +1,4 @@
-"""Mitsuba 3 backend selection: CUDA > LLVM > scalar, with logged fallbacks.
+r"""Mitsuba 3 backend selection: CUDA > LLVM > scalar, with logged fallbacks.
 
 Mitsuba is imported lazily, inside :func:`load_mitsuba`, so nothing else in
 polspike needs it.  A *backend* is one of ``"cuda"``, ``"llvm"``, ``"scalar"``;

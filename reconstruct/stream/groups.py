@@ -385,7 +385,7 @@ def load_store_group(
         # Eq. (3) frames and the wide windows at the same centres, each centre's spikes read once
         I, I_wide = window_means(g.read, c, (window_steps, wide_window_steps(g.rate_hz, pol_rate, stride_deg)), g.n_steps, exposure)
         has = np.zeros(c.size, bool)
-        T = R = Z = None
+        T = R = None
         if g.has("output/step_index") and g.has("gt/T"):
             idx = {int(s): j for j, s in enumerate(g.array("output/step_index"))}
             T = np.zeros_like(I)

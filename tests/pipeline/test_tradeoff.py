@@ -21,7 +21,7 @@ def test_tradeoff_tiny(tiny_scene, tmp_path):
     from polspike.pipeline.tradeoff import Candidate, default_candidates, run_tradeoff
 
     ref = Candidate("ref full 32spp", "full", 32, variant="llvm")
-    res = run_tradeoff([tiny_scene], tmp_path, default_candidates(quick=True), ref=ref, keyframe_rates_hz=(25.0, 200.0), spike_steps=140)
+    run_tradeoff([tiny_scene], tmp_path, default_candidates(quick=True), ref=ref, keyframe_rates_hz=(25.0, 200.0), spike_steps=140)
     assert (tmp_path / "pareto.png").is_file() and (tmp_path / "tradeoff.md").is_file()
     rows = {r["candidate"]: r for r in json.loads((tmp_path / "tradeoff.json").read_text())["rows"]}
     a, f = rows["analytic"], rows["full 4spp llvm"]
