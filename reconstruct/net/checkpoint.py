@@ -30,26 +30,26 @@ from reconstruct.physics.solvers import SolverConfig
 __all__ = ["CKPT_FORMAT", "DEFAULT_WEIGHTS", "V1_WEIGHTS", "V2_WEIGHTS", "V2_MEAN_WEIGHTS", "V3_WEIGHTS", "V4_WEIGHTS", "V5_WEIGHTS", "V6_WEIGHTS", "save_checkpoint", "read_checkpoint", "load_model", "export_weights"]
 
 CKPT_FORMAT = "polspike-ckpt/1"
-V1_WEIGHTS = Path(__file__).resolve().parent / "weights" / "polspike_v1.pt"
+V1_WEIGHTS = Path(__file__).resolve().parents[1] / "weights" / "polspike_v1.pt"
 """The first shipped checkpoint (v1 architecture), kept for comparison."""
-V2_WEIGHTS = Path(__file__).resolve().parent / "weights" / "polspike_v2.pt"
+V2_WEIGHTS = Path(__file__).resolve().parents[1] / "weights" / "polspike_v2.pt"
 """The v2 checkpoint trained on the weak-reflection paper_v1 data (issue 19), the default before issue 16."""
-V2_MEAN_WEIGHTS = Path(__file__).resolve().parent / "weights" / "polspike_v2_mean.pt"
+V2_MEAN_WEIGHTS = Path(__file__).resolve().parents[1] / "weights" / "polspike_v2_mean.pt"
 """v2 with the long spike mean as a refinement input (issue 16, first round), the default before v3."""
-DEFAULT_WEIGHTS = Path(__file__).resolve().parent / "weights" / "polspike_v7.pt"
+DEFAULT_WEIGHTS = Path(__file__).resolve().parents[1] / "weights" / "polspike_v7.pt"
 """The shipped checkpoint (see ``docs/MODEL_CARD.md``): v7, v6 with the difference R - T moved toward the first harmonic
 of the whole long span of spikes where that span identifies it (``span_level``; on an external zeta only)."""
-V6_WEIGHTS = Path(__file__).resolve().parent / "weights" / "polspike_v6.pt"
+V6_WEIGHTS = Path(__file__).resolve().parents[1] / "weights" / "polspike_v6.pt"
 """The default before v7 (issue 16, fifth round): v5's weights with T's and R's low frequencies taken from the solver on
 the wide windows (every spike between the N windows' centres; ``t_level_px``, ``r_level_from = wide``); v7's levels too."""
-V5_WEIGHTS = Path(__file__).resolve().parent / "weights" / "polspike_v5.pt"
+V5_WEIGHTS = Path(__file__).resolve().parents[1] / "weights" / "polspike_v5.pt"
 """The default before v6 (issue 16, fourth round): v4 whose R decoder alone was fine-tuned with the R term weighted by
 the reflected share (every other weight frozen, so T is exactly v4's); v6's weights."""
-V4_WEIGHTS = Path(__file__).resolve().parent / "weights" / "polspike_v4.pt"
+V4_WEIGHTS = Path(__file__).resolve().parents[1] / "weights" / "polspike_v4.pt"
 """The default before v5 (issue 16, third round): the v3 network (the refinement correcting the physics anchored to the
 long spike mean, ``base = anchored``, trained on paper.toml for its own and an external ``--zeta self`` zeta) trained
 further with a structure (SSIM) term and picked on a validation split apart from the test groups; v5's T path."""
-V3_WEIGHTS = Path(__file__).resolve().parent / "weights" / "polspike_v3.pt"
+V3_WEIGHTS = Path(__file__).resolve().parents[1] / "weights" / "polspike_v3.pt"
 """The default before v4 (issue 16, second round), kept for comparison."""
 
 
