@@ -99,7 +99,7 @@ class NetConfig:
     span_level_tol_t: float = opt(0.25, "span_level: also keep T, which moves by zbar times the change of D, no noisier than this fraction of the pixel's light 2 I_mean (gain min(tol^2 / (tol^2 + var), tol_t^2 / (tol_t^2 + zbar^2 var)); 0 = off): where zeta's mean is large (a glancing pane, or a calibration that put it there) the span's noise reaches T", lo=0.0, hi=1e6)
     span_rad: float = opt(math.radians(7.02), "polarizer rotation inside one aggregation window (0.65 ms at 30 rev/s), rad; recorded with the weights, not used by the layers", lo=0.0, hi=math.pi)
     floor: bool = opt(True, "data-consistency floor at inference (reconstruct.physics.consistency): the final (T, R) must predict the N aligned windows (paper Eq. (1)-(2)) within floor_tol noise variances of the physics-only RWPS's residual on the same zeta; where it does not, it is pulled back toward that physics. No weights; off while training")
-    floor_tol: float = opt(2.0, "the floor's allowed excess residual, in noise variances of one observation (2: the minimum-error blend of the refinement and the physics, reconstruct.physics.consistency)", lo=0.0, hi=1e6)
+    floor_tol: float = opt(4.0, "the floor's allowed excess residual, in noise variances of one observation (4: the floored error is the smaller of the refinement's and the physics', reconstruct.physics.consistency)", lo=0.0, hi=1e6)
     floor_mode: str = opt("shrink", "the floor: shrink (keep the fraction min(1, floor_tol sigma^2 / excess) of the refinement's move from the physics) | hard (the physics wherever the excess exceeds floor_tol sigma^2)", choices=("shrink", "hard"))
 
     @property

@@ -25,11 +25,15 @@ a lower bound on sigma^2 (``model_var``).
     s = min(1, tol sigma^2 / <E(1)>)          (s = 1 where <E(1)> <= tol sigma^2)
 
 of the candidate's move, x = x_p + s d, <.> a ``pool`` x ``pool`` box mean (the test is made on a neighbourhood, so a
-systematic disagreement stands out of the per-pixel chi-square noise and s varies smoothly).  This is the
-minimum-error blend of two estimates: in the metric of the data the physics' own error has power ~ 2 sigma^2 (2 dof)
-and the move d has power E = tau^2 + 2 sigma^2 when the candidate's error tau^2 is independent of it, so the blend
-(1 - s) x_p + s x_n has error (1 - s)^2 2 sigma^2 + s^2 tau^2, least at s = 2 sigma^2 / E: ``tol = 2`` is that blend,
-never worse than either estimate (in expectation) and better than both where both err.  A candidate the observations
+systematic disagreement stands out of the per-pixel chi-square noise and s varies smoothly).  Why this s: in the metric
+of the data the physics' own error has power P ~ 2 sigma^2 (2 dof) and, the candidate's error tau^2 being independent
+of it, the move has power E = P + tau^2; the blend (1 - s) x_p + s x_n has error (1 - s)^2 P + s^2 tau^2.  With
+``tol = 4`` (= 2 P / sigma^2) that error is exactly min(tau^2, P): where tau^2 <= P, s = 1 and the candidate stands;
+where tau^2 > P, s = 2 P / (P + tau^2) and (1 - s)^2 P + s^2 tau^2 = P (P (tau^2 - P)^2 + 4 P^2 tau^2 =
+P (P + tau^2)^2).  So the floored output's error is, in expectation, that of the better of the physics and the
+candidate, whatever the candidate (``tol = 2`` is the minimum-error blend for a known tau^2, but
+it shrinks a candidate as good as the truth whenever the pooled excess fluctuates above its mean: measured on the
+motion bench's dim light, 2 dB lost against the unfloored network).  A candidate the observations
 allow (its excess within the noise) passes unchanged; one that contradicts them (a level taken from a long span that
 a pan smeared, R carrying T's texture, a garbage correction) is pulled back to the physics, the more the further it
 strays: its distance from x_p in the metric of the data is s sqrt(a) = tol sigma^2 sqrt(a) / <a - 2c>, which tends
@@ -55,7 +59,7 @@ __all__ = ["FloorConfig", "FloorResult", "observation_residual", "observation_no
 class FloorConfig:
     """Parameters of the data-consistency floor (module docstring)."""
 
-    tol: float = opt(2.0, "allowed excess residual over the physics', in noise variances of one observation (2: the truth's own mean excess over least squares, 2 dof; the minimum-error blend)", lo=0.0, hi=1e6)
+    tol: float = opt(4.0, "allowed excess residual over the physics', in noise variances of one observation (4 = twice the physics' own error power, 2 dof: the floored error is min(the candidate's, the physics'), module docstring)", lo=0.0, hi=1e6)
     pool: int = opt(5, "side (pixels) of the box over which the noise variance and the excess are averaged (1 = per pixel)", lo=1, hi=101)
     mode: str = opt("shrink", "shrink: keep the fraction min(1, tol sigma^2 / excess) of the candidate's move | hard: the physics wherever the excess exceeds tol sigma^2", choices=("shrink", "hard"))
 
