@@ -246,7 +246,7 @@ def motion_table(result: dict) -> str:
     lines = []
     for r in rows:
         ok = "" if "holds" not in r else ("yes" if r["holds"] else f"no ({r['margin_db']:+.2f} dB)")
-        z = "self" if r["zeta"] == "self" else "true"
+        z = "true" if str(r["zeta"]).startswith("true") else r["zeta"]
         lines.append(f"| {r['motion']} | {r['speed']:g} | {r['reflection']} | {r['light']} | {z} | " + " | ".join(fmt(r["scores"][m]["T_psnr"]) for m in methods) + f" | {ok} |")
     rm = [m for m in methods if rows[0]["scores"][m]["R_psnr"] is not None]
     rt = "| motion | speed | reflection | light | " + " | ".join(rm) + " |\n|---|---:|---|---|" + "---:|" * len(rm) + "\n"

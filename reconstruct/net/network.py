@@ -538,21 +538,28 @@ class PolSpikeNet(nn.Module):
                 T, R = span_blend(T, R, I_mean, I_harm, zs, phi, wsp, self.cfg.span_level_px, self.cfg.span_level_tol * light, tol_t)
         keep = None
         if self.cfg.floor and not self.training:
-            T, R, keep = self.data_floor(T, R, zeta_used, I)
+            T, R, keep = self.data_floor(T, R, zeta_used, I, exposure)
         return NetOutput(T=T, R=R, T_base=T0, R_base=R0, zeta_hat=zeta_hat, zeta_used=zeta_used, weights=w, conf=res.conf, res=resid, I=I, zeta_gt=zeta_gt, floor_keep=keep)
 
     @torch.no_grad()
-    def data_floor(self, T: torch.Tensor, R: torch.Tensor, zeta: torch.Tensor, I: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    def data_floor(self, T: torch.Tensor, R: torch.Tensor, zeta: torch.Tensor, I: torch.Tensor, exposure=None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """The data-consistency floor (:mod:`reconstruct.physics.consistency`): (T, R) against the physics-only RWPS
         (Poisson reliability weights, :data:`reconstruct.physics.solvers.PHYSICS_SOLVER_CONFIG`, layers >= 0: what
-        ``polspike reconstruct --method rwps`` returns on this zeta) on the same (aligned) windows -> (T, R, kept fraction)."""
+        ``polspike reconstruct --method rwps`` returns on this zeta) on the same (aligned) windows -> (T, R, kept fraction).
+        Given the stream's ``exposure``, the noise is capped at the windows' Poisson noise, var(2 I) = 4 I / (exposure L)
+        with L = 13 steps (0.65 ms at 20 kHz: the windows this network reads), so misalignment or a wrong zeta in the
+        residual does not widen the allowance."""
         from reconstruct.physics.consistency import FloorConfig, consistency_floor
         from reconstruct.physics.solvers import PHYSICS_SOLVER_CONFIG
 
         z = zeta.detach().float()
         Iw = I.detach().float()
         ph = solve("rwps", z, Iw, None, PHYSICS_SOLVER_CONFIG)
-        f = consistency_floor(T.float(), R.float(), ph.T.clamp_min(0.0), ph.R.clamp_min(0.0), z, Iw, FloorConfig(tol=self.cfg.floor_tol, mode=self.cfg.floor_mode))
+        mv = None
+        if exposure is not None:
+            e = torch.as_tensor(exposure, dtype=torch.float32, device=Iw.device).reshape(-1, 1, 1) if torch.is_tensor(exposure) else float(exposure)
+            mv = 4.0 * Iw.mean(1).clamp_min(0.0) / (e * 13.0) + 1e-12
+        f = consistency_floor(T.float(), R.float(), ph.T.clamp_min(0.0), ph.R.clamp_min(0.0), z, Iw, FloorConfig(tol=self.cfg.floor_tol, mode=self.cfg.floor_mode), mv, "min")
         return f.T.to(T.dtype), f.R.to(R.dtype), f.keep
 
 

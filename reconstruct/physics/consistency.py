@@ -17,8 +17,9 @@ chi^2_2: mean 2 sigma^2, 95 % below 5.99 sigma^2.  sigma^2 is measured, not assu
 variance RSS_ls / (N - 2) averaged over a ``pool`` x ``pool`` box (:func:`observation_noise`; the same estimate as the
 adaptive RWPS's, :mod:`reconstruct.physics.solvers`), so it holds the spikes' Poisson / quantization noise and
 whatever the model leaves (an imperfect self-calibrated zeta, residual misalignment) alike.  Where the spike model's
-noise is known (exposure and window length, :func:`reconstruct.physics.identifiability.window_mean_variance`) it is
-a lower bound on sigma^2 (``model_var``).
+noise is known (exposure and window length, :func:`reconstruct.physics.identifiability.window_mean_variance`),
+``model_var`` either bounds sigma^2 from below (``combine = "max"``) or caps it (``"min"``: the residual then counts
+only as far as the spikes' noise explains it, so misalignment or a wrong zeta does not widen the allowance).
 
 **The floor** (:func:`consistency_floor`) keeps the fraction
 
@@ -114,7 +115,7 @@ def observation_noise(zeta: torch.Tensor, I: torch.Tensor, pool: int = 5) -> tor
 
 
 def consistency_floor(T: torch.Tensor, R: torch.Tensor, T_p: torch.Tensor, R_p: torch.Tensor, zeta: torch.Tensor, I: torch.Tensor,
-                      cfg: FloorConfig = FloorConfig(), model_var: torch.Tensor | None = None) -> FloorResult:
+                      cfg: FloorConfig = FloorConfig(), model_var: torch.Tensor | None = None, combine: str = "max") -> FloorResult:
     """Floor a candidate (T, R) at the physics (T_p, R_p) by the N observations ``I`` (..., N, H, W) on ``zeta``.
 
     Args:
@@ -123,7 +124,8 @@ def consistency_floor(T: torch.Tensor, R: torch.Tensor, T_p: torch.Tensor, R_p: 
         zeta: (..., N, H, W) mixing coefficients (paper Eq. (2)) of the windows.
         I: (..., N, H, W) the windows in radiance units (paper Eq. (1): I = 1/2 (zeta R + (1 - zeta) T)).
         cfg: :class:`FloorConfig`.
-        model_var: optional (..., H, W) or broadcastable lower bound on sigma^2 of b = 2 I from the spike model.
+        model_var: optional (..., H, W) or broadcastable sigma^2 of b = 2 I from the spike model.
+        combine: "max" (``model_var`` a lower bound on sigma^2) or "min" (a cap).
 
     Returns:
         :class:`FloorResult` (module docstring).
@@ -132,7 +134,10 @@ def consistency_floor(T: torch.Tensor, R: torch.Tensor, T_p: torch.Tensor, R_p: 
     zeta, I = zeta.to(T.dtype), I.to(T.dtype)
     sigma2 = observation_noise(zeta, I, cfg.pool)
     if model_var is not None:
-        sigma2 = torch.maximum(sigma2, model_var.to(sigma2.dtype))
+        if combine not in ("max", "min"):
+            raise ValueError(f"combine {combine!r}: max or min")
+        mv = _box(torch.broadcast_to(model_var.to(sigma2.dtype), sigma2.shape), cfg.pool)
+        sigma2 = torch.maximum(sigma2, mv) if combine == "max" else torch.minimum(sigma2, mv)
     sigma2 = sigma2.clamp_min(torch.finfo(T.dtype).tiny ** 0.5)
     r_p = observation_residual(T_p, R_p, zeta, I)
     dT, dR = T - T_p, R - R_p
