@@ -130,7 +130,8 @@ def reconstruct_cmd(
     stride_deg: float = typer.Option(31.5, "--stride-deg", help="polarizer rotation between output frames (31.5 deg -> 342.9 FPS at 30 rev/s)"),
     frames: str = typer.Option("none", "--frames", help="also write frames: none | png | exr"),
     weights: Optional[Path] = typer.Option(None, "--weights", help="checkpoint [default: the shipped reconstruct/weights default, reconstruct.net.checkpoint.DEFAULT_WEIGHTS]"),
-    rir: Optional[bool] = typer.Option(None, "--rir/--no-rir", help="RIR alignment [default: as trained]"),
+    rir: bool = typer.Option(True, "--rir/--no-rir", help="RIR alignment of each window before the solver and the network (also for a checkpoint trained without it)"),
+    floor: bool = typer.Option(True, "--floor/--no-floor", help="the network's data-consistency floor: its (T, R) must predict the 7 aligned windows within the noise of the physics-only RWPS's fit, else the physics stands (reconstruct/physics/consistency.py)"),
     max_frames: int = typer.Option(0, "--max-frames", help="stop after this many output frames (0 = all)"),
     device: str = typer.Option("auto", "--device", help="auto | cpu | cuda"),
     quiet: bool = typer.Option(False, "--quiet", help="no progress bar"),
@@ -233,7 +234,7 @@ def reconstruct_cmd(
         src = group_source(input, cfg.chunk_steps)
     else:
         raise ConfigError(f"input {input} is neither a .dat file nor a spike group directory")
-    load = lambda: load_model(weights or DEFAULT_WEIGHTS, dev, **({} if rir is None else {"use_rir": rir}))[0]  # noqa: E731
+    load = lambda: load_model(weights or DEFAULT_WEIGHTS, dev, use_rir=rir, floor=floor)[0]  # noqa: E731
     net_model = load() if method == "net" else None  # a bad checkpoint is reported before the stream is read
     if net_model is not None and ensemble > 1:
         from reconstruct.net.network import SymmetryEnsemble
@@ -260,7 +261,7 @@ def reconstruct_cmd(
 
             model = MapsZetaNet(net_model, maps, span)
         else:
-            model = PhysicsModel(method, maps=maps, span_rad=span, rir=True if rir is None else rir, anchor=anchor)
+            model = PhysicsModel(method, maps=maps, span_rad=span, rir=rir, anchor=anchor)
     elif method == "net":
         from reconstruct.net.net_zeta import NET_DEFAULT_ZETA
 
@@ -275,16 +276,16 @@ def reconstruct_cmd(
         from reconstruct.video.physics import build_physics_model
 
         model, info = build_physics_model(method, zeta or "self", src, group_dir=None if input.suffix.lower() == ".dat" else input, window_steps=window_steps,
-                                          exposure=None if src.exposure is not None else cfg.exposure, rir=True if rir is None else rir, load_learned=load, anchor=anchor,
+                                          exposure=None if src.exposure is not None else cfg.exposure, rir=rir, load_learned=load, anchor=anchor,
                                           pane_n=pane_n, pane_model=pane_model, selfcal=selfcal)
-    meta = {**exposure_info, "method": method, "anchor": anchor, "ensemble": ensemble, "zeta": info["zeta"] if info is not None else "learned"}
+    meta = {**exposure_info, "method": method, "anchor": anchor, "ensemble": ensemble, "rir": rir, "floor": floor if method == "net" else None, "zeta": info["zeta"] if info is not None else "learned"}
     live = is_dat and path != "stream" and method != "net" and getattr(model, "maps", None) is not None and anchor == "none" and dev == "cpu"
     if (follow or path == "live") and not live:
         raise ConfigError(f"{'--follow' if follow else '--path live'} needs pane maps (zeta {info['zeta'] if info else 'learned'} is not) on the CPU")
     if live:
         from polspike.commands.live_cmd import run_live
         from reconstruct.stream.packed import PackedDat
-        from reconstruct.video.live import LiveConfig
+        from reconstruct.video.stream.live import LiveConfig
 
         lcfg = LiveConfig(window_steps=window_steps, stride_deg=stride_deg, frames=frames, max_frames=max_frames, idle_s=follow_idle)
         reader = reader or PackedDat(input, height, width)

@@ -48,7 +48,8 @@ def sha256_file(path: str | os.PathLike) -> str:
 
 
 def evaluate_setting(weights: str | os.PathLike, setting: dict[str, Any], threads: int = 1) -> dict[str, float]:
-    """PSNR / SSIM of ``weights`` on the held-out test set of ``setting`` (CPU, ``threads`` torch threads, as trained)."""
+    """PSNR / SSIM of ``weights`` on the held-out test set of ``setting`` (CPU, ``threads`` torch threads, as trained: the
+    data-consistency floor only where the setting says ``floor = true``; the stored scores predate it)."""
     import torch
 
     from polspike.commands.train_cmds import heldout_inputs, heldout_test_set
@@ -58,7 +59,7 @@ def evaluate_setting(weights: str | os.PathLike, setting: dict[str, Any], thread
     old = torch.get_num_threads()
     torch.set_num_threads(max(1, int(threads)))
     try:
-        model, _ = load_model(weights, "cpu")
+        model, _ = load_model(weights, "cpu", floor=bool(setting.get("floor", False)))
         ds = heldout_test_set(setting["crop"], setting["items"], setting["seed"], setting["manifest"], light=setting.get("light", "range"), **heldout_inputs(model))
         with torch.no_grad():
             return evaluate_model(model, ds, batch_size=8, device="cpu", ssim=True)

@@ -170,8 +170,8 @@ def load_network(cfg: EvalConfig) -> tuple[torch.nn.Module, dict]:
         overrides["use_rir"] = False
         log.warning("%s was trained with RIR; evaluating it without RIR (test-time ablation: RIR has no weights)", path)
     if cfg.rir and not trained["use_rir"]:
-        log.warning("%s was trained without RIR; evaluating it without RIR as trained (add --no-rir to say so)", path)
-        overrides["use_rir"] = False
+        overrides["use_rir"] = True  # alignment first, also for a checkpoint trained without it (RIR has no weights)
+        log.info("%s was trained without RIR; evaluating it with RIR (--no-rir: as trained)", path)
     if cfg.no_conf and trained["use_conf"]:
         overrides["use_conf"] = False
         log.warning("%s was trained with Conf; evaluating it without Conf (test-time ablation; the paper retrains)", path)

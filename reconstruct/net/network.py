@@ -98,6 +98,9 @@ class NetConfig:
     span_level_tol: float = opt(2.0, "span_level: the error of the refined D, relative to the pixel's light 2 I_mean, the span's noise is weighed against: its gain is tol^2 / (tol^2 + var) (relative, so the move does not depend on the brightness scale, e.g. an estimated exposure)", lo=1e-6, hi=1e6)
     span_level_tol_t: float = opt(0.25, "span_level: also keep T, which moves by zbar times the change of D, no noisier than this fraction of the pixel's light 2 I_mean (gain min(tol^2 / (tol^2 + var), tol_t^2 / (tol_t^2 + zbar^2 var)); 0 = off): where zeta's mean is large (a glancing pane, or a calibration that put it there) the span's noise reaches T", lo=0.0, hi=1e6)
     span_rad: float = opt(math.radians(7.02), "polarizer rotation inside one aggregation window (0.65 ms at 30 rev/s), rad; recorded with the weights, not used by the layers", lo=0.0, hi=math.pi)
+    floor: bool = opt(True, "data-consistency floor at inference (reconstruct.physics.consistency): the final (T, R) must predict the N aligned windows (paper Eq. (1)-(2)) within floor_tol noise variances of the physics-only RWPS's residual on the same zeta; where it does not, it is pulled back toward that physics. No weights; off while training")
+    floor_tol: float = opt(4.0, "the floor's allowed excess residual, in noise variances of one observation (4: the floored error is the smaller of the refinement's and the physics', reconstruct.physics.consistency)", lo=0.0, hi=1e6)
+    floor_mode: str = opt("shrink", "the floor: shrink (keep the fraction min(1, floor_tol sigma^2 / excess) of the refinement's move from the physics) | hard (the physics wherever the excess exceeds floor_tol sigma^2)", choices=("shrink", "hard"))
 
     @property
     def wide_input(self) -> bool:
@@ -127,6 +130,8 @@ class NetOutput:
     res: torch.Tensor
     I: torch.Tensor
     zeta_gt: torch.Tensor | None
+    floor_keep: torch.Tensor | None = None
+    """(B, H, W) the floor's kept fraction of the refinement's move from the physics (1 = unchanged), when it ran."""
 
 
 class ConvBlock(nn.Module):
@@ -370,21 +375,21 @@ class PolSpikeNet(nn.Module):
             raise ShapeError("encode_obs needs a v2 network with RIR off", actual_shape=None, expected_shape="arch v2, use_rir false")
         return self.param.encode_obs(I, scale)
 
-    def align(self, I: torch.Tensor, phi: torch.Tensor, zeta_gt: torch.Tensor | None) -> tuple[torch.Tensor, torch.Tensor | None]:
-        """RIR per batch item (shift estimates are not differentiated; the warp is)."""
+    def align(self, I: torch.Tensor, phi: torch.Tensor, zeta_gt: torch.Tensor | None, *more: torch.Tensor | None) -> tuple[torch.Tensor | None, ...]:
+        """RIR per batch item (shift estimates are not differentiated; the warp is): (I, zeta_gt, *more) aligned, each
+        of ``more`` a (B, N, H, W) stack on the windows' centres (e.g. the wide windows) moved with the same shifts."""
         from reconstruct.physics.rir import estimate_shifts, warp
 
-        outI, outZ = [], []
+        maps = (zeta_gt, *more)
+        outI, outM = [], [[] for _ in maps]
         for b in range(I.shape[0]):
             with torch.no_grad():
                 sh = estimate_shifts(I[b].detach().double().cpu(), phi[b].detach().double().cpu()).to(I.device, I.dtype)
-            if bool((sh == 0).all()):
-                outI.append(I[b])
-                outZ.append(None if zeta_gt is None else zeta_gt[b])
-                continue
-            outI.append(warp(I[b], sh))
-            outZ.append(None if zeta_gt is None else warp(zeta_gt[b], sh))
-        return torch.stack(outI), (None if zeta_gt is None else torch.stack(outZ))
+            moved = bool((sh != 0).any())
+            outI.append(warp(I[b], sh) if moved else I[b])
+            for o, m in zip(outM, maps):
+                o.append(None if m is None else (warp(m[b], sh.to(m.dtype)) if moved else m[b]))
+        return (torch.stack(outI), *(None if m is None else torch.stack(o) for o, m in zip(outM, maps)))
 
     def forward(
         self,
@@ -451,7 +456,7 @@ class PolSpikeNet(nn.Module):
         if alpha > 0 and zeta_gt is None:
             raise ShapeError("teacher forcing alpha > 0 needs zeta_gt", actual_shape=None, expected_shape="(B, N, H, W)")
         if self.cfg.use_rir:
-            I, zeta_gt = self.align(I, phi, zeta_gt)
+            I, zeta_gt, zeta_feed, I_wide = self.align(I, phi, zeta_gt, zeta_feed, I_wide)
         if self.cfg.arch == "v1":
             if scale is not None:
                 raise ShapeError("scale is a v2 option (v1 normalises each window by its own mean)", actual_shape=None, expected_shape="scale=None")
@@ -531,7 +536,31 @@ class PolSpikeNet(nn.Module):
                 light = 2.0 * I_mean.double().clamp_min(0.0)  # tolerances relative to the pixel's light: any brightness scale gives the same move
                 tol_t = self.cfg.span_level_tol_t * light if self.cfg.span_level_tol_t > 0 else None
                 T, R = span_blend(T, R, I_mean, I_harm, zs, phi, wsp, self.cfg.span_level_px, self.cfg.span_level_tol * light, tol_t)
-        return NetOutput(T=T, R=R, T_base=T0, R_base=R0, zeta_hat=zeta_hat, zeta_used=zeta_used, weights=w, conf=res.conf, res=resid, I=I, zeta_gt=zeta_gt)
+        keep = None
+        if self.cfg.floor and not self.training:
+            T, R, keep = self.data_floor(T, R, zeta_used, I, exposure)
+        return NetOutput(T=T, R=R, T_base=T0, R_base=R0, zeta_hat=zeta_hat, zeta_used=zeta_used, weights=w, conf=res.conf, res=resid, I=I, zeta_gt=zeta_gt, floor_keep=keep)
+
+    @torch.no_grad()
+    def data_floor(self, T: torch.Tensor, R: torch.Tensor, zeta: torch.Tensor, I: torch.Tensor, exposure=None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """The data-consistency floor (:mod:`reconstruct.physics.consistency`): (T, R) against the physics-only RWPS
+        (Poisson reliability weights, :data:`reconstruct.physics.solvers.PHYSICS_SOLVER_CONFIG`, layers >= 0: what
+        ``polspike reconstruct --method rwps`` returns on this zeta) on the same (aligned) windows -> (T, R, kept fraction).
+        Given the stream's ``exposure``, the noise is capped at the windows' Poisson noise, var(2 I) = 4 I / (exposure L)
+        with L = 13 steps (0.65 ms at 20 kHz: the windows this network reads), so misalignment or a wrong zeta in the
+        residual does not widen the allowance."""
+        from reconstruct.physics.consistency import FloorConfig, consistency_floor
+        from reconstruct.physics.solvers import PHYSICS_SOLVER_CONFIG
+
+        z = zeta.detach().float()
+        Iw = I.detach().float()
+        ph = solve("rwps", z, Iw, None, PHYSICS_SOLVER_CONFIG)
+        mv = None
+        if exposure is not None:
+            e = torch.as_tensor(exposure, dtype=torch.float32, device=Iw.device).reshape(-1, 1, 1) if torch.is_tensor(exposure) else float(exposure)
+            mv = 4.0 * Iw.mean(1).clamp_min(0.0) / (e * 13.0) + 1e-12
+        f = consistency_floor(T.float(), R.float(), ph.T.clamp_min(0.0), ph.R.clamp_min(0.0), z, Iw, FloorConfig(tol=self.cfg.floor_tol, mode=self.cfg.floor_mode), mv, "min")
+        return f.T.to(T.dtype), f.R.to(R.dtype), f.keep
 
 
 def gaussian_radius(sigma: float) -> int:

@@ -1,0 +1,286 @@
+"""The motion bench: every method on glass-pane streams under camera and layer motion, scored against the true layers.
+
+Streams: :mod:`reconstruct.stream.motion_scenes` (closed form per 20 kHz step, integrate-and-fire pixels).  Cells:
+camera pans at :data:`PAN_SPEEDS` view widths per second, a hand-held shake (a random walk of the velocity, 1 view/s
+rms), a rotation about the optical axis (60 deg/s), a zoom (scale rate 2 /s: the corners move ~1 view/s) and
+independent layer motion (T pans at 1.1 views/s, R holds still); each at weak, strong and dominant reflection
+(reflected share 0.1, 0.35, 0.6) and dim (0.02) and bright (0.3 spikes per pixel per step) light.
+
+Methods (:data:`METHODS`), all on the same Eq. (3) windows (13 steps, N = 7, 31.5 deg apart):
+
+* ``tfp``: T = 2 x the mean of the N windows (the plain spike image the stream reports beside T);
+* ``mean17``: T = 2 x the plain spike mean over the 17.5 ms span (351 steps) the network reads;
+* ``mean``: T = 2 x the spike mean over a motion-adapted span: L = 1 / v steps (1 px of smear), v the fastest
+  RIR shift of the N windows per step, clipped to [13, 351] steps;
+* ``ls``, ``ridge``, ``irls``, ``rwps``: the physics solvers (:data:`reconstruct.physics.solvers.PHYSICS_SOLVER_CONFIG`)
+  on the self-calibrated zeta (:func:`reconstruct.pane.source.calibrate_source`; ``calibrate = "still"``, the default:
+  on the still stream of the same rig, scene and light, once for every motion, as ``polspike calibrate-pane`` then
+  ``--pane`` does; ``"cell"``: on the cell's own moving stream; where it refuses, the true pane maps, and the cell says
+  so), RIR on; the networks run on the same zeta;
+* ``net``: the shipped checkpoint as trained (RIR off, no floor); ``net+rir``: RIR on; ``net+floor``: RIR on and the
+  data-consistency floor (:mod:`reconstruct.physics.consistency`, the network's default); ``net+floor+mspan``: that,
+  with the long span motion-compensated (:mod:`reconstruct.stream.motion_span`).
+
+Scores: PSNR and SSIM of T and R at each output frame's centre step against the true layers there, with a gain
+fitted (least squares) and the data range of the true layer, over the frame less a ``crop``-pixel border.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import math
+import time
+from typing import Any
+
+import numpy as np
+import torch
+
+from polinfra.errors import ConfigError
+
+log = logging.getLogger(__name__)
+
+__all__ = ["PAN_SPEEDS", "METHODS", "LIGHTS", "default_cells", "run_motion_bench", "motion_table", "motion_plot"]
+
+PAN_SPEEDS = (0.0, 0.1, 0.3, 0.6, 1.1, 2.0, 3.0)
+"""Camera pans of the bench, view widths per second."""
+
+OTHER_MOTIONS = (("shake", 1.0), ("rotate", 60.0), ("zoom", 2.0), ("layers", 1.1))
+"""The other motions and their speeds (units: :class:`reconstruct.stream.motion_scenes.MotionSceneConfig`)."""
+
+LIGHTS = {"dim": 0.02, "bright": 0.3}
+"""Light levels, mean spikes per pixel per step."""
+
+PHYSICS = ("ls", "ridge", "irls", "rwps")
+NETS = ("net", "net+rir", "net+floor", "net+floor+mspan")
+METHODS = ("tfp", "mean17", "mean", *PHYSICS, *NETS)
+"""Methods of the bench (module docstring)."""
+
+K, N_OBS, WINDOW, WIDE, SPAN = 3, 7, 13, 57, 350
+
+
+def default_cells(motions=None, speeds=PAN_SPEEDS, reflections=("weak", "strong", "dominant"), lights=tuple(LIGHTS)) -> list[dict]:
+    """The bench's cells: pans at ``speeds`` and the :data:`OTHER_MOTIONS` named in ``motions`` (None: all kinds)."""
+    kinds = ("pan", *(m for m, _ in OTHER_MOTIONS)) if motions is None else tuple(motions)
+    out = []
+    for refl in reflections:
+        for light in lights:
+            if light not in LIGHTS:
+                raise ConfigError(f"light {light!r}: choose one of {', '.join(LIGHTS)}")
+            if "pan" in kinds:
+                out += [{"motion": "pan", "speed": float(v), "reflection": refl, "light": light} for v in speeds]
+            out += [{"motion": m, "speed": float(v), "reflection": refl, "light": light} for m, v in OTHER_MOTIONS if m in kinds]
+    return out
+
+
+def _score(est, gt, crop: int) -> tuple[float, float]:
+    from reconstruct.evaluate.metrics import psnr, ssim
+
+    e = np.asarray(est, np.float64)[crop : -crop or None, crop : -crop or None]
+    g = np.asarray(gt, np.float64)[crop : -crop or None, crop : -crop or None]
+    a = float((e * g).sum() / max((e * e).sum(), 1e-20))
+    rng = max(float(g.max()), 1e-6)
+    return psnr(a * e, g, rng), ssim(a * e, g, rng)
+
+
+def _frame_inputs(st, c: int, rate_hz: float, rev_per_s: float):
+    """Windows, angles, wide windows, span mean and harmonic of the output frame centred on step c."""
+    from reconstruct.stream.groups import span_harmonic, harmonic_design, spike_mean_span
+
+    sp, ph, e = st.spikes, st.phi, st.exposure
+    stride = rate_hz * (31.5 / 360.0) / rev_per_s
+    cents = [int(round(c + k * stride)) for k in range(-K, K + 1)]
+
+    def win(cc, w):
+        lo, hi = cc - w // 2, cc + w // 2 + 1
+        return sp[lo:hi].sum(0, dtype=np.int32) / np.float32(w * e), float(ph[lo:hi].mean())
+
+    I = np.stack([win(cc, WINDOW)[0] for cc in cents]).astype(np.float32)
+    phi = np.array([win(cc, WINDOW)[1] for cc in cents])
+    I_wide = np.stack([win(cc, WIDE)[0] for cc in cents]).astype(np.float32)
+    lo, hi = spike_mean_span(c, SPAN, sp.shape[0])
+    sums = np.tensordot(harmonic_design(ph[lo:hi]), sp[lo:hi].astype(np.float32), axes=(1, 0))
+    I_mean = (sums[0] / ((hi - lo) * e)).astype(np.float32)
+    I_harm = span_harmonic(sums, ph[lo:hi], e)
+    return I, phi, I_wide, I_mean, I_harm, cents, (int(lo), int(hi))
+
+
+_MODELS: dict = {}
+_PANES: dict = {}
+
+
+def _net(weights, use_rir: bool, floor: bool):
+    from reconstruct.net.checkpoint import DEFAULT_WEIGHTS, load_model
+
+    key = (str(weights or DEFAULT_WEIGHTS), use_rir, floor)
+    if key not in _MODELS:
+        _MODELS[key] = load_model(weights or DEFAULT_WEIGHTS, "cpu", use_rir=use_rir, floor=floor)[0]
+    return _MODELS[key]
+
+
+def _pane(st, cfg, calibrate: str, steps: int, rate_hz: float, rev: float):
+    """(maps, source) of the cell's zeta: self-calibrated on the still stream of the same scene (``still``) or on the
+    cell's own (``cell``); the true maps where the calibration refuses."""
+    from reconstruct.pane.selfcal import SelfCalConfig
+    from reconstruct.pane.source import calibrate_source
+    from reconstruct.stream.motion_scenes import make_motion_stream
+    from reconstruct.stream.sources import array_source
+
+    key = (cfg.width, cfg.height, cfg.steps, cfg.reflection, cfg.rate, cfg.seed, cfg.tilt_deg)
+    if calibrate == "still" and key in _PANES:
+        return _PANES[key]
+    src = st if calibrate == "cell" else make_motion_stream(dataclasses.replace(cfg, motion="pan", speed=0.0))
+    res = calibrate_source(array_source(src.spikes, src.phi0, rev, rate_hz), WINDOW, src.exposure, SelfCalConfig(fov_deg=src.fov_deg, span_s=0.95 * steps / rate_hz))
+    out = (res.maps, "self") if res.ok else (st.maps, f"true (self-calibration refused: {res.reason.split(':')[0]})")
+    if calibrate == "still":
+        _PANES[key] = out
+    return out
+
+
+def run_cell(cell: dict, *, width: int = 96, height: int = 64, frames: int = 1, seed: int = 0, crop: int = 6, methods=METHODS, weights=None,
+             calibrate: str = "still") -> dict[str, Any]:
+    """Every method of ``methods`` on one cell -> {cell..., "zeta": source, "scores": {method: {T_psnr, ...}}, ...}."""
+    from reconstruct.net.net_zeta import MapsZetaNet
+    from reconstruct.physics.rir import estimate_shifts, warp
+    from reconstruct.physics.solvers import PHYSICS_SOLVER_CONFIG, solve
+    from reconstruct.physics.zeta import zeta_from_maps
+    from reconstruct.stream.motion_scenes import MotionSceneConfig, make_motion_stream
+    from reconstruct.stream.motion_span import compensated_span
+    from reconstruct.video.tiling import run_model_on_windows
+
+    if calibrate not in ("still", "cell"):
+        raise ConfigError(f"calibrate {calibrate!r}: choose still or cell")
+    bad = [m for m in methods if m not in METHODS]
+    if bad:
+        raise ConfigError(f"unknown method(s) {', '.join(bad)}; choose from {', '.join(METHODS)}")
+    rate_hz, rev = 20000.0, 30.0
+    stride = rate_hz * (31.5 / 360.0) / rev
+    reach = int(math.ceil(K * stride)) + WIDE // 2 + 1
+    reach = max(reach, SPAN // 2 + 1)
+    steps = 2 * reach + int(math.ceil((frames - 1) * stride)) + 2
+    cfg = MotionSceneConfig(width=width, height=height, steps=steps, motion=cell["motion"], speed=cell["speed"], reflection=cell["reflection"], rate=LIGHTS[cell["light"]], seed=seed)
+    t0 = time.perf_counter()
+    st = make_motion_stream(cfg)
+    span_rad = 2 * math.pi * rev * WINDOW / rate_hz
+    maps, zsrc = _pane(st, cfg, calibrate, steps, rate_hz, rev)
+    nets = {m: MapsZetaNet(_net(weights, m != "net", m not in ("net", "net+rir")), maps, span_rad) for m in methods if m in NETS}
+    acc: dict[str, dict[str, list]] = {m: {"T_psnr": [], "T_ssim": [], "R_psnr": [], "R_ssim": []} for m in methods}
+    for f in range(frames):
+        c = reach + int(round(f * stride))
+        I, phi, I_wide, I_mean, I_harm, cents, (lo, hi) = _frame_inputs(st, c, rate_hz, rev)
+        Tg, Rg = (x[0] for x in st.layers_at([c]))
+        It, pt = torch.from_numpy(I).double(), torch.from_numpy(phi)
+        sh = estimate_shifts(It, pt)
+        Z = zeta_from_maps(maps, phi, span_rad, dtype=torch.float64)
+        Iw, Zw = warp(It, sh), warp(Z, sh)
+        out: dict[str, tuple] = {}
+        if "tfp" in methods:
+            out["tfp"] = (2.0 * I.mean(0), None)
+        if "mean17" in methods:
+            out["mean17"] = (2.0 * I_mean, None)
+        if "mean" in methods:
+            dsteps = np.abs(np.array(cents) - c)
+            v = max([float(np.hypot(*sh[k].tolist())) / dsteps[k] for k in range(N_OBS) if dsteps[k] > 0] + [1e-9])
+            L = int(np.clip(1.0 / v, WINDOW, SPAN + 1)) // 2 * 2 + 1
+            out["mean"] = (2.0 * st.spikes[c - L // 2 : c + L // 2 + 1].mean(0) / st.exposure, None)
+        for m in PHYSICS:
+            if m in methods:
+                r = solve(m, Zw, Iw, None, PHYSICS_SOLVER_CONFIG)
+                out[m] = (r.T.clamp_min(0).numpy(), r.R.clamp_min(0).numpy())
+        mspan = None
+        for m, model in nets.items():
+            kw = {"I_mean": I_mean[None], "I_harm": I_harm[None], "I_wide": I_wide[None], "exposure": st.exposure, "span_steps": hi - lo}
+            if m == "net+floor+mspan":
+                if mspan is None:
+                    mspan = compensated_span(st.spikes[lo:hi], st.phi[lo:hi], st.exposure)
+                kw["I_mean"], kw["I_harm"] = mspan[0][None], mspan[1][None]
+            o = run_model_on_windows(model, I[None], phi[None].astype(np.float32), "cpu", 0, **kw)
+            out[m] = (o["T"][0], o["R"][0])
+        for m, (T, R) in out.items():
+            for key, est, gt in (("T", T, Tg), ("R", R, Rg)):
+                if est is None:
+                    continue
+                p, s = _score(est, gt, crop)
+                acc[m][f"{key}_psnr"].append(p)
+                acc[m][f"{key}_ssim"].append(s)
+    scores = {m: {k: (float(np.mean(v)) if v else None) for k, v in d.items()} for m, d in acc.items()}
+    return {**cell, "zeta": zsrc, "scores": scores, "seconds": time.perf_counter() - t0, "exposure": st.exposure}
+
+
+def holds(row: dict) -> dict[str, Any]:
+    """The project's rule on one cell for ``net+floor``: T at least every physics solver's and both spike means'."""
+    s = row["scores"]
+    if "net+floor" not in s:
+        return {}
+    net = s["net+floor"]["T_psnr"]
+    refs = {m: s[m]["T_psnr"] for m in (*PHYSICS, "mean17", "mean") if m in s}
+    worst = min(net - v for v in refs.values()) if refs else None
+    return {"margin_db": worst, "holds": bool(worst is not None and worst >= 0.0)}
+
+
+def run_motion_bench(cells: list[dict], progress=None, **kw) -> dict[str, Any]:
+    """:func:`run_cell` over ``cells`` -> {"config": kw, "rows": [...]} (each row with :func:`holds`)."""
+    rows = []
+    for i, cell in enumerate(cells):
+        r = run_cell(cell, **kw)
+        r.update(holds(r))
+        rows.append(r)
+        log.info("%s %.2f %s %s: %s", cell["motion"], cell["speed"], cell["reflection"], cell["light"], {m: round(v["T_psnr"], 2) for m, v in r["scores"].items()})
+        if progress is not None:
+            progress(i + 1, len(cells))
+    return {"config": {k: (str(v) if k == "weights" else (list(v) if isinstance(v, tuple) else v)) for k, v in kw.items()}, "rows": rows}
+
+
+def motion_table(result: dict) -> str:
+    """Markdown: one row per cell, T PSNR per method (R PSNR of the layered methods in a second table)."""
+    rows = result["rows"]
+    if not rows:
+        return "(no cells)\n"
+    methods = list(rows[0]["scores"])
+    head = "| motion | speed | reflection | light | zeta | " + " | ".join(methods) + " | net+floor >= physics, mean |\n"
+    head += "|---|---:|---|---|---|" + "---:|" * len(methods) + "---|\n"
+
+    def fmt(v):
+        return "" if v is None else f"{v:.2f}"
+
+    lines = []
+    for r in rows:
+        ok = "" if "holds" not in r else ("yes" if r["holds"] else f"no ({r['margin_db']:+.2f} dB)")
+        z = "true" if str(r["zeta"]).startswith("true") else r["zeta"]
+        lines.append(f"| {r['motion']} | {r['speed']:g} | {r['reflection']} | {r['light']} | {z} | " + " | ".join(fmt(r["scores"][m]["T_psnr"]) for m in methods) + f" | {ok} |")
+    rm = [m for m in methods if rows[0]["scores"][m]["R_psnr"] is not None]
+    rt = "| motion | speed | reflection | light | " + " | ".join(rm) + " |\n|---|---:|---|---|" + "---:|" * len(rm) + "\n"
+    rt += "\n".join(f"| {r['motion']} | {r['speed']:g} | {r['reflection']} | {r['light']} | " + " | ".join(fmt(r["scores"][m]["R_psnr"]) for m in rm) + " |" for r in rows)
+    n_hold = sum(1 for r in rows if r.get("holds"))
+    return f"T PSNR (dB)\n\n{head}" + "\n".join(lines) + f"\n\nnet+floor >= every physics solver and the spike mean on T: {n_hold} of {len(rows)} cells\n\nR PSNR (dB)\n\n{rt}\n"
+
+
+def motion_plot(result: dict, path) -> None:
+    """T PSNR against pan speed, one line per method, one panel per reflection strength and light level."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from polinfra.atomic import atomic_path
+
+    pans = [r for r in result["rows"] if r["motion"] == "pan"]
+    combos = sorted({(r["reflection"], r["light"]) for r in pans}, key=lambda x: (x[1], x[0]))
+    if not combos:
+        return
+    fig, axes = plt.subplots(1, len(combos), figsize=(4 * len(combos), 3.4), squeeze=False)
+    methods = list(pans[0]["scores"])
+    for ax, (refl, light) in zip(axes[0], combos):
+        sel = sorted((r for r in pans if (r["reflection"], r["light"]) == (refl, light)), key=lambda r: r["speed"])
+        for m in methods:
+            ax.plot([r["speed"] for r in sel], [r["scores"][m]["T_psnr"] for r in sel], marker="o", ms=3, label=m, lw=2.2 if m == "net+floor" else 1.0)
+        ax.set_title(f"{refl} reflection, {light}")
+        ax.set_xlabel("pan, view widths / s")
+        ax.set_ylabel("T PSNR (dB)")
+        ax.grid(alpha=0.3)
+    axes[0][-1].legend(fontsize=7, loc="best")
+    fig.tight_layout()
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=110, format="png")
+    plt.close(fig)
+

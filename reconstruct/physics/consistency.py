@@ -1,0 +1,154 @@
+"""The data-consistency floor: a (T, R) must predict the N observations no worse than the physics does, within noise.
+
+Paper Eq. (1)-(2) in the solvers' units: b_k = 2 I_k = zeta_k R + (1 - zeta_k) T, k = 1..N, for the N (RIR-aligned)
+windows of one output frame.  Any estimate x = (T, R) of a pixel has the residual
+
+    RSS(x) = sum_k (b_k - zeta_k R - (1 - zeta_k) T)^2.
+
+For the physics core's answer x_p (a solver on the same zeta and windows) and a candidate x_n (e.g. the network's
+refined output), d = x_n - x_p, write a = sum_k (A_k d)^2 and c = sum_k r_k (A_k d), r the physics residual,
+A_k = [1 - zeta_k, zeta_k].  Along the segment x(s) = x_p + s d the excess residual is exactly
+
+    E(s) = RSS(x(s)) - RSS(x_p) = a s^2 - 2 c s.
+
+**The noise it is weighed against.**  Were x_p the unweighted least-squares solution (c = 0) and the observations
+independent with variance sigma^2 each, the truth itself would show E = (x* - x_ls)' A'A (x* - x_ls) ~ sigma^2
+chi^2_2: mean 2 sigma^2, 95 % below 5.99 sigma^2.  sigma^2 is measured, not assumed: the least-squares residual
+variance RSS_ls / (N - 2) averaged over a ``pool`` x ``pool`` box (:func:`observation_noise`; the same estimate as the
+adaptive RWPS's, :mod:`reconstruct.physics.solvers`), so it holds the spikes' Poisson / quantization noise and
+whatever the model leaves (an imperfect self-calibrated zeta, residual misalignment) alike.  Where the spike model's
+noise is known (exposure and window length, :func:`reconstruct.physics.identifiability.window_mean_variance`),
+``model_var`` either bounds sigma^2 from below (``combine = "max"``) or caps it (``"min"``: the residual then counts
+only as far as the spikes' noise explains it, so misalignment or a wrong zeta does not widen the allowance).
+
+**The floor** (:func:`consistency_floor`) keeps the fraction
+
+    s = min(1, tol sigma^2 / <E(1)>)          (s = 1 where <E(1)> <= tol sigma^2)
+
+of the candidate's move, x = x_p + s d, <.> a ``pool`` x ``pool`` box mean (the test is made on a neighbourhood, so a
+systematic disagreement stands out of the per-pixel chi-square noise and s varies smoothly).  Why this s: in the metric
+of the data the physics' own error has power P ~ 2 sigma^2 (2 dof) and, the candidate's error tau^2 being independent
+of it, the move has power E = P + tau^2; the blend (1 - s) x_p + s x_n has error (1 - s)^2 P + s^2 tau^2.  With
+``tol = 4`` (= 2 P / sigma^2) that error is exactly min(tau^2, P): where tau^2 <= P, s = 1 and the candidate stands;
+where tau^2 > P, s = 2 P / (P + tau^2) and (1 - s)^2 P + s^2 tau^2 = P (P (tau^2 - P)^2 + 4 P^2 tau^2 =
+P (P + tau^2)^2).  So the floored output's error is, in expectation, that of the better of the physics and the
+candidate, whatever the candidate (``tol = 2`` is the minimum-error blend for a known tau^2, but
+it shrinks a candidate as good as the truth whenever the pooled excess fluctuates above its mean: measured on the
+motion bench's dim light, 2 dB lost against the unfloored network).  A candidate the observations
+allow (its excess within the noise) passes unchanged; one that contradicts them (a level taken from a long span that
+a pan smeared, R carrying T's texture, a garbage correction) is pulled back to the physics, the more the further it
+strays: its distance from x_p in the metric of the data is s sqrt(a) = tol sigma^2 sqrt(a) / <a - 2c>, which tends
+to 0 as the candidate's error grows (for x_p the least-squares solution, c = 0, it is tol sigma^2 / sqrt(a) per pixel
+with pool = 1).  The excess is measured in the metric A'A, so the move is free along the direction the N windows do
+not determine (R - T where zeta barely modulates: the span's and the refinement's business) and checked along the
+one they do (the level).  ``mode = "hard"`` keeps x_p wherever <E(1)> exceeds the allowance (no blend).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import torch
+
+from polinfra.config import opt
+from polinfra.errors import ShapeError
+
+__all__ = ["FloorConfig", "FloorResult", "observation_residual", "observation_noise", "consistency_floor"]
+
+
+@dataclasses.dataclass(frozen=True)
+class FloorConfig:
+    """Parameters of the data-consistency floor (module docstring)."""
+
+    tol: float = opt(4.0, "allowed excess residual over the physics', in noise variances of one observation (4 = twice the physics' own error power, 2 dof: the floored error is min(the candidate's, the physics'), module docstring)", lo=0.0, hi=1e6)
+    pool: int = opt(5, "side (pixels) of the box over which the noise variance and the excess are averaged (1 = per pixel)", lo=1, hi=101)
+    mode: str = opt("shrink", "shrink: keep the fraction min(1, tol sigma^2 / excess) of the candidate's move | hard: the physics wherever the excess exceeds tol sigma^2", choices=("shrink", "hard"))
+
+
+@dataclasses.dataclass
+class FloorResult:
+    """The floored layers (..., H, W), the kept fraction s of the candidate's move from the physics (1 = unchanged,
+    0 = the physics), the candidate's box-mean excess residual in noise variances <E(1)> / sigma^2, and sigma^2."""
+
+    T: torch.Tensor
+    R: torch.Tensor
+    keep: torch.Tensor
+    excess: torch.Tensor
+    sigma2: torch.Tensor
+
+
+def _check(zeta: torch.Tensor, I: torch.Tensor) -> None:
+    if I.dim() < 3 or zeta.shape != I.shape:
+        raise ShapeError(f"zeta and I must be (..., N, H, W) of one shape; got {tuple(zeta.shape)} and {tuple(I.shape)}", actual_shape=tuple(zeta.shape), expected_shape=tuple(I.shape))
+
+
+def observation_residual(T: torch.Tensor, R: torch.Tensor, zeta: torch.Tensor, I: torch.Tensor) -> torch.Tensor:
+    """Per-observation residuals b_k - zeta_k R - (1 - zeta_k) T, (..., N, H, W), for layers (..., H, W) (b = 2 I)."""
+    _check(zeta, I)
+    return 2.0 * I - (zeta * R.unsqueeze(-3) + (1.0 - zeta) * T.unsqueeze(-3))
+
+
+def _box(x: torch.Tensor, k: int) -> torch.Tensor:
+    if k <= 1:
+        return x
+    shp = x.shape
+    y = x.reshape(-1, 1, *shp[-2:])
+    y = torch.nn.functional.avg_pool2d(y, k, stride=1, padding=k // 2, count_include_pad=False)[..., : shp[-2], : shp[-1]]
+    return y.reshape(shp)
+
+
+def observation_noise(zeta: torch.Tensor, I: torch.Tensor, pool: int = 5) -> torch.Tensor:
+    """sigma^2 of one observation b_k = 2 I_k, (..., H, W): the unweighted least-squares residual RSS / (N - 2),
+    box-averaged over ``pool`` pixels (zeta that does not modulate: the residual about the window mean, N - 1 dof)."""
+    _check(zeta, I)
+    from reconstruct.physics.solvers import solve_weighted_ridge
+
+    b = 2.0 * I
+    N = I.shape[-3]
+    R, T = solve_weighted_ridge(zeta, b, torch.ones_like(b), 0.0)
+    r = b - (zeta * R.unsqueeze(-3) + (1.0 - zeta) * T.unsqueeze(-3))
+    rss = (r * r).sum(-3)
+    # where zeta is (nearly) constant the 2x2 system is singular: the fit keeps one dof, not two
+    modulates = zeta.std(-3) > 1e-4
+    dof = torch.where(modulates, torch.full_like(rss, max(N - 2, 1)), torch.full_like(rss, max(N - 1, 1)))
+    return _box(rss / dof, pool)
+
+
+def consistency_floor(T: torch.Tensor, R: torch.Tensor, T_p: torch.Tensor, R_p: torch.Tensor, zeta: torch.Tensor, I: torch.Tensor,
+                      cfg: FloorConfig = FloorConfig(), model_var: torch.Tensor | None = None, combine: str = "max") -> FloorResult:
+    """Floor a candidate (T, R) at the physics (T_p, R_p) by the N observations ``I`` (..., N, H, W) on ``zeta``.
+
+    Args:
+        T, R: the candidate layers (..., H, W) (e.g. the network's refined output).
+        T_p, R_p: the physics core's layers on the same zeta and (aligned) windows.
+        zeta: (..., N, H, W) mixing coefficients (paper Eq. (2)) of the windows.
+        I: (..., N, H, W) the windows in radiance units (paper Eq. (1): I = 1/2 (zeta R + (1 - zeta) T)).
+        cfg: :class:`FloorConfig`.
+        model_var: optional (..., H, W) or broadcastable sigma^2 of b = 2 I from the spike model.
+        combine: "max" (``model_var`` a lower bound on sigma^2) or "min" (a cap).
+
+    Returns:
+        :class:`FloorResult` (module docstring).
+    """
+    _check(zeta, I)
+    zeta, I = zeta.to(T.dtype), I.to(T.dtype)
+    sigma2 = observation_noise(zeta, I, cfg.pool)
+    if model_var is not None:
+        if combine not in ("max", "min"):
+            raise ValueError(f"combine {combine!r}: max or min")
+        mv = _box(torch.broadcast_to(model_var.to(sigma2.dtype), sigma2.shape), cfg.pool)
+        sigma2 = torch.maximum(sigma2, mv) if combine == "max" else torch.minimum(sigma2, mv)
+    sigma2 = sigma2.clamp_min(torch.finfo(T.dtype).tiny ** 0.5)
+    r_p = observation_residual(T_p, R_p, zeta, I)
+    dT, dR = T - T_p, R - R_p
+    Ad = zeta * dR.unsqueeze(-3) + (1.0 - zeta) * dT.unsqueeze(-3)
+    a = (Ad * Ad).sum(-3)
+    c = (r_p * Ad).sum(-3)
+    allow = cfg.tol * sigma2
+    e1 = _box(a - 2.0 * c, cfg.pool)
+    ok = e1 <= allow
+    if cfg.mode == "hard":
+        s = ok.to(T.dtype)
+    else:
+        s = torch.where(ok, torch.ones_like(a), allow / e1.clamp_min(torch.finfo(T.dtype).tiny ** 0.5)).clamp(0.0, 1.0)
+    return FloorResult(T=T_p + s * dT, R=R_p + s * dR, keep=s, excess=e1 / sigma2, sigma2=sigma2)

@@ -1,0 +1,82 @@
+"""The long spike span, motion-compensated: its parts aligned to the centre before they are summed.
+
+A pan of v pixels/s smears a plain span of L steps (20 kHz) into a box of v L / 20000 pixels: the 17.5 ms span at one
+view width per second (400 px/s) by 7 px.  Here the span is cut into ``n_sub`` consecutive parts (50 steps each for
+the 350-step span: about 27 deg of polarizer at 30 rev/s, blur v 50 / 20000 px), each part's spike sums (weighted by
+1, cos 2 phi_t, sin 2 phi_t: the mean and the first harmonic, :func:`reconstruct.stream.groups.span_harmonic`) are
+moved onto the part that holds the span's centre step by reflection-invariant registration
+(:func:`reconstruct.physics.rir.estimate_shifts`: the transmission's low-DoP pixels, so the flicker of the polarized
+reflection does not steer it; the parts' angles cover about half a turn, as the 7 windows do), and the moved sums are
+added.  Shifts below ``min_shift_px`` are taken as none (a still scene keeps its span exactly: no resampling blur).
+
+Two layers can move differently; registration follows the transmission, so a reflection that moves otherwise stays
+smeared in the compensated span as in the plain one: what a method reads from the span is checked against the N
+windows by the data-consistency floor (:mod:`reconstruct.physics.consistency`).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from polinfra.errors import ShapeError
+
+from reconstruct.physics.rir import RirConfig, estimate_shifts, warp
+from reconstruct.stream.groups import harmonic_design, span_harmonic
+
+__all__ = ["SPAN_RIR", "span_parts", "compensated_span"]
+
+SPAN_RIR = RirConfig(dop_max=1.0, coarse_factor=1)
+"""Registration of the span's parts: every well-exposed pixel (``dop_max`` 1) and whole-pixel search at full
+resolution.  Across parts 50 steps apart a pan changes each pixel more than the polarizer does, and the per-pixel
+harmonic fit behind RIR's low-DoP mask reads that change as polarization: with the windows' mask (DoP <= 0.12) the
+moving texture itself is left out and the outer parts, 3 px away at 400 px/s, register wrongly (measured on the
+synthetic pan of tests/reconstruct/test_motion_span.py)."""
+
+
+def span_parts(L: int, n_sub: int) -> list[tuple[int, int]]:
+    """[lo, hi) step ranges of ``n_sub`` consecutive parts of a span of ``L`` steps (sizes differ by at most one)."""
+    n = max(1, min(int(n_sub), int(L)))
+    edges = np.linspace(0, L, n + 1).round().astype(int)
+    return [(int(a), int(b)) for a, b in zip(edges[:-1], edges[1:])]
+
+
+def compensated_span(spikes: np.ndarray, phi: np.ndarray, exposure: float, n_sub: int = 7, harmonic: bool = True, min_shift_px: float = 0.3,
+                     rir: RirConfig = SPAN_RIR) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
+    """The span's mean (and first harmonic) with its parts registered to the centre part.
+
+    Args:
+        spikes: (L, H, W) spikes of the span's steps (0/1 or counts).
+        phi: (L,) the steps' polarizer angles, radians.
+        exposure: thresholds per step per unit radiance (the result is in radiance units).
+        n_sub: parts the span is cut into (1: the plain span).
+        harmonic: also the first harmonic (b, c) of the moved spikes.
+        min_shift_px: shifts of smaller magnitude are set to 0.
+        rir: registration parameters (:data:`SPAN_RIR`).
+
+    Returns:
+        (I_mean (H, W) float32, I_harm (2, H, W) float32 or None, shifts (n_sub, 2) as (dy, dx) applied to each part).
+    """
+    sp = np.asarray(spikes)
+    ph = np.asarray(phi, np.float64)
+    if sp.ndim != 3 or ph.shape != sp.shape[:1]:
+        raise ShapeError(f"spikes must be (L, H, W) with phi (L,); got {sp.shape} and {ph.shape}", actual_shape=ph.shape, expected_shape=sp.shape[:1])
+    L, H, W = sp.shape
+    parts = span_parts(L, n_sub)
+    sums = np.stack([np.tensordot(harmonic_design(ph[a:b]), sp[a:b].astype(np.float64), axes=(1, 0)) for a, b in parts])  # (n, 3, H, W)
+    shifts = np.zeros((len(parts), 2))
+    if len(parts) >= 3:
+        means = torch.from_numpy(sums[:, 0] / np.array([max(b - a, 1) for a, b in parts], np.float64)[:, None, None])
+        angles = torch.tensor([ph[a:b].mean() for a, b in parts], dtype=torch.float64)
+        centre = next(i for i, (a, b) in enumerate(parts) if a <= L // 2 < b)
+        shifts = estimate_shifts(means, angles, center=centre, config=rir).cpu().numpy()
+        shifts[np.hypot(shifts[:, 0], shifts[:, 1]) < min_shift_px] = 0.0
+        moved = np.flatnonzero(np.abs(shifts).sum(1) > 0)
+        if moved.size:
+            t = torch.from_numpy(sums[moved])  # (m, 3, H, W): each part's three sums moved by its shift
+            sh = torch.from_numpy(shifts[moved])[:, None].expand(-1, 3, -1)
+            sums[moved] = warp(t, sh).numpy()
+    total = sums.sum(0)
+    I_mean = (total[0] / (L * float(exposure))).astype(np.float32)
+    I_harm = span_harmonic(total, ph, float(exposure)) if harmonic else None
+    return I_mean, I_harm, shifts
