@@ -21,7 +21,7 @@ def motion_cmd(
     speeds: str = typer.Option("0,0.1,0.3,0.6,1.1,2,3", "--speeds", help="pan speeds, view widths per second, comma-separated"),
     reflections: str = typer.Option("weak,strong,dominant", "--reflections", help="reflection strengths: weak, strong, dominant"),
     lights: str = typer.Option("dim,bright", "--lights", help="light levels: dim (0.02 spikes/px/step), bright (0.3)"),
-    methods: str = typer.Option("", "--methods", help="methods, comma-separated [default: all of reconstruct.evaluate.harness.motion_bench.METHODS]"),
+    methods: str = typer.Option("", "--methods", help="methods, comma-separated [default: all of reconstruct.evaluate.motion_bench.METHODS]"),
     width: int = typer.Option(96, "--width", help="frame width in pixels"),
     height: int = typer.Option(64, "--height", help="frame height in pixels"),
     frames: int = typer.Option(1, "--frames", help="output frames scored per cell"),
@@ -38,7 +38,7 @@ def motion_cmd(
     from polinfra.atomic import ensure_dir, write_json, write_text
     from polinfra.errors import ConfigError
     from polinfra.progress import rich_progress
-    from reconstruct.evaluate.harness.motion_bench import METHODS, default_cells, motion_plot, motion_table, run_motion_bench
+    from reconstruct.evaluate.motion_bench import METHODS, default_cells, motion_plot, motion_table, run_motion_bench
     from reconstruct.stream.motion_scenes import MOTIONS, REFLECTION_SHARES
 
     try:

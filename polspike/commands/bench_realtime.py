@@ -29,7 +29,7 @@ def bench_realtime_cmd(
 
     from polinfra.atomic import write_json, write_text
     from polinfra.errors import ConfigError
-    from reconstruct.evaluate.harness.realtime_bench import bench_realtime, realtime_markdown
+    from reconstruct.evaluate.realtime_bench import bench_realtime, realtime_markdown
 
     ms = tuple(m.strip() for m in methods.split(",") if m.strip())
     bad = [m for m in ms if m not in ("ls", "rwps", "ridge", "irls", "ls+rir", "rwps+rir", "ridge+rir", "irls+rir")]

@@ -52,8 +52,8 @@ def sigint_event():
 
 
 def run_live(reader, model, out: Path, cfg, *, phi0_rad: float, rev_per_s: float, rate_hz: float, exposure: float, name: str, follow: bool, meta: dict, quiet: bool) -> dict:
-    """:func:`reconstruct.video.stream.live.reconstruct_live` with Ctrl-C as its stop and a latency line on stderr each second."""
-    from reconstruct.video.stream.live import reconstruct_live
+    """:func:`reconstruct.video.live.reconstruct_live` with Ctrl-C as its stop and a latency line on stderr each second."""
+    from reconstruct.video.live import reconstruct_live
 
     state = {"t": time.perf_counter()}
 

@@ -285,7 +285,7 @@ def reconstruct_cmd(
     if live:
         from polspike.commands.live_cmd import run_live
         from reconstruct.stream.packed import PackedDat
-        from reconstruct.video.stream.live import LiveConfig
+        from reconstruct.video.live import LiveConfig
 
         lcfg = LiveConfig(window_steps=window_steps, stride_deg=stride_deg, frames=frames, max_frames=max_frames, idle_s=follow_idle)
         reader = reader or PackedDat(input, height, width)

@@ -1,7 +1,7 @@
 """``polspike bench realtime``: does the physics path keep up with the camera?
 
 On a closed-form pane stream (:mod:`reconstruct.stream.pane_stream`, written as .dat files of two lengths) the
-same physics model runs through the live path (:func:`reconstruct.video.stream.live.reconstruct_live`) and the general
+same physics model runs through the live path (:func:`reconstruct.video.live.reconstruct_live`) and the general
 streaming path (:func:`reconstruct.video.stream.reconstruct_stream`, the reference) in one run.  Marginal
 throughput is taken between the two lengths, so start-up cancels.  Each figure is given in wall-clock time and
 in CPU time (the process's threads plus its encoder children): on a shared, loaded machine the wall clock
@@ -52,7 +52,7 @@ def _model(method: str, rir: bool, maps, span: float):
 def _run(path: str, dat: Path, cfg, model, out: Path, video: bool) -> dict[str, Any]:
     from reconstruct.stream.packed import PackedDat
     from reconstruct.stream.sources import dat_source
-    from reconstruct.video.stream.live import LiveConfig, StageTimes, reconstruct_live
+    from reconstruct.video.live import LiveConfig, StageTimes, reconstruct_live
     from reconstruct.video.stream import ReconstructConfig, reconstruct_stream
 
     w0, c0 = time.perf_counter(), _cpu()
@@ -81,7 +81,7 @@ from reconstruct.stream.pane_stream import PaneStreamConfig, pane_stream_maps, p
 from reconstruct.stream.packed import PackedChunks
 from reconstruct.physics.zeta import PaneMaps
 from reconstruct.video.physics import PhysicsModel
-from reconstruct.video.stream.live import LiveConfig, reconstruct_live
+from reconstruct.video.live import LiveConfig, reconstruct_live
 import numpy as np, tempfile
 cfg = PaneStreamConfig(width={width}, height={height}, exposure=2.0)
 block = np.concatenate(list(pane_stream_packed(cfg, int(cfg.rate_hz), 200)))  # 1 s = 30 whole turns
@@ -122,7 +122,7 @@ print(json.dumps({{"seconds": {seconds}, "frames": s["frames"], "peak_rss_mb": r
 def _latency(dat: Path, cfg, model, seconds: float, chunk_steps: int) -> dict[str, Any]:
     """A child copies ``dat`` into a new file at real time, ``chunk_steps`` at a time; the live path follows it."""
     from reconstruct.stream.packed import PackedDat
-    from reconstruct.video.stream.live import LiveConfig, reconstruct_live
+    from reconstruct.video.live import LiveConfig, reconstruct_live
 
     fb = cfg.height * cfg.width // 8
     with tempfile.TemporaryDirectory() as d:

@@ -1,6 +1,6 @@
 """Spike streams of glass-pane scenes under camera and layer motion, made in-process (closed form, per 20 kHz step).
 
-What the motion bench (:mod:`reconstruct.evaluate.harness.motion_bench`) reads.  Per scene:
+What the motion bench (:mod:`reconstruct.evaluate.motion_bench`) reads.  Per scene:
 
 * layers: two scikit-image pictures (:data:`reconstruct.stream.synthetic.PICTURES`; the transmitted one sharp, the
   reflected one slightly defocused) on a canvas twice the view, so the view can move without running out of picture;

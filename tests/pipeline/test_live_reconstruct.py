@@ -63,7 +63,7 @@ def test_live_equals_stream_within_float_tolerance(dat, tmp_path, method):
     from polinfra.exr import read_exr
     from reconstruct.stream.packed import PackedDat
     from reconstruct.stream.sources import dat_source
-    from reconstruct.video.stream.live import LiveConfig, reconstruct_live
+    from reconstruct.video.live import LiveConfig, reconstruct_live
     from reconstruct.video.stream import ReconstructConfig, reconstruct_stream
 
     model = _model(method)
@@ -85,7 +85,7 @@ def test_live_equals_stream_within_float_tolerance(dat, tmp_path, method):
 
 def test_display_table_is_within_one_level_of_the_exact_mapping():
     from reconstruct.stream.display import _to8
-    from reconstruct.video.stream.live import _to8_fast
+    from reconstruct.video.live import _to8_fast
 
     x = np.random.default_rng(0).uniform(-0.1, 1.3, 200000).astype(np.float32)
     d = np.abs(_to8_fast(x, 0.9).astype(int) - _to8(x, 0.9).astype(int))
