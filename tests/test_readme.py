@@ -50,6 +50,7 @@ def docs_commands() -> list[list[str]]:
         for info, body in re.findall(r"^```([^\n]*)\n(.*?)^```", page.read_text(), flags=re.S | re.M):
             if ".bash" not in info and info.strip() != "bash":
                 continue
+            body = re.sub(r"\\\n\s*", " ", body)  # a command continued with a backslash is one command
             for line in body.splitlines():
                 line = line.split(" #")[0].strip()
                 if line.startswith("polspike"):

@@ -28,7 +28,7 @@ def test_stream_calibration_fits_the_glass_by_default(captured):
 
 
 def test_net_zeta_passes_the_known_glass_on(monkeypatch):
-    from reconstruct import net_zeta
+    from reconstruct.net import net_zeta
 
     seen = {}
 

@@ -107,7 +107,7 @@ def test_window_centres_follow_the_angle():
 
 def test_items_equal_the_on_the_fly_item_builder(group):
     """Keys, shapes, dtypes and values agree with reconstruct.net.onthefly.item_from_stream on the same stream."""
-    from reconstruct import onthefly
+    from reconstruct.net import onthefly
 
     path, maps = group
     ds = StoreWindows(path, CFG, split=None, centre_every=17, crop="centre")
