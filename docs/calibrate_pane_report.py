@@ -150,7 +150,8 @@ def main() -> None:
 
 def _group_spans(dataset: Path, cfg):
     """(group dir, its scene spec, the calibration span's frames I and angles phi, the window's sweep in radians) per
-    stored group of ``dataset`` (the spikes calibrate-pane reads with ``cfg``)."""
+    stored group of ``dataset`` (the spikes calibrate-pane reads with ``cfg``).
+    """
     import math
 
     from reconstruct.stream.sources import group_source, span_frames
@@ -164,7 +165,8 @@ def _group_spans(dataset: Path, cfg):
 
 def content_on_true_geometry(dataset: Path) -> None:
     """The content test alone (default options) with each group's stored theta / phi_perp: how well the layers' content
-    tells the model and n when the geometry is right."""
+    tells the model and n when the geometry is right.
+    """
     import math
 
     from reconstruct.pane.calibrate_config import CalibratePaneConfig
@@ -198,7 +200,8 @@ def valley(dataset: Path, weightings: list[str]) -> None:
     group's stored theta / phi_perp maps by Gauss-Newton); for each weighting, fit_geometry with the fov fitted and with
     the scene's fov, the median |theta error| over pixels and theta's median 1-sigma; the cost sum w (1 - cos 4 d) at
     the fit and at the truth with the fit's final weights held fixed, and the profile of that cost along the fov
-    (tilt and azimuth refitted at 0.75 / 0.9 / 1 / 1.1 / 1.25 x the true fov)."""
+    (tilt and azimuth refitted at 0.75 / 0.9 / 1 / 1.1 / 1.25 x the true fov).
+    """
     import dataclasses as dc
     import math
 
@@ -282,7 +285,8 @@ def identifiability(dataset: Path, content_power: str = "same", span_s: float = 
     put through paper Eq. (1)-(2) with the true maps' A, B (a0 = [T + A (R - T)] / 2, c = B (R - T) / 2 e^{2 i phi_perp}).
     Per pixel (a0, c) -> (R', T') is invertible under ANY hypothesis (A', B'), so the likelihood of the spikes alone is
     flat in n and the model; only the layers' content (and positivity: the cone) tells.  (b) is that information with
-    the spike noise removed: where (b) does not claim, no amount of spikes lets this test claim."""
+    the spike noise removed: where (b) does not claim, no amount of spikes lets this test claim.
+    """
     import math
 
     from reconstruct.pane.calibrate_config import CalibratePaneConfig

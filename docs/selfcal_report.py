@@ -96,9 +96,9 @@ def dataset(path: str, pane_model: str = "single", pane_n: float = 1.5) -> None:
 
 def speed(group_dir: str, weights: str | None = None) -> None:
     from reconstruct.net.checkpoint import DEFAULT_WEIGHTS, load_model
+    from reconstruct.stream.sources import group_source
     from reconstruct.video.physics import build_physics_model
     from reconstruct.video.stream import ReconstructConfig, reconstruct_stream
-    from reconstruct.stream.sources import group_source
 
     src = group_source(group_dir)
     res: dict = {}
@@ -214,7 +214,8 @@ def _stress_figure(rows, figure: str) -> None:
 def twin_heldout(n_groups: int = 16, seed: int = 2026) -> None:
     """Closed-form groups where the transmission dominates (R/T 0.04-0.3) in a narrow view (15-25 deg) of a glancing pane
     (66-80 deg), random axis, single or thin slab, exposure 3 or 10, layers sliding 0, 0.2 or 0.5 px per strided frame:
-    the family chosen (by the cone, by the content, or refused) against the true phi_perp."""
+    the family chosen (by the cone, by the content, or refused) against the true phi_perp.
+    """
     from reconstruct.pane.selfcal import SelfCalConfig, self_calibrate
     from tests.reconstruct._pane_groups import make_pane_group
 
@@ -236,7 +237,8 @@ def twin_heldout(n_groups: int = 16, seed: int = 2026) -> None:
 
 def fov(path: str, split: str = "test") -> None:
     """Each group calibrated twice, with its scene's field of view given and withheld (fitted, as ``polspike reconstruct``
-    does for a .dat without --fov-deg): median phi_perp error and mean theta error against the group's true maps."""
+    does for a .dat without --fov-deg): median phi_perp error and mean theta error against the group's true maps.
+    """
     from reconstruct.evaluate.harness import EvalConfig, group_zeta, load_groups
     from reconstruct.pane.selfcal import group_self_zeta
 

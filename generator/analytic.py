@@ -28,12 +28,11 @@ import dataclasses
 
 import numpy as np
 
+from generator.layers import LayerContent, LayerPlane
+from generator.scene import SceneConfig
 from polphysics.fresnel import pane_coefficients
 from polphysics.geometry import incidence_geometry, normalize, reflect_dir, refract_dir
 from polphysics.zeta import stokes_from_layers
-
-from generator.layers import LayerContent, LayerPlane
-from generator.scene import SceneConfig
 
 __all__ = ["PaneMaps", "analytic_maps", "layer_planes", "sample_layers", "frame_stokes", "spectral_frame", "MAP_CHANNELS", "ANALYTIC_MODELLED"]
 
@@ -146,7 +145,8 @@ def frame_stokes(maps: PaneMaps, L_T, L_R, L_G=None) -> np.ndarray:
 
 def spectral_frame(bands: list[tuple[float, PaneMaps]], t_content: LayerContent, r_content: LayerContent, t_s: float):
     """Response-weighted sum over wavelength bands ``[(weight, maps at the band's index)]`` of a dispersive
-    pane: Stokes (3, H, W) and the weighted ground-truth layers (L_T, L_R) (T refracts per band)."""
+    pane: Stokes (3, H, W) and the weighted ground-truth layers (L_T, L_R) (T refracts per band).
+    """
     S = 0.0
     L_T = 0.0
     L_R = 0.0

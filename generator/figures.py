@@ -7,9 +7,9 @@ from pathlib import Path
 
 import numpy as np
 
+from polinfra.plotting import image_grid, save_figure
 from polphysics.stokes import aolp, dop, polarizer_intensity
 from polphysics.zeta import zeta
-from polinfra.plotting import image_grid, save_figure
 
 __all__ = ["plot_maps", "plot_mixed_frames"]
 

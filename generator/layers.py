@@ -26,10 +26,9 @@ from pathlib import Path
 import numpy as np
 from scipy import ndimage
 
-from polinfra.errors import ConfigError, DataFormatError
-from polphysics.geometry import PinholeCamera, intersect_plane, Plane
-
 from generator.scene import LayerConfig
+from polinfra.errors import ConfigError, DataFormatError
+from polphysics.geometry import PinholeCamera, Plane, intersect_plane
 
 __all__ = ["LayerPlane", "LayerContent", "load_source", "PROCEDURAL_KINDS", "SKIMAGE_NAMES"]
 

@@ -49,9 +49,8 @@ import math
 
 import numpy as np
 
-from polinfra.errors import ConfigError, SceneError
-
 from generator.objects_config import MATERIALS, METALS, SHAPES, LightConfig, ObjectsConfig, ShapeConfig, Vec3, require_full_tier
+from polinfra.errors import ConfigError, SceneError
 
 __all__ = [
     "ShapeConfig",
@@ -271,7 +270,8 @@ def _transmit_polarized(S_T: np.ndarray, maps, model: str, n: float) -> np.ndarr
     """Stokes of T's light after the pane, carrying T's own polarization (thin slab, incoherent):
     in the s/p frame M = [[a, b, 0], [b, a, 0], [0, 0, c]], a = (T_perp + T_par)/2, b = (T_perp - T_par)/2,
     c = (1 - R_s)(1 - R_p) / (1 - R_s R_p) (each internal path keeps its s/p phase relation; R_s, R_p of
-    one interface).  None for other pane models."""
+    one interface).  None for other pane models.
+    """
     if model != "thin_slab":
         return None
     from polphysics.fresnel import pane_coefficients

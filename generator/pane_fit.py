@@ -170,7 +170,8 @@ class PaneModelAD:
 
     def _to_maps(self, r: dict, dr_: dict | None = None) -> dict[str, np.ndarray]:
         """Ray outputs -> per-pixel maps (Stokes-averaged over sub-pixel rays, as the maps tier);
-        with ``dr_`` (the forward derivatives of the ray outputs) the derivatives of the maps."""
+        with ``dr_`` (the forward derivatives of the ray outputs) the derivatives of the maps.
+        """
         K2, H, W = self.K * self.K, self.gh, self.gw
         c2, s2 = np.cos(2 * r["phi"]), np.sin(2 * r["phi"])
 

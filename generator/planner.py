@@ -143,7 +143,8 @@ def scene_features(scene, pilot: bool = True) -> dict:
     """What the planner needs to know of a scene (computed on the first keyframe).
 
     Layer scenes: the lobe-choice noise proxy, the dispersion and absorption terms (closed forms,
-    numpy only).  Object scenes: the pilot-measured noise coefficient (Mitsuba, ``pilot``)."""
+    numpy only).  Object scenes: the pilot-measured noise coefficient (Mitsuba, ``pilot``).
+    """
     f: dict = {"pane_model": scene.pane.model, "dispersive": scene.pane.glass is not None, "objects": scene.objects is not None,
                "absorption_per_mm": float(scene.pane.absorption_per_mm)}
     if scene.objects is not None:
@@ -200,9 +201,9 @@ def scene_features(scene, pilot: bool = True) -> dict:
 
 def _object_noise_pilot(scene) -> float:
     """Noise coefficient k (p99 = k / sqrt(spp)) of a 3-D object scene's mixture, from two small renders."""
-    from generator.mitsuba_scene import render_stokes_image, specs_from_scene
     from types import SimpleNamespace
 
+    from generator.mitsuba_scene import render_stokes_image, specs_from_scene
     from generator.objects3d import objects_scene_dict
     from generator.tiers_mitsuba import _resolve
 
@@ -235,7 +236,8 @@ def _full_error(f: dict, spp: int, spectral: bool) -> tuple[float, list[str]]:
 
 def predict_tiers(scene, features: dict | None = None, spp_grid: tuple[int, ...] | None = None, analytic_spectral: bool = True) -> list[TierEstimate]:
     """Every tier's prediction for ``scene`` (full tier: one row per spp in ``spp_grid``, mono and, for a
-    dispersive glass, spectral)."""
+    dispersive glass, spectral).
+    """
     f = features if features is not None else scene_features(scene)
     px = scene.camera.width * scene.camera.height
     out: list[TierEstimate] = []

@@ -26,14 +26,13 @@ from pathlib import Path
 
 import numpy as np
 
+from generator.analytic import ANALYTIC_MODELLED, PaneMaps, analytic_maps, frame_stokes, sample_layers, spectral_frame
+from generator.layers import LayerContent
+from generator.scene import SceneConfig, check_scene_geometry, scene_hash
 from polinfra.atomic import ensure_dir, write_json
 from polinfra.config import to_dict
 from polinfra.errors import ConfigError, OutputError
 from polinfra.exr import write_exr
-
-from generator.analytic import ANALYTIC_MODELLED, PaneMaps, analytic_maps, frame_stokes, sample_layers, spectral_frame
-from generator.layers import LayerContent
-from generator.scene import SceneConfig, check_scene_geometry, scene_hash
 
 __all__ = ["RenderOptions", "render", "TIERS", "frame_times", "CONVENTIONS", "RENDER_FORMAT"]
 
@@ -104,7 +103,6 @@ def _tier_maps(scene: SceneConfig, opts: RenderOptions, info: dict, progress: Ca
     if opts.tier == "analytic":
         return analytic_maps(scene)
     from generator import tiers_mitsuba  # lazy: imports Mitsuba
-
     from generator.mitsuba_backend import resolve_backend
 
     be = resolve_backend(opts.variant or "auto", spectral=False)  # unknown / unavailable forced variant: error

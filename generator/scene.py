@@ -24,13 +24,12 @@ from pathlib import Path
 
 import numpy as np
 
+from generator.objects_config import ObjectsConfig
 from polinfra.config import from_dict, load_toml, opt, to_dict
 from polinfra.errors import ConfigError, SceneError
 from polphysics.fresnel import GLASSES, PANE_MODELS, glass_index
 from polphysics.geometry import PinholeCamera, Plane, normalize
 from polphysics.polarizer import PolarizerConfig
-
-from generator.objects_config import ObjectsConfig
 
 __all__ = [
     "CameraConfig",

@@ -37,9 +37,8 @@ from pathlib import Path
 
 import numpy as np
 
-from polinfra.errors import BackendUnavailableError, ConfigError
-
 from generator.mitsuba_scene import render_stokes_image
+from polinfra.errors import BackendUnavailableError, ConfigError
 
 __all__ = [
     "render_pane_maps",
@@ -268,7 +267,8 @@ def _texture(content, t_s: float, scale: float = 1.0) -> np.ndarray:
 
     ``scale`` > 1 covers a plane ``scale`` times larger than the content's own
     (same texel size, capped at :data:`MAX_TEXTURE`; the content continues
-    mirrored beyond its edges, as in the analytic ground truth)."""
+    mirrored beyond its edges, as in the analytic ground truth).
+    """
     th, tw = (min(MAX_TEXTURE, int(math.ceil(x * scale))) for x in content.tex_shape)
     ext = content.extent * scale
     X = ((np.arange(tw) + 0.5) / tw - 0.5) * ext
@@ -281,7 +281,8 @@ def single_interface_t_scale(scene, t_plane, indices, content_extent: float) -> 
     """How much larger the T plane must be to catch every camera ray refracted INTO the glass of a
     ``single`` interface (they bend toward the pane normal, so they leave a plane sized for
     straight rays: measured 25 % of the bk7_single view black before this).  1.0 for slabs
-    (their rays exit parallel, displaced by less than the margin)."""
+    (their rays exit parallel, displaced by less than the margin).
+    """
     if scene.pane.model != "single":
         return 1.0
     from polphysics.geometry import incidence_geometry, normalize, refract_dir
@@ -303,7 +304,8 @@ def single_interface_t_scale(scene, t_plane, indices, content_extent: float) -> 
 def _layer_coverage_warnings(scene, tc, rc, t_scale: float = 1.0) -> list[str]:
     """Pixels whose T or R ray leaves its finite layer plane (black in the full tier; the analytic
     ground truth mirrors the texture there) or whose R point lies behind the pane.  ``t_scale``: the
-    T plane's enlargement (a single interface's refracted rays land beyond the straight-ray view)."""
+    T plane's enlargement (a single interface's refracted rays land beyond the straight-ray view).
+    """
     from generator.analytic import analytic_maps, layer_planes
 
     m = analytic_maps(scene)
@@ -468,7 +470,8 @@ class FullRenderer:
 
     def layers(self, t_s: float) -> tuple[np.ndarray, np.ndarray]:
         """Object scenes: ground-truth (L_T, L_R), each (H, W): S0 of T alone and of R alone
-        (moving objects: interpolated between keyframes like the mixture)."""
+        (moving objects: interpolated between keyframes like the mixture).
+        """
         if self.static:
             self._object_keyframe(0)
             L = self._layers[0]
@@ -486,7 +489,8 @@ class FullRenderer:
 
     def departure(self, maps) -> tuple[dict[str, np.ndarray], dict]:
         """Object scenes: how far keyframe 0 departs from Eq. (1)-(2) (:func:`generator.objects3d.model_departure`),
-        with the noise floor from a second render of the mixture (another seed)."""
+        with the noise floor from a second render of the mixture (another seed).
+        """
         from generator.objects3d import model_departure
 
         self._object_keyframe(0)

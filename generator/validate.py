@@ -33,17 +33,16 @@ from pathlib import Path
 
 import numpy as np
 
-from polinfra.atomic import ensure_dir, write_json
-from polinfra.errors import ConfigError
-from polphysics.fresnel import PANE_MODELS, radiance_scale
-from polphysics.stokes import polarizer_intensity
-from polphysics.zeta import mix_eq1, zeta
-from polinfra.plotting import image_grid, save_figure
-from polinfra.exr import read_exr
-
 from generator.analytic import analytic_maps
 from generator.render import RenderOptions, render
 from generator.scene import LayerConfig, MotionConfig, SceneConfig
+from polinfra.atomic import ensure_dir, write_json
+from polinfra.errors import ConfigError
+from polinfra.exr import read_exr
+from polinfra.plotting import image_grid, save_figure
+from polphysics.fresnel import PANE_MODELS, radiance_scale
+from polphysics.stokes import polarizer_intensity
+from polphysics.zeta import mix_eq1, zeta
 
 __all__ = ["validate_zeta", "probe_scene", "fit_reflection", "fit_transmission", "ZETA_ANGLES"]
 
@@ -61,7 +60,8 @@ def probe_scene(scene: SceneConfig, which: str) -> SceneConfig:
     """The scene with a uniform unit ``which`` ('R' or 'T') layer and the other layer black.
 
     A 3-D object scene is probed with its objects replaced by the layer planes (zeta
-    depends only on the camera and the pane)."""
+    depends only on the camera and the pane).
+    """
     lt, lr = scene.layers.transmission, scene.layers.reflection
     layers = dataclasses.replace(scene.layers, transmission=_flat(lt, which == "T"), reflection=_flat(lr, which == "R"))
     return dataclasses.replace(scene, layers=layers, name=f"{scene.name}-probe{which}", objects=None)

@@ -72,7 +72,8 @@ def atomic_path(final: str | os.PathLike, suffix: str | None = None) -> Iterator
 
 def finish_atomic(ctx: contextlib.AbstractContextManager, ok: bool) -> None:
     """Leave an :func:`atomic_path` context entered by hand (a writer object that spans calls):
-    publish the file when ``ok``, otherwise delete the temporary file and publish nothing."""
+    publish the file when ``ok``, otherwise delete the temporary file and publish nothing.
+    """
     if ok:
         ctx.__exit__(None, None, None)
         return

@@ -10,7 +10,7 @@ calibration from spikes in :mod:`.calibrate`.  See spike_sim/README.md.
 """
 
 from spike_sim.aggregate import AggregateConfig, aggregate_group, aggregate_stream, frame_centres, observation_stack, output_fps
-from spike_sim.calibrate import PolarizerCalibration, calibrate_flat_target, calibrate_group, calibrate_from_modulation, darkest_phase, estimate_rate, phase_error
+from spike_sim.calibrate import PolarizerCalibration, calibrate_flat_target, calibrate_from_modulation, calibrate_group, darkest_phase, estimate_rate, phase_error
 from spike_sim.config import DEFAULT, IDEAL, NOISY, PRESETS, SpikeSimConfig, preset
 from spike_sim.integrate_fire import make_pixel_params, run_numba, run_numpy, simulate_constant, simulate_currents
 from spike_sim.simulate import KeyframeSource, SimulationSummary, keyframes_from_arrays, keyframes_from_render, simulate

@@ -76,7 +76,8 @@ class RenderDir:
 
     def maps(self) -> dict[str, np.ndarray]:
         """Coefficient maps {theta, phi_perp, R_perp, R_par, T_perp, T_par} (plus the optional
-        :data:`EXTRA_MAP_CHANNELS` of object scenes), each (H, W) float32."""
+        :data:`EXTRA_MAP_CHANNELS` of object scenes), each (H, W) float32.
+        """
         allc = read_exr(self.path / "maps.exr")
         missing = [k for k in MAP_CHANNELS if k not in allc]
         if missing:

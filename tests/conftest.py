@@ -32,8 +32,9 @@ def shared_data() -> Path:
 @pytest.fixture
 def tiny_scene():
     """A 41 x 25 pixel brewster-like scene (odd sizes: the centre pixel is on the axis)."""
-    from generator.scene import load_scene
     import dataclasses
+
+    from generator.scene import load_scene
 
     s = load_scene("brewster")
     cam = dataclasses.replace(s.camera, width=41, height=25)
@@ -77,7 +78,8 @@ def polspike_cli() -> ConsoleScript:
 def polspike_main(capsys, monkeypatch):
     """Run the console-script entry point ``polspike.cli.app`` in this process (same error mapping as the
     installed script, without a subprocess): ``polspike_main(*args)`` -> CompletedProcess-like result
-    with ``returncode``, ``stdout``, ``stderr``; check it with ``polspike_main.one_line_exit_2(r, ...)``."""
+    with ``returncode``, ``stdout``, ``stderr``; check it with ``polspike_main.one_line_exit_2(r, ...)``.
+    """
     import subprocess
     import sys
 

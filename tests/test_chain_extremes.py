@@ -12,9 +12,9 @@ import numpy as np
 import pytest
 import torch
 
+from reconstruct.physics.solvers import solve
 from spike_sim.config import DEFAULT, IDEAL
 from spike_sim.integrate_fire import simulate_constant
-from reconstruct.physics.solvers import solve
 
 
 def _cfg(base, h=6, w=8, **kw):

@@ -202,7 +202,8 @@ print(json.dumps([n for n in json.loads(sys.argv[1]) if not ok(n)]))
 def test_code_names_in_the_docs_exist():
     """Every module, function or file of the packages that README.md or a docs page names in code
     (``reconstruct.physics.span.zbar_of``, ``generator/pane_fit.py``) exists: a module that moves must take
-    its mentions along."""
+    its mentions along.
+    """
     import json
 
     names, paths = set(), set()

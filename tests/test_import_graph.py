@@ -142,7 +142,8 @@ def test_stages_do_not_import_orchestration():
 
 def test_every_random_draw_in_the_tests_is_seeded():
     """No test draws from torch's global generator or numpy's legacy global one: torch.rand / randn / randint /
-    randperm (and *_like) take ``generator=``, numpy draws come from a seeded ``default_rng(seed)``."""
+    randperm (and *_like) take ``generator=``, numpy draws come from a seeded ``default_rng(seed)``.
+    """
     import re
 
     tests = Path(__file__).resolve().parent

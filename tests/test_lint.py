@@ -1,5 +1,6 @@
 """The code conventions, checked by ruff with the project's configuration (pyproject.toml [tool.ruff]): imports
-sorted and used, no unused or undefined names, docstrings in one (Google) convention."""
+sorted and used, no unused or undefined names, docstrings in one (Google) convention.
+"""
 
 from __future__ import annotations
 

@@ -88,6 +88,7 @@ def test_configs_say_what_is():
 @pytest.mark.parametrize("area", CODE_AREAS)
 def test_code_comments_docstrings_and_test_names_say_what_is(area):
     """Fails for ``reconstruct`` and ``tests`` until their comments, docstrings and test names are rewritten
-    (each hit is listed in the failure)."""
+    (each hit is listed in the failure).
+    """
     hits = [h for p in _files(REPO / area, "*.py") for h in _code_hits(p)]
     assert not hits, _report(hits)

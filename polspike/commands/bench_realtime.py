@@ -1,5 +1,6 @@
 """``polspike bench realtime``: real-time factor of the live physics path per stage and end to end, beside the
-streaming path in the same run; latency of --follow at real time; peak memory of a long stream."""
+streaming path in the same run; latency of --follow at real time; peak memory of a long stream.
+"""
 
 from __future__ import annotations
 

@@ -133,7 +133,8 @@ def simulate_group(render_dir: Path, group_dir: Path, duration_s: float):
 
 def spike_figures(group_dir: Path, figs: Path) -> list[tuple[Path, str]]:
     """Spike raster with phi(t), and the seven I(i) frames of the middle window (the
-    ``polspike dataset inspect`` figures of the group, written to ``figs/inspect``)."""
+    ``polspike dataset inspect`` figures of the group, written to ``figs/inspect``).
+    """
     from polspike.pipeline.inspect import inspect_group
 
     ins = inspect_group(group_dir, figs / "inspect")
@@ -196,7 +197,8 @@ def reconstruct_and_score(group_dir: Path, figs: Path, n_frames: int, crop: int)
 
 def overview_figure(rd, group_dir: Path, rec: dict, png: Path) -> Path:
     """One row from scene to result (the README's top picture): layers, zeta, mixed light, one 50 us spike
-    frame, an Eq. (3) observation, and the network's T and R beside ground truth, all on the demo's crop."""
+    frame, an Eq. (3) observation, and the network's T and R beside ground truth, all on the demo's crop.
+    """
     import numpy as np
 
     from polinfra.plotting import image_grid, save_figure

@@ -1,5 +1,6 @@
 """The real-time path of ``polspike reconstruct`` (a physics solver on pane maps over a .dat, also one still being
-written: ``--follow``), wired from :func:`polspike.commands.train_cmds.reconstruct_cmd`."""
+written: ``--follow``), wired from :func:`polspike.commands.train_cmds.reconstruct_cmd`.
+"""
 
 from __future__ import annotations
 
@@ -17,7 +18,8 @@ from polinfra.errors import ConfigError
 
 def wait_for_dat(path: Path, height: int, width: int, steps: int, idle_s: float):
     """A :class:`reconstruct.stream.packed.PackedDat` on ``path`` once it holds ``steps`` whole frames (the file may
-    not exist yet); ConfigError when it does not grow for ``idle_s`` seconds (0 = wait for ever)."""
+    not exist yet); ConfigError when it does not grow for ``idle_s`` seconds (0 = wait for ever).
+    """
     from reconstruct.stream.packed import PackedDat
 
     last, seen, t = -1, -1, time.perf_counter()

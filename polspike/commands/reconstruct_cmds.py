@@ -203,7 +203,8 @@ def evaluate_real_cmd(
 ) -> None:
     """Reconstruct each real recording (no polarizer) on a few frames: no crash, no NaN, PSNR of T against the TFP image and the spike mean; table + figure.
 
-    Exit code 1 when a recording crashes or gives NaN (the table says which)."""
+    Exit code 1 when a recording crashes or gives NaN (the table says which).
+    """
     import csv
     import io
 

@@ -30,7 +30,8 @@ def _limit_numba_threads(threads: int) -> None:
     """Cap spike_sim's parallel numba kernel at ``threads`` too: with more, its idle OpenMP threads
     spin between windows and take the CPU the training step needs (measured: 0.59 -> 0.39 CPU-s per
     in-process step on one thread).  This starts numba's OpenMP pool, after which GNU OpenMP forbids
-    forking: call it only when no DataLoader worker will be forked later."""
+    forking: call it only when no DataLoader worker will be forked later.
+    """
     try:
         import numba
 
@@ -316,7 +317,8 @@ def reconstruct_cmd(
 
 def heldout_mean_steps() -> int:
     """Steps of the long spike mean a ``use_mean`` network is given in the held-out windows (as trained: the default
-    sensor's rate, 350 at 20 kHz)."""
+    sensor's rate, 350 at 20 kHz).
+    """
     from reconstruct.stream.groups import spike_mean_steps
     from spike_sim.config import preset
 
@@ -325,7 +327,8 @@ def heldout_mean_steps() -> int:
 
 def heldout_wide_steps() -> int:
     """Steps of the wide window a network with ``wide_input`` is given in the held-out windows (as trained: the default
-    sensor's rate, 30 rev/s, 31.5 deg; 57 at 20 kHz)."""
+    sensor's rate, 30 rev/s, 31.5 deg; 57 at 20 kHz).
+    """
     from reconstruct.stream.groups import wide_window_steps
     from spike_sim.config import preset
 

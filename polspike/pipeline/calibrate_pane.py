@@ -30,7 +30,8 @@ log = logging.getLogger(__name__)
 
 def calibrate_frames(I: np.ndarray, phi: np.ndarray, cfg: CalibratePaneConfig = CalibratePaneConfig(), **kw) -> dict:
     """:func:`reconstruct.pane.calibrate.calibrate_frames` on the differentiable maps tier
-    (:class:`generator.pane_fit.PaneModelAD`, Dr.Jit forward AD) as its pane model."""
+    (:class:`generator.pane_fit.PaneModelAD`, Dr.Jit forward AD) as its pane model.
+    """
     from generator.pane_fit import PaneModelAD
 
     return _calibrate_frames(I, phi, cfg, pane_model=PaneModelAD, **kw)
@@ -91,7 +92,8 @@ def bench_stream(width: int = 400, height: int = 250, span_s: float = 0.1, tilt_
                  n: float = 1.5, model: str = "thin_slab", exposure: float = 2.0, seed: int = 0) -> tuple[np.ndarray, np.ndarray, float, dict]:
     """A closed-form stream for the benchmark: back-to-back 13-step Eq. (3) windows over ``span_s`` at 20 kHz and
     30 rev/s behind a known pane (polphysics geometry and Fresnel, paper Eq. (1)-(2)), moving smooth layers,
-    Poisson counts at ``exposure`` thresholds per unit radiance.  Returns (I, phi, span_rad, truth)."""
+    Poisson counts at ``exposure`` thresholds per unit radiance.  Returns (I, phi, span_rad, truth).
+    """
     from polphysics.fresnel import pane_coefficients
     from polphysics.geometry import Plane, incidence_geometry
     from reconstruct.pane.camera import camera_for, normal_from_angles
@@ -140,7 +142,8 @@ def run_bench(out: Path, width: int = 400, height: int = 250, span_s: float = 0.
     """``polspike bench calibrate-pane``: one full fit (fov, n and model free) of a ``span_s`` stream at
     width x height, stage by stage, beside the self-calibration alone (the reference, same run).  ``spans``: the
     span knob measured as well (speed against accuracy): a fit of the same pane and layers over each span, its
-    seconds as a ratio to the reference and its errors against the truth."""
+    seconds as a ratio to the reference and its errors against the truth.
+    """
     import os
 
     from polinfra.atomic import write_json

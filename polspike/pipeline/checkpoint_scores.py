@@ -49,7 +49,8 @@ def sha256_file(path: str | os.PathLike) -> str:
 
 def evaluate_setting(weights: str | os.PathLike, setting: dict[str, Any], threads: int = 1) -> dict[str, float]:
     """PSNR / SSIM of ``weights`` on the held-out test set of ``setting`` (CPU, ``threads`` torch threads, as trained: the
-    data-consistency floor only where the setting says ``floor = true``; the stored scores predate it)."""
+    data-consistency floor only where the setting says ``floor = true``; the stored scores predate it).
+    """
     import torch
 
     from polspike.commands.train_cmds import heldout_inputs, heldout_test_set

@@ -299,7 +299,8 @@ def _auto_tier(scene, tolerance: float | None, label: str):
 
 def _coarse(scene):
     """The scene seen by a camera of at most 80 pixels across (same field of view): a fast
-    coverage / edge-on check at load time; the build checks again at full resolution."""
+    coverage / edge-on check at load time; the build checks again at full resolution.
+    """
     w, h = scene.camera.width, scene.camera.height
     if w <= 80:
         return scene

@@ -16,7 +16,8 @@ log = logging.getLogger(__name__)
 
 def fitted_scene_dict(params: dict, width: int, height: int, base: dict | None = None, name: str = "fitted_pane") -> dict:
     """Scene data (``generator.scene`` schema) of the fitted setup: the base scene (a group's, or the defaults)
-    with the camera's fov and size and the pane's tilt, tilt axis, index and model replaced."""
+    with the camera's fov and size and the pane's tilt, tilt axis, index and model replaced.
+    """
     from generator.scene import SceneConfig, check_scene_geometry, scene_from_dict
     from polinfra.config import to_dict
     from polinfra.errors import SceneError

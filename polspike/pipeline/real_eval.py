@@ -58,7 +58,8 @@ def default_real_dir() -> Path:
 
 def nominal_rev_per_s(steps: int, frames: int, n_obs: int = 7, window_steps: int = 13, stride_deg: float = 31.5, rate_hz: float = 20000.0, min_rev_per_s: float = 30.0) -> float:
     """Rotation rate (rev/s): 30 (as trained), or faster when ``frames`` output frames (each N
-    observations ``stride_deg`` apart) would not fit ``steps`` steps at 30."""
+    observations ``stride_deg`` apart) would not fit ``steps`` steps at 30.
+    """
     span = steps - window_steps - 2
     per = span / (n_obs - 1 + max(1, frames))
     if per < 1:
@@ -95,7 +96,8 @@ def evaluate_real(out: str | Path, folder: str | Path | None = None, *, weights:
                   zeta: str = "learned", device: str = "cpu", recordings=RECORDINGS, progress=None, ensemble: int = 1) -> dict[str, Any]:
     """Reconstruct every recording present in ``folder`` (module docstring) -> {"rows": [...], "config": {...}}.
 
-    A recording that raises is reported (``status`` "error: ...") and the others still run."""
+    A recording that raises is reported (``status`` "error: ...") and the others still run.
+    """
     from polinfra.atomic import ensure_dir
     from polinfra.exr import read_exr
     from reconstruct.net.checkpoint import DEFAULT_WEIGHTS, load_model

@@ -536,7 +536,8 @@ STRESS_LEVELS: dict[str, dict[str, float | str]] = {
 
 def stress_design() -> list[dict[str, str]]:
     """The fractional stress design: all 9 (reflection x incidence) pairs twice (motion static, then
-    fast), with light and pane alternating so each level of each factor appears 9 times out of 18."""
+    fast), with light and pane alternating so each level of each factor appears 9 times out of 18.
+    """
     refl, inc = list(STRESS_LEVELS["refl"]), list(STRESS_LEVELS["inc"])
     out = []
     for r, motion in enumerate(STRESS_LEVELS["motion"]):

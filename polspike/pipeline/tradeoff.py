@@ -116,7 +116,8 @@ def _render_first(scene, cand: Candidate, seed: int = 0) -> tuple[np.ndarray, fl
 
 def corrected_error(err_p99: float, resolution: float) -> dict:
     """The error with the reference's own noise taken out (p99s combined in quadrature, an approximation):
-    ``err_corrected = sqrt(max(err^2 - resolution^2, 0))``; errors near ``resolution`` are unresolved."""
+    ``err_corrected = sqrt(max(err^2 - resolution^2, 0))``; errors near ``resolution`` are unresolved.
+    """
     return {"err_vs_ref_p99": float(err_p99), "resolution": float(resolution),
             "err_corrected": float(math.sqrt(max(err_p99 * err_p99 - resolution * resolution, 0.0)))}
 
@@ -161,7 +162,8 @@ def run_tradeoff(
     """Measure the trade for each scene; write ``tradeoff.json``, ``tradeoff.md`` and ``pareto.png``.
 
     ``refs`` (optional dict): filled with ``scene name -> (reference Stokes, resolution)``, what a
-    further candidate is compared with (:mod:`polspike.pipeline.tradeoff_planner`)."""
+    further candidate is compared with (:mod:`polspike.pipeline.tradeoff_planner`).
+    """
     out = ensure_dir(out_dir)
     cands = candidates or default_candidates()
     rows: list[dict] = []
@@ -231,7 +233,8 @@ def _objects_rows(scene, ref: Candidate, cands: list[Candidate], spike_steps: in
     """A 3-D object scene (:mod:`generator.objects3d`): the reference's noise, paper Eq. (1)-(2) mixing the
     rendered layers (unpolarized T: the paper's assumption) and with T's polarization carried through the
     pane, and the full-tier candidates.  The models take their layers from the seed-1 reference and are
-    compared with the seed-2 mixture (independent noise); the analytic and maps tiers cannot render it."""
+    compared with the seed-2 mixture (independent noise); the analytic and maps tiers cannot render it.
+    """
     from generator.analytic import analytic_maps
     from generator.objects3d import _transmit_polarized
     from generator.render import RenderOptions
@@ -319,7 +322,8 @@ def _sim_step_rows(scene, S: np.ndarray, spike_noise: float, n_steps: int = 520,
     """Simulator time-step knob: the polarizer's light over each 50 us step from
     point samples (1 = mid-step, 4 = four sub-steps) vs the closed-form step integral
     the simulator uses.  Error measured on noise-free Eq. (3) frames I(i), in the
-    same units as the spike noise, and cost per 1 s of stream (20 000 steps)."""
+    same units as the spike noise, and cost per 1 s of stream (20 000 steps).
+    """
     from polphysics.polarizer import step_mean_intensity, step_phi_edges
     from polphysics.stokes import polarizer_intensity
     from spike_sim.aggregate import AggregateConfig

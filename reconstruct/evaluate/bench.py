@@ -117,7 +117,8 @@ def bench_reconstruct(width: int = 400, height: int = 250, n_obs: int = 7, batch
 def count_flops(model, height: int = 250, width: int = 400) -> float:
     """FLOPs of one output frame (one window of N frames, padded as the stream pads it), counted by
     :class:`torch.utils.flop_counter.FlopCounterMode` (a multiply-add = 2 FLOPs; convolutions, linear
-    layers and matrix products; elementwise work is not counted)."""
+    layers and matrix products; elementwise work is not counted).
+    """
     from torch.utils.flop_counter import FlopCounterMode
 
     m = int(getattr(model, "pad_multiple", 4))
@@ -154,8 +155,8 @@ def _frame_fps(model, height: int, width: int, frames: int, tile: int, precision
 
 def _stream_fps(model, height: int, width: int, frames: int, out_dir) -> dict:
     """``polspike reconstruct`` end to end (Eq. (3) aggregation, network, video writing) on a synthetic stream."""
-    from reconstruct.video.stream import ReconstructConfig, reconstruct_stream
     from reconstruct.stream.sources import array_source
+    from reconstruct.video.stream import ReconstructConfig, reconstruct_stream
 
     N = model.cfg.n_obs
     steps = int((frames + N + 1) * 31.5 / 360 / 30.0 * 20000) + 40

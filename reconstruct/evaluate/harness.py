@@ -55,17 +55,16 @@ import torch
 
 from polinfra.config import opt, to_dict
 from polinfra.errors import ConfigError, DataFormatError
-
-from reconstruct.stream.groups import EvalGroup, network_inputs
-from reconstruct.physics.identifiability import SHARE_MIN, bound_psnr, ls_layer_variance, reflected_share, window_mean_variance
 from reconstruct.evaluate.metrics import LPIPS_NA, lpips_status, masked_psnr, masked_score, psnr, score
+from reconstruct.net.learned_zeta import zeta_learned
 from reconstruct.net.net_zeta import NET_FALLBACKS, fallback_for
 from reconstruct.net.network import SYMMETRY_CODES
+from reconstruct.physics.identifiability import SHARE_MIN, bound_psnr, ls_layer_variance, reflected_share, window_mean_variance
 from reconstruct.physics.rir import RirConfig, estimate_shifts, warp
 from reconstruct.physics.solvers import PHYSICS_SOLVER_CONFIG, SOLVERS, SolverConfig, solve
 from reconstruct.physics.span import anchor_to_mean, long_span_separation, zbar_of
 from reconstruct.physics.zeta import ZETA_SOURCES, PaneMaps, zeta_from_maps
-from reconstruct.net.learned_zeta import zeta_learned
+from reconstruct.stream.groups import EvalGroup, network_inputs
 
 __all__ = ["BOUND_GOAL_DB", "SHARE_KEYS", "SHARE_FRAME_KEYS", "group_noise", "share_context", "share_scores", "net_zeta_of", "REGIME_FACTORS", "EvalConfig", "EvalReport", "finite_means", "BASELINES", "ANCHOR_SUFFIX", "SPAN_METHOD", "NET_METHOD", "load_network", "group_zeta", "evaluate_groups", "write_report", "parse_methods", "load_groups", "window_sweep", "markdown_table", "sweep_markdown"]
 
@@ -107,7 +106,8 @@ class EvalConfig:
 
 def _refused_fallback(cfg: EvalConfig) -> str:
     """The network's zeta (none or learned) for the group whose self-calibration just refused
-    (:func:`reconstruct.net.net_zeta.fallback_for` of that calibration, ``cfg.net_fallback``)."""
+    (:func:`reconstruct.net.net_zeta.fallback_for` of that calibration, ``cfg.net_fallback``).
+    """
     from reconstruct.pane.selfcal import group_self_zeta
 
     return fallback_for(getattr(group_self_zeta, "last", None), cfg.net_fallback)
@@ -216,7 +216,7 @@ class EvalReport:
 
 
 def group_zeta(group: EvalGroup, cfg: EvalConfig) -> np.ndarray | None:
-    """zeta (M, H, W) for every frame of a group from the configured source.
+    """Zeta (M, H, W) for every frame of a group from the configured source.
 
     ``gt``: the group's pane maps at the true window-mean angles (paper Eq. (2),
     window-averaged); ``physics``: Fresnel reflectances of the calibrated pane
@@ -286,7 +286,8 @@ def group_noise(group: EvalGroup, cfg: EvalConfig) -> dict | None:
     """Noise of the group's Eq. (3) window means, as keywords of
     :func:`reconstruct.physics.identifiability.window_mean_variance`, read from the stored group's simulator
     configuration (integrate-and-fire pixel: exposure, window steps at its rate, shot and reset noise, gain
-    and threshold spread); None for a group that is not a stored simulation (no ``source_dir`` or config)."""
+    and threshold spread); None for a group that is not a stored simulation (no ``source_dir`` or config).
+    """
     if not group.source_dir:
         return None
     from reconstruct.stream.groups import window_steps_from_ms
@@ -319,7 +320,8 @@ def share_context(group: EvalGroup, cfg: EvalConfig) -> dict | None:
 
     The share uses zbar = (R_perp + R_par) / 2, the mean of zeta over a half polarizer turn, not the centre
     window's zeta: "the share of reflection in the light" is then a property of the scene (what the camera
-    receives without the polarizer), and the mask does not flicker with the polarizer's phase."""
+    receives without the polarizer), and the mask does not flicker with the polarizer's phase.
+    """
     if group.T is None or group.R is None:
         return None
     if group.maps is not None:
@@ -337,7 +339,8 @@ def share_scores(ctx: dict | None, i: int, K: int) -> dict | None:
     "psnr_R_bound_all", "psnr_R_bound_gls"} (bounds None without the noise), or None without a context.
 
     The bound takes the centre frame's GT layers as static over the window (I_k = ((1 - zeta_k) T + zeta_k R) / 2
-    with the window's true zeta_k) and the noise of each window mean at that I_k."""
+    with the window's true zeta_k) and the noise of each window mean at that I_k.
+    """
     if ctx is None:
         return None
     Zw = ctx["Z"][i - K : i + K + 1]
@@ -509,7 +512,8 @@ def evaluate_groups(
 
 def summary_rows(frames: list[dict], order: list[str]) -> list[dict]:
     """Per-(group, method) means of the per-frame scores, groups in their first appearance, then the ``overall`` rows;
-    methods in ``order``."""
+    methods in ``order``.
+    """
     keys = ("psnr_T", "ssim_T", "psnr_R", "ssim_R", *SHARE_KEYS)
     rows = []
     by = defaultdict(list)
@@ -542,7 +546,8 @@ def _fmt(v, nd=3) -> str:
 
 def markdown_table(report: EvalReport, overall_only: bool = False) -> str:
     """Markdown table of per-group and overall means (PSNR dB / SSIM for T and R; R also over the pixels with
-    reflected share rho >= 0.2, their fraction and the R noise floor there, :data:`SHARE_KEYS`)."""
+    reflected share rho >= 0.2, their fraction and the R noise floor there, :data:`SHARE_KEYS`).
+    """
     head = (
         "| group | method | frames | PSNR T (dB) | SSIM T | PSNR R (dB) | SSIM R | LPIPS T | PSNR R rho>=0.2 (dB) | SSIM R rho>=0.2 | rho>=0.2 frac | R bound (LS, true zeta) |\n"
         "|---|---|---:|---:|---:|---:|---:|---|---:|---:|---:|---:|\n"
@@ -625,7 +630,8 @@ def load_groups(dataset: str, split: str, cfg: EvalConfig, synthetic=None, progr
 
 def group_loaders(dataset: str, split: str, cfg: EvalConfig, synthetic=None) -> list[Callable[[], EvalGroup]]:
     """One picklable loader per group of :func:`load_groups` (``loader()`` -> :class:`EvalGroup`): a group can be
-    loaded where it is evaluated (a Dask worker that sees the dataset)."""
+    loaded where it is evaluated (a Dask worker that sees the dataset).
+    """
     import functools
 
     from reconstruct.stream.groups import list_groups, window_steps_from_ms

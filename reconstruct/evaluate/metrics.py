@@ -58,7 +58,8 @@ def _mask(mask, shape) -> np.ndarray:
 
 def masked_psnr(est, gt, mask, data_range: float = 1.0) -> float | None:
     """PSNR in dB of the pixels where ``mask`` is true: 10 log10(range^2 / MSE over them), the estimate
-    clipped as in :func:`psnr` (capped at 100 dB); None for an empty mask."""
+    clipped as in :func:`psnr` (capped at 100 dB); None for an empty mask.
+    """
     e, g = _prep(est, gt, data_range)
     m = _mask(mask, g.shape)
     if not m.any():
@@ -70,7 +71,8 @@ def masked_psnr(est, gt, mask, data_range: float = 1.0) -> float | None:
 def masked_ssim(est, gt, mask, data_range: float = 1.0) -> float | None:
     """Mean of the SSIM map (skimage ``full=True``, the window of :func:`ssim`) over the pixels where
     ``mask`` is true, leaving out the border of half a window as skimage's own mean does (so an all-true
-    mask gives :func:`ssim` exactly); None when no such pixel remains."""
+    mask gives :func:`ssim` exactly); None when no such pixel remains.
+    """
     from skimage.metrics import structural_similarity
 
     e, g = _prep(est, gt, data_range)

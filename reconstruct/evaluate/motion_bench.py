@@ -85,7 +85,7 @@ def _score(est, gt, crop: int) -> tuple[float, float]:
 
 def _frame_inputs(st, c: int, rate_hz: float, rev_per_s: float):
     """Windows, angles, wide windows, span mean and harmonic of the output frame centred on step c."""
-    from reconstruct.stream.groups import span_harmonic, harmonic_design, spike_mean_span
+    from reconstruct.stream.groups import harmonic_design, span_harmonic, spike_mean_span
 
     sp, ph, e = st.spikes, st.phi, st.exposure
     stride = rate_hz * (31.5 / 360.0) / rev_per_s
@@ -120,7 +120,8 @@ def _net(weights, use_rir: bool, floor: bool):
 
 def _pane(st, cfg, calibrate: str, steps: int, rate_hz: float, rev: float):
     """(maps, source) of the cell's zeta: self-calibrated on the still stream of the same scene (``still``) or on the
-    cell's own (``cell``); the true maps where the calibration refuses."""
+    cell's own (``cell``); the true maps where the calibration refuses.
+    """
     from reconstruct.pane.selfcal import SelfCalConfig
     from reconstruct.pane.source import calibrate_source
     from reconstruct.stream.motion_scenes import make_motion_stream

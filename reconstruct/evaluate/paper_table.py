@@ -36,10 +36,9 @@ from collections.abc import Callable, Sequence
 from typing import Any
 
 from polinfra.errors import ConfigError
-
 from reconstruct.evaluate.harness import EvalConfig, evaluate_groups, finite_means
-from reconstruct.stream.groups import EvalGroup
 from reconstruct.physics.solvers import PHYSICS_SOLVER_CONFIG, SOLVERS, SolverConfig
+from reconstruct.stream.groups import EvalGroup
 
 __all__ = ["PAPER_TABLE1", "PAPER_TABLE3", "ABLATIONS", "paper_tables", "paper_markdown", "paper_csv"]
 

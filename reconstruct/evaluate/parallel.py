@@ -20,7 +20,6 @@ from collections import defaultdict
 from collections.abc import Callable
 
 from polinfra.errors import ConfigError, OutputError, PolspikeError
-
 from reconstruct.evaluate.harness import EvalConfig, EvalReport, evaluate_groups, summary_rows
 from reconstruct.physics.solvers import PHYSICS_SOLVER_CONFIG, SolverConfig
 

@@ -29,8 +29,6 @@ import time
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 __all__ = ["bench_realtime", "realtime_markdown"]
 
 log = logging.getLogger(__name__)
@@ -152,10 +150,10 @@ def bench_realtime(width: int = 400, height: int = 250, short_s: float = 0.25, l
         reference: also run today's streaming path.
         video: write the MP4s (the encode stage).
     """
-    from reconstruct.physics.zeta import PaneMaps
-    from reconstruct.stream.pane_stream import PaneStreamConfig, write_pane_dat
-    from reconstruct.stream.packed import packed_source, PackedDat
     from reconstruct.pane.source import calibrate_stream
+    from reconstruct.physics.zeta import PaneMaps
+    from reconstruct.stream.packed import PackedDat, packed_source
+    from reconstruct.stream.pane_stream import PaneStreamConfig, write_pane_dat
 
     # a pan of 20 px/s for RIR to follow (0.06 px per output frame); static where no method registers
     cfg = PaneStreamConfig(width=width, height=height, exposure=2.0, motion_px_s=(0.0, 20.0) if any(m.endswith("+rir") for m in methods) else (0.0, 0.0))

@@ -1,17 +1,20 @@
 """Evaluation by regime: groups keyed by their regime tag, tables per regime."""
 
 from __future__ import annotations
+
 import dataclasses
 import logging
 from collections import defaultdict
 from collections.abc import Callable, Iterable
+
 import numpy as np
+
 from polinfra.errors import ConfigError
-from reconstruct.stream.groups import EvalGroup
+from reconstruct.evaluate.harness import ANCHOR_SUFFIX, BASELINES, BOUND_GOAL_DB, NET_METHOD, REGIME_FACTORS, SHARE_FRAME_KEYS, SHARE_NOTE, EvalConfig, _fmt, evaluate_groups, parse_methods
 from reconstruct.physics.rir import RirConfig
 from reconstruct.physics.solvers import PHYSICS_SOLVER_CONFIG, SOLVERS, SolverConfig
 from reconstruct.physics.zeta import ZETA_SOURCES
-from reconstruct.evaluate.harness import ANCHOR_SUFFIX, BASELINES, BOUND_GOAL_DB, EvalConfig, NET_METHOD, REGIME_FACTORS, SHARE_FRAME_KEYS, SHARE_NOTE, _fmt, evaluate_groups, parse_methods
+from reconstruct.stream.groups import EvalGroup
 
 log = logging.getLogger(__name__)
 
@@ -116,7 +119,8 @@ def _mean_or_none(v: list) -> float | None:
 def regime_markdown(res: dict, metric: str = "rows") -> str:
     """Markdown table of :func:`evaluate_by_regime` rows: ``metric`` = "rows" (PSNR of T, dB, the default),
     "ssim" (SSIM of T), "rows_R" (PSNR of R, dB), "ssim_R" (SSIM of R), "rows_R_share" / "ssim_R_share" (R over
-    the pixels with reflected share >= 0.2, led by their fraction and the R bound); n/a where a column has no value."""
+    the pixels with reflected share >= 0.2, led by their fraction and the R bound); n/a where a column has no value.
+    """
     cols = res["columns"]
     rows = res.get(metric)
     if rows is None:

@@ -32,10 +32,10 @@ import numpy as np
 import torch
 
 from reconstruct.evaluate.harness import EvalConfig, group_zeta
-from reconstruct.stream.groups import EvalGroup
 from reconstruct.evaluate.metrics import psnr
 from reconstruct.physics.rir import RirConfig, estimate_shifts, warp
 from reconstruct.physics.solvers import SolverConfig, solve
+from reconstruct.stream.groups import EvalGroup
 
 __all__ = ["GRID", "POOLED_ONLY", "aligned_windows", "group_scores", "fit_rwps", "fit_markdown", "select_best"]
 
@@ -130,7 +130,8 @@ def fit_rwps(windows: dict[str, list], base: SolverConfig = SolverConfig(), grid
 def select_best(rows: list[dict]) -> dict:
     """One-standard-error rule: among the rows whose objective is within one standard error (over the
     groups) of the top row's, the one with the least prior influence where the data are good
-    (smallest snr_kappa x lambda_high: lambda ~ lambda_high snr_kappa / q at high SNR q), ties by objective."""
+    (smallest snr_kappa x lambda_high: lambda ~ lambda_high snr_kappa / q at high SNR q), ties by objective.
+    """
     top = max(rows, key=lambda r: (r["objective"], r["mean_psnr"]))
     near = [r for r in rows if r["objective"] >= top["objective"] - top.get("objective_se", 0.0)]
     return min(near, key=lambda r: (r.get("snr_kappa", 1.0) * r.get("lambda_high", 1.0), -r["objective"], -r["mean_psnr"]))

@@ -23,7 +23,6 @@ import torch
 from polinfra.atomic import atomic_path
 from polinfra.config import from_dict, to_dict
 from polinfra.errors import CheckpointError, ConfigError
-
 from reconstruct.net.network import NetConfig, PolSpikeNet
 from reconstruct.physics.solvers import SolverConfig
 

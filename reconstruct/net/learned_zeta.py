@@ -1,7 +1,9 @@
 """zeta and reliability weights from a checkpoint's parameter branch."""
 
 from __future__ import annotations
+
 import torch
+
 from polinfra.errors import ShapeError
 from reconstruct.physics.zeta import _pad4
 

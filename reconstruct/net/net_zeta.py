@@ -23,7 +23,6 @@ import torch
 import torch.nn.functional as F
 
 from polinfra.errors import ConfigError
-
 from reconstruct.physics.zeta import PaneMaps, zeta_from_maps
 
 __all__ = ["MapsZetaNet", "ZeroZetaNet", "NET_ZETA_SOURCES", "NET_DEFAULT_ZETA", "NET_FALLBACK_ZETA", "NET_FALLBACKS", "FALLBACK_LEARNED_PX", "fallback_for", "build_net_zeta_model"]
@@ -62,7 +61,8 @@ NET_FALLBACKS = ("auto", "none", "learned")
 
 def fallback_for(result, fallback: str = NET_FALLBACK_ZETA) -> str:
     """The zeta source (``none`` or ``learned``) the network falls back to where the self-calibration ``result``
-    (a :class:`reconstruct.pane.selfcal.SelfCalResult`, or None where none was possible) refused."""
+    (a :class:`reconstruct.pane.selfcal.SelfCalResult`, or None where none was possible) refused.
+    """
     if fallback not in NET_FALLBACKS:
         raise ConfigError(f"zeta fallback {fallback!r}: choose one of {', '.join(NET_FALLBACKS)}")
     if fallback != "auto":

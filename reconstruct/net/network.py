@@ -46,13 +46,13 @@ from __future__ import annotations
 
 import dataclasses
 import math
+
 import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
 from polinfra.config import opt
 from polinfra.errors import ConfigError, ShapeError
-
 from reconstruct.physics.solvers import SolverConfig, solve
 from reconstruct.physics.span import anchor_to_mean, gaussian_kernel, long_span_separation, separable_blur, span_blend, span_weights, zbar_of
 from reconstruct.physics.symmetry import symmetry_angles, symmetry_harmonic, symmetry_image
@@ -105,13 +105,15 @@ class NetConfig:
     @property
     def wide_input(self) -> bool:
         """Whether the network reads the wide windows ``I_wide``: as refinement inputs (``use_wide``) or for T's / R's
-        levels (``t_level_px``, ``r_level_from = wide``)."""
+        levels (``t_level_px``, ``r_level_from = wide``).
+        """
         return bool(self.use_wide or self.t_level_px > 0 or self.r_level_from == "wide")
 
     @property
     def harm_input(self) -> bool:
         """Whether the network reads the long span's first harmonic ``I_harm``: as refinement inputs (``use_harm``) or
-        for D's level (``span_level``, which also needs the stream's exposure and span length)."""
+        for D's level (``span_level``, which also needs the stream's exposure and span length).
+        """
         return bool(self.use_harm or self.span_level)
 
 
@@ -167,7 +169,7 @@ class AngleAttention(nn.Module):
         self.o = nn.Linear(ch, ch)
 
     def forward(self, f: torch.Tensor, phi: torch.Tensor) -> torch.Tensor:
-        """f (B, N, C, H, W), phi (B, N) radians -> (B, N, C, H, W)."""
+        """F (B, N, C, H, W), phi (B, N) radians -> (B, N, C, H, W)."""
         B, N, C, H, W = f.shape
         x = f.permute(0, 3, 4, 1, 2).reshape(B * H * W, N, C)
         e = torch.stack([torch.cos(2 * phi), torch.sin(2 * phi)], -1).to(f.dtype)  # (B, N, 2) angle embedding
@@ -322,7 +324,7 @@ class Refinement(nn.Module):
         self.dec_r = _Decoder(cfg.ref_ch, cfg.dec_ch)
 
     def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """x (B, 6, H, W), H and W multiples of 4 -> (Delta_t, Delta_r), each (B, H, W)."""
+        """X (B, 6, H, W), H and W multiples of 4 -> (Delta_t, Delta_r), each (B, H, W)."""
         f1 = self.e1(x)
         f2 = self.e2(f1)
         f3 = self.e3(f2)
@@ -377,7 +379,8 @@ class PolSpikeNet(nn.Module):
 
     def align(self, I: torch.Tensor, phi: torch.Tensor, zeta_gt: torch.Tensor | None, *more: torch.Tensor | None) -> tuple[torch.Tensor | None, ...]:
         """RIR per batch item (shift estimates are not differentiated; the warp is): (I, zeta_gt, *more) aligned, each
-        of ``more`` a (B, N, H, W) stack on the windows' centres (e.g. the wide windows) moved with the same shifts."""
+        of ``more`` a (B, N, H, W) stack on the windows' centres (e.g. the wide windows) moved with the same shifts.
+        """
         from reconstruct.physics.rir import estimate_shifts, warp
 
         maps = (zeta_gt, *more)
@@ -548,7 +551,8 @@ class PolSpikeNet(nn.Module):
         ``polspike reconstruct --method rwps`` returns on this zeta) on the same (aligned) windows -> (T, R, kept fraction).
         Given the stream's ``exposure``, the noise is capped at the windows' Poisson noise, var(2 I) = 4 I / (exposure L)
         with L = 13 steps (0.65 ms at 20 kHz: the windows this network reads), so misalignment or a wrong zeta in the
-        residual does not widen the allowance."""
+        residual does not widen the allowance.
+        """
         from reconstruct.physics.consistency import FloorConfig, consistency_floor
         from reconstruct.physics.solvers import PHYSICS_SOLVER_CONFIG
 
@@ -571,7 +575,8 @@ def gaussian_radius(sigma: float) -> int:
 def gaussian_blur(x: torch.Tensor, sigma: float) -> torch.Tensor:
     """Separable Gaussian blur of (B, H, W) maps (kernel radius :func:`gaussian_radius`, reflected borders; replicated
     where the map is narrower than the radius): :func:`reconstruct.physics.span.separable_blur` with
-    :func:`reconstruct.physics.span.gaussian_kernel`."""
+    :func:`reconstruct.physics.span.gaussian_kernel`.
+    """
     return separable_blur(x, gaussian_kernel(sigma, x.dtype, x.device))
 
 

@@ -39,9 +39,8 @@ import torch
 
 from polinfra.config import opt
 from polinfra.errors import ConfigError, ShapeError
-
-from reconstruct.stream.groups import harmonic_design, span_harmonic, spike_mean_span, window_means
 from reconstruct.physics.symmetry import angle_map, symmetry_harmonic, symmetry_image
+from reconstruct.stream.groups import harmonic_design, span_harmonic, spike_mean_span, window_means
 
 __all__ = ["WindowConfig", "ITEM_KEYS", "WindowSource", "window_centres", "item_from_stream", "OnTheFlyWindows", "flip_item"]
 
@@ -92,7 +91,8 @@ def _t(a) -> torch.Tensor:
 
 def window_centres(phi_nominal_rad: np.ndarray, centre_step: int, n_obs: int, stride_rad: float) -> np.ndarray:
     """Centre steps c_k (N,) of the observations around ``centre_step``: where the nominal angle has
-    turned by k * stride (k = -K..K) from its value at ``centre_step``, rounded to a step (c_0 = c)."""
+    turned by k * stride (k = -K..K) from its value at ``centre_step``, rounded to a step (c_0 = c).
+    """
     K = n_obs // 2
     phi = np.asarray(phi_nominal_rad, dtype=np.float64)
     c = np.rint(np.interp(phi[int(centre_step)] + stride_rad * np.arange(-K, K + 1), phi, np.arange(phi.size, dtype=np.float64))).astype(np.int64)
@@ -191,7 +191,8 @@ def flip_item(item: dict[str, torch.Tensor], code: int) -> dict[str, torch.Tenso
     """One of the 8 symmetries of a square crop applied to an item, angles carried along (:mod:`reconstruct.physics.symmetry`:
     ``code`` in 0..7, bit 0 = mirror left-right, bit 1 = mirror up-down, bit 2 = transpose).  Both the polarizer
     angles ``phi`` and the plane-of-incidence map ``phi_perp`` move with the image, so zeta, T and R are the same
-    numbers at the moved pixels (tested against Eq. (2))."""
+    numbers at the moved pixels (tested against Eq. (2)).
+    """
     if not 0 <= code < 8:
         raise ConfigError(f"flip code {code} must be in 0..7")
     if code == 0:

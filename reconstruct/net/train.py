@@ -35,13 +35,12 @@ import torch
 from polinfra.atomic import ensure_dir, write_json, write_text
 from polinfra.config import opt, to_dict
 from polinfra.errors import CheckpointError, ConfigError
-
 from reconstruct.net.checkpoint import read_checkpoint, save_checkpoint
 from reconstruct.net.distributed import SINGLE, Ranks, check_world
-from reconstruct.physics.identifiability import SHARE_MIN
 from reconstruct.net.losses import LossConfig, total_loss
 from reconstruct.net.network import NetConfig, PolSpikeNet, count_parameters, init_weights
 from reconstruct.net.onthefly import WindowConfig
+from reconstruct.physics.identifiability import SHARE_MIN
 from reconstruct.physics.solvers import SolverConfig
 
 __all__ = ["TrainConfig", "alpha_at", "lr_at", "collate", "evaluate_model", "train", "TINY"]
@@ -131,7 +130,8 @@ SPAN_KEYS = ("I_mean", "I_harm", "I_wide")
 
 def span_inputs(b: dict[str, torch.Tensor], device, span_level: bool = False) -> dict[str, torch.Tensor]:
     """The :data:`SPAN_KEYS` a batch carries, on ``device``, as keyword inputs of the network; for a ``span_level``
-    network also each item's exposure and span length."""
+    network also each item's exposure and span length.
+    """
     kw = {k: b[k].to(device) for k in SPAN_KEYS if k in b}
     if span_level:
         if "span_steps" not in b:
@@ -224,7 +224,8 @@ def assumed_glass_feed(batch: dict[str, torch.Tensor], zeta: torch.Tensor, scale
     ``window.assumed_n``): with probability ``assumed_right`` the model whose mean zeta is closer to the true one in
     log scale (what a right claim or prior gives), else the other; such an item's scale jitter is reset to 1 (its
     error is the glass').  Other items keep the true zeta and their jitter.  ``draws``, ``rows``: the per-item draws are
-    made for a global batch of ``draws`` items and this batch takes their ``rows`` (one rank of a data-parallel run)."""
+    made for a global batch of ``draws`` items and this batch takes their ``rows`` (one rank of a data-parallel run).
+    """
     from reconstruct.net.onthefly import ASSUMED_MODELS
 
     keys = [f"zeta_a_{m}" for m in ASSUMED_MODELS]
@@ -337,7 +338,8 @@ class _BatchOrder:
 def _widened(src: dict[str, torch.Tensor], dst: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
     """``src`` weights for a model whose convolutions may take more input channels (e.g. ``net.use_mean``'s two
     refinement inputs): a conv kernel (O, I, kh, kw) going into (O, I', kh, kw) with I' > I keeps its I channels
-    and gets zeros for the new ones, so the widened network starts as exactly the given one."""
+    and gets zeros for the new ones, so the widened network starts as exactly the given one.
+    """
     out = dict(src)
     for k, v in src.items():
         t = dst.get(k)

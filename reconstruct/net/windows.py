@@ -69,9 +69,8 @@ import numpy as np
 import torch
 
 from polinfra.errors import ConfigError, DataFormatError
-
-from reconstruct.stream.groups import list_groups
 from reconstruct.net.onthefly import ITEM_KEYS, WindowConfig, item_from_stream, window_centres  # noqa: F401  (re-exported)
+from reconstruct.stream.groups import list_groups
 
 __all__ = ["StoreWindows", "GroupIndex", "window_centres", "open_window_datasets", "ITEM_KEYS"]
 

@@ -79,7 +79,8 @@ log = logging.getLogger(__name__)
 
 def calibrate_frames(I: np.ndarray, phi: np.ndarray, cfg: CalibratePaneConfig = CalibratePaneConfig(), *, span_rad: float = 0.0, name: str = "stream", progress=None, pane_model: PaneModelFactory) -> dict:
     """Fit the pane to Eq. (3) frames I (M, H, W) at polarizer angles phi (M,); returns the result dict
-    (``ok``, ``params``, ``maps`` (full-resolution dict), ``report`` (JSON-ready), ``figures`` data)."""
+    (``ok``, ``params``, ``maps`` (full-resolution dict), ``report`` (JSON-ready), ``figures`` data).
+    """
     import dataclasses as dc
 
     from polphysics.fresnel import glass_index

@@ -19,7 +19,8 @@ def camera_for(width: int, height: int, fov_deg: float):
 
 def normal_from_angles(tilt_rad: float, azimuth_rad: float, camera) -> np.ndarray:
     """Unit normal at ``tilt`` from the camera's forward axis, its image projection at ``azimuth``
-    counter-clockwise from image +x (camera.right) towards image up (camera.up)."""
+    counter-clockwise from image +x (camera.right) towards image up (camera.up).
+    """
     st = math.sin(tilt_rad)
     return st * math.cos(azimuth_rad) * camera.right + st * math.sin(azimuth_rad) * camera.up + math.cos(tilt_rad) * camera.forward
 

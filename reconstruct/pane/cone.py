@@ -124,7 +124,8 @@ def cone_violation(aggs: list[dict], n: float, model: str, span_factor: float = 
     """Sum over aggregates of the squared cone violation beyond ``slack`` noise standard deviations (each capped at
     ``cap``), mean over sets.  A slack keeps data sitting on the edge (a layer black there) from adding half-normal
     noise terms that grow with their number (the glass fit uses 3: the true glass then scores about 0 however much
-    of the view is on the edge; the family test uses 0, measured on the stress groups, docs/selfcal.md)."""
+    of the view is on the edge; the family test uses 0, measured on the stress groups, docs/selfcal.md).
+    """
     tlo, thi = _bounds_table(n, model, span_factor)
     tot = []
     for g in aggs:
@@ -167,6 +168,7 @@ def modulating_fraction(s4_px: np.ndarray, q_px: np.ndarray, phi_perp: np.ndarra
 
 def _span_factor_of(phi: np.ndarray) -> float:
     """Modulation kept by a window's own sweep: sinc of the polarizer step between frames when they are back-to-back
-    windows (step under 0.25 rad, about 14 deg); 1 otherwise (strided frames: the sweep is unknown, 1 is the wider cone)."""
+    windows (step under 0.25 rad, about 14 deg); 1 otherwise (strided frames: the sweep is unknown, 1 is the wider cone).
+    """
     step = float(np.median(np.abs(np.diff(np.asarray(phi, np.float64))))) if np.size(phi) > 1 else 0.0
     return 1.0 if step <= 0 or step > 0.25 else math.sin(step) / step

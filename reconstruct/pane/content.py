@@ -35,7 +35,8 @@ def _content_parts(I: np.ndarray, phi: np.ndarray) -> list[tuple[np.ndarray, np.
     as its harmonic mean a0 and modulation c = ac + i as (supp. Eq. (1) fitted over the part); [] when fewer than two
     fit.  Their spike noise is independent (disjoint spikes), so correlating one part's R^ with the next one's T^
     carries no noise term (consecutive frames are not independent: integrate-and-fire makes a pixel's consecutive
-    counts anticorrelated), and adjacent parts keep the layers' motion between the two small."""
+    counts anticorrelated), and adjacent parts keep the layers' motion between the two small.
+    """
     I = np.asarray(I, np.float64)
     phi = np.asarray(phi, np.float64)
     L = half_turn_frames(phi)
@@ -119,7 +120,8 @@ def _content_claims_model(best: float, second: float) -> bool:
 def content_model(I: np.ndarray, phi: np.ndarray, phi_perp: np.ndarray, theta: np.ndarray, n: float, models=CONE_MODELS) -> dict:
     """The pane model by the layers' content at a fixed geometry (module docstring, "content"): the tile-RMS layer-gradient
     correlation (:func:`layer_gradient_correlation`) under each model; the best is claimed by :func:`_content_claims_model`.
-    A wrong model's scale leaks T into R^ by (1 - B / B') T.  Returns ``scores``, ``model`` (or None) and ``identified``."""
+    A wrong model's scale leaks T into R^ by (1 - B / B') T.  Returns ``scores``, ``model`` (or None) and ``identified``.
+    """
     halves = _content_parts(I, phi)
     sf = _span_factor_of(phi)
     sc = {mo: layer_gradient_correlation(halves, phi_perp, theta, n, mo, sf)["rms"] for mo in models}

@@ -27,7 +27,8 @@ parts much longer than that blur the moving layers (an eval_fresh_val build at 0
 def _one_sigma_geometries(x: np.ndarray, geo: dict) -> list[np.ndarray]:
     """The geometry ``x`` moved by one standard deviation along each principal direction of the fit's covariance
     (``geo["cov"]`` over the parameters ``geo["wrt"]``): where an index read at ``x`` is re-read to propagate the
-    geometry's uncertainty into it."""
+    geometry's uncertainty into it.
+    """
     ev, evec = np.linalg.eigh(np.asarray(geo["cov"], np.float64))
     out = []
     for lam, v in zip(ev, evec.T):
@@ -43,7 +44,8 @@ def content_n_sigma_from_geometry(pm, x: np.ndarray, geo: dict, model: str, n_ha
     per pixel (the leak is alpha = A - A' B / B', docs/calibrate_pane.md); so for each principal direction
     of the geometry's covariance, the geometry moved by one standard deviation, the index whose DoP map best matches
     the fitted one (least squares over the view, every ``step``-th pixel) is the shifted reading.  Returns the
-    root sum of squares of the shifts."""
+    root sum of squares of the shifts.
+    """
     from polphysics.fresnel import pane_coefficients
 
     key = "thin_slab" if model == "thick_slab" else model
@@ -79,7 +81,8 @@ def content_pixels_for(pixels: str, parts: int) -> str:
 
 def content_parts_for(phi: np.ndarray, frames: int, parts: int = 0) -> int:
     """Time parts of the content test for a span of ``frames`` frames at polarizer angles ``phi``: ``parts`` when
-    given, else one per :data:`CONTENT_PART_HALF_TURNS` half turns (rounded), at least 2."""
+    given, else one per :data:`CONTENT_PART_HALF_TURNS` half turns (rounded), at least 2.
+    """
     from reconstruct.physics.harmonic_fit import half_turn_frames
 
     if parts:
@@ -98,7 +101,8 @@ def content_glass(I: np.ndarray, phi: np.ndarray, theta: np.ndarray, phi_perp: n
     reconstruct.physics.exclusion).  The best hypothesis is the least score.  A model is claimed when the other model's best
     score is higher by ``content_z`` standard errors of the paired per-tile differences; n when every index more
     than ``max_n_sigma`` away is rejected in the same way.  Featureless layers leave every score at the noise level
-    and nothing is claimed.  Returns the scores, the choice and the two verdicts."""
+    and nothing is claimed.  Returns the scores, the choice and the two verdicts.
+    """
     from polphysics.fresnel import pane_coefficients
     from reconstruct.physics.exclusion import (
         cross_gradient_sums,

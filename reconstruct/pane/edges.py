@@ -158,8 +158,8 @@ def dop_fov_profile(of: dict, st: dict, width: int, height: int, block: int, gbl
     the blocks' correlation) and the violation chi^2 is minimised.  Used only where it is informative: the
     minimum inside the grid and the violations at both ends at least ``dop_fov_delta_chi2`` above it.
     Returns the profile and, when used, the geometry at the minimum with a 3 x 3 covariance (the fov's
-    variance from the profile's curvature, carried along the valley)."""
-
+    variance from the profile's curvature, carried along the valley).
+    """
     f0 = float(geo["x"][2])
     fovs = f0 * np.linspace(rel[0], rel[1], points)
     fovs = fovs[(fovs > math.radians(FOV_INNER_DEG[0])) & (fovs < math.radians(FOV_INNER_DEG[1]))]
@@ -228,7 +228,8 @@ def twin_fov_profile(I, phi, of: dict, width: int, height: int, block: int, gblo
     and azimuth are fitted (starts at several tilts, azimuth turned by +-90 deg; kept only where the phi_perp field is
     turned against ``x_best``'s), and the points whose orientation cost is within ``twin_profile_cost_tol`` of the
     chosen pane's get the cone's violation.  Returns ``points`` and ``best``: among the judged points whose violation is within
-    ``twin_delta_chi2`` of the least, the best explanation of the orientation field (None when none is judged)."""
+    ``twin_delta_chi2`` of the least, the best explanation of the orientation field (None when none is judged).
+    """
     turned = _turned_against(of, width, height, block, x_best, pane_model=pane_model)
     points, judged, best, prev = [], [], None, None
     for f in TWIN_FOVS_DEG:
@@ -263,7 +264,6 @@ TWIN_FOVS_DEG = (15.0, 20.0, 25.0, 30.0, 40.0, 50.0, 65.0, 90.0)
 
 def _cone_violation(I, phi, x, width, height, gblock, gain, models, fixed_n, cfg, *, pane_model: PaneModelFactory) -> tuple[float, dict, dict]:
     """Least chi^2 of the modulation depths' excursions beyond the cone of pane ``x`` (over the models and n)."""
-
     st = edge_statistics(I, phi, pane_model(width, height, "single", sub=1).maps(x)["phi_perp"], gblock, gain)
     gl = fit_glass_to_edges(st, width, height, gblock, x, models, fixed_n, cfg, pane_model=pane_model)
     return min(v["violation_chi2"] for v in gl["models"].values()), st, gl
@@ -273,7 +273,8 @@ def _cone_violation(I, phi, x, width, height, gblock, gain, models, fixed_n, cfg
 def _edge_ok(m: dict, cfg: CalibratePaneConfig) -> bool:
     """A real edge: enough precisely measured block extremes pile up on the fitted cone, on both of its
     sides (a black T somewhere and a black R somewhere), and the index lands inside the search range
-    (an index at the bound means the extremes were not pure layers)."""
+    (an index at the bound means the extremes were not pure layers).
+    """
     inside = float(N_GRID[0]) + 0.011 < m["n"] < float(N_GRID[-1]) - 0.011
     both = m["edge_upper"] >= 3 and m["edge_lower"] >= 3
     return m["edge_blocks"] >= cfg.min_edge_blocks and m["edge_fraction"] >= cfg.min_edge_fraction and both and inside

@@ -46,7 +46,8 @@ def _wmedian(v: np.ndarray, w: np.ndarray) -> float:
 # --------------------------------------------------------------------------- geometry
 def _degenerate_view(x: np.ndarray, fit_fov: bool) -> bool:
     """A geometry pushed against the fit's bounds (tilt >= 89 deg; a fitted fov outside FOV_INNER_DEG): a degenerate
-    view in which theta hardly varies across the image, so any index fits any modulation depth."""
+    view in which theta hardly varies across the image, so any index fits any modulation depth.
+    """
     return bool(x[0] >= math.radians(89.0) or (fit_fov and not math.radians(FOV_INNER_DEG[0]) < x[2] < math.radians(FOV_INNER_DEG[1])))
 
 
@@ -55,7 +56,8 @@ def max_incidence_deg(x: np.ndarray, width: int, height: int, block: int, mask: 
     camera frame of :class:`generator.pane_fit.PaneModelAD` (block centres); ``quantile`` < 1: that quantile over
     the masked blocks instead (a few blocks flagged by noise do not decide).  Above 90 the ray runs away from the
     pane: it never meets the pane in front of the camera, so such a block cannot see a reflection, let alone
-    modulate; near 90 it grazes it.  (The maps' theta folds this angle into [0, 90].)"""
+    modulate; near 90 it grazes it.  (The maps' theta folds this angle into [0, 90].)
+    """
     tilt, az, fov = (float(v) for v in x[:3])
     gh, gw = mask.shape
     yp, xp = (np.mgrid[0:gh, 0:gw] + 0.5) * block
@@ -89,7 +91,8 @@ def fit_geometry(of: dict, width: int, height: int, block: int, x0: np.ndarray, 
     signal-to-noise ratio of s4), so that the weak second-order curvature of the field, the only thing
     in it that separates the field of view from the tilt, is read where it is measured precisely;
     ``s4`` weighs by |sum z4| (the matched-filter weight of the self-calibration).
-    ``fov_starts``: extra starts (degrees) of a fitted field of view; ``rounds``: robust re-weighting rounds."""
+    ``fov_starts``: extra starts (degrees) of a fitted field of view; ``rounds``: robust re-weighting rounds.
+    """
     from reconstruct.pane.levenberg import gauss_newton
     from reconstruct.pane.orientation import block_orientation_variance
 
@@ -148,7 +151,8 @@ def fit_geometry(of: dict, width: int, height: int, block: int, x0: np.ndarray, 
 
     def _robust_gn(f, xs0, lb_, ub_):
         """Cauchy-weighted IRLS around Gauss-Newton: blocks whose orientation the planar model does not
-        explain (moving content, a second reflector) lose weight; the self-calibration is robust likewise."""
+        explain (moving content, a second reflector) lose weight; the self-calibration is robust likewise.
+        """
         nonlocal w, sw, sys2
         u = np.ones(psi.size)
         xs = xs0
@@ -220,7 +224,7 @@ def fit_geometry(of: dict, width: int, height: int, block: int, x0: np.ndarray, 
 
 # --------------------------------------------------------------------------- fov from the modulation depth
 def _sigma_maps(geo: dict, pm, cov: np.ndarray, wrt: tuple[int, ...]) -> dict:
-    """theta / phi_perp 1-sigma on the block grid for covariance ``cov`` of the parameters ``wrt``."""
+    """Theta / phi_perp 1-sigma on the block grid for covariance ``cov`` of the parameters ``wrt``."""
     _, J = pm.maps_and_jacobian(geo["x"], wrt)
     mask = geo["mask"]
     st_ = np.sqrt(np.maximum(np.einsum("ihw,ij,jhw->hw", J["theta"], cov, J["theta"]), 0.0))[mask]
@@ -232,8 +236,8 @@ def _sigma_maps(geo: dict, pm, cov: np.ndarray, wrt: tuple[int, ...]) -> dict:
 # --------------------------------------------------------------------------- the 90 deg twin
 def _turned_against(of: dict, width: int, height: int, block: int, x_best: np.ndarray, *, pane_model: PaneModelFactory):
     """A test of whether a pane ``x`` belongs to ``x_best``'s 90 deg twin family: its phi_perp field turned against
-    ``x_best``'s (the orientation field's weighted mean of cos 2 delta below 0)."""
-
+    ``x_best``'s (the orientation field's weighted mean of cos 2 delta below 0).
+    """
     pm = pane_model(width, height, "single", block=block)
     p1 = pm.maps(x_best)["phi_perp"]
     w = np.abs(of["s4"])
@@ -247,7 +251,8 @@ def _angles_deg(x: np.ndarray) -> dict:
 
 def find_twin(of: dict, width: int, height: int, block: int, x_best: np.ndarray, fit_fov: bool, *, pane_model: PaneModelFactory) -> dict | None:
     """The best pane whose phi_perp field runs along ``x_best``'s p-directions (its 90 deg twin: modulo 90 deg
-    the two fields agree up to the field's curvature), as a :func:`fit_geometry` result, or None."""
+    the two fields agree up to the field's curvature), as a :func:`fit_geometry` result, or None.
+    """
     turned = _turned_against(of, width, height, block, x_best, pane_model=pane_model)
     found = None
     for tl in sorted({float(x_best[0]), math.radians(30.0), math.radians(55.0), math.radians(75.0)}):

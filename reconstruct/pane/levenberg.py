@@ -29,7 +29,8 @@ class PaneModel(Protocol):
 
 class PaneModelFactory(Protocol):
     """Builds a :class:`PaneModel` for a width x height view, a pane model (single / thin_slab / thick_slab) and a grid:
-    ``sub`` rays per pixel side, or one ray per ``block`` x ``block`` pixels."""
+    ``sub`` rays per pixel side, or one ray per ``block`` x ``block`` pixels.
+    """
 
     def __call__(self, width: int, height: int, model: str = "single", *, sub: int = 1, block: int = 0) -> PaneModel: ...
 

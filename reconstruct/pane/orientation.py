@@ -88,7 +88,8 @@ def block_orientation_variance(of: dict, block: int) -> tuple[np.ndarray, np.nda
     pixels' sums s4_px perpendicular to the block's direction: Var Im(s4_b e^{-i 4 psi_b}) = (pixels) x their
     variance, and 4 |s4_b| dpsi = Im(...).  Unlike q / (32 |s4|^2) (the pure-noise scale, which holds the signal's
     power too), this is the orientation's actual spread, spike noise and content alike.  Also returns the block's
-    effective number of contributing pixels (sum |s4_px|)^2 / sum |s4_px|^2."""
+    effective number of contributing pixels (sum |s4_px|)^2 / sum |s4_px|^2.
+    """
     s4, sp = of["s4"], of["s4_px"]
     h, w = s4.shape
     b = int(block)

@@ -244,7 +244,8 @@ def leave_out_saturated(I: np.ndarray, exposure: float | None) -> tuple[np.ndarr
     through: the pixel's modulation reads flatter, its degree of polarization lower, which the cone and the
     layers' content would take for a weaker pane (a glancing single interface calibrated as a thin slab, measured
     on the stress set).  A pixel at 0 in every frame adds nothing to the orientation field's or the cone's block
-    sums.  ``exposure`` None (unknown): the frames unchanged."""
+    sums.  ``exposure`` None (unknown): the frames unchanged.
+    """
     from reconstruct.physics.span import SPAN_SATURATION
 
     if exposure is None:
@@ -277,7 +278,8 @@ class StageOutcome:
 
 class _Calibration:
     """What one run of the cascade reads and updates: the frames, the orientation field, the current geometry, the
-    diagnostics, and the glass once fitted."""
+    diagnostics, and the glass once fitted.
+    """
 
     def __init__(self, I, phi, cfg: SelfCalConfig, name: str, f: dict, mask: np.ndarray, diag: dict, fit: dict, fov_given: float | None):
         self.I, self.phi, self.cfg, self.name = I, phi, cfg, name
@@ -351,7 +353,8 @@ def _stage_detection(c: _Calibration) -> StageOutcome:
 def _stage_twin(c: _Calibration) -> StageOutcome:
     """The 90 deg twin: where the orientation field cannot tell the pane from its twin (``max_twin_ratio``) the DoP cone,
     then the layers' content, decide; where it prefers one only narrowly with the fov free (``twin_check_ratio``), the
-    twin is taken only on both votes."""
+    twin is taken only on both votes.
+    """
     fit, cfg, diag = c.fit, c.cfg, c.diag
     I, phi = c.I, c.phi
     if c.fov_given is None and cfg.twin_check_ratio <= fit["twin_ratio"] <= cfg.max_twin_ratio:
@@ -426,7 +429,8 @@ def _stage_tilt(c: _Calibration) -> StageOutcome:
 
 def _stage_glass(c: _Calibration) -> StageOutcome:
     """Index and pane model (``model = auto``): the DoP cone where it constrains them, else the layers' content for the
-    model, else the priors."""
+    model, else the priors.
+    """
     cfg, diag = c.cfg, c.diag
     if not c.auto:
         return c.outcome("glass", "skipped", f"given: {cfg.model}, n {cfg.n:g}")
@@ -572,7 +576,7 @@ MAX_FRAMES = 400
 
 
 def self_zeta(result: SelfCalResult, phi: np.ndarray, span_rad: float = 0.0, dtype: torch.dtype = torch.float64) -> np.ndarray:
-    """zeta (M, H, W) at angles phi (M,) from a successful calibration, paper Eq. (2) (window-averaged over span_rad)."""
+    """Zeta (M, H, W) at angles phi (M,) from a successful calibration, paper Eq. (2) (window-averaged over span_rad)."""
     if not result.ok or result.maps is None:
         raise ConfigError(f"no self-calibrated pane ({result.reason}); use --zeta learned or physics")
     return zeta_from_maps(result.maps, np.asarray(phi, np.float64), span_rad, dtype=dtype).numpy()

@@ -16,7 +16,8 @@ def calibrate_stream(source, group_dir=None, window_steps: int = 13, exposure: f
     """:func:`calibrate_source` with the settings a stream's caller has: the field of view from the stored group's
     scene when ``selfcal`` does not give one, and a known index / pane model (None: ``selfcal``'s, by default the
     index and model fitted where the data constrain them, else n 1.5 and a thin slab: what the evaluation measures,
-    :func:`reconstruct.pane.selfcal.group_self_zeta`)."""
+    :func:`reconstruct.pane.selfcal.group_self_zeta`).
+    """
     sc = selfcal or SelfCalConfig()
     if pane_n is not None:
         sc = dataclasses.replace(sc, n=float(pane_n))

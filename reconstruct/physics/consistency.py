@@ -68,7 +68,8 @@ class FloorConfig:
 @dataclasses.dataclass
 class FloorResult:
     """The floored layers (..., H, W), the kept fraction s of the candidate's move from the physics (1 = unchanged,
-    0 = the physics), the candidate's box-mean excess residual in noise variances <E(1)> / sigma^2, and sigma^2."""
+    0 = the physics), the candidate's box-mean excess residual in noise variances <E(1)> / sigma^2, and sigma^2.
+    """
 
     T: torch.Tensor
     R: torch.Tensor
@@ -99,7 +100,8 @@ def _box(x: torch.Tensor, k: int) -> torch.Tensor:
 
 def observation_noise(zeta: torch.Tensor, I: torch.Tensor, pool: int = 5) -> torch.Tensor:
     """sigma^2 of one observation b_k = 2 I_k, (..., H, W): the unweighted least-squares residual RSS / (N - 2),
-    box-averaged over ``pool`` pixels (zeta that does not modulate: the residual about the window mean, N - 1 dof)."""
+    box-averaged over ``pool`` pixels (zeta that does not modulate: the residual about the window mean, N - 1 dof).
+    """
     _check(zeta, I)
     from reconstruct.physics.solvers import solve_weighted_ridge
 

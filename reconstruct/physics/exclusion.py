@@ -40,7 +40,8 @@ def part_harmonics(I: np.ndarray, phi: np.ndarray, parts: int = 2) -> list[tuple
     about half a polarizer turn of the harmonic fit (supp. Eq. (1)): a list of (a0, c) with c = ac + i as, (H, W).
 
     Eq. (1) is linear in the layers, so the chunk mean of a0 and c is that of the time-averaged layers (moving
-    content is averaged, not mis-fitted)."""
+    content is averaged, not mis-fitted).
+    """
     import torch
 
     from reconstruct.physics.harmonic_fit import half_turn_frames, harmonic_fit
@@ -65,7 +66,8 @@ def part_harmonics(I: np.ndarray, phi: np.ndarray, parts: int = 2) -> list[tuple
 
 def rotate_parts(parts, phi_perp: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
     """The parts' modulation turned to the plane of incidence, (a0, Re(c e^{-2i phi_perp})): what every hypothesis of
-    :func:`solve_layers` takes (give the result with ``phi_perp = None`` to solve many hypotheses without redoing it)."""
+    :func:`solve_layers` takes (give the result with ``phi_perp = None`` to solve many hypotheses without redoing it).
+    """
     rot = np.exp(-2j * phi_perp)
     return [(a0, (c * rot).real) for a0, c in parts]
 
@@ -73,7 +75,8 @@ def rotate_parts(parts, phi_perp: np.ndarray) -> list[tuple[np.ndarray, np.ndarr
 def solve_layers(a0: np.ndarray, c: np.ndarray, phi_perp: np.ndarray | None, A: np.ndarray, B: np.ndarray, gain: float = 1.0, mask: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """(R', T') of paper Eq. (1)-(2) from one part's harmonic mean a0 and modulation c under zeta's (A, B) (module docstring);
     ``phi_perp`` None: c is already turned to the plane of incidence (:func:`rotate_parts`); ``mask``: D and T set to 0
-    where it is False."""
+    where it is False.
+    """
     m = c if phi_perp is None else (c * np.exp(-2j * phi_perp)).real
     D = 2.0 * m / (gain * np.where(np.abs(B) > 1e-6, B, 1e-6))
     T = 2.0 * a0 - A * D
@@ -110,7 +113,8 @@ def _set_weight(keep: np.ndarray, sigma: float) -> np.ndarray:
 def _set_grad(x: np.ndarray, keep: np.ndarray, sigma: float, weight: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Gradient of x seen through the pixels ``keep`` only: normalised convolution (the Gaussian mean of the kept
     pixels; ``weight``: :func:`_set_weight` of ``keep``, computed here when None), then the forward differences of
-    :func:`_grad`."""
+    :func:`_grad`.
+    """
     from scipy.ndimage import gaussian_filter
 
     y = gaussian_filter(np.where(keep, x, 0.0), _set_sigma(sigma)) / (_set_weight(keep, sigma) if weight is None else weight)
@@ -135,7 +139,8 @@ def cross_gradient_sums(parts, phi_perp: np.ndarray | None, A: np.ndarray, B: np
     pixel carries into both layers drops out of their correlation.  That is the sensor's fixed pattern: a static
     per-pixel gain (threshold and gain mismatch, ~7 % in the default sensor) multiplies R' and T' alike and, being
     static, survives the crossing of time parts; it correlates their gradients positively at the right zeta, which
-    a wrong zeta's leak of the opposite sign cancels (docs/calibrate_pane.md: the index was read low)."""
+    a wrong zeta's leak of the opposite sign cancels (docs/calibrate_pane.md: the index was read low).
+    """
     from scipy.ndimage import gaussian_filter
 
     if pairs not in ("all", "adjacent"):
@@ -203,7 +208,8 @@ def label_correlations(sums: dict, labels: np.ndarray, n_labels: int, power: str
     """Normalised gradient correlation cross / sqrt(pr pt) per label (an int map of shape (H - 1, W - 1) or (H, W),
     -1 = left out); NaN for empty labels.  ``power``: ``same`` normalises by each part's own gradient power (content
     plus spike noise), ``cross`` by the power crossed between parts (content only, noise-free in expectation; NaN where
-    it is not positive: a label where the noise swamps the content)."""
+    it is not positive: a label where the noise swamps the content).
+    """
     if power not in ("same", "cross"):
         raise ConfigError(f"power = {power!r}: choose same or cross")
     kr, kt = ("pr", "pt") if power == "same" else ("pr_x", "pt_x")

@@ -128,7 +128,8 @@ def aolp(ac: torch.Tensor, as_: torch.Tensor) -> torch.Tensor:
 def half_turn_frames(phi) -> int:
     """Frames in a chunk of about half a polarizer turn (one cycle of 2 phi), at least 3, for frames at angles ``phi``
     (radians, a roughly constant step): the chunk length of every long-span harmonic fit (self-calibration, the DoP
-    cone, the content test, calibrate-pane)."""
+    cone, the content test, calibrate-pane).
+    """
     import math
 
     import numpy as np

@@ -52,7 +52,7 @@ _GH_W = _GH_W / _GH_W.sum()
 
 
 def reflected_share(T, R, zbar) -> np.ndarray:
-    """rho = zbar R / (zbar R + (1 - zbar) T), elementwise (0 where no light arrives)."""
+    """Rho = zbar R / (zbar R + (1 - zbar) T), elementwise (0 where no light arrives)."""
     T = np.clip(np.asarray(T, np.float64), 0.0, None)
     R = np.clip(np.asarray(R, np.float64), 0.0, None)
     zb = np.asarray(zbar, np.float64)
@@ -92,7 +92,8 @@ def count_variance(m, model: str = "integrate_fire", photons_per_threshold: floa
 
 def window_mean_variance(I, exposure: float, window_steps: int, **noise) -> np.ndarray:
     """Variance of the Eq. (3) window mean I^ = counts / (exposure L) in radiance^2, at true radiance ``I``
-    behind the polarizer (keywords: :func:`count_variance`)."""
+    behind the polarizer (keywords: :func:`count_variance`).
+    """
     if exposure <= 0 or window_steps < 1:
         raise ConfigError(f"window noise needs exposure > 0 and window_steps >= 1; got {exposure}, {window_steps}")
     s = float(exposure) * int(window_steps)
@@ -137,7 +138,8 @@ def ls_layer_variance(zeta, var_I, weighted: bool = False) -> tuple[np.ndarray, 
 def bound_psnr(var_R, mask=None, data_range: float = 1.0) -> float | None:
     """PSNR (dB) implied by a per-pixel estimate variance: 10 log10(range^2 / mean var) over ``mask``
     (None: all pixels); None for an empty mask; clamped to [-100, 100] dB (+100 like :func:`reconstruct.evaluate.metrics.psnr`;
-    -100 where zeta does not modulate at some pixel, infinite variance: R unidentifiable)."""
+    -100 where zeta does not modulate at some pixel, infinite variance: R unidentifiable).
+    """
     v = np.asarray(var_R, np.float64)
     if mask is not None:
         v = v[np.asarray(mask, bool)]

@@ -31,7 +31,6 @@ import torch.nn.functional as F
 
 from polinfra.config import opt
 from polinfra.errors import ShapeError
-
 from reconstruct.physics.harmonic_fit import dop, harmonic_fit
 
 __all__ = ["RirConfig", "registration_mask", "warp", "estimate_shifts", "align_window", "ChainedRir"]
@@ -320,7 +319,8 @@ class ChainedRir:
 
     def window_shifts(self, I: torch.Tensor, phi: torch.Tensor, index: np.ndarray) -> torch.Tensor:
         """Shifts (N, 2) registering each frame of the window onto its centre; ``index`` (N,) the frames' indices in
-        the stream, consecutive."""
+        the stream, consecutive.
+        """
         N = I.shape[0]
         if self.pts is None or self.windows % self.mask_every == 0:
             self._mask(I, phi)

@@ -170,7 +170,8 @@ def confidence(zeta: torch.Tensor, w: torch.Tensor | None = None, kappa: float =
 
 def _box(x: torch.Tensor, k: int) -> torch.Tensor:
     """Mean over a k x k box (edge-aware: padding does not count) of (..., H, W), as two 1-D passes (rows, then
-    columns; the valid part of a box is a product of row and column ranges, so this is the 2-D mean), O(k) per pixel."""
+    columns; the valid part of a box is a product of row and column ranges, so this is the 2-D mean), O(k) per pixel.
+    """
     if k <= 1:
         return x
     shp = x.shape
@@ -182,7 +183,8 @@ def _box(x: torch.Tensor, k: int) -> torch.Tensor:
 
 def _ls_noise(zeta: torch.Tensor, b: torch.Tensor, w: torch.Tensor, pool: int):
     """The weighted least-squares solve and its residual noise, shared by the adaptive Conf and the pooled prior:
-    (S_rr, S_rt, S_tt, sum w, det M, tiny, R_ls, T_ls, sigma^2 box-averaged over ``pool`` pixels)."""
+    (S_rr, S_rt, S_tt, sum w, det M, tiny, R_ls, T_ls, sigma^2 box-averaged over ``pool`` pixels).
+    """
     S_rr, S_rt, S_tt, sw = moments(zeta, w)
     tiny = torch.finfo(zeta.dtype).tiny ** 0.5
     det = (S_rr * S_tt - S_rt * S_rt).clamp_min(0.0)

@@ -1,7 +1,9 @@
 """Long-span helpers: the span's harmonic and zbar, the long-span separation, span blending and the anchor to the spike mean."""
 
 from __future__ import annotations
+
 import math
+
 import numpy as np
 import torch
 import torch.nn.functional as F
@@ -70,7 +72,8 @@ def long_span_separation(I_mean, I_harm, zeta, phi, floor: float = HARMONIC_FLOO
 
 def span_difference(I_harm, b, c, floor: float = HARMONIC_FLOOR):
     """D = R - T from the span's first harmonic ``I_harm`` (B, 2, H, W) projected on zeta's first harmonic (b, c):
-    2 (b_I b + c_I c) / (b^2 + c^2 + floor) (:func:`long_span_separation`; finite where the modulation vanishes)."""
+    2 (b_I b + c_I c) / (b^2 + c^2 + floor) (:func:`long_span_separation`; finite where the modulation vanishes).
+    """
     return 2.0 * (I_harm[:, 0] * b + I_harm[:, 1] * c) / (b * b + c * c + floor)
 
 
@@ -90,7 +93,8 @@ def gaussian_kernel(sigma: float, dtype=torch.float64, device=None) -> torch.Ten
 
 def separable_blur(x: torch.Tensor, k: torch.Tensor) -> torch.Tensor:
     """(B, H, W) maps convolved with the separable kernel k (x) k (odd length), reflected borders (replicated where
-    the map is narrower than the kernel's radius)."""
+    the map is narrower than the kernel's radius).
+    """
     r = k.numel() // 2
     H, W = x.shape[-2:]
     mode = "reflect" if (H > r and W > r) else "replicate"

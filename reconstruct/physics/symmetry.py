@@ -43,7 +43,8 @@ def symmetry_image(x: torch.Tensor, code: int, inverse: bool = False) -> torch.T
 
 def symmetry_angles(phi: torch.Tensor, code: int) -> torch.Tensor:
     """Polarizer angles (B, N) of windows seen through symmetry ``code`` (:func:`angle_map`); each window's centre
-    angle is brought back into [0, pi)."""
+    angle is brought back into [0, pi).
+    """
     sign, offset = angle_map(code)
     a = sign * phi.double() + offset
     c = a[:, a.shape[1] // 2 : a.shape[1] // 2 + 1]
@@ -53,7 +54,8 @@ def symmetry_angles(phi: torch.Tensor, code: int) -> torch.Tensor:
 def harmonic_signs(code: int) -> tuple[float, float]:
     """Factors on the (cos 2 phi, sin 2 phi) coefficients of a first harmonic of the polarizer angle seen through
     symmetry ``code``: with phi' = s phi + o (:func:`angle_map`, 2 o a multiple of pi), cos 2 phi = e cos 2 phi' and
-    sin 2 phi = e s sin 2 phi', e = cos 2 o; so (b, c) -> (e b, e s c).  Its own inverse."""
+    sin 2 phi = e s sin 2 phi', e = cos 2 o; so (b, c) -> (e b, e s c).  Its own inverse.
+    """
     sign, offset = angle_map(code)
     e = float(round(math.cos(2 * offset)))
     return e, e * sign
@@ -61,7 +63,8 @@ def harmonic_signs(code: int) -> tuple[float, float]:
 
 def symmetry_harmonic(x: torch.Tensor, code: int) -> torch.Tensor:
     """Symmetry ``code`` applied to (..., 2, H, W) first-harmonic maps (cos, sin): moved as an image, signs by
-    :func:`harmonic_signs`."""
+    :func:`harmonic_signs`.
+    """
     fc, fs = harmonic_signs(code)
     y = symmetry_image(x, code)
     return torch.stack([fc * y[..., 0, :, :], fs * y[..., 1, :, :]], -3)

@@ -78,7 +78,7 @@ class PaneMaps:
 def zeta_from_maps(
     maps: PaneMaps, phi: torch.Tensor | np.ndarray, span_rad: float = 0.0, *, dtype: torch.dtype = torch.float32, device: str | torch.device = "cpu"
 ) -> torch.Tensor:
-    """zeta (..., N, H, W) for polarizer angles phi (..., N) from pane maps, paper Eq. (2).
+    """Zeta (..., N, H, W) for polarizer angles phi (..., N) from pane maps, paper Eq. (2).
 
     Agrees with :func:`polphysics.zeta.zeta` at span_rad = 0 (tested).
     """

@@ -1,8 +1,10 @@
 """Display gains for 8-bit output: a running histogram of radiance and the gain that clips a set fraction."""
 
 from __future__ import annotations
+
 import logging
 import math
+
 import numpy as np
 
 log = logging.getLogger(__name__)
@@ -27,7 +29,8 @@ class DisplayHistogram:
 
     Values <= 10^-6 (also zero and negative ones, which display black) fall into the first bin;
     the upper edge of the bin holding the quantile bounds the exact quantile from above, so the
-    gain chosen from it never clips more than the requested fraction."""
+    gain chosen from it never clips more than the requested fraction.
+    """
 
     def __init__(self):
         self.counts = np.zeros(_HIST_BINS + 1, np.int64)

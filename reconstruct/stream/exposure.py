@@ -126,7 +126,8 @@ def estimate_source_exposure(source, max_steps: int = 4000, reference_radiance: 
 def exposure_errors(group_dirs, max_steps: int = 4000) -> list[dict[str, Any]]:
     """Estimated vs stored exposure of spike groups (``polspike bench exposure``): one row per group with
     ``exposure``, ``estimate``, ``log_error`` = ln(estimate / exposure), ``quantile_radiance`` (the
-    group's 99.9th percentile of I at its true exposure: what :data:`REFERENCE_RADIANCE` is the mean of)."""
+    group's 99.9th percentile of I at its true exposure: what :data:`REFERENCE_RADIANCE` is the mean of).
+    """
     from spike_sim.store import open_group
 
     rows = []

@@ -30,7 +30,6 @@ from pathlib import Path
 import numpy as np
 
 from polinfra.errors import ConfigError, DataFormatError
-
 from reconstruct.physics.zeta import PaneMaps
 
 __all__ = ["EvalGroup", "list_groups", "load_store_group", "window_steps_from_ms", "spike_mean_frames", "SpikeMeanSums", "SPIKE_MEAN_MS", "spike_mean_steps", "spike_mean_span", "span_harmonic", "HARMONIC_RIDGE", "wide_window_steps", "window_means", "harmonic_design", "network_inputs"]
@@ -87,7 +86,8 @@ def network_inputs(group: EvalGroup, model, centres, K: int, crop: tuple[slice, 
     """The long-span keywords of :func:`reconstruct.video.tiling.run_model_on_windows` that ``model`` reads (its ``cfg``:
     ``use_mean``, ``harm_input``, ``wide_input``, ``span_level``) for the output frames at ``centres`` of a group, each
     window's N = 2K + 1 frames around its centre, cropped to ``crop`` (rows, columns); ConfigError naming what the
-    group lacks (only stored groups and the synthetic set carry the long span)."""
+    group lacks (only stored groups and the synthetic set carry the long span).
+    """
     cfg = getattr(model, "cfg", None)
     mean, harm, wide, span = (bool(getattr(cfg, k, False)) for k in ("use_mean", "harm_input", "wide_input", "span_level"))
     for need, have, what in ((mean, group.I_mean, "the long spike mean"), (harm, group.I_harm, "the long span's first harmonic"),
@@ -115,7 +115,8 @@ SPIKE_MEAN_MS = 17.5
 def wide_window_steps(rate_hz: float, rev_per_s: float, stride_deg: float) -> int:
     """Steps of the wide window: the largest odd count within one stride between output frames (57 at 20 kHz,
     30 rev/s, 31.5 deg), so the N wide windows of an output use every spike between their centres without overlap
-    (1 for a still polarizer or a stride shorter than two steps)."""
+    (1 for a still polarizer or a stride shorter than two steps).
+    """
     if rev_per_s <= 0:
         return 1
     s = int(math.floor(stride_deg / 360.0 / rev_per_s * rate_hz))
@@ -126,7 +127,8 @@ def window_means(read, centres: np.ndarray, widths: tuple[int, ...], n_steps: in
     """For each odd width in ``widths``: spikes per step / exposure over that many steps centred on each of ``centres``,
     clipped to a stream of ``n_steps`` (the count divided by the clipped length): paper Eq. (3) frames at the 0.65 ms
     window and the wide window alike.  ``read(n0, n1)`` returns the (n1 - n0, H, W) spikes; each centre's widest
-    span is read once and the narrower windows are its centre slices."""
+    span is read once and the narrower windows are its centre slices.
+    """
     halves = [int(w) // 2 for w in widths]
     reach = max(halves)
     out: list[list[np.ndarray]] = [[] for _ in widths]
@@ -147,7 +149,8 @@ def spike_mean_steps(rate_hz: float) -> int:
 
 def spike_mean_span(centre, steps: int, n_steps: int):
     """Steps [lo, hi) of the long spike mean of ``steps`` steps centred on step ``centre`` (scalar or array), clipped
-    to a stream of ``n_steps``: the one span of the stream reconstructor, the stored groups and the training items."""
+    to a stream of ``n_steps``: the one span of the stream reconstructor, the stored groups and the training items.
+    """
     return np.clip(centre - steps // 2, 0, n_steps), np.clip(centre + steps // 2 + 1, 0, n_steps)
 
 
@@ -225,7 +228,8 @@ class SpikeMeanSums:
 
     def harmonic(self, j: int, exposure: float = 1.0) -> np.ndarray:
         """(2, H, W) first-harmonic coefficients of the spikes around frame j (:func:`span_harmonic`); call before
-        :meth:`mean` of the same frame (which frees older snapshots); needs ``phi_step``."""
+        :meth:`mean` of the same frame (which frees older snapshots); needs ``phi_step``.
+        """
         if self.phi is None:
             raise DataFormatError("SpikeMeanSums.harmonic needs the per-step angles (phi_step)")
         lo, hi, d = self._span(j)
@@ -234,7 +238,8 @@ class SpikeMeanSums:
 
 def harmonic_design(phi: np.ndarray) -> np.ndarray:
     """(3, t) rows 1, cos 2 phi, sin 2 phi of per-step angles ``phi`` (radians): the first-harmonic design whose
-    products with a span's spikes :func:`span_harmonic` takes."""
+    products with a span's spikes :func:`span_harmonic` takes.
+    """
     p = 2.0 * np.asarray(phi, np.float64)
     return np.stack([np.ones_like(p), np.cos(p), np.sin(p)])
 
@@ -267,7 +272,8 @@ def spike_mean_frames(g, centres: np.ndarray, span_steps: int, exposure: float, 
     """Spikes per step / exposure over ``span_steps`` steps centred on each of ``centres`` (ascending), clipped to
     the stream, of an open ``spike_sim.store`` group: :class:`SpikeMeanSums` fed with the steps from the first
     frame's span to the last's, each read once; a mean is taken as soon as its span is read.  ``harmonic``: also
-    the spans' first harmonics at the group's nominal angles, returning (means (M, H, W), harmonics (M, 2, H, W))."""
+    the spans' first harmonics at the group's nominal angles, returning (means (M, H, W), harmonics (M, 2, H, W)).
+    """
     sums = SpikeMeanSums(centres, span_steps, g.n_steps, (g.height, g.width), g.phi_nominal_rad if harmonic else None)
     out = np.zeros((len(centres), g.height, g.width), np.float32)
     harm = np.zeros((len(centres), 2, g.height, g.width), np.float32) if harmonic else None
@@ -361,10 +367,9 @@ def load_store_group(
         :class:`EvalGroup`.  I = spikes per step / exposure; GT frames exist where a
         frame centre coincides with a stored output step (the group's own cadence).
     """
+    from reconstruct.stream.groups import fov_from_group_dir
     from spike_sim.aggregate import AggregateConfig, frame_centres
     from spike_sim.store import open_group
-
-    from reconstruct.stream.groups import fov_from_group_dir
 
     cfg = AggregateConfig(window_steps=window_steps, stride_deg=stride_deg, n_obs=n_obs)
     with open_group(path) as g:

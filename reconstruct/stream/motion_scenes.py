@@ -30,7 +30,6 @@ import torch.nn.functional as F
 
 from polinfra.config import opt
 from polinfra.errors import ConfigError
-
 from reconstruct.physics.zeta import PaneMaps
 
 __all__ = ["MOTIONS", "REFLECTION_SHARES", "MotionSceneConfig", "MotionStream", "make_motion_stream"]

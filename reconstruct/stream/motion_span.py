@@ -20,7 +20,6 @@ import numpy as np
 import torch
 
 from polinfra.errors import ShapeError
-
 from reconstruct.physics.rir import RirConfig, estimate_shifts, warp
 from reconstruct.stream.groups import harmonic_design, span_harmonic
 

@@ -91,7 +91,8 @@ class PackedArray:
 
 class PackedChunks(PackedArray):
     """A packed stream made chunk by chunk (an iterator of (t, H W / 8) arrays), read forward only in bounded
-    memory: steps before the last ``keep`` read are dropped.  ``frames`` grows as chunks are pulled."""
+    memory: steps before the last ``keep`` read are dropped.  ``frames`` grows as chunks are pulled.
+    """
 
     def __init__(self, chunks: Iterator[np.ndarray], height: int, width: int, total: int):
         self._it = iter(chunks)
@@ -174,7 +175,8 @@ class PackedDat:
 
 def packed_source(reader, steps: int, phi0_rad: float, rev_per_s: float, rate_hz: float, name: str, chunk_steps: int = 500):
     """A :class:`reconstruct.stream.sources.SpikeSource` over the first ``steps`` steps of a packed reader (unpacked
-    chunk by chunk): what the self-calibration and the exposure estimate read of a file that may still grow."""
+    chunk by chunk): what the self-calibration and the exposure estimate read of a file that may still grow.
+    """
     import math
 
     from reconstruct.stream.sources import SpikeSource

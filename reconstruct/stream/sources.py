@@ -1,13 +1,16 @@
 """Spike sources: a .dat file, an in-memory array or a stored group, read in chunks with the polarizer angle per step."""
 
 from __future__ import annotations
+
 import dataclasses
 import logging
 import math
 import os
 from collections.abc import Callable, Iterator
 from pathlib import Path
+
 import numpy as np
+
 from polinfra.errors import ConfigError, DataFormatError
 
 log = logging.getLogger(__name__)
@@ -81,7 +84,8 @@ def group_source(path: str | os.PathLike, chunk_steps: int = 2000) -> SpikeSourc
 def frames_exposure(source, exposure: float | None = None) -> float:
     """The exposure :func:`span_frames` divides by: the one given, else the source's, else 1 (a raw stream of unknown
     scale: radiance = spikes per step).  Frames times it are spikes per step whatever it is, so saturation tests on
-    them hold."""
+    them hold.
+    """
     return exposure if exposure is not None else (source.exposure or 1.0)
 
 
@@ -108,4 +112,5 @@ def span_frames(source, span_s: float, window_steps: int = 13, exposure: float |
 
 class StreamTooShortError(ConfigError):
     """The stream is shorter than the self-calibration needs (half a polarizer turn of frames): a caller with
-    another zeta source (the network's learned zeta) falls back to it; one without says so (exit 2)."""
+    another zeta source (the network's learned zeta) falls back to it; one without says so (exit 2).
+    """

@@ -27,9 +27,8 @@ import dataclasses
 import numpy as np
 
 from polinfra.config import opt
-
-from reconstruct.stream.groups import EvalGroup, spike_mean_steps, wide_window_steps
 from reconstruct.physics.zeta import PaneMaps
+from reconstruct.stream.groups import EvalGroup, spike_mean_steps, wide_window_steps
 
 __all__ = ["SyntheticConfig", "make_group", "make_groups", "PICTURES"]
 

@@ -41,7 +41,6 @@ import torch
 from polinfra.atomic import atomic_path, ensure_dir, write_json
 from polinfra.config import opt
 from polinfra.errors import ConfigError
-
 from reconstruct.stream.display import DisplayHistogram, display_gain
 
 __all__ = ["LiveConfig", "reconstruct_live", "StageTimes", "to8_table"]
@@ -91,7 +90,8 @@ _TABLE_N = 1 << 16
 
 def to8_table() -> np.ndarray:
     """8-bit display values of linear x = i / (2^16 - 1) after the gain: the 1/2.2 gamma of
-    :func:`reconstruct.stream.display._to8`, tabulated (one level at most apart from the exact mapping)."""
+    :func:`reconstruct.stream.display._to8`, tabulated (one level at most apart from the exact mapping).
+    """
     x = np.arange(_TABLE_N, dtype=np.float64) / (_TABLE_N - 1)
     return (x ** (1 / 2.2) * 255 + 0.5).astype(np.uint8)
 
@@ -106,7 +106,8 @@ def _to8_fast(x: np.ndarray, gain: float) -> np.ndarray:
 
 class _LiveWriters:
     """Outputs of a live stream: EXR frames at once, display outputs (MP4s, PNG frames) on a background thread
-    once the gains are known (after ``gain_frames`` frames or at the end)."""
+    once the gains are known (after ``gain_frames`` frames or at the end).
+    """
 
     def __init__(self, out: Path, fps: float, cfg: LiveConfig, times: StageTimes):
         self.out, self.fps, self.cfg, self.times = out, fps, cfg, times
@@ -215,7 +216,8 @@ class _LiveWriters:
 class _Centres:
     """Eq. (3) frame centres of a stream whose length grows: those of
     :func:`spike_sim.aggregate.frame_centres` on the calibrated angle phi0 + 2 pi f t, which do not depend on
-    how far the stream goes (computed on a horizon that doubles)."""
+    how far the stream goes (computed on a horizon that doubles).
+    """
 
     def __init__(self, phi0_rad: float, rev_per_s: float, rate_hz: float, agg):
         self.phi0, self.rev, self.rate, self.agg = phi0_rad, rev_per_s, rate_hz, agg
@@ -441,7 +443,8 @@ def reconstruct_live(
 class _ZetaFrames:
     """zeta (paper Eq. (2), window-averaged) of one Eq. (3) frame at angle phi, as
     :func:`reconstruct.physics.zeta.zeta_eq2` computes it, by the angle-sum identity on maps prepared once:
-    zeta = mean + f amp (cos 2 phi cos 2 phi_perp + sin 2 phi sin 2 phi_perp) (float32; agrees to rounding)."""
+    zeta = mean + f amp (cos 2 phi cos 2 phi_perp + sin 2 phi sin 2 phi_perp) (float32; agrees to rounding).
+    """
 
     def __init__(self, maps, span_rad: float):
         from reconstruct.physics.zeta import _span_factor

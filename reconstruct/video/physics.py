@@ -29,13 +29,12 @@ import numpy as np
 import torch
 
 from polinfra.errors import ConfigError
-
+from reconstruct.net.learned_zeta import zeta_learned
 from reconstruct.pane.selfcal import SelfCalConfig
+from reconstruct.pane.source import calibrate_stream
 from reconstruct.physics.solvers import PHYSICS_SOLVER_CONFIG, SOLVERS, SolverConfig, solve
 from reconstruct.physics.span import anchor_to_mean, zbar_of
 from reconstruct.physics.zeta import PaneMaps, zeta_from_maps
-from reconstruct.net.learned_zeta import zeta_learned
-from reconstruct.pane.source import calibrate_stream
 
 __all__ = ["PHYSICS_METHODS", "STREAM_ZETA_SOURCES", "PhysicsModel", "PhysicsOutput", "group_pane_maps", "build_physics_model"]
 
@@ -137,7 +136,8 @@ class PhysicsModel:
 
 def group_pane_maps(group_dir, zeta: str, n: float = 1.5, model: str = "single") -> PaneMaps:
     """Pane maps of a stored group for ``gt`` (its true R_perp, R_par, phi_perp) or ``physics`` (its theta and
-    phi_perp maps, Fresnel reflectances of the calibrated index and pane model)."""
+    phi_perp maps, Fresnel reflectances of the calibrated index and pane model).
+    """
     from spike_sim.store import open_group
 
     with open_group(group_dir) as g:

@@ -41,9 +41,8 @@ import torch
 from polinfra.atomic import atomic_path, ensure_dir, write_json
 from polinfra.config import opt
 from polinfra.errors import ConfigError
-
-from reconstruct.stream.groups import SpikeMeanSums, spike_mean_steps, wide_window_steps, window_means
 from reconstruct.stream.display import DisplayHistogram, _to8, display_gain
+from reconstruct.stream.groups import SpikeMeanSums, spike_mean_steps, wide_window_steps, window_means
 from reconstruct.stream.sources import SpikeSource
 from reconstruct.video.tiling import FeatureCache, auto_tile, run_model_on_windows
 
@@ -76,7 +75,8 @@ class ReconstructConfig:
 class _Writers:
     """Output files of a stream.  EXR frames are written as they come (linear, unclipped); MP4s and
     PNG frames need the whole video's display gain, so their linear frames are spooled to a
-    float16 file beside the outputs (bounded memory) and encoded at the end."""
+    float16 file beside the outputs (bounded memory) and encoded at the end.
+    """
 
     def __init__(self, out: Path, fps: float, cfg: ReconstructConfig, n_frames: int = 0, shape: tuple[int, int] = (0, 0)):
         self.out, self.fps, self.cfg = out, fps, cfg

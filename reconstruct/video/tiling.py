@@ -1,14 +1,17 @@
 """Running a model on Eq. (3) windows: tiles, padding, autocast, cached per-frame features, stand-in inputs."""
 
 from __future__ import annotations
+
 import contextlib
 import logging
 import math
 import time
 from typing import Any
+
 import numpy as np
 import torch
 import torch.nn.functional as F
+
 from polinfra.errors import ConfigError
 
 log = logging.getLogger(__name__)
@@ -44,7 +47,8 @@ def _autocast(device: torch.device, precision: str):
 def auto_tile(model, device: str | torch.device = "cpu") -> int:
     """Default tile side: the model's own ``stream_tile`` when it has one (0 = whole frames, e.g. a
     physics model with per-frame-pixel zeta maps), else whole frames (0) for cacheable (v2)
-    networks and on CUDA, 128 otherwise (v1 on CPU)."""
+    networks and on CUDA, 128 otherwise (v1 on CPU).
+    """
     own = getattr(model, "stream_tile", None)
     if own is not None:
         return int(own)
@@ -169,7 +173,8 @@ class FeatureCache:
     def run(self, I: np.ndarray, phi: np.ndarray, idx: np.ndarray, I_mean: np.ndarray | None = None, I_harm: np.ndarray | None = None,
             I_wide: np.ndarray | None = None, exposure: float | None = None, span_steps: int | None = None) -> dict[str, np.ndarray]:
         """Windows I (B, N, H, W), phi (B, N), frame indices idx (B, N) -> dict of (B, H, W) maps (``I_mean``,
-        ``I_harm``, ``I_wide``, ``exposure``, ``span_steps``: as :func:`run_model_on_windows`)."""
+        ``I_harm``, ``I_wide``, ``exposure``, ``span_steps``: as :func:`run_model_on_windows`).
+        """
         from reconstruct.net.network import window_scale
 
         dev = self.device
@@ -220,7 +225,8 @@ class FeatureCache:
 def standin_inputs(model, I) -> dict[str, Any]:
     """Keyword inputs of the long span a network reads (``I_mean``, ``I_harm``, ``I_wide``, and for a ``span_level``
     network the exposure and span length), made up from its windows
-    ``I`` (B, N, H, W), numpy or torch alike, for timing and FLOP counts (the content does not change the cost)."""
+    ``I`` (B, N, H, W), numpy or torch alike, for timing and FLOP counts (the content does not change the cost).
+    """
     cfg = getattr(model, "cfg", None)
     kw: dict[str, Any] = {}
     if getattr(cfg, "use_mean", False):

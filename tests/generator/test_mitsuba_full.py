@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-
 from _mitsuba_common import require_mitsuba, small_scene, uniform_layers
 
 pytestmark = pytest.mark.mitsuba
@@ -29,7 +28,8 @@ def _analytic_stokes(scene, t_s=0.0):
 def test_full_tier_unbiased_and_noise_falls_as_inverse_sqrt_spp():
     """Uniform layers behind a Brewster-tilted slab: the path-traced Stokes image minus the analytic
     one has a pixel mean consistent with zero (|mean| < 4 standard errors + 1e-3) and an rms that
-    falls by ~2 when spp grows 4x (spp^-1/2)."""
+    falls by ~2 when spp grows 4x (spp^-1/2).
+    """
     require_mitsuba()
     from generator import tiers_mitsuba as tm
 
@@ -50,7 +50,8 @@ def test_full_tier_unbiased_and_noise_falls_as_inverse_sqrt_spp():
 def test_stokes_convention_known_polarized_cases():
     """Reflection off a pane tilted about the image vertical is s-polarized vertically: S1 < 0, S2 ~ 0.
     Tilted about an axis at 35 deg: the s-direction, hence the AoLP of the reflection, is at 35 deg
-    (S1 > 0 and S2 > 0 in the project convention).  R layer only, T layer black."""
+    (S1 > 0 and S2 > 0 in the project convention).  R layer only, T layer black.
+    """
     require_mitsuba()
     from generator import tiers_mitsuba as tm
     from polphysics.stokes import aolp
@@ -72,7 +73,8 @@ def test_mitsuba_polarizer_bsdf_agrees_with_stokes_shortcut():
     """Mitsuba's own ``polarizer`` BSDF in front of the camera, rotated by theta (its axis turned from
     image +x toward image up), passes I(phi = +theta) = 1/2 (S0 + S1 cos 2phi + S2 sin 2phi) of the
     rendered Stokes image (centre half of the image, where the off-axis tilt effect is < 1e-3).
-    The opposite sign (phi = -theta) is rejected, pinning the convention."""
+    The opposite sign (phi = -theta) is rejected, pinning the convention.
+    """
     mi = require_mitsuba()
     from generator import tiers_mitsuba as tm
     from generator.analytic import layer_planes
@@ -107,7 +109,8 @@ def test_mitsuba_polarizer_bsdf_agrees_with_stokes_shortcut():
 
 def test_full_tier_keyframes_static_once_and_interpolation():
     """Static scene: one path trace whatever the frame; moving scene: frames between keyframes are the
-    linear interpolation of the neighbouring keyframes' Stokes images."""
+    linear interpolation of the neighbouring keyframes' Stokes images.
+    """
     require_mitsuba()
     from generator import tiers_mitsuba as tm
 
@@ -147,7 +150,8 @@ def test_full_tier_warns_when_a_layer_plane_does_not_cover_the_view():
 
 def test_scalar_spectral_variant_agrees_with_llvm_mono():
     """The scalar backend runs scalar_spectral_polarized (no scalar mono polarized variant): with grey layers
-    its sRGB Stokes channels, combined by luminance weights, equal the mono render within Monte Carlo error."""
+    its sRGB Stokes channels, combined by luminance weights, equal the mono render within Monte Carlo error.
+    """
     require_mitsuba()
     from generator import tiers_mitsuba as tm
 

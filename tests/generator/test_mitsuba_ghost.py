@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-
 from _mitsuba_common import require_mitsuba, small_scene
 
 pytestmark = pytest.mark.mitsuba
@@ -35,7 +34,8 @@ def _references(sc):
 def test_full_tier_thick_slab_shows_the_displaced_ghost():
     """Path-traced 40 mm slab: regress (S0 - undisplaced) on (displaced - undisplaced); the slope is 1 when
     the traced ghost sits where 2 d tan(theta_t) puts it, 0 when there is no displaced ghost.
-    (Measured: 1.01 +- 0.035 at 64 spp.)"""
+    (Measured: 1.01 +- 0.035 at 64 spp.)
+    """
     require_mitsuba()
     from generator import tiers_mitsuba as tm
     from generator.render import RenderOptions
@@ -54,7 +54,8 @@ def test_full_tier_thick_slab_shows_the_displaced_ghost():
 
 def test_maps_tier_frames_carry_the_displaced_ghost():
     """Maps tier: rendered G maps, mixed with the displaced ghost image, equal the analytic frame (1e-4),
-    and differ clearly from a frame without displacement."""
+    and differ clearly from a frame without displacement.
+    """
     require_mitsuba()
     from generator import tiers_mitsuba as tm
     from generator.analytic import frame_stokes, sample_layers

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-
 from _mitsuba_common import require_mitsuba, small_scene
 
 pytestmark = pytest.mark.mitsuba
@@ -92,7 +91,8 @@ def test_mitsuba_fresnel_matches_polspike_fresnel():
 
     Transmittance from Mitsuba's amplitudes, not from 1 - R: boundary continuity gives t_s = 1 + r_s and
     n t_p = 1 + r_p, and the transmitted flux is (n cos_t / cos_i) |t|^2 with Mitsuba's own cos_t; those
-    amplitudes must balance the energy, |r|^2 + (n cos_t / cos_i) |t|^2 = 1, and equal polphysics' T."""
+    amplitudes must balance the energy, |r|^2 + (n cos_t / cos_i) |t|^2 = 1, and equal polphysics' T.
+    """
     mi = require_mitsuba()
     from polphysics.fresnel import fresnel_power
 

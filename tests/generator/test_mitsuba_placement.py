@@ -1,11 +1,11 @@
 """Full tier: the T and R layers are placed where the analytic tier puts them (textured, not uniform),
-and a single interface's bent transmitted rays still land on the T layer."""
+and a single interface's bent transmitted rays still land on the T layer.
+"""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
-
 from _mitsuba_common import require_mitsuba, small_scene, uniform_layers
 
 pytestmark = pytest.mark.mitsuba
@@ -40,7 +40,8 @@ def _analytic(sc, t_s):
 @pytest.mark.parametrize("name", ["brewster", "oblique_diagonal"])
 def test_textured_layers_land_where_the_analytic_tier_puts_them(name, lit):
     """Residual of the path-traced S0 against the analytic frame is Monte Carlo noise only (rms within
-    25 % of the seed-to-seed noise), while the same image turned by 180 deg is rejected."""
+    25 % of the seed-to-seed noise), while the same image turned by 180 deg is rejected.
+    """
     require_mitsuba()
     from generator import tiers_mitsuba as tm
     from generator.render import RenderOptions
@@ -57,7 +58,8 @@ def test_textured_layers_land_where_the_analytic_tier_puts_them(name, lit):
 def test_single_interface_bent_rays_stay_on_the_t_layer():
     """bk7_single (one interface, 45 deg): rays refracted into the glass bend toward the normal and used to
     leave the T plane (25 % of the view black); with the enlarged T plane a uniform T layer is reproduced
-    without bias (|mean error| < 4 standard errors + 1e-3) and no pixel is dark."""
+    without bias (|mean error| < 4 standard errors + 1e-3) and no pixel is dark.
+    """
     require_mitsuba()
     from generator import tiers_mitsuba as tm
     from generator.render import RenderOptions

@@ -6,9 +6,8 @@ import json
 
 import numpy as np
 import pytest
-from typer.testing import CliRunner
-
 from _mitsuba_common import require_mitsuba
+from typer.testing import CliRunner
 
 pytestmark = pytest.mark.mitsuba
 

@@ -1,5 +1,6 @@
 """Render directories of the Mitsuba tiers: render.json contents, resumability, backend forcing and
-fallback, ground truth shared with the analytic tier, every default scene, sensor response CSV."""
+fallback, ground truth shared with the analytic tier, every default scene, sensor response CSV.
+"""
 
 from __future__ import annotations
 
@@ -7,11 +8,10 @@ import json
 
 import numpy as np
 import pytest
+from _mitsuba_common import require_mitsuba, small_scene
 from typer.testing import CliRunner
 
 from polinfra.errors import OutputError
-
-from _mitsuba_common import require_mitsuba, small_scene
 
 pytestmark = pytest.mark.mitsuba
 
@@ -62,7 +62,8 @@ def test_render_json_records_variant_spp_seed_timings_and_modelled(tmp_path, tie
 
 def test_full_tier_resume_over_frames_is_bit_identical(tmp_path):
     """Rendering frames 0:2 then the rest equals a one-shot render byte for byte; an existing frame is
-    not re-rendered; a deleted frame is re-rendered identically (keyframe seeds depend on the index only)."""
+    not re-rendered; a deleted frame is re-rendered identically (keyframe seeds depend on the index only).
+    """
     require_mitsuba()
     from generator.render import render
 
@@ -100,7 +101,8 @@ def test_resume_with_different_pixel_options_is_refused(tmp_path):
 def test_forced_variant_is_used_and_auto_fallback_is_logged_and_recorded(tmp_path, monkeypatch, caplog):
     """--variant scalar really runs scalar; auto with broken CUDA/LLVM JITs falls back to scalar with a
     logged warning and the reasons in render.json; the maps tier then falls back to analytic maps (logged,
-    recorded), and forcing scalar for it is a one-line error."""
+    recorded), and forcing scalar for it is a one-line error.
+    """
     require_mitsuba()
     import generator.mitsuba_backend as mb
     from generator.render import render
@@ -162,7 +164,8 @@ def test_ground_truth_layers_are_the_analytic_tiers(tmp_path):
 @pytest.mark.parametrize("name", ["near_normal", "brewster", "oblique_diagonal", "bk7_single"])
 def test_every_default_scene_renders_in_both_mitsuba_tiers(tmp_path, name, tier):
     """At 16x10: each default scene renders in each Mitsuba tier, finite output;
-    maps agree with the analytic tier (mono scenes within 1e-4, dispersive BK7 within 2e-3)."""
+    maps agree with the analytic tier (mono scenes within 1e-4, dispersive BK7 within 2e-3).
+    """
     require_mitsuba()
     from generator.analytic import analytic_maps
     from generator.render import render
@@ -185,7 +188,8 @@ def test_every_default_scene_renders_in_both_mitsuba_tiers(tmp_path, name, tier)
 
 def test_user_csv_sensor_response_reaches_the_render(tmp_path):
     """--response CSV: a blue-only sensor sees BK7's higher index (more reflection) than a red-only one;
-    render.json names the CSV; a missing CSV is a one-line error, exit 2."""
+    render.json names the CSV; a missing CSV is a one-line error, exit 2.
+    """
     require_mitsuba()
     from polspike.cli import get_app
     from spike_sim.renderdir import open_render

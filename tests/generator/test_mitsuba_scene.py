@@ -4,10 +4,9 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from _mitsuba_common import require_mitsuba, small_scene
 
 from polinfra.errors import SceneError
-
-from _mitsuba_common import require_mitsuba, small_scene
 
 pytestmark = pytest.mark.mitsuba
 
@@ -16,7 +15,6 @@ def test_camera_rays_match_pinhole_model():
     """Mitsuba's perspective sensor rays equal polphysics.geometry's pixel rays (roll included)."""
     mi = require_mitsuba()
     from generator.mitsuba_scene import build_scene_dict, specs_from_scene
-
     from generator.scene import scene_from_dict
     from polinfra.config import to_dict
 
@@ -63,7 +61,8 @@ def test_non_physical_index_is_scene_error(bad):
 def test_thindielectric_depolarizes_so_slabs_use_two_interfaces():
     """Measurement pin: Mitsuba's thindielectric returns UNPOLARIZED reflection (DoP 0),
     while two real dielectric interfaces give the polarized incoherent slab 2R/(1+R)
-    (so thin_slab / thick_slab are modelled with two interfaces)."""
+    (so thin_slab / thick_slab are modelled with two interfaces).
+    """
     mi = require_mitsuba()
     from generator.mitsuba_integrator import pane_coefficients
     from generator.mitsuba_scene import build_scene_dict, specs_from_scene

@@ -1,12 +1,12 @@
 """The Mitsuba tests' skip policy: skip only when mitsuba is not installed; under CI an
-unavailable backend fails instead of skipping; no test module skips Mitsuba on its own."""
+unavailable backend fails instead of skipping; no test module skips Mitsuba on its own.
+"""
 
 from __future__ import annotations
 
 import importlib.util
 
 import pytest
-
 from _mitsuba_common import require_mitsuba
 
 
@@ -71,7 +71,8 @@ def test_a_broken_import_is_not_a_skip_under_ci(monkeypatch):
 
 def test_no_test_module_skips_mitsuba_on_its_own():
     """Every Mitsuba test goes through require_mitsuba: no ``importorskip`` of mitsuba or drjit anywhere in the
-    suite (at module level it would skip a whole file on a broken install even under CI)."""
+    suite (at module level it would skip a whole file on a broken install even under CI).
+    """
     import re
     from pathlib import Path
 

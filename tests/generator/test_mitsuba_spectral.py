@@ -4,10 +4,9 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from _mitsuba_common import require_mitsuba, small_scene, uniform_layers
 
 from polinfra.errors import ConfigError
-
-from _mitsuba_common import require_mitsuba, small_scene, uniform_layers
 
 
 def test_sensor_response_cie_y_flat_and_csv(tmp_path):
@@ -32,7 +31,8 @@ def test_sensor_response_cie_y_flat_and_csv(tmp_path):
 @pytest.mark.mitsuba
 def test_full_tier_spectral_bands_match_weighted_analytic():
     """Dispersive BK7 slab with --spectral: the path-traced image matches the response-weighted
-    sum of per-band analytic Stokes images (uniform layers; mean within MC error)."""
+    sum of per-band analytic Stokes images (uniform layers; mean within MC error).
+    """
     require_mitsuba()
     from generator import tiers_mitsuba as tm
     from generator.analytic import frame_stokes

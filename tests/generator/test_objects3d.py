@@ -3,7 +3,8 @@ paper Eq. (1)-(2) assumes unpolarized.  Checked: the shipped scenes load and spl
 objects crossing the pane and non-full tiers are refused in one line, the thin-slab transmission Mueller
 matrix against closed forms, and a small render: where T alone is polarized, Eq. (1)-(2) errs by far more
 than the Monte Carlo noise while the polarized-T model does not (the departure is the unpolarized-T
-assumption, not noise); validate-zeta and dataset inspect report it."""
+assumption, not noise); validate-zeta and dataset inspect report it.
+"""
 
 from __future__ import annotations
 
@@ -12,8 +13,8 @@ import json
 
 import numpy as np
 import pytest
-
 from _mitsuba_common import require_mitsuba, small_scene
+
 from polinfra.config import to_dict
 from polinfra.errors import ConfigError, SceneError
 
@@ -37,7 +38,8 @@ def test_object_scenes_load_with_objects_on_both_sides(name):
 
 def test_layer_scenes_keep_their_plain_data_and_hash():
     """The optional [objects] section is left out of a layer scene's plain data, so scene hashes (and the
-    spec hashes of built datasets) do not change; the data round-trips."""
+    spec hashes of built datasets) do not change; the data round-trips.
+    """
     from generator.scene import load_scene, scene_from_dict, scene_hash
 
     sc = load_scene("brewster")
@@ -70,7 +72,8 @@ def test_object_crossing_the_pane_and_layer_tiers_are_refused(tmp_path):
 def test_thin_slab_transmission_mueller_closed_forms():
     """_transmit_polarized: unpolarized input gives the Eq. (1)-(2) T part; s- and p-polarized input pass
     T_perp and T_par; at normal incidence the matrix is T times the identity (c = (1-R)/(1+R)); light at 45 deg
-    to the plane of incidence keeps c / T_mean of its polarization (the s/p phase is kept per internal path)."""
+    to the plane of incidence keeps c / T_mean of its polarization (the s/p phase is kept per internal path).
+    """
     from generator.analytic import analytic_maps
     from generator.objects3d import _transmit_polarized
     from polphysics.fresnel import pane_coefficients
@@ -137,7 +140,8 @@ def test_polarized_transmission_breaks_eq12_beyond_noise(street_render):
 @pytest.mark.mitsuba
 def test_validate_zeta_and_dataset_inspect_report_the_departure(tmp_path):
     """validate-zeta on an object scene validates the pane's zeta (flat probes) and reports the 3-D
-    departure; a dataset group of it stores the departure maps and inspect reports them."""
+    departure; a dataset group of it stores the departure maps and inspect reports them.
+    """
     require_mitsuba()
     from generator.render import RenderOptions
     from generator.validate import validate_zeta
@@ -166,8 +170,9 @@ def test_validate_zeta_and_dataset_inspect_report_the_departure(tmp_path):
 
 @pytest.mark.mitsuba
 def test_tradeoff_bench_has_the_eq12_rows_for_object_scenes(tmp_path):
-    """bench tradeoff on an object scene: the reference's noise, Eq. (1)-(2) with unpolarized T (worse than
-    the polarized-T model), the polarized-T model, the full candidate; layer tiers are skipped with a reason."""
+    """Bench tradeoff on an object scene: the reference's noise, Eq. (1)-(2) with unpolarized T (worse than
+    the polarized-T model), the polarized-T model, the full candidate; layer tiers are skipped with a reason.
+    """
     require_mitsuba()
     from polspike.pipeline.tradeoff import Candidate, run_tradeoff
 

@@ -1,6 +1,7 @@
 """Moving 3-D objects and the ``objects3d`` sampler profile: shapes advance with their velocity and spin,
 sides are checked along the whole clip, the sampler is a function of its seed and its manifests validate,
-and a moving object changes the full tier's keyframes (mitsuba)."""
+and a moving object changes the full tier's keyframes (mitsuba).
+"""
 
 from __future__ import annotations
 
@@ -8,8 +9,8 @@ import dataclasses
 
 import numpy as np
 import pytest
-
 from _mitsuba_common import require_mitsuba
+
 from polinfra.config import to_dict
 from polinfra.errors import SceneError
 

@@ -23,7 +23,8 @@ from polphysics.geometry import PinholeCamera, Plane, incidence_geometry
 @pytest.fixture(autouse=True)
 def _mitsuba_works():
     """The one skip policy (_mitsuba_common.require_mitsuba): skip only when mitsuba is not installed; under CI
-    an installed Mitsuba whose import or backend fails is a failure, not a skip."""
+    an installed Mitsuba whose import or backend fails is a failure, not a skip.
+    """
     require_mitsuba()
 
 W, H = 24, 16

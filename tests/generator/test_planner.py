@@ -1,5 +1,6 @@
 """``--tier auto``: the planner's predictions against closed forms and the measured trade table, its picks
-on the shipped scenes, what it writes into render.json / manifests, and its bad-input exits (console script)."""
+on the shipped scenes, what it writes into render.json / manifests, and its bad-input exits (console script).
+"""
 
 from __future__ import annotations
 
@@ -9,8 +10,8 @@ import math
 
 import numpy as np
 import pytest
-
 from _mitsuba_common import require_mitsuba, small_scene, uniform_layers
+
 from polinfra.errors import ConfigError
 
 
@@ -32,7 +33,8 @@ def test_p99_of_a_normal_mixture_matches_the_closed_form():
 
 def test_noise_proxy_is_the_lobe_choice_variance_of_a_uniform_scene():
     """Uniform layers seen through a narrow lens (one incidence angle): the per-sample variance of choosing
-    reflection with probability R is R L_R^2 + T^2 L_T^2 / (1 - R) - (R L_R + T L_T)^2 (Fresnel closed form)."""
+    reflection with probability R is R L_R^2 + T^2 L_T^2 / (1 - R) - (R L_R + T L_T)^2 (Fresnel closed form).
+    """
     from generator.planner import NOISE_GAIN, Z99, scene_features
     from polphysics.fresnel import pane_coefficients
 
@@ -52,7 +54,8 @@ def test_noise_proxy_is_the_lobe_choice_variance_of_a_uniform_scene():
 
 def test_dispersion_term_is_the_band_weighted_coefficient_difference():
     """Uniform T through one BK7 interface: the dispersion term is |sum_b w_b T(n_b) - T(n_550)| L_T at the
-    worst polarizer angle (Fresnel closed form over the spectral bands)."""
+    worst polarizer angle (Fresnel closed form over the spectral bands).
+    """
     from generator.planner import scene_features
     from generator.tiers_mitsuba import spectral_bands
     from polphysics.fresnel import glass_index, pane_coefficients
@@ -117,7 +120,8 @@ def test_bk7_single_at_1e_3_picks_a_tier_predicted_to_meet_it():
 
 def test_spectral_analytic_render_integrates_the_bands(tmp_path):
     """The spectral analytic frame is the response-weighted sum of per-band Eq. (1)-(2) frames (uniform T through
-    one BK7 interface: the weighted Fresnel coefficients), and render.json says so."""
+    one BK7 interface: the weighted Fresnel coefficients), and render.json says so.
+    """
     from generator.render import RenderOptions, render
     from generator.tiers_mitsuba import spectral_bands
     from polinfra.exr import read_exr
@@ -136,7 +140,8 @@ def test_spectral_analytic_render_integrates_the_bands(tmp_path):
 @pytest.mark.parametrize("name,k_measured,departure", [("glossy_street", 0.234, 0.080), ("shop_window", 0.614, 0.132)])
 def test_object_scenes_pick_full_below_their_eq1_departure(name, k_measured, departure):
     """With the noise coefficient measured in the trade table (no pilot render), the analytic and maps tiers
-    are infeasible and the pick is the full tier with enough spp, at any tolerance below the departure."""
+    are infeasible and the pick is the full tier with enough spp, at any tolerance below the departure.
+    """
     from generator.planner import plan_tier, scene_features
 
     sc = _scene(name)

@@ -1,12 +1,12 @@
 """Rendering at the extremes: spp 1 and 1024, n -> 1, normal and steep incidence, through the
 real tiers. Every output is finite, S0 >= 0, the degree of polarization stays <= 1, and the limits match
-closed forms (no reflection at n = 1, R_perp = R_par at normal incidence)."""
+closed forms (no reflection at n = 1, R_perp = R_par at normal incidence).
+"""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
-
 from _mitsuba_common import require_mitsuba, small_scene
 
 
@@ -61,7 +61,8 @@ def test_normal_incidence_pixel_has_equal_reflectances(tmp_path, tier):
 
 def test_steep_incidence_analytic(tmp_path):
     """A pane tilted 70 deg (large enough to fill the view): the view's edge sees it at theta ~ 88.9 deg (grazing);
-    reflectances rise toward 1 and stay in [0, 1]."""
+    reflectances rise toward 1 and stay in [0, 1].
+    """
     rd = _render(small_scene("brewster", 16, 10, tilt_deg=70.0, size_m=[40.0, 8.0]), tmp_path, tier="analytic")
     m = rd.maps()
     for k in ("R_perp", "R_par", "T_perp", "T_par"):

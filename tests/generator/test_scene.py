@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from generator.scene import default_scenes, load_scene, scene_from_dict, check_scene_geometry
+from generator.scene import check_scene_geometry, default_scenes, load_scene, scene_from_dict
 from polinfra.errors import ConfigError, SceneError
 
 

@@ -1,12 +1,12 @@
 """A single interface bends the transmitted rays: the analytic tier samples the T layer where the
 refracted ray lands (Snell, per pixel), checked against a 2-D closed form on the optical axis, against
-Snell's law at every pixel, and against the path-traced full tier (Monte Carlo noise only)."""
+Snell's law at every pixel, and against the path-traced full tier (Monte Carlo noise only).
+"""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
-
 from _mitsuba_common import require_mitsuba, small_scene
 
 
@@ -21,7 +21,8 @@ def test_axis_pixel_lands_where_the_2d_closed_form_puts_it():
     pane (distance D) at theta_i = tilt, leaves it at theta_t = asin(sin theta_i / n) from the normal,
     i.e. turned by theta_i - theta_t from the axis in the plane of incidence (vertical: the pane is
     tilted about the horizontal axis), and reaches the T plane (distance L) (L - D) tan(theta_i - theta_t)
-    off the axis; view fractions: X = 0, |Y| = that / (2 L tan(fov_x / 2) H / W)."""
+    off the axis; view fractions: X = 0, |Y| = that / (2 L tan(fov_x / 2) H / W).
+    """
     sc = small_scene("bk7_single", 81, 51)
     assert sc.pane.tilt_axis_deg == 0.0
     m = _maps(sc)
@@ -40,7 +41,8 @@ def test_axis_pixel_lands_where_the_2d_closed_form_puts_it():
 
 def test_every_pixel_obeys_snell_into_the_glass():
     """From each pixel's T sampling point back to its pane point: the ray makes theta_t with the pane
-    normal, n sin(theta_t) = sin(theta_i), and lies in the plane of incidence (pane tilted about a diagonal)."""
+    normal, n sin(theta_t) = sin(theta_i), and lies in the plane of incidence (pane tilted about a diagonal).
+    """
     from generator.analytic import layer_planes
     from polphysics.geometry import incidence_geometry
 
@@ -91,7 +93,8 @@ def _p99(a):
 def test_analytic_matches_the_full_tier_on_bk7_single_within_its_noise():
     """Proxy of the 1024 spp goal at 80x50, 256 spp (about 2 s): p99 |analytic - full| S0 error is within
     1.6x the full tier's own Monte Carlo noise (p99 of seed 1 - seed 2, / sqrt 2), while the straight-ray
-    model is several times the noise."""
+    model is several times the noise.
+    """
     require_mitsuba()
     sc = small_scene("bk7_single", 80, 50)
     F1, F2 = _full_pair(sc, 256)
@@ -107,7 +110,8 @@ def test_analytic_matches_the_full_tier_on_bk7_single_within_its_noise():
 def test_bk7_single_160x100_at_1024spp_within_1_5x_noise():
     """Issue goal: bk7_single at 160x100, keyframe 0, analytic vs full (mono, 1024 spp) S0 p99 error
     <= 1.5x the full tier's Monte Carlo noise (two seeds).  Measured 0.0152 vs 0.0111 (1.37x); the
-    straight-ray model was 0.196."""
+    straight-ray model was 0.196.
+    """
     require_mitsuba()
     sc = small_scene("bk7_single", 160, 100)
     F1, F2 = _full_pair(sc, 1024)

@@ -6,12 +6,11 @@ import json
 
 import numpy as np
 import pytest
+from _mitsuba_common import require_mitsuba
 
 from generator.analytic import analytic_maps
 from generator.validate import fit_reflection, fit_transmission, validate_zeta
 from polphysics.zeta import stokes_from_layers
-
-from _mitsuba_common import require_mitsuba
 
 
 def test_probe_fit_inverts_stokes_form(np_rng):
@@ -58,8 +57,9 @@ def _check_maps_tier_agrees(polspike_cli, scene, out):
 
 
 def test_maps_tier_agrees_with_analytic_through_cli(polspike_cli, tmp_path):
-    """brewster's central 100x62 crop (same pixel pitch as the 400x250 scene: the maps tier averages
-    over each pixel's footprint, so coarser pixels add a curvature error ~ pitch^2)."""
+    """Brewster's central 100x62 crop (same pixel pitch as the 400x250 scene: the maps tier averages
+    over each pixel's footprint, so coarser pixels add a curvature error ~ pitch^2).
+    """
     import math
 
     fov = 2 * math.degrees(math.atan(math.tan(math.radians(20.0)) * 100 / 400))

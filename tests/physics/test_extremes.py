@@ -1,5 +1,6 @@
 """Numerics at the physical extremes (issue: validate-zeta / extremes). Each case has its tolerance; none
-may produce NaN or Inf."""
+may produce NaN or Inf.
+"""
 
 from __future__ import annotations
 
@@ -25,7 +26,7 @@ def test_pane_coefficients_finite_and_bounded(model, theta_deg, n):
 
 
 def test_n_to_one_no_reflection():
-    """n -> 1: r is linear in eps = n - 1 away from grazing, so R scales as eps^2 and vanishes."""
+    """N -> 1: r is linear in eps = n - 1 away from grazing, so R scales as eps^2 and vanishes."""
     th = deg(np.linspace(0, 80, 9))
     R2 = fresnel_power(th, 1 + 1e-2)[0]
     R4 = fresnel_power(th, 1 + 1e-4)[0]
@@ -55,7 +56,7 @@ def test_total_internal_reflection_zeta_is_one():
 
 
 def test_phi_wraparound():
-    """phi and phi + pi, and phi_perp near 0 vs near pi, describe the same polarizer / plane."""
+    """Phi and phi + pi, and phi_perp near 0 vs near pi, describe the same polarizer / plane."""
     for p in (0.0, 1e-12, np.pi - 1e-12, np.pi, 2 * np.pi):
         assert zeta(p, 0.3, 0.1, 0.0) == pytest.approx(zeta(p + np.pi, 0.3, 0.1, np.pi), abs=1e-12)
     a = aolp(np.array([1.0, 1.0]), np.array([-1e-15, 1e-15]))

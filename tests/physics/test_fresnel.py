@@ -21,7 +21,7 @@ deg = np.deg2rad
 
 
 def test_reference_values_at_45_deg():
-    """n = 1.5 at 45 deg: R_s = 0.0920, R_p = 0.0085 (4 digits)."""
+    """N = 1.5 at 45 deg: R_s = 0.0920, R_p = 0.0085 (4 digits)."""
     Rs, Rp, _, _ = fresnel_power(deg(45.0), 1.5)
     assert round(float(Rs), 4) == 0.0920
     assert round(float(Rp), 4) == 0.0085
@@ -50,13 +50,13 @@ def test_grazing_limit():
 
 
 def test_matched_index_has_no_reflection():
-    """n = 1: no interface, R = 0 at every angle including grazing."""
+    """N = 1: no interface, R = 0 at every angle including grazing."""
     Rs, Rp, Ts, Tp = fresnel_power(deg(np.linspace(0, 90, 91)), 1.0)
     assert np.all(Rs == 0) and np.all(Rp == 0) and np.all(Ts == 1) and np.all(Tp == 1)
 
 
 def test_total_internal_reflection():
-    """n < 1: R = 1 exactly beyond the critical angle arcsin(n), < 1 below it."""
+    """N < 1: R = 1 exactly beyond the critical angle arcsin(n), < 1 below it."""
     n = 1 / 1.5
     tc = critical_angle(n)
     assert np.rad2deg(tc) == pytest.approx(41.81, abs=0.01)
@@ -83,7 +83,8 @@ def test_power_coefficients_are_the_amplitudes_fluxes():
     """Energy balance from the amplitudes, not from T = 1 - R: the transmitted flux is (n cos_t / cos_i) |t|^2
     (n cos_t written here from Snell's law; 0 beyond the critical angle), and per polarization
     |r|^2 + (n cos_t / cos_i) |t|^2 = 1; fresnel_power's R and T equal |r|^2 and that flux, over
-    theta in [0, 89.5] deg and n from 0.2 (TIR) to 4."""
+    theta in [0, 89.5] deg and n from 0.2 (TIR) to 4.
+    """
     th = deg(np.linspace(0.0, 89.5, 180))[:, None]
     n = np.array([0.2, 0.5, 1 / 1.5, 0.999, 1.001, 1.33, 1.5, 2.0, 4.0])[None, :]
     rs, rp, ts, tp = fresnel_amplitudes(th, n)

@@ -64,7 +64,8 @@ def test_normal_incidence_has_finite_phi_perp():
 
 def test_mirrored_camera_reproduces_reflection():
     """A world point Q on the camera side, projected by the mirrored camera to pixel p: the real ray
-    through p, reflected at the pane, passes through Q."""
+    through p, reflected at the pane, passes through Q.
+    """
     cam = PinholeCamera.look_at([0, 0, 0], [0, 0, -1], [0, 1, 0], 60.0, 200, 120)
     plane = _pane(40.0, axis=normalize(np.array([0.3, 1.0, 0.0])))
     vcam = cam.mirrored(plane)

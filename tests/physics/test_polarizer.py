@@ -51,7 +51,7 @@ def test_zero_length_step_is_malus():
 
 
 def test_u_weighted_moments_match_riemann():
-    """int u cos 2phi du and int u sin 2phi du over sub-ranges (used by keyframe interpolation)."""
+    """Int u cos 2phi du and int u sin 2phi du over sub-ranges (used by keyframe interpolation)."""
     rng = np.random.default_rng(5)
     for _ in range(10):
         pa = rng.uniform(-3, 3)

@@ -21,7 +21,8 @@ from polphysics.geometry import Plane, incidence_geometry
 @pytest.fixture(autouse=True)
 def _mitsuba_works():
     """The one skip policy (_mitsuba_common.require_mitsuba): skip only when mitsuba is not installed; under CI
-    an installed Mitsuba whose import or backend fails is a failure, not a skip."""
+    an installed Mitsuba whose import or backend fails is a failure, not a skip.
+    """
     require_mitsuba()
 
 
@@ -51,7 +52,8 @@ def _pane_geometry(tilt_deg, azimuth_deg, fov_deg, W, H, n, model):
 def pane_stream(tilt_deg, azimuth_deg, *, fov_deg=55.0, n=1.5, model="single", H=64, W=96, M=34, exposure=40.0, black=True, seed=0, stride_deg=31.5, motion=1.0):
     """Eq. (3) frames behind a known pane (13-step windows at 20 kHz, 30 rev/s, ``stride_deg`` apart:
     31.5 = the output cadence, 7.02 = back to back).  black=True: T is black over part of the view and R
-    over another part (the cone's edges are reached); else both layers are >= 0.3 everywhere."""
+    over another part (the cone's edges are reached); else both layers are >= 0.3 everywhere.
+    """
     rng = np.random.default_rng(seed)
     geo, co, span, sinc = _pane_geometry(tilt_deg, azimuth_deg, fov_deg, W, H, n, model)
     phi = rng.uniform(0, math.pi) + math.radians(stride_deg) * np.arange(M)
@@ -87,7 +89,8 @@ def test_geometry_recovered_with_fitted_fov(tilt, az, model, n):
     """Known pane, field of view fitted (96 x 64, 55 deg): phi_perp within the goal (0.5 deg median); the
     reported 1-sigma uncertainties cover the truth (tilt, azimuth, fov within 4 sigma; theta's median error
     within 3 of its median 1-sigma, and within 1 deg), and the fov is claimed exactly when theta's 1-sigma
-    passes the 0.5 deg gate."""
+    passes the 0.5 deg gate.
+    """
     from polspike.pipeline.calibrate_pane import calibrate_frames
     from reconstruct.pane.calibrate_config import CalibratePaneConfig
 
@@ -108,7 +111,8 @@ def test_geometry_recovered_with_fitted_fov(tilt, az, model, n):
 def test_a_narrow_view_reports_the_fov_tilt_trade_off_instead_of_claiming_theta():
     """Narrow view (fov 15 deg), fov fitted: phi_perp's curvature barely changes along the fov-tilt valley,
     so the fit must not claim theta: the fov is reported NOT identified, theta's 1-sigma exceeds the 0.5 deg
-    gate, and the truth lies within 4 reported sigmas (honest error bars)."""
+    gate, and the truth lies within 4 reported sigmas (honest error bars).
+    """
     from polspike.pipeline.calibrate_pane import calibrate_frames
     from reconstruct.pane.calibrate_config import CalibratePaneConfig
 
@@ -129,7 +133,8 @@ def test_a_fov_fit_that_ends_in_a_degenerate_view_keeps_the_self_calibrated_fov(
     """Where the fov-free orientation fit slides to its bound (an orthographic view: seen on a weakly reflecting
     62 deg view of eval_fresh_val, every start ended at fov 5 deg while the self-calibration's vanishing point gave
     34 deg), calibrate-pane keeps the self-calibration's fov and fits the orientation at it instead of refusing:
-    the result is usable (phi_perp within the goal) and the fov is reported NOT identified with the reason."""
+    the result is usable (phi_perp within the goal) and the fov is reported NOT identified with the reason.
+    """
     import polspike.pipeline.calibrate_pane as cp
     import reconstruct.pane.calibrate as core
 
@@ -164,7 +169,8 @@ def test_a_fov_fit_that_ends_in_a_degenerate_view_keeps_the_self_calibrated_fov(
 
 def test_max_incidence_is_the_maps_theta_where_every_ray_meets_the_pane_and_exceeds_90_where_some_do_not():
     """max_incidence_deg against the differentiable tracer's own theta (block centres): equal where every ray meets
-    the pane in front; a steep pane seen wide (tilt 80, fov 60) has rays beyond 90 deg, which the maps fold back."""
+    the pane in front; a steep pane seen wide (tilt 80, fov 60) has rays beyond 90 deg, which the maps fold back.
+    """
     from generator.pane_fit import PaneModelAD
     from reconstruct.pane.geometry_fit import max_incidence_deg
 
@@ -186,7 +192,8 @@ def test_a_fov_fit_that_ends_where_modulating_blocks_could_not_see_the_pane_is_n
     """The fov-free orientation fit made to end at a 140 deg view of a 30 deg pane, where blocks that modulate would
     meet the pane beyond 90 deg: the fov is bisected to the widest view that keeps every modulating block within
     max_incidence_deg (89), on that boundary to the bisection's resolution, and reported NOT identified, why said.
-    Unpatched, nothing is narrowed."""
+    Unpatched, nothing is narrowed.
+    """
     import polspike.pipeline.calibrate_pane as cp
     import reconstruct.pane.calibrate as core
 
@@ -219,8 +226,9 @@ def test_a_fov_fit_that_ends_where_modulating_blocks_could_not_see_the_pane_is_n
 
 
 def test_geometry_with_known_fov():
-    """fov given (a low tilt, 30 deg): theta and phi_perp within the goal (0.5 deg median), tilt within
-    1 deg and 4 reported sigmas."""
+    """Fov given (a low tilt, 30 deg): theta and phi_perp within the goal (0.5 deg median), tilt within
+    1 deg and 4 reported sigmas.
+    """
     from polspike.pipeline.calibrate_pane import calibrate_frames
     from reconstruct.pane.calibrate_config import CalibratePaneConfig
 
@@ -239,7 +247,8 @@ def test_geometry_with_known_fov():
 def test_refuses_to_claim_the_glass_when_no_layer_is_ever_black():
     """Layers never black (the cone's edges are not reached): n and the model are reported as NOT
     identified and the priors are kept (not the truth, 1.6 / single, by luck); the geometry's truth lies
-    within 4 reported sigmas even on this weakly modulating stream."""
+    within 4 reported sigmas even on this weakly modulating stream.
+    """
     from polspike.pipeline.calibrate_pane import calibrate_frames
     from reconstruct.pane.calibrate_config import CalibratePaneConfig
 
@@ -264,7 +273,8 @@ def test_refuses_to_claim_the_glass_when_no_layer_is_ever_black():
 def test_an_unclaimed_model_guess_stands_when_its_best_index_is_at_the_end_of_the_range(monkeypatch, z, model):
     """The content test prefers single by z standard errors, at n = 1.40 (the range's end: no minimum).  The model
     comparison holds over the same range of indices, so above content_best_z (1) the maps use single; the index is
-    no estimate, so the prior 1.5 stays and the report says why.  Below it, the prior model stays."""
+    no estimate, so the prior 1.5 stays and the report says why.  Below it, the prior model stays.
+    """
     import polspike.pipeline.calibrate_pane as cp
     import reconstruct.pane.calibrate as core
 
@@ -289,7 +299,8 @@ def test_an_unclaimed_model_guess_stands_when_its_best_index_is_at_the_end_of_th
 def textured_stream(tilt_deg, azimuth_deg, model, n, *, H=80, W=128, M=104, fov_deg=70.0, exposure=200.0, R_level=1.0, T_level=0.5, contrast=True, seed=0):
     """Back-to-back 13-step windows behind a known pane (polphysics geometry and Fresnel, paper Eq. (1)-(2),
     Poisson counts) of static layers with fine independent textures (Gaussian-smoothed white noise, 1.5 px), or
-    flat layers (contrast=False)."""
+    flat layers (contrast=False).
+    """
     from scipy.ndimage import gaussian_filter
 
     rng = np.random.default_rng(seed)
@@ -314,7 +325,8 @@ def textured_stream(tilt_deg, azimuth_deg, model, n, *, H=80, W=128, M=104, fov_
 def test_content_test_picks_the_pane_model_from_textured_layers(model):
     """Textured independent layers, wide view of a tilted pane (theta 31-90 deg), n 1.5, no layer black (the cone
     says nothing): the layers solved under the true model are the least mixed; the other model's best index scores
-    clearly worse (>= 2 standard errors over the tiles), and the true index is inside the accepted range."""
+    clearly worse (>= 2 standard errors over the tiles), and the true index is inside the accepted range.
+    """
     from reconstruct.pane.calibrate_config import CalibratePaneConfig
     from reconstruct.pane.content_glass import content_glass
 
@@ -328,7 +340,8 @@ def test_content_test_picks_the_pane_model_from_textured_layers(model):
 
 def test_content_pixels_auto_splits_where_the_span_holds_enough_parts():
     """content_pixels = auto: 0.07 s (2 time parts) scores exactly as same; 0.2 s (4 parts of 3 half turns) exactly as
-    split (the checkerboard sets, which drop the fixed pattern's pull on the index).  Explicit choices are kept."""
+    split (the checkerboard sets, which drop the fixed pattern's pull on the index).  Explicit choices are kept.
+    """
     import dataclasses
 
     from reconstruct.pane.calibrate_config import CalibratePaneConfig
@@ -350,7 +363,8 @@ def test_content_pixels_auto_splits_where_the_span_holds_enough_parts():
 def test_content_index_uncertainty_from_the_geometry_matches_the_dop_slope(tilt, n, sigma_deg):
     """A narrow view (fov 10 deg) whose tilt is uncertain by sigma: every theta moves by about sigma, so the index
     that keeps the reflection's DoP moves by |dDoP/dtheta| / |dDoP/dn| sigma (finite differences of the Fresnel
-    formulas at the centre, an independent oracle), to the 0.0025 grid of the search."""
+    formulas at the centre, an independent oracle), to the 0.0025 grid of the search.
+    """
     from generator.pane_fit import PaneModelAD
     from polphysics.fresnel import pane_coefficients
     from reconstruct.pane.content_glass import content_n_sigma_from_geometry
@@ -372,7 +386,8 @@ def test_content_index_uncertainty_from_the_geometry_matches_the_dop_slope(tilt,
 
 def test_content_test_claims_nothing_without_content():
     """R = T everywhere (flat, equal): the pane changes nothing in the solved layers, whose gradients are only spike
-    noise, independent across time parts: neither the model nor n is claimed."""
+    noise, independent across time parts: neither the model nor n is claimed.
+    """
     from reconstruct.pane.calibrate_config import CalibratePaneConfig
     from reconstruct.pane.content_glass import content_glass
 
@@ -384,7 +399,8 @@ def test_content_test_claims_nothing_without_content():
 
 def test_outputs_pane_toml_reproduces_the_fit_and_maps_exr_has_the_render_channels(tmp_path):
     """pane.toml is a valid scene whose own geometry (generator.scene) gives the fitted theta / phi_perp;
-    maps.exr has the channels of a render's maps.exr; report.json and the figures exist; given n / model kept."""
+    maps.exr has the channels of a render's maps.exr; report.json and the figures exist; given n / model kept.
+    """
     from generator.analytic import MAP_CHANNELS
     from generator.scene import load_scene
     from polinfra.exr import read_exr
@@ -459,7 +475,8 @@ def test_cli_on_a_raw_dat_and_bad_input(tmp_path):
 def test_a_dat_shorter_than_half_a_polarizer_turn_says_how_long_it_must_be(tmp_path, polspike_cli):
     """300 steps at 20 kHz are 15 ms; half a turn at 30 rev/s is 16.7 ms (334 steps): exit 2, one line with both
     lengths.  At 60 rev/s half a turn is 167 steps, so the same file is long enough to be read (and refused for
-    want of modulation, not length: it is a stream without a polarizer)."""
+    want of modulation, not length: it is a stream without a polarizer).
+    """
     from spike_sim.vidar_dat import write_dat
 
     dat = tmp_path / "short.dat"
@@ -483,9 +500,10 @@ def _fitted_scene(tmp_path, report: dict | None):
 
 
 def test_a_pane_edge_on_in_part_of_the_view_gets_no_scene_file_but_keeps_its_maps(tmp_path, monkeypatch):
-    """tilt 80 deg seen with a 60 deg fov: rays at the view's edge run parallel to the pane or away from it, which no
+    """Tilt 80 deg seen with a 60 deg fov: rays at the view's edge run parallel to the pane or away from it, which no
     scene file (generator.scene) can hold, whatever the pane's size: fitted_scene_dict says so (SceneError, one
-    sentence); write_outputs writes maps.exr and report.json without pane.toml and the report says why."""
+    sentence); write_outputs writes maps.exr and report.json without pane.toml and the report says why.
+    """
     from polinfra.errors import SceneError
     from polspike.pipeline.pane_outputs import fitted_scene_dict, write_outputs
 
@@ -507,7 +525,8 @@ def test_a_pane_edge_on_in_part_of_the_view_gets_no_scene_file_but_keeps_its_map
 def test_dataset_new_like_keeps_the_fitted_geometry_and_glass(tmp_path):
     """--like --jitter none: every group's pane sees the scene's theta / phi_perp maps exactly (the pane is
     relative to the sampled camera); content and pointing still vary.  --jitter fit: tilt spread within
-    2 sigma of the report, n fixed where the report says it is not identified."""
+    2 sigma of the report, n fixed where the report says it is not identified.
+    """
     import tomllib
 
     from generator.scene import load_scene, scene_from_dict
@@ -543,7 +562,8 @@ def test_dataset_new_like_keeps_the_fitted_geometry_and_glass(tmp_path):
 def test_pane_model_from_the_cone_edges_when_layers_go_black(tilt, az, model, n):
     """0.1 s of back-to-back windows (120 x 80) where T and R are each black somewhere: the model, when
     claimed, is the true one; n, when claimed, is within 0.03 (here its 1-sigma exceeds the 0.03 gate,
-    so it is not claimed and the prior is kept)."""
+    so it is not claimed and the prior is kept).
+    """
     from polspike.pipeline.calibrate_pane import calibrate_frames
     from reconstruct.pane.calibrate_config import CalibratePaneConfig
 
@@ -577,7 +597,8 @@ def test_the_90_deg_twin_is_told_apart_by_the_modulation_depth():
     almost as well by a second pane whose s-directions run along the true one's p-directions.  find_twin
     finds that pane (its phi_perp field is turned: weighted mean cos 2 delta < 0, and it explains the
     orientation field nearly as well), and the modulation depths, which reach the true cone's edges
-    (layers go black), violate the twin's cone [-DoP_T, DoP_R] by far more chi^2 than the true pane's."""
+    (layers go black), violate the twin's cone [-DoP_T, DoP_R] by far more chi^2 than the true pane's.
+    """
     from generator.pane_fit import PaneModelAD
     from reconstruct.pane.calibrate_config import CalibratePaneConfig
     from reconstruct.pane.edges import _cone_violation
@@ -615,7 +636,8 @@ def test_unknown_geometry_weighting_is_refused():
 def test_block_orientation_variance_matches_the_monte_carlo_spread_of_psi():
     """The scatter of a block's pixel sums perpendicular to its direction gives the noise variance of psi_b = arg(s4_b) / 4
     (oracle: the spread of psi_b over independent noise draws); q / (32 |s4|^2), the pure-noise scale, overstates it
-    where the block modulates.  A block whose signal sits in one pixel has an effective pixel count of 1."""
+    where the block modulates.  A block whose signal sits in one pixel has an effective pixel count of 1.
+    """
     from reconstruct.pane.orientation import block_orientation_variance
 
     rng = np.random.default_rng(5)
@@ -644,7 +666,8 @@ def test_bench_measures_the_span_knob_through_the_console_script(tmp_path):
     """``polspike bench calibrate-pane --spans``, run as a person runs it: per span a fit of the same closed-form pane
     (frames = span x 20 kHz / 13 steps), its seconds as a ratio to the self-calibration measured in the same run,
     and its errors against the closed-form truth (phi_perp within the goal; theta within 4 of its own 1-sigma).
-    A malformed --spans is one line on stderr, exit 2, no traceback."""
+    A malformed --spans is one line on stderr, exit 2, no traceback.
+    """
     import subprocess
     import sys
     from pathlib import Path
@@ -676,7 +699,8 @@ def test_a_narrowly_chosen_twin_is_overturned_by_the_cone_along_the_other_family
     train_004's did: calibrate-pane profiles the other family along the fov, finds the point whose cone the
     modulation depths fit (the true pane: phi_perp within the goal, theta within 1 deg), takes it, and reports its
     fov as NOT identified (it comes from the profile).  Left alone (the self-calibration's own, right choice), the
-    same check keeps the chosen pane."""
+    same check keeps the chosen pane.
+    """
     import dataclasses
 
     import reconstruct.pane.selfcal as sc
@@ -711,7 +735,8 @@ def test_a_narrowly_chosen_twin_is_overturned_by_the_cone_along_the_other_family
 
 def test_content_parts_follow_the_span_in_half_turns():
     """The content test's time parts (content_parts = 0): one per 3 half turns of the polarizer (0.05 s at 30 rev/s),
-    at least 2, so 0.1 s of back-to-back 13-step windows gives 2 parts and 0.2 s gives 4; a given count is kept."""
+    at least 2, so 0.1 s of back-to-back 13-step windows gives 2 parts and 0.2 s gives 4; a given count is kept.
+    """
     from reconstruct.pane.content_glass import content_parts_for
 
     step = 2 * math.pi * 30.0 * 13 / 20000.0  # polarizer sweep per window

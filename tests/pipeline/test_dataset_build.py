@@ -1,6 +1,7 @@
 """Dataset builds: small.toml builds and verifies, local and Dask executors give the same content
 checksums, finished groups are skipped by checksum, a kill -9 mid-group resumes cleanly, a corrupted
-byte is named by verify (exit 2, one line) and repaired by the next build."""
+byte is named by verify (exit 2, one line) and repaired by the next build.
+"""
 
 from __future__ import annotations
 

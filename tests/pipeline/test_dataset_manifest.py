@@ -1,5 +1,6 @@
 """Dataset manifests: shipped manifests load, the split shares no layer content, the sampler is
-deterministic and stays in its documented ranges, bad manifests fail with one line."""
+deterministic and stays in its documented ranges, bad manifests fail with one line.
+"""
 
 from __future__ import annotations
 
@@ -318,7 +319,8 @@ def test_stress_manifest_is_a_named_grid_of_regimes():
 
 def test_eval_fresh_val_is_the_sampler_at_its_seed():
     """eval_fresh_val (a second validation build): exactly `polspike dataset new` at seed 90909, 16 groups,
-    200 x 125, 0.1 s, no test split; none of its groups is a paper.toml group."""
+    200 x 125, 0.1 s, no test split; none of its groups is a paper.toml group.
+    """
     from polspike.pipeline.sampler import sample_manifest_text
 
     def body(text: str) -> str:  # from the format line on (the committed file adds its own header comments)
@@ -336,7 +338,8 @@ def test_paper_manifest_follows_its_documented_distribution(paper):
     """The committed paper.toml against the sampler's documented distribution (polspike/pipeline/sampler.py's table),
     not against the sampler's code: its 50 groups' uniformly drawn parameters pass a Kolmogorov-Smirnov test
     against U[lo, hi] of RANGES and the three pane models a chi-square test against 1/3 each (p > 0.001 each:
-    a pin regenerated from a sampler whose draws drifted from the documented ranges fails here)."""
+    a pin regenerated from a sampler whose draws drifted from the documented ranges fails here).
+    """
     from scipy import stats
 
     def values(get):

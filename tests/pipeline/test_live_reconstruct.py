@@ -154,7 +154,8 @@ def test_follow_reads_a_growing_dat_and_stops_on_sigint_with_complete_outputs(tm
 def test_chained_rir_recovers_a_known_translation_as_well_as_the_window_estimate():
     """Oracle: the synthetic group's T layer moves by a known translation per frame; the shift registering frame k
     onto the centre c is pos_T(c) - pos_T(k).  The chained estimate (one registration per frame) is as close to it
-    as the per-window masked phase correlation + refinement (within 1.5 x its RMS error, and under 0.1 px)."""
+    as the per-window masked phase correlation + refinement (within 1.5 x its RMS error, and under 0.1 px).
+    """
     import torch
 
     import reconstruct.stream.synthetic as S

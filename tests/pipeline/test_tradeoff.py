@@ -12,7 +12,8 @@ from _mitsuba_common import require_mitsuba
 @pytest.fixture(autouse=True)
 def _mitsuba_works():
     """The one skip policy (_mitsuba_common.require_mitsuba): skip only when mitsuba is not installed; under CI
-    an installed Mitsuba whose import or backend fails is a failure, not a skip."""
+    an installed Mitsuba whose import or backend fails is a failure, not a skip.
+    """
     require_mitsuba()
 
 

@@ -117,7 +117,8 @@ def test_manifest_scenes_and_cli_train_then_evaluate(tmp_path):
 
 def test_group_sensor_light_level_and_flips():
     """exposure_source = "group": each item's exposure is its manifest group's (the group's light level)
-    times a factor inside exposure_jitter; the group's sensor preset is used; flips keep items pure."""
+    times a factor inside exposure_jitter; the group's sensor preset is used; flips keep items pure.
+    """
     from polinfra.errors import SceneError
     from polspike.pipeline.train_windows import manifest_scenes
 

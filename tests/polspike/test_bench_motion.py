@@ -21,7 +21,8 @@ def run(*args):
 @pytest.mark.slow
 def test_bench_motion_tiny(tmp_path):
     """Two pans of one scene: JSON, table and plot written, every method scored on T (R for the layered ones), and
-    each row's verdict on the project's rule recomputed from its scores (net+floor >= rwps and the spike mean)."""
+    each row's verdict on the project's rule recomputed from its scores (net+floor >= rwps and the spike mean).
+    """
     out = tmp_path / "m"
     r = run("bench", "motion", "--out", str(out), "--motions", "pan", "--speeds", "0,3", "--reflections", "weak", "--lights", "bright",
             "--width", "32", "--height", "32", "--methods", "tfp,mean17,rwps,net+floor")

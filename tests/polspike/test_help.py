@@ -2,10 +2,15 @@
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import typer.main
 from typer.testing import CliRunner
 
 from polspike.cli import get_app
+
+if TYPE_CHECKING:
+    import click
 
 
 def _walk(cmd: click.Command, path: tuple[str, ...] = ()):

@@ -58,7 +58,8 @@ def test_real_recordings_cropped(tmp_path, shared_data, polspike_main):
 @needs_ckpt
 def test_spike_mean_and_tfp_are_recomputed_independently(tmp_path, shared_data):
     """The exposure and the PSNR of TFP vs the spike mean in the table equal their closed forms computed here from
-    the raw array."""
+    the raw array.
+    """
     from polspike.pipeline.real_eval import RECORDINGS, evaluate_real, nominal_rev_per_s
     from spike_sim.aggregate import AggregateConfig, frame_centres
 
@@ -106,7 +107,8 @@ def test_missing_folder_is_one_line_exit_2(tmp_path, polspike_main):
 @pytest.mark.slow
 def test_real_recordings_whole_frames(tmp_path, shared_data):
     """Whole frames, 3 output frames each (about a minute on 2 threads). Measured with polspike_v2: T vs TFP
-    30.6 dB (SpikingSIM), 25.2 dB (REDS .dat), 19.5 dB (UHSR, whose TFP is itself noisy: 19.6 dB from the spike mean)."""
+    30.6 dB (SpikingSIM), 25.2 dB (REDS .dat), 19.5 dB (UHSR, whose TFP is itself noisy: 19.6 dB from the spike mean).
+    """
     from polspike.pipeline.real_eval import evaluate_real
 
     res = evaluate_real(tmp_path, shared_data / "real_spikes", max_frames=3)
@@ -123,7 +125,8 @@ def test_reds_whole_frames_match_the_ground_truth(tmp_path, shared_data, polspik
     """The independent simulator's REDS stream (no polarizer) through the console script, default network and zeta:
     every output frame correlates with the ground-truth PNG (frame 151) at >= 0.92 and, after one gain, is within
     >= 23.5 dB of it. Measured with polspike_v4.pt: 0.933-0.942 / 24.0-24.6 dB on zeta = 0, the default where the
-    stream does not self-calibrate (--zeta-fallback learned: 0.90-0.93 / 22.4-23.8)."""
+    stream does not self-calibrate (--zeta-fallback learned: 0.90-0.93 / 22.4-23.8).
+    """
     import imageio.v3 as iio
 
     from polinfra.exr import read_exr

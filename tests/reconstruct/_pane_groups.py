@@ -12,8 +12,8 @@ import numpy as np
 
 from polphysics.fresnel import pane_coefficients
 from polphysics.geometry import PinholeCamera, Plane, incidence_geometry
-from reconstruct.stream.groups import EvalGroup
 from reconstruct.physics.zeta import PaneMaps
+from reconstruct.stream.groups import EvalGroup
 
 from ._synth import periodic_texture
 

@@ -1,5 +1,6 @@
 """Training for the self-calibration's glass errors: items carry the window's zeta under an assumed glass
-(window.assumed_n), the forced step feeds it to the solver while the losses keep the true zeta."""
+(window.assumed_n), the forced step feeds it to the solver while the losses keep the true zeta.
+"""
 
 from __future__ import annotations
 
@@ -37,7 +38,8 @@ def _theta():
 @pytest.mark.parametrize("model", ASSUMED_MODELS)
 def test_assumed_zeta_of_the_true_glass_is_the_true_zeta(model):
     """Oracle: where the assumed glass is the pane's own (n 1.5, same model), zeta_a_<model> is the item's zeta
-    (paper Eq. (2) from the same coefficients); under the other model it is not, and a thin slab reflects more."""
+    (paper Eq. (2) from the same coefficients); under the other model it is not, and a thin slab reflects more.
+    """
     it = item_from_stream(*_stream(_theta(), 1.5, model), 1.0, dataclasses.replace(CFG, assumed_n=1.5))
     torch.testing.assert_close(it[f"zeta_a_{model}"], it["zeta"], rtol=0, atol=1e-6)
     other = next(m for m in ASSUMED_MODELS if m != model)
@@ -47,7 +49,8 @@ def test_assumed_zeta_of_the_true_glass_is_the_true_zeta(model):
 
 def test_a_denser_glass_reads_as_a_smaller_zeta_and_flips_carry_it():
     """A pane of n 1.72 assumed to be 1.5: the assumed zeta is smaller (the scale error of --zeta self on test_001);
-    mirrored items move the assumed zetas with their pixels, like zeta."""
+    mirrored items move the assumed zetas with their pixels, like zeta.
+    """
     it = item_from_stream(*_stream(_theta(), 1.72, "single", seed=2), 1.0, dataclasses.replace(CFG, assumed_n=1.5))
     ratio = float(it["zeta_a_single"].mean() / it["zeta"].mean())
     assert 0.5 < ratio < 0.8

@@ -1,5 +1,6 @@
 """``bench reconstruct-net`` pieces: the FLOP count against the closed form of a convolution, and a
-two-model run on tiny frames (ratios, table) in seconds."""
+two-model run on tiny frames (ratios, table) in seconds.
+"""
 
 from __future__ import annotations
 
@@ -48,7 +49,8 @@ def test_two_model_run_gives_ratios_and_a_table(tmp_path):
 def test_cli_bench_with_the_shipped_default_times_its_training(tmp_path, polspike_cli):
     """`polspike bench reconstruct-net` on the shipped default (a network that reads the long spike mean and the wide
     windows) against v1: its training items carry what each network reads (without them the run stopped with
-    "a use_mean network needs I_mean"); tiny frames, a few steps."""
+    "a use_mean network needs I_mean"); tiny frames, a few steps.
+    """
     import json
 
     out = tmp_path / "bn.json"

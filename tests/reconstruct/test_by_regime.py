@@ -1,6 +1,7 @@
 """Per-regime evaluation (``polspike evaluate --by-regime``) and the RWPS fit (``polspike fit-rwps``):
 group names parse into regimes, rows average exactly the groups of each level, every zeta source is
-taken by name, the fit picks the grid point with the best objective on known windows."""
+taken by name, the fit picks the grid point with the best objective on known windows.
+"""
 
 from __future__ import annotations
 
@@ -88,7 +89,8 @@ def test_fit_rwps_refuses_the_test_split(tmp_path):
 
 def test_share_tables_are_means_of_their_groups_and_render(groups):
     """R where the reflection is >= 20 % of the light: per-regime rows average the groups' masked scores and
-    fractions; the table leads with the fraction and the bound (n/a without a stored group's noise)."""
+    fractions; the table leads with the fraction and the bound (n/a without a stored group's noise).
+    """
     from reconstruct.evaluate.regimes import regime_markdown, regime_report
 
     cfg = EvalConfig(methods="ls", max_frames=2, rir=False)
@@ -109,7 +111,8 @@ def test_share_tables_are_means_of_their_groups_and_render(groups):
 
 def test_share_rows_count_the_groups_whose_bound_reaches_22_db(groups, monkeypatch):
     """With a known window noise (the synthetic set's Poisson counts, exposure 1, 13 steps) every group gets an R
-    bound; each level counts the groups whose bound is >= 22 dB and averages the bounds."""
+    bound; each level counts the groups whose bound is >= 22 dB and averages the bounds.
+    """
     import reconstruct.evaluate.harness as ev
 
     monkeypatch.setattr(ev, "group_noise", lambda g, cfg: {"exposure": 1.0, "window_steps": 13, "model": "poisson"})

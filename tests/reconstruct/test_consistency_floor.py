@@ -41,7 +41,8 @@ def test_truth_passes_the_floor_unchanged(noise, exposure):
 def test_garbage_candidate_gives_the_physics(noise, exposure):
     """A candidate that is noise of amplitude 3 (layers lie in [0, 1]) is floored to the physics: T and R PSNR within
     1 dB of the physics', and every pixel's distance from the physics in the metric of the data (the rms change of its
-    7 predicted observations) below 0.1 of the light 2 I: the stated tolerance."""
+    7 predicted observations) below 0.1 of the light 2 I: the stated tolerance.
+    """
     g, I, Z, Tp, Rp = _window(noise, exposure)
     gen = torch.Generator().manual_seed(1)
     Tn = Tp + 3.0 * torch.randn(Tp.shape, generator=gen)
@@ -84,7 +85,8 @@ def test_noise_estimate_matches_poisson():
 
 def test_network_with_garbage_refinement_gives_the_physics():
     """A PolSpikeNet whose refinement outputs garbage (its last layers scaled up 1e3) returns, with the floor on (the
-    default at inference), T and R within 1 dB of the physics-only RWPS on the same zeta; with the floor off it does not."""
+    default at inference), T and R within 1 dB of the physics-only RWPS on the same zeta; with the floor off it does not.
+    """
     from reconstruct.net.network import NetConfig, PolSpikeNet, init_weights
 
     g, I, Z, Tp, Rp = _window("integrate_fire", 3.0)

@@ -1,5 +1,6 @@
 """Test-time self-ensemble (reconstruct.net.network.SymmetryEnsemble): its symmetries are flip_item's (which is checked
-against paper Eq. (2) on mirrored scenes), and averaging over a group of symmetries makes any network equivariant."""
+against paper Eq. (2) on mirrored scenes), and averaging over a group of symmetries makes any network equivariant.
+"""
 
 from __future__ import annotations
 
@@ -11,8 +12,8 @@ import torch
 
 from polinfra.errors import ConfigError, ShapeError
 from reconstruct.net.network import SYMMETRY_CODES, NetConfig, PolSpikeNet, SymmetryEnsemble, init_weights
-from reconstruct.physics.symmetry import symmetry_angles, symmetry_image
 from reconstruct.net.onthefly import flip_item
+from reconstruct.physics.symmetry import symmetry_angles, symmetry_image
 
 
 def _net(seed=0, **kw):
@@ -30,7 +31,8 @@ def _window(B=2, H=16, W=24, seed=0):
 @pytest.mark.parametrize("code", range(8))
 def test_symmetries_are_flip_items(code):
     """Per window, symmetry_image / symmetry_angles move the frames and the polarizer angles as flip_item moves a
-    training item (same pixels, same angles mod pi, centre angle in [0, pi))."""
+    training item (same pixels, same angles mod pi, centre angle in [0, pi)).
+    """
     I, phi = _window(H=12, W=12, seed=code)
     for b in range(I.shape[0]):
         it = flip_item({"I": I[b], "phi": phi[b]}, code)
@@ -58,7 +60,8 @@ def _act(x, code):
 def test_ensemble_is_equivariant(size, codes, external_zeta):
     """Averaging over a group of symmetries makes the output of a random (not equivariant) network commute with
     every symmetry of that group: E(g x) = g E(x), on the learned and on an external zeta.  A wrong angle map
-    (members that disagree with the group law) breaks it, and so does the bare network."""
+    (members that disagree with the group law) breaks it, and so does the bare network.
+    """
     net = _net(1)
     I, phi = _window()
     zeta = (0.2 + 0.3 * torch.rand(I.shape, generator=torch.Generator().manual_seed(5))) if external_zeta else None
@@ -79,7 +82,8 @@ def test_ensemble_is_equivariant(size, codes, external_zeta):
 
 def test_wrong_angles_break_equivariance(monkeypatch):
     """The oracle has teeth: members that move the frames but not their polarizer angles disagree with the
-    mirrored window (frames and angles moved, as flip_item moves them): E(g x) != g E(x)."""
+    mirrored window (frames and angles moved, as flip_item moves them): E(g x) != g E(x).
+    """
     import reconstruct.net.network as network
 
     net = _net(2)
@@ -121,7 +125,8 @@ def test_ensemble_runs_in_the_video_path():
     T is the mean of its members, each computed here as the single network run through the same tiled path on the
     mirrored window and mirrored back.  Measured: the members differ by up to 0.44 (an untrained network is far from
     equivariant), the ensemble is within 0.009 of their mean (tile borders fall on other pixels of a mirrored
-    window); the bound 0.03 is 3x that and 7 % of the spread (an ensemble of one member, code 0 four times, is 0.44 off)."""
+    window); the bound 0.03 is 3x that and 7 % of the spread (an ensemble of one member, code 0 four times, is 0.44 off).
+    """
     from reconstruct.video.tiling import run_model_on_windows
 
     net = _net(4)
@@ -139,7 +144,8 @@ def test_ensemble_runs_in_the_video_path():
 
 def test_cli_ensemble_usage_errors(tmp_path, polspike_cli, polspike_main):
     """Through the installed console script: an ensemble size outside 1, 2, 4, 8, and an ensemble for a physics
-    solver, are one-line usage errors (exit 2), nothing written; the same for evaluate, evaluate-real and the bench."""
+    solver, are one-line usage errors (exit 2), nothing written; the same for evaluate, evaluate-real and the bench.
+    """
     f = tmp_path / "x.dat"
     f.write_bytes(bytes(8 * 16 * 20))
     geo = ("--height", 16, "--width", 20, "--phi0-deg", 0, "--rev-per-s", 30)
@@ -159,12 +165,13 @@ def test_cli_ensemble_usage_errors(tmp_path, polspike_cli, polspike_main):
 
 def test_bench_ensemble_rows(tmp_path):
     """bench_ensemble: size 1 always runs first and is the evaluation's own network row; every size scores finite
-    numbers; the table and the figure are written."""
+    numbers; the table and the figure are written.
+    """
     import dataclasses
 
     from reconstruct.evaluate.bench import bench_ensemble, ensemble_figure, ensemble_table
-    from reconstruct.net.checkpoint import V1_WEIGHTS
     from reconstruct.evaluate.harness import EvalConfig, evaluate_groups
+    from reconstruct.net.checkpoint import V1_WEIGHTS
     from reconstruct.stream.synthetic import SyntheticConfig, make_group
 
     if not V1_WEIGHTS.is_file():
@@ -199,7 +206,8 @@ def test_integer_choices_are_enforced_by_the_config_layer():
 
 def test_cli_bench_ensemble_writes_json_table_and_plot(tmp_path, polspike_main):
     """`polspike bench ensemble` end to end on the closed-form set with the v1 checkpoint (no long-mean input):
-    rows for 1 (the reference, always run) and 2, the table and the plot written."""
+    rows for 1 (the reference, always run) and 2, the table and the plot written.
+    """
     import json
 
     from reconstruct.net.checkpoint import V1_WEIGHTS

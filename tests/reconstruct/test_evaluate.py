@@ -115,11 +115,11 @@ def test_store_group_and_dataset_json(tmp_path):
 
 def test_spike_mean_baseline_sums_the_raw_spikes(tmp_path):
     """EvalGroup.I_mean = raw spikes over 17.5 ms (350 steps at 20 kHz) around each frame centre, clipped to the
-    stream, / (steps x exposure), recomputed here from the whole stream; and ~ Eq. (1)'s half-turn average."""
+    stream, / (steps x exposure), recomputed here from the whole stream; and ~ Eq. (1)'s half-turn average.
+    """
+    from reconstruct.stream.groups import SPIKE_MEAN_MS
     from spike_sim.aggregate import AggregateConfig, frame_centres
     from spike_sim.store import open_group
-
-    from reconstruct.stream.groups import SPIKE_MEAN_MS
 
     Tl, M = _write_store(tmp_path / "g0", n_frames=14)
     g = load_store_group(tmp_path / "g0")
@@ -145,7 +145,8 @@ def test_spike_mean_baseline_sums_the_raw_spikes(tmp_path):
 
 def test_anchor_to_mean_takes_the_level_from_the_mean_and_the_difference_from_the_solver():
     """Closed form: 2 I_mean = T + zbar (R - T) (paper Eq. (1) over a half turn); a separation with the right
-    difference R - T but any wrong level (a common offset, as noise in the short windows gives) is restored exactly."""
+    difference R - T but any wrong level (a common offset, as noise in the short windows gives) is restored exactly.
+    """
     from reconstruct.physics.span import anchor_to_mean
 
     rng = np.random.default_rng(0)
@@ -161,8 +162,9 @@ def test_anchor_to_mean_takes_the_level_from_the_mean_and_the_difference_from_th
 
 
 def test_anchor_rows_on_a_static_store_beat_the_short_windows(tmp_path):
-    """evaluate --anchor mean: '<method>+mean' rows; on a static scene the anchored RWPS beats plain RWPS and TFP (the
-    level from 350 steps instead of 7 x 13) by far, and never falls below the spike mean by more than noise."""
+    """Evaluate --anchor mean: '<method>+mean' rows; on a static scene the anchored RWPS beats plain RWPS and TFP (the
+    level from 350 steps instead of 7 x 13) by far, and never falls below the spike mean by more than noise.
+    """
     _write_store(tmp_path / "g0", n_frames=14)
     g = load_store_group(tmp_path / "g0")
     rep = evaluate_groups([g], EvalConfig(rir=False, methods="ls,rwps", anchor="mean"))
@@ -177,7 +179,8 @@ def test_anchor_rows_on_a_static_store_beat_the_short_windows(tmp_path):
 
 def test_share_scores_equal_the_whole_frame_ones_where_all_the_light_is_reflection():
     """GT with T ~ 0 and R = 1: the reflected share is >= 0.2 at every pixel, so the masked R scores equal the
-    whole-frame ones; with R = 0 no pixel qualifies and they are None (fraction 0)."""
+    whole-frame ones; with R = 0 no pixel qualifies and they are None (fraction 0).
+    """
     g = make_group(SyntheticConfig(width=24, height=16, n_groups=1, n_frames=9, seed=4), 0)
     cfg = EvalConfig(methods="ls", max_frames=2, rir=False)
     full = evaluate_groups([dataclasses.replace(g, T=np.full_like(g.T, 1e-4), R=np.ones_like(g.R))], cfg)

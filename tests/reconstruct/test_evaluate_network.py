@@ -9,10 +9,10 @@ import pytest
 import torch
 from typer.testing import CliRunner
 
-from polspike.cli import get_app
 from polinfra.errors import CheckpointError, ConfigError
-from reconstruct.net.checkpoint import save_checkpoint
+from polspike.cli import get_app
 from reconstruct.evaluate.harness import EvalConfig, evaluate_groups
+from reconstruct.net.checkpoint import save_checkpoint
 from reconstruct.net.network import NetConfig, PolSpikeNet, init_weights
 from reconstruct.stream.synthetic import SyntheticConfig, make_group
 
@@ -69,7 +69,8 @@ def test_conf_switch_and_window_length(tmp_path, group):
 
 def test_learned_zeta_source_feeds_the_solvers(tmp_path, group):
     """--zeta learned: the solvers run on the network's zeta, not the ground truth: their output changes
-    against --zeta gt, and changes again with another network's weights."""
+    against --zeta gt, and changes again with another network's weights.
+    """
     ck = _ckpt(tmp_path / "m.pt", use_rir=False)
     rep = evaluate_groups([group], EvalConfig(methods="ls,rwps", zeta="learned", rir=False, checkpoint=str(ck)))
     ov = _overall(rep)

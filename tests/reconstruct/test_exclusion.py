@@ -74,7 +74,8 @@ def test_crossed_correlation_is_near_zero_at_the_truth_and_signed_by_the_scale_e
 def test_cross_part_power_removes_the_noise_from_the_normalisation():
     """Two time parts of the same static layers with independent noise: the crossed products of R' with R' (and T'
     with T') hold the content's gradient power only, so ``power="cross"`` gives the correlation of the noise-free
-    layers, while ``power="same"`` shrinks it by the noise (oracle: the correlation computed on the noise-free solve)."""
+    layers, while ``power="same"`` shrinks it by the noise (oracle: the correlation computed on the noise-free solve).
+    """
     H, W = 64, 96
     rng = np.random.default_rng(7)
     R = 1.0 + 0.3 * _tex(11, H, W)
@@ -101,7 +102,8 @@ def test_split_pixels_drop_the_fixed_pattern_that_same_pixels_read_as_correlatio
     pixels, the layers' gradient correlation at the true zeta moves up by the gain's own gradient power; with R'
     from one checkerboard set and T' from the other the gain's values are independent and the correlation stays
     where the gain-free layers put it.  Without a gain the two agree (the split keeps the content's correlation).
-    Oracle: the same solve of the gain-free harmonics."""
+    Oracle: the same solve of the gain-free harmonics.
+    """
     H, W = 96, 128
     A, B, pp = np.full((H, W), 0.12), np.full((H, W), 0.08), np.full((H, W), 0.4)
     one = np.zeros((H, W), int)
@@ -123,7 +125,8 @@ def test_split_pixels_drop_the_fixed_pattern_that_same_pixels_read_as_correlatio
 def test_split_pixels_leave_masked_pixels_out_and_refuse_unknown_names():
     """A masked-out region holds garbage (huge values): with the mask, the split sums over the rest equal those of
     the same layers without the garbage (nothing leaks in through the normalised convolution), and no gradient pair
-    touching the mask counts."""
+    touching the mask counts.
+    """
     import pytest
 
     from polinfra.errors import ConfigError
@@ -150,7 +153,8 @@ def test_the_part_pair_sums_equal_the_explicit_double_sum_over_distinct_parts():
     """cross, pr_x and pt_x sum over every ordered pair of distinct time parts; they are formed in O(P) as the
     product of the part sums less the p = q terms.  Oracle: the explicit double loop over p != q of the per-part
     gradients (same: R'_p . T'_q; split: the mean of set 0 of one with set 1 of the other, both ways), for 2, 3 and 5
-    noisy parts, with and without a mask."""
+    noisy parts, with and without a mask.
+    """
     from reconstruct.physics.exclusion import _checkerboard, _grad, _set_grad, solve_layers
 
     H, W, sigma = 40, 56, 1.5

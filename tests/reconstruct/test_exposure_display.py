@@ -58,7 +58,8 @@ def test_noise_free_stream_gives_the_closed_form_estimate():
 def test_estimate_scales_with_the_true_exposure_on_a_noisy_sensor():
     """Default sensor (shot noise, dark current, fixed pattern): the estimate is proportional to the
     true exposure, and within [1.0, 1.25] of the noise-free value (the per-pixel gain mismatch,
-    sigma 5.8 %, lifts the top percentile; measured 1.13)."""
+    sigma 5.8 %, lifts the top percentile; measured 1.13).
+    """
     _, _, st = _scene()
     r = [estimate_exposure(_stream(st, e)).exposure / e for e in (0.1, 0.3, 1.0)]
     assert max(r) / min(r) < 1.03, r  # measured 1.010
@@ -75,13 +76,14 @@ def test_dark_stream_is_refused():
 def test_cli_estimated_and_true_exposure_agree(tmp_path):
     """A .dat of a scene at the reference brightness: `polspike reconstruct` without --exposure
     estimates it within 25 %, and its T agrees with the run at the true exposure once the one
-    scale factor (estimated / true) is applied; --exposure forces the value."""
+    scale factor (estimated / true) is applied; --exposure forces the value.
+    """
     from typer.testing import CliRunner
 
     from polinfra.exr import read_exr
     from polspike.cli import get_app
-    from reconstruct.net.checkpoint import DEFAULT_WEIGHTS
     from reconstruct.evaluate.metrics import psnr
+    from reconstruct.net.checkpoint import DEFAULT_WEIGHTS
 
     if not DEFAULT_WEIGHTS.is_file():
         pytest.skip(f"shipped checkpoint {DEFAULT_WEIGHTS} not present")
@@ -137,8 +139,8 @@ def _highlight_stream(seed=0, steps=1400, h=32, w=48):
 def test_png_frames_clip_at_most_a_thousandth(tmp_path):
     import imageio.v3 as iio
 
-    from reconstruct.video.stream import ReconstructConfig, reconstruct_stream
     from reconstruct.stream.sources import array_source
+    from reconstruct.video.stream import ReconstructConfig, reconstruct_stream
 
     s = reconstruct_stream(array_source(_highlight_stream(), 0.0, 30.0), _Tfp(), tmp_path, ReconstructConfig(frames="png", video=False, max_frames=4, exposure=0.3))
     assert s["frames"] == 4
@@ -152,9 +154,9 @@ def test_png_frames_clip_at_most_a_thousandth(tmp_path):
 
 def test_exr_frames_stay_linear_and_unclipped(tmp_path):
     from polinfra.exr import read_exr
-    from spike_sim.aggregate import AggregateConfig, frame_centres
-    from reconstruct.video.stream import ReconstructConfig, reconstruct_stream
     from reconstruct.stream.sources import array_source
+    from reconstruct.video.stream import ReconstructConfig, reconstruct_stream
+    from spike_sim.aggregate import AggregateConfig, frame_centres
 
     sp = _highlight_stream(1)
     e = 0.3

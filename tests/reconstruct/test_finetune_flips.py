@@ -1,5 +1,6 @@
 """Training knobs: mirror / transpose augmentation with the angles carried along (checked
-against paper Eq. (2) recomputed on the mirrored inputs), fine-tuning from given weights, best.pt."""
+against paper Eq. (2) recomputed on the mirrored inputs), fine-tuning from given weights, best.pt.
+"""
 
 from __future__ import annotations
 
@@ -57,7 +58,8 @@ def _inputs(seed: int):
 @pytest.mark.parametrize("code", range(8))
 def test_flip_equals_the_item_of_the_mirrored_scene(code):
     """flip_item(item(scene)) == item(mirrored scene): the item of the mirrored inputs recomputes zeta by
-    paper Eq. (2) from mirrored polarizer angles and a mirrored phi_perp map."""
+    paper Eq. (2) from mirrored polarizer angles and a mirrored phi_perp map.
+    """
     spikes, ck, phn, pht, (T, R), maps = _inputs(code)
     a = flip_item(item_from_stream(spikes, ck, phn, pht, (T, R), maps, 1.3, CFG), code)
     mm = {k: _spatial(_angle(v, code) if k == "phi_perp" else v, code) for k, v in maps.items()}
@@ -74,7 +76,8 @@ def test_flip_equals_the_item_of_the_mirrored_scene(code):
 
 def test_a_wrong_angle_map_would_show():
     """The oracle has teeth: an image mirror that kept the polarizer angles (or phi_perp) as they were
-    disagrees with the mirrored scene's angles far beyond the tolerance."""
+    disagrees with the mirrored scene's angles far beyond the tolerance.
+    """
     spikes, ck, phn, pht, (T, R), maps = _inputs(0)
     it = item_from_stream(spikes, ck, phn, pht, (T, R), maps, 1.3, CFG)
     mm = {k: _spatial(_angle(v, 1) if k == "phi_perp" else v, 1) for k, v in maps.items()}
@@ -149,7 +152,8 @@ def test_init_zero_restarts_the_named_parameters_and_refuses_unknown_names(tmp_p
 
 def test_forced_zeta_steps_are_drawn_from_the_seed_and_logged(tmp_path):
     """force_prob = 1: every step after the curriculum runs on the (jittered) true zeta, logged as alpha = 1;
-    force_prob = 0 leaves the curriculum's alpha."""
+    force_prob = 0 leaves the curriculum's alpha.
+    """
     torch.set_num_threads(1)
     sets = OnTheFlyWindows(_item, length=16, seed=0), OnTheFlyWindows(_item, length=2, seed=1)
     base = dataclasses.replace(TINY, curriculum_fracs=(0.0, 0.0), log_every=1)

@@ -1,6 +1,7 @@
 """The reflected share and the noise floor of R (reconstruct/physics/identifiability.py): closed forms, a Monte-Carlo of the
 least-squares estimate, the integrate-and-fire count variance against the simulator itself, and an end-to-end check
-on a stored integrate-and-fire group (the unclipped LS error of R equals the bound the evaluation reports)."""
+on a stored integrate-and-fire group (the unclipped LS error of R equals the bound the evaluation reports).
+"""
 
 from __future__ import annotations
 
@@ -38,7 +39,8 @@ def test_equal_noise_ls_variance_closed_form():
 @pytest.mark.parametrize("weighted", [False, True])
 def test_ls_variance_matches_a_monte_carlo(weighted):
     """Heteroscedastic Gaussian noise of known variance on 7 windows: the empirical variance of the (weighted) LS
-    R^ over 20000 draws is within 10 % of ls_layer_variance (sampling error ~1 %)."""
+    R^ over 20000 draws is within 10 % of ls_layer_variance (sampling error ~1 %).
+    """
     rng = np.random.default_rng(1)
     P, N, D = 6, 7, 20000
     z = np.stack([0.15 + a * np.cos(2 * (np.linspace(0, 1.47, N) + p)) for a, p in zip([0.01, 0.05, 0.12, 0.2, 0.08, 0.03], rng.uniform(0, 3, P))], 1)  # (N, P)
@@ -62,7 +64,8 @@ def test_ls_variance_matches_a_monte_carlo(weighted):
 
 def test_ls_variance_under_poisson_and_quantized_counts():
     """Monte-Carlo with spike counts: Poisson(m) counts, and integrate-and-fire counts floor(u + m) with a random
-    residue u; the LS variance of R^ from window_mean_variance is within 10 % of the empirical one."""
+    residue u; the LS variance of R^ from window_mean_variance is within 10 % of the empirical one.
+    """
     rng = np.random.default_rng(2)
     N, D, ex, L = 7, 40000, 3.0, 13
     z = 0.2 + 0.15 * np.cos(2 * np.linspace(0, 1.47, N))[:, None] * np.ones((1, 3))
@@ -85,10 +88,11 @@ def test_ls_variance_under_poisson_and_quantized_counts():
 def test_integrate_fire_count_variance_matches_the_simulator():
     """spike_sim's pixel (full DEFAULT noise model: shot, reset, thermal, dark, fixed pattern) at constant light:
     the variance of 13-step window counts over time, per pixel, against count_variance at the pixel's own
-    expected count m = (gain I + dark) L / theta; mean over pixels within 10 %, and Poisson (var = m) far off."""
-    from spike_sim.config import DEFAULT
+    expected count m = (gain I + dark) L / theta; mean over pixels within 10 %, and Poisson (var = m) far off.
+    """
     import dataclasses
 
+    from spike_sim.config import DEFAULT
     from spike_sim.integrate_fire import make_pixel_params, simulate_constant
 
     H, W, L, nwin = 8, 32, 13, 400
@@ -112,12 +116,13 @@ def test_integrate_fire_count_variance_matches_the_simulator():
 def test_the_evaluation_bound_equals_the_unclipped_ls_error_on_a_stored_group(tmp_path):
     """A stored integrate-and-fire group (tests/reconstruct/test_evaluate.py's writer, static, known pane): the
     evaluation's share context gives the bound the evaluation reports, and the unclipped LS estimate of R with the
-    true zeta has a mean squared error within 10 % of its mean variance (measured: 1-5 %)."""
+    true zeta has a mean squared error within 10 % of its mean variance (measured: 1-5 %).
+    """
     import torch
 
     from reconstruct.evaluate.harness import EvalConfig, evaluate_groups, group_noise, share_context, share_scores
-    from reconstruct.stream.groups import load_store_group
     from reconstruct.physics.solvers import solve
+    from reconstruct.stream.groups import load_store_group
     from tests.reconstruct.test_evaluate import _write_store
 
     _write_store(tmp_path / "g0", H=32, W=48, n_frames=14, exposure=1.5)

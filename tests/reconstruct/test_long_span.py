@@ -1,7 +1,8 @@
 """The long span's first harmonic (net.use_harm): the spikes of the whole 17.5 ms span of the long spike
 mean, not only the N windows', give R - T.  Checked against closed forms (a first harmonic, paper Eq. (1)-(2) on a
 static scene), a direct least-squares fit of the raw spikes, the sign rule of the image symmetries, and the
-stream / store / training-item paths agreeing with each other."""
+stream / store / training-item paths agreeing with each other.
+"""
 
 from __future__ import annotations
 
@@ -14,12 +15,12 @@ import pytest
 import torch
 
 from polinfra.errors import ShapeError
-from reconstruct.stream.groups import SpikeMeanSums, span_harmonic, spike_mean_span
 from reconstruct.net.network import NetConfig, PolSpikeNet, SymmetryEnsemble, init_weights
+from reconstruct.net.train import _widened
 from reconstruct.physics.span import HARMONIC_FLOOR, harmonic_of, long_span_separation, zbar_of
 from reconstruct.physics.symmetry import angle_map, harmonic_signs, symmetry_angles, symmetry_harmonic, symmetry_image
-from reconstruct.net.train import _widened
 from reconstruct.physics.zeta import PaneMaps, zeta_from_maps
+from reconstruct.stream.groups import SpikeMeanSums, span_harmonic, spike_mean_span
 
 SMALL = NetConfig(arch="v2", feat_ch=8, lr_ch=8, w_ch=4, ref_ch=(8, 8, 8), dec_ch=(8, 8, 8), use_rir=False, use_mean=True)
 
@@ -45,7 +46,8 @@ def test_harmonic_of_recovers_a_first_harmonic_and_zbar_is_its_level():
 @pytest.mark.parametrize("chunk", [1, 37, 5000])
 def test_streamed_span_harmonic_is_the_direct_fit_of_the_raw_spikes(chunk):
     """SpikeMeanSums fed in chunks of any size gives each frame's span mean and first harmonic exactly as a direct
-    least-squares fit of that span's raw spikes (numpy lstsq), spans clipped at the stream's ends included."""
+    least-squares fit of that span's raw spikes (numpy lstsq), spans clipped at the stream's ends included.
+    """
     rng = np.random.default_rng(1)
     n, H, W = 1500, 4, 5
     phi = 0.2 + np.cumsum(rng.uniform(0.009, 0.010, n))  # ~30 rev/s at 20 kHz, with jitter
@@ -92,7 +94,8 @@ def _static_scene(seed=3, H=6, W=7):
 
 def test_long_span_separation_is_exact_on_a_static_scene():
     """Paper Eq. (1)-(2) per step over a 351-step span (a static scene, no noise): the span's mean and first harmonic
-    give T and R = T + D, D shrunk only by the documented floor b^2 / (b^2 + floor)."""
+    give T and R = T + D, D shrunk only by the documented floor b^2 / (b^2 + floor).
+    """
     T, R, maps = _static_scene()
     phi_t = 0.7 + np.arange(351) * 2 * math.pi * 30 / 20000  # 30 rev/s at 20 kHz
     z_t = zeta_from_maps(maps, phi_t, dtype=torch.float64).numpy()  # (351, H, W), per step
@@ -116,7 +119,8 @@ def test_long_span_separation_is_exact_on_a_static_scene():
 @pytest.mark.parametrize("code", range(8))
 def test_symmetry_harmonic_is_the_fit_at_the_moved_angles(code):
     """The first harmonic of a pixel's spikes seen through a symmetry (the pixels moved, every angle a -> s a + o)
-    equals the direct fit at the moved angles: (b, c) -> (e b, e s c) (harmonic_signs)."""
+    equals the direct fit at the moved angles: (b, c) -> (e b, e s c) (harmonic_signs).
+    """
     rng = np.random.default_rng(code)
     n, H, W = 400, 3, 4
     phi = np.cumsum(rng.uniform(0.008, 0.011, n))
@@ -188,7 +192,8 @@ def test_widened_harmonic_network_starts_as_the_mean_network_and_needs_the_harmo
 @pytest.mark.parametrize("size", [8, 4])
 def test_ensemble_with_the_harmonic_is_equivariant(size):
     """The ensemble moves I_harm with the image and flips its signs with the angles: averaged over a group of
-    symmetries a random harmonic network commutes with each of them.  Moving it as a plain image breaks that."""
+    symmetries a random harmonic network commutes with each of them.  Moving it as a plain image breaks that.
+    """
     net = init_weights(PolSpikeNet(dataclasses.replace(SMALL, use_harm=True)), torch.Generator().manual_seed(2)).eval()
     with torch.no_grad():
         for n, v in net.named_parameters():
@@ -222,10 +227,11 @@ class _Recorder(torch.nn.Module):
 
 def _streamed(tmp_path, chunk: int, seed: int, rec: _Recorder):
     """(what ``rec`` was given per output frame, the stream source, the stored group) for a tiny group streamed in
-    chunks of ``chunk`` steps."""
+    chunks of ``chunk`` steps.
+    """
     from reconstruct.stream.groups import load_store_group
-    from reconstruct.video.stream import ReconstructConfig, reconstruct_stream
     from reconstruct.stream.sources import group_source
+    from reconstruct.video.stream import ReconstructConfig, reconstruct_stream
     from tests.reconstruct.test_windows import make_group
 
     make_group(tmp_path / "g", seed=seed, duration=0.04)
@@ -239,7 +245,8 @@ def _streamed(tmp_path, chunk: int, seed: int, rec: _Recorder):
 @pytest.mark.parametrize("chunk", [37, 2000])
 def test_stream_gives_the_network_the_store_harmonic(tmp_path, chunk):
     """reconstruct_stream (chunked) hands a use_harm network the same first harmonic per output frame as the stored
-    group's own (load_store_group), both fitted from the raw spikes."""
+    group's own (load_store_group), both fitted from the raw spikes.
+    """
     from spike_sim.aggregate import AggregateConfig, frame_centres
     from spike_sim.store import open_group
 
@@ -254,10 +261,12 @@ def test_stream_gives_the_network_the_store_harmonic(tmp_path, chunk):
 
 
 def test_evaluate_scores_the_span_physics_row():
-    """evaluate --anchor mean adds the row 'span' (long_span_separation on the solvers' zeta); on a static, noise-free
-    synthetic group with the true zeta it is exact up to the floor, far above the plain spike mean."""
+    """Evaluate --anchor mean adds the row 'span' (long_span_separation on the solvers' zeta); on a static, noise-free
+    synthetic group with the true zeta it is exact up to the floor, far above the plain spike mean.
+    """
     from reconstruct.evaluate.harness import SPAN_METHOD, EvalConfig, evaluate_groups
-    from reconstruct.stream.synthetic import SyntheticConfig, make_group as synth
+    from reconstruct.stream.synthetic import SyntheticConfig
+    from reconstruct.stream.synthetic import make_group as synth
 
     g = synth(SyntheticConfig(width=24, height=16, n_groups=1, n_frames=11, noise="none", motion_px_per_frame=0.0), 0)
     rep = evaluate_groups([g], EvalConfig(methods="ls", zeta="gt", rir=False, anchor="mean", max_frames=2))
@@ -345,7 +354,8 @@ def test_ensemble_with_the_wide_windows_is_equivariant():
 @pytest.mark.parametrize("chunk", [37, 2000])
 def test_stream_gives_the_network_the_store_wide_windows(tmp_path, chunk):
     """reconstruct_stream (chunked) hands a use_wide network each output's N wide windows exactly as the stored
-    group's (load_store_group: counts over the clipped wide window / its length / exposure)."""
+    group's (load_store_group: counts over the clipped wide window / its length / exposure).
+    """
     got, _, g = _streamed(tmp_path, chunk, 4, _Recorder("I_wide", use_wide=True, wide_input=True))
     want = np.stack([g.I_wide[i - 3 : i + 4] for i in range(3, 3 + got.shape[0])])
     np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-6)
@@ -354,8 +364,10 @@ def test_stream_gives_the_network_the_store_wide_windows(tmp_path, chunk):
 
 def test_synthetic_wide_windows_carry_the_noise_of_their_steps():
     """The closed-form synthetic set's wide windows: the same light as the narrow ones, with the Poisson noise of 57
-    steps instead of 13 (variance ratio 13 / 57 against the noiseless frames)."""
-    from reconstruct.stream.synthetic import SyntheticConfig, make_group as synth
+    steps instead of 13 (variance ratio 13 / 57 against the noiseless frames).
+    """
+    from reconstruct.stream.synthetic import SyntheticConfig
+    from reconstruct.stream.synthetic import make_group as synth
 
     kw = dict(width=48, height=40, n_groups=1, n_frames=9, motion_px_per_frame=0.0)
     clean = synth(SyntheticConfig(noise="none", **kw), 0)
@@ -367,7 +379,8 @@ def test_synthetic_wide_windows_carry_the_noise_of_their_steps():
 
 def test_wide_levels_move_only_low_frequencies_whatever_the_refinement():
     """t_level_px / r_level_from = wide replace the base's low frequencies by the wide windows' (inference only): the
-    change of T (R) is G_s * (T_wide - T_base) (R likewise), the same for any refinement weights, and smooth."""
+    change of T (R) is G_s * (T_wide - T_base) (R likewise), the same for any refinement weights, and smooth.
+    """
     from reconstruct.net.network import gaussian_blur
 
     cfg0 = dataclasses.replace(SMALL, use_wide=True, base="anchored", anchor_zbar="harmonic", r_level_px=4.0)

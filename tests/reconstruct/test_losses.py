@@ -64,7 +64,8 @@ def test_exclusion_tanh_form():
 @pytest.mark.parametrize("alpha", [1.0, 0.5, 0.0])
 def test_total_is_eq12_plus_base_term(alpha):
     """Total = paper Eq. (12) + lambda_base (0.2 + 0.8 alpha) L_rec(T^, R^): the solver-output term is non-zero
-    for solver outputs that differ from the truth, counted in the total and back-propagated to T^."""
+    for solver outputs that differ from the truth, counted in the total and back-propagated to T^.
+    """
     g = torch.Generator().manual_seed(1)
     B, N, H, W = 2, 7, 8, 8
     T, R = torch.rand(B, H, W, generator=g), torch.rand(B, H, W, generator=g)
@@ -119,7 +120,8 @@ def test_ssim_term_is_off_by_default_and_pulls_toward_the_structure():
 
 def test_r_floor_weights_the_r_term_by_the_reflected_share():
     """r_floor < 1: the R term of L_rec is the L1 weighted by r_floor + (1 - r_floor) clip(rho / rho_ref, 0, 1)
-    (closed form on three pixels: no reflection, share 0.1, share 0.53); r_floor = 1 is the paper's unweighted term."""
+    (closed form on three pixels: no reflection, share 0.1, share 0.53); r_floor = 1 is the paper's unweighted term.
+    """
     T = torch.ones(1, 1, 3)
     R = torch.tensor([[[0.0, 1.0, 10.0]]])
     zc = torch.full_like(T, 0.1)
@@ -145,7 +147,8 @@ def test_total_equals_eq12_written_out_in_numpy(alpha):
     documented choices (per-pixel means; M = m_floor + (1 - m_floor) clip(rho / rho_ref, 0, 1) with the centre-frame
     true zeta; the gradient terms' M averaged onto the forward-difference grid and x / y halves averaged), plus the
     solver-output term lambda_base (0.2 + 0.8 alpha) L_rec(T^, R^); every weight off its default so a swapped or
-    dropped weight shows, and the predicted zeta away from the true one so both L_phys terms count."""
+    dropped weight shows, and the predicted zeta away from the true one so both L_phys terms count.
+    """
     from types import SimpleNamespace
 
     g = torch.Generator().manual_seed(11)

@@ -16,7 +16,8 @@ RATE = 20000.0
 
 def _pan(v: float, L: int = 350, H: int = 64, W: int = 96, exposure: float = 2.0, seed: int = 0):
     """Integrate-and-fire spikes of a step edge (all rows) and a texture (top half) panning at v px/s behind a weak
-    pane (zeta modulated by the polarizer at 30 rev/s; no reflection); the true layer at the centre step."""
+    pane (zeta modulated by the polarizer at 30 rev/s; no reflection); the true layer at the centre step.
+    """
     rng = np.random.default_rng(seed)
     y, x = np.mgrid[0:H, 0:W].astype(np.float64)
     t = np.arange(L) / RATE

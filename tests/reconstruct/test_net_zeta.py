@@ -17,7 +17,7 @@ import pytest
 
 from reconstruct.net.checkpoint import DEFAULT_WEIGHTS
 
-from .test_physics_video import H, PHI0, REV, W, _psnr, _stream, stream  # noqa: F401  (module fixture)
+from .test_physics_video import PHI0, REV, H, W, _psnr, _stream, stream  # noqa: F401  (module fixture)
 
 needs_ckpt = pytest.mark.skipif(not DEFAULT_WEIGHTS.is_file(), reason=f"shipped checkpoint {DEFAULT_WEIGHTS} not present")
 
@@ -55,15 +55,16 @@ def test_windows_zeta_reaches_the_model_whole_and_tiled(tile):
 def test_net_on_self_zeta_matches_net_on_true_zeta(stream, tmp_path):  # noqa: F811
     """Strong reflection (R about 5x T): the network on the self-calibrated zeta is within 1 dB of the
     network on the true pane's zeta and 3 dB above the TFP image (measured with polspike_v2: self 13.2,
-    gt 13.0, its own learned zeta 8.3, TFP 7.3 dB)."""
+    gt 13.0, its own learned zeta 8.3, TFP 7.3 dB).
+    """
     import torch
 
     from polinfra.exr import read_exr
     from reconstruct.net.checkpoint import load_model
     from reconstruct.net.net_zeta import MapsZetaNet, build_net_zeta_model
-    from reconstruct.video.stream import ReconstructConfig, reconstruct_stream
-    from reconstruct.stream.sources import group_source
     from reconstruct.physics.zeta import PaneMaps
+    from reconstruct.stream.sources import group_source
+    from reconstruct.video.stream import ReconstructConfig, reconstruct_stream
 
     torch.set_num_threads(1)
     net = load_model(DEFAULT_WEIGHTS, use_rir=False)[0]
@@ -99,7 +100,8 @@ def test_cli_dat_net_with_self_zeta(stream, polspike_main, tmp_path):  # noqa: F
 @needs_ckpt
 def test_evaluate_labels_the_network_zeta():
     """--zeta self makes the network run on self too (rows full@self, full@self:solver); --net-zeta
-    overrides; by-regime gets net@self columns and R tables."""
+    overrides; by-regime gets net@self columns and R tables.
+    """
     import dataclasses
 
     from reconstruct.evaluate.harness import EvalConfig, evaluate_groups, net_zeta_of
@@ -127,12 +129,12 @@ def test_evaluate_labels_the_network_zeta():
 def test_a_stream_shorter_than_half_a_turn_falls_back_to_zero_zeta_or_the_learned_one():
     """--zeta self (the default) on a stream too short to self-calibrate: zeta = 0 (the default fallback) or, asked
     for, the network itself, the reason in info; the physics path, which has no fallback, refuses with the one-line
-    error's type."""
+    error's type.
+    """
     from polinfra.errors import ConfigError
     from reconstruct.net.net_zeta import NET_FALLBACK_ZETA, ZeroZetaNet, build_net_zeta_model
     from reconstruct.pane.source import calibrate_stream
-    from reconstruct.stream.sources import StreamTooShortError
-    from reconstruct.stream.sources import array_source
+    from reconstruct.stream.sources import StreamTooShortError, array_source
 
     sp = (np.random.default_rng(0).random((200, 16, 24)) < 0.1).astype(np.uint8)  # 10 ms at 30 rev/s: 15 frames < 26
     net = _tiny_net()
@@ -162,9 +164,10 @@ def _tiny_net():
 
 
 def test_zero_zeta_solves_for_the_whole_light():
-    """zeta = 0 in paper Eq. (1) leaves I_k = T / 2 for every observation: the solver's T is a weighted mean of the
+    """Zeta = 0 in paper Eq. (1) leaves I_k = T / 2 for every observation: the solver's T is a weighted mean of the
     2 I_k, within [2 min_k I_k, 2 max_k I_k] (times the solver's ridge shrinkage, a few per cent here), and R has no
-    say in it; tiles are fine (no per-pixel maps)."""
+    say in it; tiles are fine (no per-pixel maps).
+    """
     import torch
 
     from reconstruct.net.net_zeta import ZeroZetaNet
@@ -185,13 +188,14 @@ def test_zero_zeta_solves_for_the_whole_light():
 def test_a_stream_without_polarizer_does_not_self_calibrate(shared_data):
     """The independent simulator's REDS stream has no polarizer. At 48.95 rev/s its moving scene aliases into an
     orientation field that a narrow pane explains 11 sigmas above chance (z_min 8), yet no pixel modulates above
-    noise: the modulating-block gate (min_modulating_blocks) is what refuses it; without the gate a pane is claimed."""
+    noise: the modulating-block gate (min_modulating_blocks) is what refuses it; without the gate a pane is claimed.
+    """
     import dataclasses
 
-    from polspike.pipeline.real_eval import _load, RECORDINGS
-    from reconstruct.stream.exposure import estimate_exposure
-    from reconstruct.pane.source import calibrate_stream
+    from polspike.pipeline.real_eval import RECORDINGS, _load
     from reconstruct.pane.selfcal import SelfCalConfig
+    from reconstruct.pane.source import calibrate_stream
+    from reconstruct.stream.exposure import estimate_exposure
     from reconstruct.stream.sources import array_source
 
     rec = next(r for r in RECORDINGS if r.file.endswith(".dat"))
@@ -210,7 +214,8 @@ def test_a_stream_without_polarizer_does_not_self_calibrate(shared_data):
 def test_fallback_for_follows_the_refused_calibrations_modulation():
     """auto: the learned zeta where a refused calibration still shows >= FALLBACK_LEARNED_PX of the pixels modulating
     (polarization the planar fit could not follow), zeta = 0 where nothing modulates or nothing was measured; the
-    explicit choices pass through; anything else is a one-line ConfigError."""
+    explicit choices pass through; anything else is a one-line ConfigError.
+    """
     from types import SimpleNamespace
 
     from polinfra.errors import ConfigError

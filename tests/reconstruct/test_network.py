@@ -78,7 +78,8 @@ def test_v2_brightness_scaling_by_two_is_exact():
 def test_v2_zeta_parameters_are_smooth_upsampled_maps():
     """(a0, ac, as) are a bilinear upsampling of a 1/4-resolution map, whatever the input (here noise):
     piecewise linear between the low-resolution sample centres (full-resolution x = 1.5 + 4 j), so
-    the second difference along x vanishes at every pixel whose neighbours share a segment."""
+    the second difference along x vanishes at every pixel whose neighbours share a segment.
+    """
     m = init_weights(PolSpikeNet(NetConfig(use_rir=False)), torch.Generator().manual_seed(3)).eval()
     I, phi = _window(B=1, H=32, W=32, seed=5)
     with torch.no_grad():

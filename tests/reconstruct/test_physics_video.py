@@ -85,7 +85,8 @@ def test_dat_form_with_method_and_self_zeta(stream, polspike_cli, tmp_path):
 
 def test_fov_deg_is_the_self_calibrations_field_of_view(stream, polspike_cli, tmp_path):
     """--fov-deg gives the self-calibration the lens: the fit keeps it, and the pane's normal keeps its vanishing point
-    (the orientation field pins it: tan(tilt) / tan(fov / 2) is what the spikes see), so a narrower fov is a smaller tilt."""
+    (the orientation field pins it: tan(tilt) / tan(fov / 2) is what the spikes see), so a narrower fov is a smaller tilt.
+    """
     got = {}
     for fov in (None, 60.0, 40.0):
         out = tmp_path / f"o{fov}"
@@ -108,9 +109,9 @@ def _psnr(a, b):
 
 def test_physics_stream_separates_and_self_is_within_1db_of_gt(stream, tmp_path):
     from polinfra.exr import read_exr
+    from reconstruct.stream.sources import group_source
     from reconstruct.video.physics import build_physics_model
     from reconstruct.video.stream import ReconstructConfig, reconstruct_stream
-    from reconstruct.stream.sources import group_source
 
     src = group_source(stream["group"])
     cfg = ReconstructConfig(frames="exr", video=False, max_frames=2)
@@ -136,11 +137,12 @@ def test_physics_stream_separates_and_self_is_within_1db_of_gt(stream, tmp_path)
 def test_anchor_mean_on_a_static_stream_beats_the_plain_solver(tmp_path):
     """--anchor mean: the level from the 17.5 ms spike mean, R - T from the solver; on a static scene it is
     closer to the true T than the plain RWPS output on a dim stream (~0.05 spikes per step: the level's noise
-    is that of 350 steps, not 7 x 13), both on the true zeta."""
+    is that of 350 steps, not 7 x 13), both on the true zeta.
+    """
     from polinfra.exr import read_exr
+    from reconstruct.stream.sources import group_source
     from reconstruct.video.physics import build_physics_model
     from reconstruct.video.stream import ReconstructConfig, reconstruct_stream
-    from reconstruct.stream.sources import group_source
 
     stream = _write(tmp_path / "dim", exposure=0.15)
     src = group_source(stream["group"])
@@ -182,7 +184,8 @@ def test_bad_combinations_are_one_line_exit_2(stream, polspike_main, tmp_path, a
 def test_pane_from_calibrate_pane_drives_the_solvers(stream, polspike_cli, tmp_path):
     """calibrate-pane on the .dat, then reconstruct --pane with its output (on the group store of the same stream, whose
     exposure is stored): T within 1 dB of the true maps' T.  The true maps written as a calibration give bit for bit
-    what --zeta gt gives.  (This view is edge-on in a corner: calibrate-pane writes no pane.toml, and says so.)"""
+    what --zeta gt gives.  (This view is edge-on in a corner: calibrate-pane writes no pane.toml, and says so.)
+    """
     from polinfra.exr import read_exr, write_exr
 
     dat = ["--height", H, "--width", W, "--phi0-deg", math.degrees(PHI0), "--rev-per-s", REV]
@@ -222,8 +225,8 @@ def test_pane_from_calibrate_pane_drives_the_solvers(stream, polspike_cli, tmp_p
 
 def test_self_falls_back_to_learned_where_nothing_modulates(tmp_path):
     from reconstruct.net.checkpoint import DEFAULT_WEIGHTS, load_model
-    from reconstruct.video.physics import build_physics_model
     from reconstruct.stream.sources import array_source
+    from reconstruct.video.physics import build_physics_model
 
     if not DEFAULT_WEIGHTS.is_file():
         pytest.skip(f"shipped checkpoint {DEFAULT_WEIGHTS} not present")

@@ -16,8 +16,8 @@ from typer.testing import CliRunner
 
 from polspike.cli import get_app
 from reconstruct.net.checkpoint import DEFAULT_WEIGHTS, load_model
-from reconstruct.video.stream import ReconstructConfig, reconstruct_stream
 from reconstruct.stream.sources import array_source
+from reconstruct.video.stream import ReconstructConfig, reconstruct_stream
 
 pytestmark = pytest.mark.skipif(not DEFAULT_WEIGHTS.is_file(), reason=f"shipped checkpoint {DEFAULT_WEIGHTS} not present")
 
@@ -116,9 +116,8 @@ def test_cli_dat_needs_calibration(tmp_path, polspike_main):
 
 def test_cli_group_store_end_to_end(tmp_path):
     """Static two-layer scene -> spike_sim group -> polspike reconstruct: T near the GT layer."""
-    from spike_sim.simulate import keyframes_from_arrays, simulate
-
     from polphysics.zeta import stokes_from_layers
+    from spike_sim.simulate import keyframes_from_arrays, simulate
 
     H, W = 16, 20
     yy, xx = np.mgrid[0:H, 0:W]
@@ -150,7 +149,8 @@ def _v2_model(seed=0):
 
 def test_feature_cache_gives_the_same_frames_as_window_by_window(tmp_path):
     """v2 streaming: per-observation features encoded once per Eq. (3) frame and reused by the next
-    N - 1 windows give the frames of running every window from scratch; each frame is encoded once."""
+    N - 1 windows give the frames of running every window from scratch; each frame is encoded once.
+    """
     rng = np.random.default_rng(2)
     spikes = (rng.random((700, 12, 20)) < rng.uniform(0.05, 0.4, (1, 12, 20))).astype(np.uint8)
     m = _v2_model()
@@ -188,8 +188,8 @@ def test_batched_tiles_match_whole_frame_inside():
         assert np.isfinite(tiled[k]).all()
     # the solver output is per pixel except for the learned zeta / w (receptive field ~ 40 px at 1/4 resolution),
     # so compare the tiled result with per-tile whole passes instead: tile (y0, x0) = a whole pass on its padded crop
-    import torch.nn.functional as F
     import torch
+    import torch.nn.functional as F
 
     xp = F.pad(torch.from_numpy(I), (16, 16 + 64 - 56, 16, 16 + 48 - 40), mode="replicate").numpy()
     one = run_model_on_windows(m, xp[:, :, 16:64, 16:64], phi, tile=0)  # tile (row 1, col 1) with its margins
@@ -199,7 +199,8 @@ def test_batched_tiles_match_whole_frame_inside():
 def test_cli_zeta_fallback_and_zeta_none_errors(tmp_path, polspike_cli, polspike_main):
     """Through the installed console script: an unknown --zeta-fallback, and --zeta none for a physics solver (zeta = 0
     separates nothing), are one-line usage errors with exit 2 and nothing written; so is an unknown --net-fallback of
-    evaluate."""
+    evaluate.
+    """
     f = tmp_path / "x.dat"
     f.write_bytes(bytes(8 * 16 * 20))
     geo = ("--height", 16, "--width", 20, "--phi0-deg", 0, "--rev-per-s", 30)

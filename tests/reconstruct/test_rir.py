@@ -63,7 +63,8 @@ def test_warp_integer_shift_matches_roll_and_is_differentiable():
 def test_align_window_registers_frames_and_coefficient_maps_by_the_known_shift():
     """A known sub-pixel motion is recovered and undone on the frames AND on per-frame maps that move
     with the scene (map k = a smooth pattern translated like T_k): after alignment every map equals the
-    untranslated pattern, and the T-only half of every frame matches the centre frame."""
+    untranslated pattern, and the T-only half of every frame matches the centre frame.
+    """
     frames, phi, true = _stack()
     N, H, W = frames.shape
     moving = np.array([periodic_texture(np.random.default_rng(5), H, W, shift=-true[k], fmax=0.05) for k in range(N)])

@@ -1,6 +1,7 @@
 """Adaptive RWPS (SolverConfig.lambda_map = "adaptive"): per regime, with the true zeta, RWPS does not
 lose to the better of LS and ridge by more than 0.3 dB; Conf follows conditioning and noise; the
-fixed mapping (the default, and every stored config without the new keys) is unchanged."""
+fixed mapping (the default, and every stored config without the new keys) is unchanged.
+"""
 
 from __future__ import annotations
 

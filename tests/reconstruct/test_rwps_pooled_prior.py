@@ -1,6 +1,7 @@
 """The pooled RWPS prior (``rwps_prior = "pooled"``): R - T pulled toward a conditioning-weighted,
 box-pooled estimate of itself instead of toward 0.  Oracles: closed-form windows (paper Eq. (1)-(2))
-with a known difference field, and the near-singular limit where the answer must be the window mean."""
+with a known difference field, and the near-singular limit where the answer must be the window mean.
+"""
 
 from __future__ import annotations
 
@@ -23,7 +24,8 @@ def _windows(zeta_k, R, T):
 
 def test_pooled_mean_of_a_linear_difference_is_the_difference_shrunk_by_box_conditioning():
     """Uniform conditioning: every pixel weighs the same, so in the interior D0 is the plain box mean
-    of R - T; a linear ramp's box mean is the ramp itself; then the conditioning factor d / (d + kappa0)."""
+    of R - T; a linear ramp's box mean is the ramp itself; then the conditioning factor d / (d + kappa0).
+    """
     H, W = 24, 40
     x = np.linspace(0.0, 1.0, W)[None, :].repeat(H, 0)
     T = 0.3 + 0.4 * x
@@ -39,7 +41,8 @@ def test_pooled_mean_of_a_linear_difference_is_the_difference_shrunk_by_box_cond
 
 def test_near_singular_window_returns_the_window_mean():
     """All zeta equal: the data fix only zeta R + (1 - zeta) T; the box is singular, D0 -> 0, and the
-    pooled prior gives R = T = the window mean 2 <I> (TFP), whatever the data's R - T."""
+    pooled prior gives R = T = the window mean 2 <I> (TFP), whatever the data's R - T.
+    """
     rng = np.random.default_rng(3)
     R, T = rng.uniform(0.05, 0.3, (16, 16)), rng.uniform(0.3, 0.9, (16, 16))
     zeta, I = _windows([0.08] * 7, R, T)
@@ -52,7 +55,8 @@ def test_near_singular_window_returns_the_window_mean():
 
 def test_the_equal_prior_fails_where_the_reflection_is_weak_and_the_pooled_prior_does_not():
     """The regime behind the stress table's "reflection weak" failure: R = T / 10, strong modulation.
-    Pulling R - T toward 0 loses clearly to LS; the pooled prior follows LS."""
+    Pulling R - T toward 0 loses clearly to LS; the pooled prior follows LS.
+    """
     zeta, I, T = _regime_windows("weak_reflection_glancing")
     ls = _psnr("ls", zeta, I, T, PHYSICS_SOLVER_CONFIG)
     ridge = _psnr("ridge", zeta, I, T, PHYSICS_SOLVER_CONFIG)
@@ -63,7 +67,7 @@ def test_the_equal_prior_fails_where_the_reflection_is_weak_and_the_pooled_prior
 
 
 def test_pooled_conf_rises_with_light():
-    """q = s_D^2 / v_D: the same scene, brighter (more spikes) -> the difference is better measured."""
+    """Q = s_D^2 / v_D: the same scene, brighter (more spikes) -> the difference is better measured."""
     qs = []
     for regime in ("weak_reflection_glancing_dim", "weak_reflection_glancing"):
         zeta, I, _ = _regime_windows(regime)

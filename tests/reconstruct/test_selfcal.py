@@ -1,7 +1,8 @@
 """--zeta self: the pane geometry recovered from the stream (normal / vanishing point, theta, zeta) against
 the truth of closed-form groups built independently (tests/reconstruct/_pane_groups.py: polphysics geometry,
 Fresnel, paper Eq. (1)-(2), Poisson spike counts), at several tilts and axes; the 90 deg flip where R < T;
-'nothing modulates' flagged and logged at normal incidence; solver PSNR with self vs true zeta."""
+'nothing modulates' flagged and logged at normal incidence; solver PSNR with self vs true zeta.
+"""
 
 from __future__ import annotations
 
@@ -157,9 +158,9 @@ def test_a_narrow_choice_with_the_fov_fitted_is_checked_and_kept_when_the_votes_
 def test_the_twin_is_taken_only_where_the_cone_and_the_content_both_prefer_it(monkeypatch):
     # the decision rule, on the real check's output with the two families' labels swapped (so the "twin" is the right pane):
     # both votes swapped -> overturned, to the check's pick; one vote swapped -> kept
-    import reconstruct.pane.selfcal as sc
-
     import copy
+
+    import reconstruct.pane.selfcal as sc
 
     g, _ = _narrow_choice_group()
     real, cache = sc._resolve_by_cone, []
@@ -306,7 +307,8 @@ def test_the_near_black_reflection_is_never_given_the_wrong_family_over_five_noi
     family (phi_perp within 3 deg), never the twin.  The cone alone picking the twin is one draw's event, not a
     property: measured, the cone alone took the twin at seed 110 only (89.2 deg off) and refused at 111-114, while
     the calibration refused at 110, 112, 113 and was right at 111 and 114 (0.2 deg).  Run with content_margin = 0
-    (the cone alone) this test fails at seed 110."""
+    (the cone alone) this test fails at seed 110.
+    """
     wrong = []
     for seed in range(110, 115):
         g, _ = make_pane_group(75.45894911989473, 207.78390161863172, fov_deg=19.16270642992466, r_gain=0.15081105912306855, t_level=1.0,
@@ -428,12 +430,13 @@ def test_scatter_polish_discounts_blocks_whose_pixels_scatter():
     phi_perp with little pixel scatter, the right half a phi_perp biased by 5 deg with pixels scattering 7x more
     (content moving through the harmonic fit). Their |sum z4| is alike, so a fit weighted by it lands between the
     two (its phi_perp field 2.3 deg off, median over blocks); the scatter weights (each block's orientation
-    variance measured from its pixels) bring it within 0.8 deg, and at least 3x closer, from a start 3 deg off."""
+    variance measured from its pixels) bring it within 0.8 deg, and at least 3x closer, from a start 3 deg off.
+    """
     from scipy.optimize import least_squares
 
     from reconstruct.pane.camera import _phi_perp_grid, camera_for, normal_from_angles
-    from reconstruct.pane.orientation import block_orientation_variance
     from reconstruct.pane.normal import polish_geometry
+    from reconstruct.pane.orientation import block_orientation_variance
 
     w, h, b, fov = 24, 16, 4, 50.0
     tilt, az = math.radians(50.0), math.radians(30.0)
@@ -461,7 +464,8 @@ def test_scatter_polish_discounts_blocks_whose_pixels_scatter():
 def test_saturated_pixels_are_left_out_of_the_calibration():
     """A pixel whose window reaches the spike ceiling (one spike per step) in any frame is set to 0 in every frame and
     counted; without an exposure nothing changes.  On a stream clipped at the ceiling over a bright part of the view,
-    the calibration given the exposure keeps the unclipped stream's geometry and zeta scale."""
+    the calibration given the exposure keeps the unclipped stream's geometry and zeta scale.
+    """
     from reconstruct.pane.selfcal import leave_out_saturated
     from reconstruct.physics.span import SPAN_SATURATION
 

@@ -61,7 +61,8 @@ def test_stored_scores_match_psnr_computed_here_by_hand():
     """The stored reduced scores by an independent path: the same held-out windows, PSNR written out here in
     numpy (per window 10 log10(1 / MSE) with the estimate clipped to [0, 1], then the mean), for TFP from its
     closed form (2 x the mean of the N observations, no network) and for the network's T from one forward pass;
-    both within the reproduction tolerance of the stored numbers."""
+    both within the reproduction tolerance of the stored numbers.
+    """
     import numpy as np
 
     from polspike.commands.train_cmds import heldout_inputs, heldout_test_set

@@ -1,7 +1,8 @@
 """D = R - T from every spike of the long span (net.span_level): the span's inverse-variance weights against a
 Monte Carlo of the spikes, the blend against its closed form (it keeps the long mean, takes an exact span's D, leaves
 pixels without weight alone), and the wiring: only on an external zeta, the stream hands the network what the store
-does, tiles agree with whole frames, training items carry the span's length and exposure per image."""
+does, tiles agree with whole frames, training items carry the span's length and exposure per image.
+"""
 
 from __future__ import annotations
 
@@ -14,10 +15,10 @@ import pytest
 import torch
 
 from polinfra.errors import ShapeError
-from reconstruct.stream.groups import span_harmonic
 from reconstruct.net.network import NetConfig, PolSpikeNet, init_weights
 from reconstruct.physics.span import SPAN_SATURATION, harmonic_of, long_span_separation, span_blend, span_weights
 from reconstruct.physics.zeta import zeta_from_maps
+from reconstruct.stream.groups import span_harmonic
 from tests.reconstruct.test_long_span import _static_scene
 
 SMALL = NetConfig(arch="v2", feat_ch=8, lr_ch=8, w_ch=4, ref_ch=(8, 8, 8), dec_ch=(8, 8, 8), use_rir=False, use_mean=True, base="anchored", anchor_zbar="harmonic")
@@ -32,7 +33,8 @@ def _scene(H=6, W=5, seed=0):
 
 def _light(T, R, maps):
     """Per-step intensity (SPAN, H, W) of paper Eq. (1)-(2) for a static scene, the span's exact mean over a whole
-    number of half turns, and the windows' zeta and angles."""
+    number of half turns, and the windows' zeta and angles.
+    """
     z_t = zeta_from_maps(maps, PHI_T, dtype=torch.float64).numpy()
     I_t = 0.5 * (z_t * R + (1 - z_t) * T)
     phi_w = torch.from_numpy(PHI_T[WIN])[None]
@@ -46,7 +48,8 @@ def _design(phi):
 
 def test_span_weights_are_the_inverse_variance_of_the_span_difference_under_bernoulli_spikes():
     """Monte Carlo oracle: spikes drawn per step with probability I_t x exposure; the spread of the span's D over
-    1500 draws matches 1 / span_weights within 15 % per pixel (the weights' closed form, not fitted)."""
+    1500 draws matches 1 / span_weights within 15 % per pixel (the weights' closed form, not fitted).
+    """
     T, R, maps = _scene()
     I_t, phi_w, Zw = _light(T, R, maps)
     e = 1.2
@@ -88,7 +91,8 @@ def test_span_weights_are_zero_where_the_pixel_saturates():
 def test_span_blend_takes_an_exact_span_and_keeps_the_long_mean(sigma):
     """A noise-free static span gives the exact D (up to the documented floor); a separation off by a constant 0.1 in
     D is moved onto it when the span's weight is large (any sigma: the offset is smooth), and T + a D, the long
-    mean's relation 2 I_mean = T + zbar D, is unchanged for any weights."""
+    mean's relation 2 I_mean = T + zbar D, is unchanged for any weights.
+    """
     T, R, maps = _scene(H=12, W=10)
     I_t, phi_w, Zw = _light(T, R, maps)
     h = torch.from_numpy(span_harmonic(np.tensordot(_design(PHI_T), I_t, axes=(1, 0)), PHI_T).astype(np.float64))[None]
@@ -109,7 +113,8 @@ def test_span_blend_takes_an_exact_span_and_keeps_the_long_mean(sigma):
 
 def test_span_blend_gain_is_the_inverse_variance_combination_and_zero_without_weight():
     """Per pixel (sigma 0) the new D is D + lam (D_span - D), lam = tol^2 w / (tol^2 w + 1): the inverse-variance
-    combination of the separation (error tol) and the span (variance 1 / w); a pixel of weight 0 is left exactly."""
+    combination of the separation (error tol) and the span (variance 1 / w); a pixel of weight 0 is left exactly.
+    """
     T, R, maps = _scene()
     I_t, phi_w, Zw = _light(T, R, maps)
     h = torch.from_numpy(span_harmonic(np.tensordot(_design(PHI_T), I_t, axes=(1, 0)), PHI_T).astype(np.float64))[None]
@@ -164,7 +169,8 @@ def test_span_level_network_moves_d_on_an_external_zeta_only_and_needs_the_expos
 
 class _BlendOnly(torch.nn.Module):
     """A per-pixel separation followed by the span_level blend, as PolSpikeNet applies it (a stand-in: the network's
-    own frame-wide statistics would hide what the tiles' margin must cover)."""
+    own frame-wide statistics would hide what the tiles' margin must cover).
+    """
 
     def __init__(self, sigma):
         super().__init__()
@@ -180,7 +186,8 @@ class _BlendOnly(torch.nn.Module):
 
 def test_span_level_tiles_agree_with_the_whole_frame():
     """run_model_on_windows widens the tiles' margin to the span correction's blur radius (9 px at sigma 3), so tiles
-    of 16 px asked for a 1 px margin agree with the whole frame."""
+    of 16 px asked for a 1 px margin agree with the whole frame.
+    """
     from reconstruct.video.tiling import run_model_on_windows
 
     I, phi, Im, h, Z = _inputs(H=40, W=36)
@@ -223,7 +230,8 @@ def test_stream_hands_a_span_level_network_the_store_exposure_span_and_harmonic(
 def test_training_items_carry_what_a_span_level_network_reads_and_the_forced_scores_use_it():
     """Window items with the long span carry its length; evaluate_model (the training validation and
     checkpoint-scores) hands a span_level network each item's exposure and span length, and its forced R moves
-    (the self-calibrated zeta's path); without the span the batch is refused with what to set."""
+    (the self-calibrated zeta's path); without the span the batch is refused with what to set.
+    """
     from polinfra.errors import ConfigError
     from reconstruct.net.onthefly import OnTheFlyWindows
     from reconstruct.net.train import TINY, evaluate_model, span_inputs
@@ -254,7 +262,8 @@ def test_span_weights_take_one_exposure_and_span_per_image():
 
 def test_t_tolerance_caps_the_gain_where_zeta_mean_is_large():
     """Per pixel (sigma 0) with tol_t: lam = min(tol^2 w / (tol^2 w + 1), tol_t^2 w / (tol_t^2 w + a^2)), a = zeta's
-    half-turn mean; the cap binds where a is large (T moves by a dD), and the long mean is kept either way."""
+    half-turn mean; the cap binds where a is large (T moves by a dD), and the long mean is kept either way.
+    """
     T, R, maps = _scene()
     I_t, phi_w, Zw = _light(T, R, maps)
     h = torch.from_numpy(span_harmonic(np.tensordot(_design(PHI_T), I_t, axes=(1, 0)), PHI_T).astype(np.float64))[None]
@@ -275,7 +284,8 @@ def test_t_tolerance_caps_the_gain_where_zeta_mean_is_large():
 @pytest.mark.parametrize("sigma", [0.0, 2.0])
 def test_span_move_is_equivariant_to_the_brightness_scale(sigma):
     """The weights scale with exposure^2 and the tolerances with the pixel's light (as the network sets them): a stream
-    read at another exposure (an estimated one) gives the same layers up to that scale."""
+    read at another exposure (an estimated one) gives the same layers up to that scale.
+    """
     I, phi, Im, h, Z = _inputs()
     Im, h, I = Im.double(), h.double(), I.double()
     T = 2 * Im - 0.05

@@ -1,5 +1,6 @@
 """The glass of a stream's self-calibration: `polspike reconstruct` fits the index and pane model where the spikes
-constrain them (as the evaluation's group_self_zeta does), unless the user knows them (--pane-n, --pane-model)."""
+constrain them (as the evaluation's group_self_zeta does), unless the user knows them (--pane-n, --pane-model).
+"""
 
 from __future__ import annotations
 
@@ -18,7 +19,8 @@ def captured(monkeypatch):
 
 def test_stream_calibration_fits_the_glass_by_default(captured):
     """Defaults are the self-calibration's own (model auto, prior index 1.5), the ones the evaluation measures; before,
-    a stream was calibrated as a single interface of n 1.5 whatever its spikes said."""
+    a stream was calibrated as a single interface of n 1.5 whatever its spikes said.
+    """
     assert pv.calibrate_stream(object()) == "result"
     assert captured[-1].model == SelfCalConfig().model == "auto" and captured[-1].n == 1.5
     pv.calibrate_stream(object(), pane_n=1.62, pane_model="auto")

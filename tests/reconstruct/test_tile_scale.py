@@ -69,7 +69,8 @@ def test_v1_refuses_a_scale():
 
 def test_tiles_keep_the_r_level_blur_inside_their_margin():
     """A model whose R is a Gaussian blur of its input (as r_level_px blurs R - R_base) gives, tiled, the whole frame's R
-    away from the frame's border: run_model_on_windows widens the tiles' margin to the blur's 3-sigma radius."""
+    away from the frame's border: run_model_on_windows widens the tiles' margin to the blur's 3-sigma radius.
+    """
     import types
 
     import numpy as np

@@ -27,7 +27,8 @@ CFG = dataclasses.replace(TINY, curriculum_fracs=(0.25, 0.5))
 def _stream_item(seed: int, index: int, cfg: WindowConfig = TINY.window, static: bool = False, noise: bool = True):
     """A window item from a closed-form integrate-and-fire stream (no generator): smooth random layers,
     uniform pane maps, paper Eq. (1)-(2) light behind an ideal polarizer at 30 rev/s, sampled at step
-    midpoints; spikes = increments of floor(u + cumsum g) (exact noise-free integrate-and-fire)."""
+    midpoints; spikes = increments of floor(u + cumsum g) (exact noise-free integrate-and-fire).
+    """
     from spike_sim.aggregate import AggregateConfig, frame_centres
 
     rng = np.random.default_rng([seed, index])
@@ -92,7 +93,8 @@ def test_onthefly_item_is_pure_function_of_seed_and_index(sets):
 
 def test_item_from_stream_matches_eq1_to_count_quantisation():
     """Static scene, noise-free integrate-and-fire: I_k equals paper Eq. (1) with the window-averaged
-    zeta of paper Eq. (2) up to one spike per window, 1/13 per exposure."""
+    zeta of paper Eq. (2) up to one spike per window, 1/13 per exposure.
+    """
     cfg = WindowConfig(crop=16)
     it = _stream_item(0, 0, cfg, static=True, noise=False)
     mix = 0.5 * (it["zeta"] * it["R"][None] + (1 - it["zeta"]) * it["T"][None])
@@ -136,7 +138,8 @@ def test_resume_continues_to_identical_weights(tmp_path, sets, tiny_run):
 def test_kill_9_during_a_checkpoint_write_resumes_to_identical_weights(tmp_path, tiny_run, caplog):
     """A real SIGKILL while the second checkpoint (step 4) is being written (polinfra.faults point
     ``atomic:last.pt@2``: the new file complete under its temporary name, not yet renamed): the old
-    checkpoint stays readable, and the rerun continues to the weights and log of the uninterrupted run."""
+    checkpoint stays readable, and the rerun continues to the weights and log of the uninterrupted run.
+    """
     import os
     import signal
     import subprocess
@@ -240,7 +243,8 @@ def test_window_config_checks():
 
 def test_cosine_schedule_closed_form_and_resume(tmp_path, sets):
     """lr_at: lr at the first step, lr_min at the last, their mean half way; a cosine run killed half way and
-    resumed ends with the weights of an uninterrupted one (the rate is a function of the step)."""
+    resumed ends with the weights of an uninterrupted one (the rate is a function of the step).
+    """
     from reconstruct.net.train import lr_at
 
     cfg = dataclasses.replace(TINY, lr=1e-3, lr_schedule="cosine", lr_min=1e-5)
@@ -278,8 +282,9 @@ def test_every_shipped_training_config_loads_and_its_init_weights_exist():
 
 
 def test_trainable_freezes_every_other_weight(tmp_path, sets):
-    """trainable = ("refine.dec_r",): after a run only the R decoder's weights moved (so T is exactly the start's);
-    a prefix naming no parameter is a one-line ConfigError."""
+    """Trainable = ("refine.dec_r",): after a run only the R decoder's weights moved (so T is exactly the start's);
+    a prefix naming no parameter is a one-line ConfigError.
+    """
     tr, va = sets
     train(TINY, tr, va, tmp_path / "base")
     init = str(tmp_path / "base" / "last.pt")
@@ -297,7 +302,8 @@ def test_trainable_freezes_every_other_weight(tmp_path, sets):
 
 def test_val_score_of_each_selection():
     """val_select: learned = psnr_T; mean = the mean over both zeta paths; r_share = R over the reflection pixels
-    (both paths), whole-frame R where a validation set has none; ssim = T's SSIM over both paths."""
+    (both paths), whole-frame R where a validation set has none; ssim = T's SSIM over both paths.
+    """
     from reconstruct.net.train import val_score
 
     m = {"psnr_T": 30.0, "psnr_T_forced": 34.0, "psnr_R": 18.0, "psnr_R_forced": 20.0, "psnrrefl_R": 12.0, "psnrrefl_R_forced": 16.0}

@@ -130,9 +130,10 @@ def test_two_processes_match_one_at_equal_global_batch(runs, config):
 
 @pytest.mark.slow
 def test_rank_killed_mid_run_resumes_to_the_same_weights(runs, config, data, tmp_path):
-    """kill -9 of rank 1 after its 3rd step (polinfra.faults point train.step.rank1): torchrun stops the other
+    """Kill -9 of rank 1 after its 3rd step (polinfra.faults point train.step.rank1): torchrun stops the other
     rank, the CLI exits non-zero, last.pt holds step 2; the same command on one process continues from there
-    to the weights of the uninterrupted runs."""
+    to the weights of the uninterrupted runs.
+    """
     run = tmp_path / "killed"
     r = _train(config, data, run, 2, env=_env(POLSPIKE_FAULT_AT="train.step.rank1@3"))
     assert r.returncode == 1, r.stderr[-3000:]

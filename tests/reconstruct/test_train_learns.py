@@ -64,7 +64,8 @@ ABOVE_ORACLE_DB = 1.0
 def pane_item(seed: int, index: int, cfg=TINY.window) -> dict[str, torch.Tensor]:
     """One window of a closed-form stream: smooth layers (Gaussian sigma 4, wrapped, scaled to [0, T_max]),
     paper Eq. (1)-(2) light of :data:`PANE` behind an ideal polarizer at 30 rev/s sampled at step midpoints,
-    spikes = increments of floor(u + cumsum g), g = exposure I clipped at 1 (saturating integrate-and-fire)."""
+    spikes = increments of floor(u + cumsum g), g = exposure I clipped at 1 (saturating integrate-and-fire).
+    """
     from spike_sim.aggregate import AggregateConfig, frame_centres
 
     rng = np.random.default_rng([seed, index])
@@ -103,7 +104,8 @@ def one_thread():
 
 def run_and_score(tmp_path, source=pane_item) -> dict[str, float]:
     """Train :data:`CFG` on ``source`` items (validation always on the true :func:`pane_item`); the numbers the
-    test asserts, measured against the same initial weights (``init_weights`` with the config's seed)."""
+    test asserts, measured against the same initial weights (``init_weights`` with the config's seed).
+    """
     tr = OnTheFlyWindows(source, length=CFG.train_items, seed=1)
     va = OnTheFlyWindows(pane_item, length=CFG.val_items, seed=2)
     model = PolSpikeNet(CFG.net, CFG.solver)

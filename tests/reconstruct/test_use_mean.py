@@ -1,6 +1,7 @@
 """A network that also sees the long spike mean (net.use_mean): its input in training items, in
 evaluation and in the streaming reconstructor equals the raw-spike mean of the store; widening a trained
-network's refinement for it starts from exactly the same outputs."""
+network's refinement for it starts from exactly the same outputs.
+"""
 
 from __future__ import annotations
 
@@ -14,7 +15,6 @@ import torch
 from polinfra.errors import ConfigError, ShapeError
 from reconstruct.net.network import NetConfig, PolSpikeNet, init_weights
 from reconstruct.net.train import _widened
-
 from tests.reconstruct.test_windows import make_group
 
 SMALL = NetConfig(arch="v2", feat_ch=8, lr_ch=8, w_ch=4, ref_ch=(8, 8, 8), dec_ch=(8, 8, 8), use_rir=False, floor=False)  # the forward before the data-consistency floor (tests/reconstruct/test_consistency_floor.py)
@@ -85,12 +85,11 @@ class _Recorder(torch.nn.Module):
 
 @pytest.mark.parametrize("chunk", [37, 2000])
 def test_stream_gives_the_network_the_store_spike_mean(tmp_path, chunk):
+    from reconstruct.stream.groups import spike_mean_frames
+    from reconstruct.stream.sources import group_source
+    from reconstruct.video.stream import ReconstructConfig, reconstruct_stream
     from spike_sim.aggregate import AggregateConfig, frame_centres
     from spike_sim.store import open_group
-
-    from reconstruct.stream.groups import spike_mean_frames
-    from reconstruct.video.stream import ReconstructConfig, reconstruct_stream
-    from reconstruct.stream.sources import group_source
 
     make_group(tmp_path / "g", seed=3, duration=0.04)
     rec = _Recorder()
@@ -106,7 +105,8 @@ def test_stream_gives_the_network_the_store_spike_mean(tmp_path, chunk):
 
 def test_a_mean_network_refuses_groups_without_spikes():
     from reconstruct.evaluate.harness import EvalConfig, evaluate_groups
-    from reconstruct.stream.synthetic import SyntheticConfig, make_group as synth
+    from reconstruct.stream.synthetic import SyntheticConfig
+    from reconstruct.stream.synthetic import make_group as synth
 
     g = dataclasses.replace(synth(SyntheticConfig(width=16, height=16, n_groups=1, n_frames=9), 0), I_mean=None)  # e.g. an in-memory group
     rec = _Recorder()
@@ -123,8 +123,10 @@ def test_a_mean_network_refuses_groups_without_spikes():
 
 def test_synthetic_groups_carry_the_half_turn_mean():
     """The closed-form synthetic set gives a use_mean network its input: noise-free and static, 2 I_mean =
-    T + zbar (R - T) with zbar = (R_perp + R_par) / 2 (paper Eq. (1)-(2) averaged over a half turn)."""
-    from reconstruct.stream.synthetic import SyntheticConfig, make_group as synth
+    T + zbar (R - T) with zbar = (R_perp + R_par) / 2 (paper Eq. (1)-(2) averaged over a half turn).
+    """
+    from reconstruct.stream.synthetic import SyntheticConfig
+    from reconstruct.stream.synthetic import make_group as synth
 
     g = synth(SyntheticConfig(width=24, height=16, n_groups=1, n_frames=9, noise="none", motion_px_per_frame=0.0), 0)
     zbar = 0.5 * (g.maps.R_perp + g.maps.R_par)
@@ -136,7 +138,8 @@ def test_synthetic_groups_carry_the_half_turn_mean():
 def test_zbar_of_is_the_half_turn_mean_not_the_window_mean():
     """Closed form: zeta = a + b cos 2phi + c sin 2phi (paper Eq. (2)); over the N = 7, 0.65 ms windows (~84 deg of
     2 phi) the plain mean is off by up to the modulation depth, the first-harmonic level is a; it equals the mean
-    over a whole turn, and a still polarizer (all angles equal) gives the plain mean."""
+    over a whole turn, and a still polarizer (all angles equal) gives the plain mean.
+    """
     from reconstruct.physics.span import zbar_of
 
     rng = np.random.default_rng(3)
@@ -155,8 +158,9 @@ def test_zbar_of_is_the_half_turn_mean_not_the_window_mean():
 
 
 def test_anchored_base_network_starts_as_the_anchored_solver():
-    """base = anchored with zero decoder outputs returns exactly anchor_to_mean of its own solver output (with the
-    first-harmonic zbar); the forced zeta scale reaches the solver but not the returned ground truth."""
+    """Base = anchored with zero decoder outputs returns exactly anchor_to_mean of its own solver output (with the
+    first-harmonic zbar); the forced zeta scale reaches the solver but not the returned ground truth.
+    """
     from reconstruct.physics.span import anchor_to_mean, zbar_of
 
     cfg = dataclasses.replace(SMALL, use_mean=True, base="anchored", anchor_zbar="harmonic")
@@ -191,7 +195,8 @@ def test_anchored_base_network_starts_as_the_anchored_solver():
 def test_r_level_takes_rs_level_from_the_base_and_its_structure_from_the_refinement():
     """r_level_px > 0: R = R_ref + G_s * (R_base - R_ref). A refinement that only shifts R's level (Delta_r = c) is
     undone exactly (R = the anchored base), while without it R = base + c; T is untouched. gaussian_blur equals
-    scipy's mirrored Gaussian filter (truncated at 3 sigma)."""
+    scipy's mirrored Gaussian filter (truncated at 3 sigma).
+    """
     from scipy.ndimage import gaussian_filter
 
     from reconstruct.net.network import gaussian_blur

@@ -13,8 +13,8 @@ import numpy as np
 import pytest
 
 from reconstruct.net.checkpoint import DEFAULT_WEIGHTS, load_model
-from reconstruct.video.stream import ReconstructConfig, reconstruct_stream
 from reconstruct.stream.sources import array_source
+from reconstruct.video.stream import ReconstructConfig, reconstruct_stream
 
 pytestmark = pytest.mark.skipif(not DEFAULT_WEIGHTS.is_file(), reason=f"shipped checkpoint {DEFAULT_WEIGHTS} not present")
 

@@ -13,8 +13,7 @@ import torch
 from polinfra.errors import ConfigError, DataFormatError
 from polphysics.polarizer import PolarizerConfig
 from polphysics.zeta import mix_eq1, stokes_from_layers, zeta
-from reconstruct.net.onthefly import WindowConfig
-from reconstruct.net.onthefly import ITEM_KEYS, window_centres
+from reconstruct.net.onthefly import ITEM_KEYS, WindowConfig, window_centres
 from reconstruct.net.windows import StoreWindows, open_window_datasets
 from spike_sim.config import DEFAULT, IDEAL
 from spike_sim.simulate import keyframes_from_arrays, simulate

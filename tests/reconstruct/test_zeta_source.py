@@ -8,8 +8,8 @@ import torch
 
 from polinfra.errors import PolspikeError
 from polphysics.zeta import zeta as zeta_np
-from reconstruct.physics.zeta import PaneMaps, pane_maps_from_geometry, zeta_from_maps
 from reconstruct.net.learned_zeta import zeta_learned
+from reconstruct.physics.zeta import PaneMaps, pane_maps_from_geometry, zeta_from_maps
 
 
 def test_eq2_matches_physics_module(np_rng):

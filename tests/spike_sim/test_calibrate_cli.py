@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from polspike.cli import get_app
 from polphysics.polarizer import PolarizerConfig
+from polspike.cli import get_app
 from spike_sim.config import DEFAULT
 from spike_sim.simulate import keyframes_from_arrays, simulate
 
@@ -67,7 +67,8 @@ def test_group_without_maps_needs_a_target(tmp_path):
 
 def test_calibration_verdict_is_the_exit_code_of_the_console_script(tmp_path, polspike_cli):
     """Through the installed `polspike` script: a good calibration exits 0; one whose phi(t) misses the
-    true angle by more than --tolerance-deg rms exits 1 with verdict "fail"; a bad tolerance exits 2."""
+    true angle by more than --tolerance-deg rms exits 1 with verdict "fail"; a bad tolerance exits 2.
+    """
     psi = np.deg2rad(20.0)
     st = np.stack([np.full((H, W), 0.6), np.full((H, W), 0.6 * np.cos(2 * psi)), np.full((H, W), 0.6 * np.sin(2 * psi))])
     g = _group(tmp_path, st, PolarizerConfig(rate_hz=29.7, phase_deg=37.0, calibration_offset_deg=3.0))

@@ -20,8 +20,6 @@ from spike_sim.integrate_fire import (
 )
 
 
-
-
 @pytest.mark.parametrize("engine", ["numba", "numpy"])
 def test_constant_radiance_gives_exact_spike_count_noise_free(engine):
     """Ideal pixel at intensity g (dyadic, exact in float32) fires floor(n g) times in n steps, ISIs 1/g."""

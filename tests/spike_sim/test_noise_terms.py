@@ -1,5 +1,6 @@
 """Each noise term of SpikeSimConfig is switchable and acts as documented (both engines);
-the polarizer's finite extinction ratio reaches the spike counts; exposure is the documented gain."""
+the polarizer's finite extinction ratio reaches the spike counts; exposure is the documented gain.
+"""
 
 from __future__ import annotations
 
@@ -54,7 +55,8 @@ def test_each_noise_term_switches_on_alone_and_does_what_it_says(engine):
 
 def test_exposure_is_the_radiance_to_photocurrent_gain():
     """Documented mapping: noise-free, intensity g behind the polarizer fires exposure * g spikes per step;
-    an unpolarized S0 = 1 gives g = 1/2 behind the polarizer."""
+    an unpolarized S0 = 1 gives g = 1/2 behind the polarizer.
+    """
     for exposure in (0.25, 1.0, 1.5):
         cfg = dataclasses.replace(IDEAL, width=4, height=2, exposure=exposure)
         st = np.zeros((1, 3, 2, 4), np.float32)
@@ -68,7 +70,8 @@ def test_exposure_is_the_radiance_to_photocurrent_gain():
 @pytest.mark.parametrize("er", [None, 10.0, 100.0])
 def test_finite_extinction_ratio_leaks_the_crossed_polarization(er):
     """Fully polarized flat target S = g (1, 1, 0): over whole half-turns the mean intensity is
-    g (1 + k) / 2 with k = 1/ER; at the crossed angle the polarizer leaks k g instead of 0."""
+    g (1 + k) / 2 with k = 1/ER; at the crossed angle the polarizer leaks k g instead of 0.
+    """
     g = 0.8
     cfg = dataclasses.replace(IDEAL, width=4, height=2)
     st = np.zeros((1, 3, 2, 4), np.float32)

@@ -31,7 +31,8 @@ def _flat_target(psi, g=0.6):
 def test_flat_target_recovers_phase_and_speed():
     """Default noise, 0.15 s: phi0 within 0.05 deg, rate within 1e-4, phi(t) within 0.05 deg everywhere.
 
-    (Measured: 0.004 deg and 2e-6; the bound leaves room for other seeds.)"""
+    (Measured: 0.004 deg and 2e-6; the bound leaves room for other seeds.)
+    """
     psi = np.deg2rad(20.0)
     pol = PolarizerConfig(rate_hz=29.7, phase_deg=37.0, calibration_offset_deg=3.0, jitter_deg=0.05)
     s = _stream(_flat_target(psi), pol)

@@ -89,7 +89,8 @@ def test_dark_rate_is_far_below_the_dimmest_real_pixels_and_hot_pixels_exist():
 
 def test_ideal_camera_passes_at_the_spikingsim_rate_as_documented():
     """At ~0.2 spikes/step the ISI CV is the one-step quantisation of the ISI: ideal and default both pass,
-    as the README says; a camera 3x noisier in shot noise (Q = 15) is rejected there too (see above)."""
+    as the README says; a camera 3x noisier in shot noise (Q = 15) is rejected there too (see above).
+    """
     real = _load("spikingsim_real_spike.npz", "arr_0", "HWT")
     r_ideal, _, rates = _ratio(real, IDEAL)
     assert BAND[0] < r_ideal < BAND[1]

@@ -99,7 +99,8 @@ def test_frame_slices_negative_and_reversed(tmp_path, np_rng):
 
 def test_camera_file_whose_size_also_fits_plain_frames(tmp_path, np_rng, caplog):
     """25 camera frames of 416 columns = 26 plain frames of 400 (325000 bytes): auto reads plain frames and
-    warns; head_columns=16 reads the camera file; head_columns=0 refuses a size that fits only camera frames."""
+    warns; head_columns=16 reads the camera file; head_columns=0 refuses a size that fits only camera frames.
+    """
     s = (np_rng.random((25, 250, 416)) < 0.3).astype(np.uint8)
     p = write_dat(tmp_path / "cam.dat", s)
     with caplog.at_level("WARNING"):
