@@ -273,6 +273,14 @@ def reconstruct_cmd(
 
             model, info = build_net_zeta_model(model, zeta, src, group_dir=None if input.suffix.lower() == ".dat" else input, window_steps=window_steps,
                                                exposure=None if src.exposure is not None else cfg.exposure, fallback=zeta_fallback, pane_n=pane_n, pane_model=pane_model, selfcal=selfcal)
+            if str(info["zeta"]).startswith("none"):
+                # zeta = 0: the physics core is the windows' plain mean, no separation to hold the network to
+                from reconstruct.net.network import NetConfig
+
+                for m in net_model.modules():
+                    if isinstance(getattr(m, "cfg", None), NetConfig):
+                        m.cfg = dataclasses.replace(m.cfg, floor=False)
+                floor = False
     else:
         from reconstruct.video.physics import build_physics_model
 
