@@ -383,7 +383,7 @@ def test_wide_levels_move_only_low_frequencies_whatever_the_refinement():
     """
     from reconstruct.net.network import gaussian_blur
 
-    cfg0 = dataclasses.replace(SMALL, use_wide=True, base="anchored", anchor_zbar="harmonic", r_level_px=4.0)
+    cfg0 = dataclasses.replace(SMALL, use_wide=True, base="anchored", anchor_zbar="harmonic", r_level_px=4.0, floor=False)  # the levels before the floor
     I, phi, Im, _ = _window(7, H=32, W=32)
     Iw = 0.9 * I + 0.03 * torch.rand(I.shape, generator=torch.Generator().manual_seed(1))
     zeta = 0.05 + 0.1 * torch.rand(I.shape, generator=torch.Generator().manual_seed(2))
