@@ -76,6 +76,7 @@ from typing import Any
 import numpy as np
 
 from polinfra.atomic import ensure_dir, write_bytes, write_json
+from polinfra.dask_client import dask_client
 from polinfra.errors import ConfigError, DataFormatError, OutputError, PolspikeError
 from polinfra.faults import fault_point
 from polspike.pipeline.dataset_checksums import (
@@ -536,21 +537,9 @@ def _run_pool(todo, root, workers, executor, scheduler, client, chunk_steps, n_t
         own.append(pool.shutdown)
         futs = {pool.submit(build_group, g.build_spec(), str(root), chunk_steps, n_thr): g for g in todo}
     else:
-        try:
-            import distributed
-        except ImportError:
-            raise ConfigError("--executor dask needs the 'distributed' package (pip install 'dask[distributed]')") from None
-        if client is None:
-            if scheduler:
-                try:
-                    client = distributed.Client(scheduler, timeout="20s")
-                except (OSError, TimeoutError) as exc:
-                    raise OutputError(f"cannot connect to the Dask scheduler {scheduler!r} ({exc}); check the address (tcp://HOST:8786)") from None
-            else:
-                cluster = distributed.LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=None)
-                client = distributed.Client(cluster)
-                own.append(cluster.close)
-            own.insert(0, client.close)
+        stack = contextlib.ExitStack()
+        client = stack.enter_context(dask_client(scheduler, workers, client, what="--executor dask"))
+        own.insert(0, stack.close)
         futs = {client.submit(build_group, g.build_spec(), str(root), chunk_steps, n_thr, key=f"polspike-group-{g.name}-{g.spec_sha256[:12]}-{uuid.uuid4().hex[:6]}", pure=False): g for g in todo}
     try:
         pending = dict(futs)

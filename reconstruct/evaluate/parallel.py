@@ -19,11 +19,12 @@ import uuid
 from collections import defaultdict
 from collections.abc import Callable
 
+from polinfra.dask_client import dask_client
 from polinfra.errors import ConfigError, OutputError, PolspikeError
 from reconstruct.evaluate.harness import EvalConfig, EvalReport, evaluate_groups, summary_rows
 from reconstruct.physics.solvers import PHYSICS_SOLVER_CONFIG, SolverConfig
 
-__all__ = ["evaluate_groups_dask", "merge_reports", "dask_client"]
+__all__ = ["evaluate_groups_dask", "merge_reports"]
 
 log = logging.getLogger(__name__)
 
@@ -56,37 +57,6 @@ def merge_reports(reports: list[EvalReport], cfg: EvalConfig) -> EvalReport:
     return EvalReport(frames=frames, rows=summary_rows(frames, order), figure=fig, timings=dict(timings), config=conf, order=order)
 
 
-@contextlib.contextmanager
-def dask_client(scheduler: str | None = None, workers: int = 2, client=None):
-    """A ``distributed.Client``: the given one, one connected to ``scheduler``, or one of a new LocalCluster."""
-    if client is not None:
-        yield client
-        return
-    try:
-        import distributed
-    except ImportError:
-        raise ConfigError("a Dask evaluation needs the 'distributed' package (pip install 'dask[distributed]')") from None
-    if workers < 1:
-        raise ConfigError(f"--workers {workers}: a local Dask cluster needs >= 1 worker")
-    cluster = None
-    if scheduler:
-        try:
-            c = distributed.Client(scheduler, timeout="20s")
-        except (OSError, TimeoutError) as exc:
-            raise OutputError(f"cannot connect to the Dask scheduler {scheduler!r} ({exc}); check the address (tcp://HOST:8786)") from None
-    else:
-        cluster = distributed.LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=None)
-        c = distributed.Client(cluster)
-    try:
-        yield c
-    finally:
-        with contextlib.suppress(Exception):
-            c.close()
-        if cluster is not None:
-            with contextlib.suppress(Exception):
-                cluster.close()
-
-
 def evaluate_groups_dask(
     loaders: list[Callable],
     cfg: EvalConfig = EvalConfig(),
@@ -111,7 +81,7 @@ def evaluate_groups_dask(
     """
     if not loaders:
         raise ConfigError("no group to evaluate")
-    with dask_client(scheduler, workers, client) as c:
+    with dask_client(scheduler, workers, client, what="a Dask evaluation") as c:
         import distributed
 
         tag = uuid.uuid4().hex[:8]
