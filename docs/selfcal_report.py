@@ -2,7 +2,7 @@
 
 Usage (from the repository root, venv active; one torch thread):
 
-    python docs/selfcal_report.py closed-form                       # closed-form pane groups (tests/reconstruct/_pane_groups.py)
+    python docs/selfcal_report.py closed-form                       # closed-form pane groups (tests/recon/_pane_groups.py)
     python docs/selfcal_report.py dataset out/datasets/selfcal_strong [--pane-model M --pane-n N --max-frames 8]   # built groups (docs/selfcal_strong.toml)
     python docs/selfcal_report.py speed GROUP_DIR [WEIGHTS]          # frames/s: physics-only streams vs the network, same run
     python docs/selfcal_report.py twin-heldout                      # 16 random T-dominated narrow glancing closed-form groups:

@@ -8,7 +8,7 @@ test set of ``polspike evaluate-checkpoint`` (on-the-fly windows of the test gro
   these numbers;
 * ``reduced``: a small deterministic setting (8 windows of 32x32, same seed, one torch thread)
   that the test suite re-runs in seconds and compares within 0.05 dB
-  (``tests/reconstruct/test_shipped_checkpoint.py``).
+  (``tests/recon/test_shipped_checkpoint.py``).
 
 Both go to ``<weights stem>.scores.json`` beside the weights, with the weights' sha256 (a
 scores file of other weights is detected), the manifest whose test groups were used, and the

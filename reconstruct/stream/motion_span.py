@@ -30,7 +30,7 @@ SPAN_RIR = RirConfig(dop_max=1.0, coarse_factor=1)
 resolution.  Across parts 50 steps apart a pan changes each pixel more than the polarizer does, and the per-pixel
 harmonic fit behind RIR's low-DoP mask reads that change as polarization: with the windows' mask (DoP <= 0.12) the
 moving texture itself is left out and the outer parts, 3 px away at 400 px/s, register wrongly (measured on the
-synthetic pan of tests/reconstruct/test_motion_span.py)."""
+synthetic pan of tests/recon/test_motion_span.py)."""
 
 
 def span_parts(L: int, n_sub: int) -> list[tuple[int, int]]:

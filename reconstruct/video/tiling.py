@@ -161,7 +161,7 @@ class FeatureCache:
     encoded once (:meth:`reconstruct.net.network.PolSpikeNet.encode_obs`) at the window's scale
     (:func:`reconstruct.net.network.window_scale`, a power of two, so neighbouring windows almost
     always agree; a frame is re-encoded when it does not) and dropped once no later window uses it.
-    Output is identical to running the model on each window (tests/reconstruct/test_reconstruct_cli.py).
+    Output is identical to running the model on each window (tests/recon/test_reconstruct_cli.py).
     """
 
     def __init__(self, model, device: str | torch.device = "cpu", precision: str = "float32"):

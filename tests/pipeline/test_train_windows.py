@@ -104,7 +104,7 @@ def test_manifest_scenes_and_cli_train_then_evaluate(tmp_path):
     )
     app = get_app()
     # in-process (CliRunner): this pytest process has run OpenMP already, so no forked data worker
-    # (the worker path is tested in tests/reconstruct/test_train.py with forkserver)
+    # (the worker path is tested in tests/recon/test_train.py with forkserver)
     r = CliRunner().invoke(app, ["train", str(cfg), "--out", str(tmp_path / "run"), "--threads", "1", "--workers", "0", "--quiet"])
     assert r.exit_code == 0, r.output
     assert (tmp_path / "run" / "last.pt").is_file()

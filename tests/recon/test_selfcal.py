@@ -1,5 +1,5 @@
 """--zeta self: the pane geometry recovered from the stream (normal / vanishing point, theta, zeta) against
-the truth of closed-form groups built independently (tests/reconstruct/_pane_groups.py: polphysics geometry,
+the truth of closed-form groups built independently (tests/recon/_pane_groups.py: polphysics geometry,
 Fresnel, paper Eq. (1)-(2), Poisson spike counts), at several tilts and axes; the 90 deg flip where R < T;
 'nothing modulates' flagged and logged at normal incidence; solver PSNR with self vs true zeta.
 """

@@ -114,7 +114,7 @@ def test_integrate_fire_count_variance_matches_the_simulator():
 
 
 def test_the_evaluation_bound_equals_the_unclipped_ls_error_on_a_stored_group(tmp_path):
-    """A stored integrate-and-fire group (tests/reconstruct/test_evaluate.py's writer, static, known pane): the
+    """A stored integrate-and-fire group (tests/recon/test_evaluate.py's writer, static, known pane): the
     evaluation's share context gives the bound the evaluation reports, and the unclipped LS estimate of R with the
     true zeta has a mean squared error within 10 % of its mean variance (measured: 1-5 %).
     """

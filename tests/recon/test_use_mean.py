@@ -17,7 +17,7 @@ from reconstruct.net.network import NetConfig, PolSpikeNet, init_weights
 from reconstruct.net.train import _widened
 from tests.reconstruct.test_windows import make_group
 
-SMALL = NetConfig(arch="v2", feat_ch=8, lr_ch=8, w_ch=4, ref_ch=(8, 8, 8), dec_ch=(8, 8, 8), use_rir=False, floor=False)  # the forward before the data-consistency floor (tests/reconstruct/test_consistency_floor.py)
+SMALL = NetConfig(arch="v2", feat_ch=8, lr_ch=8, w_ch=4, ref_ch=(8, 8, 8), dec_ch=(8, 8, 8), use_rir=False, floor=False)  # the forward before the data-consistency floor (tests/recon/test_consistency_floor.py)
 
 
 def _window(seed=0, B=2, H=16, W=16):
