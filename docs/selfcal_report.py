@@ -64,7 +64,7 @@ def _geometry(g, r, Zs, Zg) -> dict:
 
 def closed_form() -> None:
     from reconstruct.pane.selfcal import group_self_zeta
-    from tests.reconstruct._pane_groups import make_pane_group
+    from tests.recon._pane_groups import make_pane_group
 
     for tilt, az, rg in [(35, 20, 3.0), (55, 120, 3.0), (70, 250, 3.0), (55, 300, 5.0), (45, 200, 2.0)]:
         g, N = make_pane_group(tilt, az, r_gain=rg, seed=tilt)
@@ -217,7 +217,7 @@ def twin_heldout(n_groups: int = 16, seed: int = 2026) -> None:
     the family chosen (by the cone, by the content, or refused) against the true phi_perp.
     """
     from reconstruct.pane.selfcal import SelfCalConfig, self_calibrate
-    from tests.reconstruct._pane_groups import make_pane_group
+    from tests.recon._pane_groups import make_pane_group
 
     rng = np.random.default_rng(seed)
     for k in range(n_groups):

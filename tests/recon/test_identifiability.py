@@ -123,7 +123,7 @@ def test_the_evaluation_bound_equals_the_unclipped_ls_error_on_a_stored_group(tm
     from reconstruct.evaluate.harness import EvalConfig, evaluate_groups, group_noise, share_context, share_scores
     from reconstruct.physics.solvers import solve
     from reconstruct.stream.groups import load_store_group
-    from tests.reconstruct.test_evaluate import _write_store
+    from tests.recon.test_evaluate import _write_store
 
     _write_store(tmp_path / "g0", H=32, W=48, n_frames=14, exposure=1.5)
     g = load_store_group(tmp_path / "g0")

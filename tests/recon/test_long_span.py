@@ -232,7 +232,7 @@ def _streamed(tmp_path, chunk: int, seed: int, rec: _Recorder):
     from reconstruct.stream.groups import load_store_group
     from reconstruct.stream.sources import group_source
     from reconstruct.video.stream import ReconstructConfig, reconstruct_stream
-    from tests.reconstruct.test_windows import make_group
+    from tests.recon.test_windows import make_group
 
     make_group(tmp_path / "g", seed=seed, duration=0.04)
     src = group_source(tmp_path / "g", chunk_steps=chunk)

@@ -19,7 +19,7 @@ from reconstruct.net.network import NetConfig, PolSpikeNet, init_weights
 from reconstruct.physics.span import SPAN_SATURATION, harmonic_of, long_span_separation, span_blend, span_weights
 from reconstruct.physics.zeta import zeta_from_maps
 from reconstruct.stream.groups import span_harmonic
-from tests.reconstruct.test_long_span import _static_scene
+from tests.recon.test_long_span import _static_scene
 
 SMALL = NetConfig(arch="v2", feat_ch=8, lr_ch=8, w_ch=4, ref_ch=(8, 8, 8), dec_ch=(8, 8, 8), use_rir=False, use_mean=True, base="anchored", anchor_zbar="harmonic")
 SPAN = 350
@@ -218,7 +218,7 @@ class _SpanRecorder(torch.nn.Module):
 
 
 def test_stream_hands_a_span_level_network_the_store_exposure_span_and_harmonic(tmp_path):
-    from tests.reconstruct.test_long_span import _streamed
+    from tests.recon.test_long_span import _streamed
 
     rec = _SpanRecorder()
     got, src, g = _streamed(tmp_path, 37, 3, rec)
@@ -235,7 +235,7 @@ def test_training_items_carry_what_a_span_level_network_reads_and_the_forced_sco
     from polinfra.errors import ConfigError
     from reconstruct.net.onthefly import OnTheFlyWindows
     from reconstruct.net.train import TINY, evaluate_model, span_inputs
-    from tests.reconstruct.test_train import _stream_item
+    from tests.recon.test_train import _stream_item
 
     wcfg = dataclasses.replace(TINY.window, mean_steps=SPAN, crop=24)
     ds = OnTheFlyWindows(lambda s_, i: _stream_item(s_, i, wcfg), length=4, seed=3)

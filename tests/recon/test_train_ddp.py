@@ -72,7 +72,7 @@ def config(tmp_path_factory) -> Path:
 @pytest.fixture(scope="module")
 def data(tmp_path_factory) -> Path:
     """Two tiny stored spike groups (train / test), as reconstruct's window tests build them."""
-    from tests.reconstruct.test_windows import _dataset
+    from tests.recon.test_windows import _dataset
 
     return _dataset(tmp_path_factory.mktemp("ddp_data"))
 

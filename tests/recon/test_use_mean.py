@@ -15,7 +15,7 @@ import torch
 from polinfra.errors import ConfigError, ShapeError
 from reconstruct.net.network import NetConfig, PolSpikeNet, init_weights
 from reconstruct.net.train import _widened
-from tests.reconstruct.test_windows import make_group
+from tests.recon.test_windows import make_group
 
 SMALL = NetConfig(arch="v2", feat_ch=8, lr_ch=8, w_ch=4, ref_ch=(8, 8, 8), dec_ch=(8, 8, 8), use_rir=False, floor=False)  # the forward before the data-consistency floor (tests/recon/test_consistency_floor.py)
 
