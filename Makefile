@@ -10,6 +10,9 @@ STAMP := $(VENV)/.installed
 OUT ?= out/demo
 export DRJIT_LIBLLVM_PATH ?= /usr/lib/x86_64-linux-gnu/libLLVM.so.19.1
 export MPLBACKEND := Agg
+# the suite runs on min(cores, 4) pytest-xdist workers, one test file per worker at a time (--dist loadfile:
+# a file's tests keep their order, e.g. the README tour); XDIST= runs it in one process
+XDIST ?= -n $(shell n=$$(nproc); echo $$(( n < 4 ? n : 4 ))) --dist loadfile
 
 .PHONY: install demo test test-quick test-all bench docs docs-serve clean system-deps
 
@@ -30,11 +33,11 @@ demo: install
 
 test: install  # the whole suite, the tests marked slow included (what CI runs; budget 20 minutes on 2 cores)
 	@bash .ci/system-deps.sh --test
-	$(BIN)/python -m pytest -q -p no:cacheprovider $(PYTEST_ARGS)
+	$(BIN)/python -m pytest -q -p no:cacheprovider $(XDIST) $(PYTEST_ARGS)
 
 test-quick: install  # the suite without the tests marked slow (each > ~20 s), for a quick local check
 	@bash .ci/system-deps.sh --test
-	$(BIN)/python -m pytest -q -m "not slow" -p no:cacheprovider $(PYTEST_ARGS)
+	$(BIN)/python -m pytest -q -m "not slow" -p no:cacheprovider $(XDIST) $(PYTEST_ARGS)
 
 test-all: test  # the same as test
 
