@@ -106,7 +106,7 @@ def check_render(cwd: Path, args: list[str], out: str) -> None:
 def _axis_fresnel(maps: dict, scene: dict) -> None:
     pane = scene["pane"]
     assert pane["model"] == "thin_slab"
-    assert abs(np.degrees(_centre(maps["theta"])) - pane["tilt_deg"]) < 0.01
+    assert abs(np.degrees(_centre(maps["theta"])) - pane["tilt_deg"]) < 0.01, ("incidence on the axis", np.degrees(_centre(maps["theta"])))
     want = thin_slab(pane["n"], np.radians(pane["tilt_deg"]))
     for k in ("R_perp", "R_par", "T_perp", "T_par"):
         assert abs(_centre(maps[k]) - want[k]) < 5e-4, (k, _centre(maps[k]), want[k])
