@@ -15,6 +15,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 REPO = Path(__file__).resolve().parents[1]
 _POPCOUNT = np.array([bin(i).count("1") for i in range(256)], dtype=np.int64)
@@ -235,7 +236,7 @@ def check_dataset_inspect(cwd: Path, args: list[str], out: str) -> None:
 
 def check_evaluate(cwd: Path, args: list[str], out: str) -> None:
     """One overall row per method and baseline, over the manifest's test groups, each on --max-frames frames, PSNR
-    in a plausible range; the table's files agree.  (Its PSNR against a hand computation: tests/recon/test_evaluate.py.)
+    in a plausible range; the table's files agree; the TFP row's PSNR equals the one computed here from the raw spikes.
     """
     d = cwd / _opt(args, "--out")
     res = json.loads((d / "results.json").read_text())
@@ -250,6 +251,31 @@ def check_evaluate(cwd: Path, args: list[str], out: str) -> None:
         assert 10 < r["psnr_T"] < 60 and 0 < r["ssim_T"] <= 1, (m, r)
     csv = (d / "results.csv").read_text()
     assert f"{rows['full']['psnr_T']:.2f}" in (d / "results.md").read_text() and "full" in csv
+    assert rows["tfp"]["psnr_T"] == pytest.approx(_tfp_psnr(cwd / args[1] / "groups" / want[0], rows["tfp"]["n_frames"]), abs=1e-4)
+
+
+def _tfp_psnr(group: Path, n_frames: int, K: int = 3, w: int = 13, stride_deg: float = 31.5) -> float:
+    """Mean T PSNR of the TFP baseline over the first ``n_frames`` frames with K Eq. (3) frames on each side, from its
+    definition: frame m is centred on the step where the mid-step polarizer angle has turned by m x stride since
+    t = 0 (rounded to a step); T = 2 x the mean of the 2K + 1 w-step spike counts / (w x exposure) around the centres;
+    PSNR = 10 log10(1 / MSE) against the T stored for that step, the estimate clipped to [0, 1].
+    """
+    import h5py
+
+    exposure = json.loads((group / "group.json").read_text())["config"]["exposure"]
+    with h5py.File(group / "spikes.h5", "r") as f:
+        H, W = f["gt/T"].shape[1:]
+        phi = f["polarizer/phi_nominal_rad"][:]
+        turned = phi - (phi[0] - 0.5 * (phi[1] - phi[0]))
+        c = np.rint(np.interp(np.arange(0.0, turned[-1], np.radians(stride_deg)), turned, np.arange(phi.size))).astype(int)
+        c = c[c >= w // 2]
+        gt_at = {int(s): j for j, s in enumerate(f["output/step_index"][:])}
+        out = []
+        for i in range(K, K + n_frames):
+            I = [np.unpackbits(f["spikes"][c[k] - w // 2 : c[k] + w // 2 + 1], axis=1, bitorder="little")[:, : H * W].sum(0) / (w * exposure) for k in range(i - K, i + K + 1)]
+            T = np.clip(2.0 * np.mean(I, 0).reshape(H, W), 0.0, 1.0)
+            out.append(10 * np.log10(1.0 / np.mean((T - f["gt/T"][gt_at[int(c[i])]].astype(np.float64)) ** 2)))
+    return float(np.mean(out))
 
 
 CHECKS: dict[tuple[str, ...], Callable[[Path, list[str], str], None]] = {
