@@ -207,7 +207,8 @@ def check_dataset_build(cwd: Path, args: list[str], out: str) -> None:
     man = tomllib.loads((cwd / args[2]).read_text())
     d = cwd / _opt(args, "--out")
     ds = json.loads((d / "dataset.json").read_text())
-    assert ds["complete"] and [(g["name"], g["split"]) for g in ds["groups"]] == [(g["name"], g["split"]) for g in man["groups"]]
+    got, want = [(g["name"], g["split"]) for g in ds["groups"]], [(g["name"], g["split"]) for g in man["groups"]]
+    assert ds["complete"] and got == want, ("groups built, in the manifest", got, want)
     cam, dur = man["defaults"]["camera"], man["defaults"]["duration_s"]
     for g in ds["groups"]:
         with h5py.File(d / g["path"] / "spikes.h5", "r") as f:
@@ -251,7 +252,8 @@ def check_evaluate(cwd: Path, args: list[str], out: str) -> None:
         assert 10 < r["psnr_T"] < 60 and 0 < r["ssim_T"] <= 1, (m, r)
     csv = (d / "results.csv").read_text()
     assert f"{rows['full']['psnr_T']:.2f}" in (d / "results.md").read_text() and "full" in csv
-    assert rows["tfp"]["psnr_T"] == pytest.approx(_tfp_psnr(cwd / args[1] / "groups" / want[0], rows["tfp"]["n_frames"]), abs=1e-4)
+    hand = _tfp_psnr(cwd / args[1] / "groups" / want[0], rows["tfp"]["n_frames"])
+    assert rows["tfp"]["psnr_T"] == pytest.approx(hand, abs=1e-4), ("TFP PSNR: table, by hand", rows["tfp"]["psnr_T"], hand)
 
 
 def _tfp_psnr(group: Path, n_frames: int, K: int = 3, w: int = 13, stride_deg: float = 31.5) -> float:
