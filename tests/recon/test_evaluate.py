@@ -163,16 +163,25 @@ def test_anchor_to_mean_takes_the_level_from_the_mean_and_the_difference_from_th
 
 def test_anchor_rows_on_a_static_store_beat_the_short_windows(tmp_path):
     """Evaluate --anchor mean: '<method>+mean' rows; on a static scene the anchored RWPS beats plain RWPS and TFP (the
-    level from 350 steps instead of 7 x 13) by far, and never falls below the spike mean by more than noise.
+    level from 350 steps instead of 7 x 13) by far, and never falls below the spike mean by more than noise; the
+    worst of five stores (seeds 0-4: layers, pane, accumulator start).
+
+    Bounds: measured over seeds 0-4, anchored RWPS minus RWPS 3.07-3.63 dB, minus TFP 3.03-4.26 dB (bounds 2 dB),
+    minus the spike mean 0.17-1.25 dB (bound -0.5 dB).
     """
-    _write_store(tmp_path / "g0", n_frames=14)
-    g = load_store_group(tmp_path / "g0")
-    rep = evaluate_groups([g], EvalConfig(rir=False, methods="ls,rwps", anchor="mean"))
-    ov = {r["method"]: r for r in rep.rows if r["group"] == "overall"}
-    assert {"ls+mean", "rwps+mean"} <= set(ov)
-    assert ov["rwps+mean"]["psnr_T"] > ov["rwps"]["psnr_T"] + 2.0  # measured 26.78 vs 23.80
-    assert ov["rwps+mean"]["psnr_T"] > ov["tfp"]["psnr_T"] + 2.0  # 23.35
-    assert ov["rwps+mean"]["psnr_T"] > ov["spike_mean"]["psnr_T"] - 0.5  # 26.56
+    gain_rwps, gain_tfp, gain_mean = [], [], []
+    for seed in range(5):
+        _write_store(tmp_path / f"g{seed}", n_frames=14, seed=seed)
+        g = load_store_group(tmp_path / f"g{seed}")
+        rep = evaluate_groups([g], EvalConfig(rir=False, methods="ls,rwps", anchor="mean"))
+        ov = {r["method"]: r for r in rep.rows if r["group"] == "overall"}
+        assert {"ls+mean", "rwps+mean"} <= set(ov)
+        gain_rwps.append(ov["rwps+mean"]["psnr_T"] - ov["rwps"]["psnr_T"])
+        gain_tfp.append(ov["rwps+mean"]["psnr_T"] - ov["tfp"]["psnr_T"])
+        gain_mean.append(ov["rwps+mean"]["psnr_T"] - ov["spike_mean"]["psnr_T"])
+    assert min(gain_rwps) > 2.0, gain_rwps
+    assert min(gain_tfp) > 2.0, gain_tfp
+    assert min(gain_mean) > -0.5, gain_mean
     off = evaluate_groups([g], EvalConfig(rir=False, methods="ls"))
     assert not any(r["method"].endswith("+mean") for r in off.rows)
 
