@@ -5,7 +5,6 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
-import pytest
 
 from polphysics.polarizer import PolarizerConfig, phi_true
 from spike_sim.calibrate import calibrate_flat_target, calibrate_from_modulation, darkest_phase, phase_error
@@ -61,7 +60,8 @@ def test_flat_target_recovers_phase_and_speed():
 
 def test_modulation_of_a_glass_scene_with_sign_flipped_axes():
     """Half the pixels polarized along phi_perp, half across it: phase from (A e^{2i psi})^2 + a coarse prior (the
-    worst of five noise draws)."""
+    worst of five noise draws).
+    """
     phi_perp = np.deg2rad(10.0) + np.deg2rad(15.0) * np.linspace(0, 1, W)[None].repeat(H, 0)
     sign = np.where(np.arange(W)[None].repeat(H, 0) < W // 2, 1.0, -1.0)
     st = np.stack([np.full((H, W), 0.6), 0.3 * sign * np.cos(2 * phi_perp), 0.3 * sign * np.sin(2 * phi_perp)])
