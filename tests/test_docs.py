@@ -23,6 +23,8 @@ from pathlib import Path
 
 import pytest
 
+from tests._cli_checks import make_scratch, parses, run_cli
+
 REPO = Path(__file__).resolve().parents[1]
 DOCS = REPO / "docs"
 #: the pages whose commands run, and those that take over ~20 s on two cores (marked slow; the README tour
@@ -80,39 +82,11 @@ def test_every_how_to_page_has_commands():
 @pytest.mark.parametrize("page,args", ALL, ids=[f"{p}: {' '.join(a)[:50]}" for p, a in ALL])
 def test_docs_command_parses(page, args):
     """Option names, types and ranges are accepted by the real CLI (the command body is not run)."""
-    import typer.main
-
-    from polspike.cli import get_app
-
-    root = typer.main.get_command(get_app())
-
-    def stub(cmd):
-        for param in getattr(cmd, "params", ()):
-            if param.name == "version":  # eager: exits as --help does (the tour runs it for real)
-                param.callback = _exit_if_set
-        if hasattr(cmd, "commands"):
-            for sub in cmd.commands.values():
-                stub(sub)
-        elif cmd.callback is not None:
-            cmd.callback = lambda *a, **k: None
-
-    stub(root)
-    try:
-        root.main(args=list(args), prog_name="polspike", standalone_mode=False)
-    except SystemExit as exc:
-        assert exc.code in (0, None), args
-
-
-def _scratch(tmp_path: Path) -> Path:
-    for sub in ("scenes", "datasets"):
-        (tmp_path / sub).symlink_to(REPO / sub)
-    (tmp_path / "reconstruct").mkdir()
-    (tmp_path / "reconstruct" / "configs").symlink_to(REPO / "reconstruct" / "configs")
-    return tmp_path
+    parses(args)
 
 
 def _run_page(page: str, tmp_path: Path) -> None:
-    cwd = _scratch(tmp_path)
+    cwd = make_scratch(tmp_path)
     env = dict(os.environ, COLUMNS="120", PYTHONPATH=os.pathsep.join([str(REPO), os.environ.get("PYTHONPATH", "")]))
     for kind, title, body in blocks(page):
         if kind == "file":
@@ -125,28 +99,8 @@ def _run_page(page: str, tmp_path: Path) -> None:
         if kind != "run":
             continue
         for argv, code in commands(body):
-            quiet = ["--quiet"] if _takes_quiet(argv) else []
-            r = subprocess.run([sys.executable, "-c", "from polspike.cli import app; app()", *argv, *quiet],
-                               capture_output=True, text=True, cwd=cwd, timeout=900, env=env)
+            r = run_cli(argv, cwd)
             assert r.returncode == code, (page, argv, r.returncode, r.stdout[-1500:], r.stderr[-3000:])
-
-
-def _exit_if_set(ctx, param, value):
-    if value:
-        raise SystemExit(0)
-    return value
-
-
-def _takes_quiet(args) -> bool:
-    import typer.main
-
-    from polspike.cli import get_app
-
-    cmd = typer.main.get_command(get_app())
-    for a in args:
-        if hasattr(cmd, "commands") and a in cmd.commands:
-            cmd = cmd.commands[a]
-    return any("--quiet" in getattr(p, "opts", []) for p in getattr(cmd, "params", []))
 
 
 @pytest.mark.parametrize("page", [pytest.param(p, marks=pytest.mark.slow) if p in SLOW_PAGES else p for p in PAGES])

@@ -10,14 +10,14 @@ runs those).
 
 from __future__ import annotations
 
-import os
 import re
 import shlex
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
+
+from tests._cli_checks import make_scratch, parses, run_cli
+from tests._tour_checks import tour_check
 
 REPO = Path(__file__).resolve().parents[1]
 README = REPO / "README.md"
@@ -41,6 +41,7 @@ def bash_blocks() -> list[list[list[str]]]:
 
 BLOCKS = bash_blocks()
 ALL = [c for b in BLOCKS for c in b]
+TOUR = BLOCKS[0] if BLOCKS else []
 
 
 def docs_commands() -> list[list[str]]:
@@ -77,62 +78,21 @@ def test_readme_and_docs_have_a_command_per_subcommand():
 @pytest.mark.parametrize("args", ALL, ids=[" ".join(a)[:60] for a in ALL])
 def test_readme_command_parses(args):
     """Option names, types and ranges are accepted by the real CLI (the command body is not run)."""
-    import typer.main
-
-    from polspike.cli import get_app
-
-    root = typer.main.get_command(get_app())
-
-    def stub(cmd):
-        for param in getattr(cmd, "params", ()):
-            if param.name == "version":  # eager: exits as --help does (the tour runs it for real)
-                param.callback = _exit_if_set
-        if hasattr(cmd, "commands"):
-            for sub in cmd.commands.values():
-                stub(sub)
-        elif cmd.callback is not None:
-            cmd.callback = lambda *a, **k: None
-
-    stub(root)
-    try:
-        root.main(args=list(args), prog_name="polspike", standalone_mode=False)
-    except SystemExit as exc:  # --help exits 0
-        assert exc.code in (0, None), args
+    parses(args)
 
 
 @pytest.fixture(scope="module")
 def scratch(tmp_path_factory) -> Path:
-    d = tmp_path_factory.mktemp("readme")
-    for sub in ("scenes", "datasets"):
-        (d / sub).symlink_to(REPO / sub)
-    (d / "reconstruct").mkdir()
-    (d / "reconstruct" / "configs").symlink_to(REPO / "reconstruct" / "configs")
-    return d
+    return make_scratch(tmp_path_factory.mktemp("readme"))
 
 
-@pytest.mark.parametrize("args", BLOCKS[0] if BLOCKS else [], ids=[" ".join(a)[:60] for a in (BLOCKS[0] if BLOCKS else [])])
+@pytest.mark.parametrize("args", TOUR, ids=[" ".join(a)[:60] for a in TOUR])
 def test_readme_tour_runs(args, scratch):
+    """The command exits 0, and what it prints or writes holds the content the README promises (tour_checks)."""
     if args and args[0] in SKIP_RUN:
         pytest.skip(SKIP_RUN[args[0]])
-    env = dict(os.environ, COLUMNS="120")
-    r = subprocess.run([sys.executable, "-c", "from polspike.cli import app; app()", *args, *(["--quiet"] if _takes_quiet(args) else [])],
-                       capture_output=True, text=True, cwd=scratch, timeout=600, env=env)
+    check = tour_check(args)
+    assert check is not None, f"no content check for the tour command {args}: add one to tests/_tour_checks.py"
+    r = run_cli(args, scratch, timeout=600)
     assert r.returncode == 0, (args, r.stdout[-1500:], r.stderr[-3000:])
-
-
-def _exit_if_set(ctx, param, value):
-    if value:
-        raise SystemExit(0)
-    return value
-
-
-def _takes_quiet(args) -> bool:
-    import typer.main
-
-    from polspike.cli import get_app
-
-    cmd = typer.main.get_command(get_app())
-    for a in args:
-        if hasattr(cmd, "commands") and a in cmd.commands:
-            cmd = cmd.commands[a]
-    return any("--quiet" in getattr(p, "opts", []) for p in getattr(cmd, "params", []))
+    check(scratch, args, r.stdout)

@@ -163,16 +163,25 @@ def test_anchor_to_mean_takes_the_level_from_the_mean_and_the_difference_from_th
 
 def test_anchor_rows_on_a_static_store_beat_the_short_windows(tmp_path):
     """Evaluate --anchor mean: '<method>+mean' rows; on a static scene the anchored RWPS beats plain RWPS and TFP (the
-    level from 350 steps instead of 7 x 13) by far, and never falls below the spike mean by more than noise.
+    level from 350 steps instead of 7 x 13) by far, and never falls below the spike mean by more than noise; the
+    worst of five stores (seeds 0-4: layers, pane, accumulator start).
+
+    Bounds: measured over seeds 0-4, anchored RWPS minus RWPS 3.07-3.63 dB, minus TFP 3.03-4.26 dB (bounds 2 dB),
+    minus the spike mean 0.17-1.25 dB (bound -0.5 dB).
     """
-    _write_store(tmp_path / "g0", n_frames=14)
-    g = load_store_group(tmp_path / "g0")
-    rep = evaluate_groups([g], EvalConfig(rir=False, methods="ls,rwps", anchor="mean"))
-    ov = {r["method"]: r for r in rep.rows if r["group"] == "overall"}
-    assert {"ls+mean", "rwps+mean"} <= set(ov)
-    assert ov["rwps+mean"]["psnr_T"] > ov["rwps"]["psnr_T"] + 2.0  # measured 26.78 vs 23.80
-    assert ov["rwps+mean"]["psnr_T"] > ov["tfp"]["psnr_T"] + 2.0  # 23.35
-    assert ov["rwps+mean"]["psnr_T"] > ov["spike_mean"]["psnr_T"] - 0.5  # 26.56
+    gain_rwps, gain_tfp, gain_mean = [], [], []
+    for seed in range(5):
+        _write_store(tmp_path / f"g{seed}", n_frames=14, seed=seed)
+        g = load_store_group(tmp_path / f"g{seed}")
+        rep = evaluate_groups([g], EvalConfig(rir=False, methods="ls,rwps", anchor="mean"))
+        ov = {r["method"]: r for r in rep.rows if r["group"] == "overall"}
+        assert {"ls+mean", "rwps+mean"} <= set(ov)
+        gain_rwps.append(ov["rwps+mean"]["psnr_T"] - ov["rwps"]["psnr_T"])
+        gain_tfp.append(ov["rwps+mean"]["psnr_T"] - ov["tfp"]["psnr_T"])
+        gain_mean.append(ov["rwps+mean"]["psnr_T"] - ov["spike_mean"]["psnr_T"])
+    assert min(gain_rwps) > 2.0, gain_rwps
+    assert min(gain_tfp) > 2.0, gain_tfp
+    assert min(gain_mean) > -0.5, gain_mean
     off = evaluate_groups([g], EvalConfig(rir=False, methods="ls"))
     assert not any(r["method"].endswith("+mean") for r in off.rows)
 
@@ -197,3 +206,57 @@ def test_share_scores_equal_the_whole_frame_ones_where_all_the_light_is_reflecti
     R2[..., : g.R.shape[-1] // 2] = 0.6
     half = evaluate_groups([dataclasses.replace(g, T=np.full_like(g.T, 1e-4), R=R2)], cfg)
     assert all(x["psnr_R_flat"] == pytest.approx(10 * np.log10(1 / 0.2**2)) for x in half.frames if x["method"] == "ls")
+
+
+def _hand_psnr(est: np.ndarray, gt: np.ndarray) -> float:
+    """PSNR from its definition, 10 log10(peak^2 / MSE) with peak 1 (radiance 1.0 = brightest layer value), the
+    estimate clipped to [0, 1] as the table's metrics say (reconstruct/evaluate/metrics.py); no gain, no crop.
+    """
+    mse = float(np.mean((np.clip(est, 0.0, 1.0) - gt) ** 2))
+    return 10.0 * np.log10(1.0 / mse)
+
+
+def test_evaluate_table_equals_a_hand_computed_psnr(tmp_path, polspike_main):
+    """``polspike evaluate`` on a one-group store, one frame: the table's T PSNR of the TFP and spike-mean baselines
+    and of least squares equals PSNR computed here with numpy from the raw spikes, the stored ground truth and
+    the stored pane maps (the frame: the first with K = 3 Eq. (3) frames on each side; TFP = 2 x the mean of its
+    7 13-step windows in radiance units; spike mean = 2 x spikes per step over the 350 steps around its centre,
+    clipped to the stream; LS = the per-pixel least-squares (R, T) of 2 I_k = zeta_k R + (1 - zeta_k) T with zeta_k
+    paper Eq. (2) averaged over each window's 13 steps of the true angle), all / exposure.
+    """
+    import h5py
+
+    d = tmp_path / "ds"
+    _write_store(d / "groups" / "g0", n_frames=10, seed=3)
+    (d / "dataset.json").write_text(json.dumps({"groups": [{"name": "g0", "path": "groups/g0", "split": "test"}]}))
+    out = tmp_path / "eval"
+    r = polspike_main("evaluate", d, "--split", "test", "--method", "ls", "--no-rir", "--max-frames", "1", "--out", out, "--quiet")
+    assert r.returncode == 0, r.stderr[-2000:]
+    rows = {x["method"]: x for x in json.loads((out / "results.json").read_text())["rows"] if x["group"] == "overall"}
+
+    exposure, K, w = 0.5, 3, 13
+    with h5py.File(d / "groups" / "g0" / "spikes.h5", "r") as f:
+        n_steps = f["spikes"].shape[0]
+        H, W = f["gt/T"].shape[1:]
+        sp = np.unpackbits(f["spikes"][:], axis=1, bitorder="little")[:, : H * W].reshape(n_steps, H, W).astype(np.float64)
+        c = f["output/step_index"][:]
+        phi = f["polarizer/phi_true_rad"][:]
+        gt = f["gt/T"][K].astype(np.float64)
+        Rs, Rp, pp = (f[f"maps/{k}"][:].astype(np.float64) for k in ("R_perp", "R_par", "phi_perp"))
+    wins = [np.arange(c[k] - w // 2, c[k] + w // 2 + 1) for k in range(2 * K + 1)]
+    I = np.stack([sp[s].sum(0) / (w * exposure) for s in wins])
+    tfp = 2.0 * I.mean(0)
+    lo, hi = max(0, c[K] - 175), min(n_steps, c[K] + 176)
+    mean = 2.0 * sp[lo:hi].sum(0) / ((hi - lo) * exposure)
+    z = np.stack([(Rs * np.cos(phi[s, None, None] - pp) ** 2 + Rp * np.sin(phi[s, None, None] - pp) ** 2).mean(0) for s in wins])
+    b = 2.0 * I  # b_k = zeta_k R + (1 - zeta_k) T: normal equations per pixel
+    a, e = z, 1.0 - z
+    Saa, Sae, See, Sab, Seb = (a * a).sum(0), (a * e).sum(0), (e * e).sum(0), (a * b).sum(0), (e * b).sum(0)
+    T_ls = (Saa * Seb - Sae * Sab) / (Saa * See - Sae * Sae)
+
+    assert rows["tfp"]["n_frames"] == rows["ls"]["n_frames"] == 1
+    assert rows["tfp"]["psnr_T"] == pytest.approx(_hand_psnr(tfp, gt), abs=1e-4)
+    assert rows["spike_mean"]["psnr_T"] == pytest.approx(_hand_psnr(mean, gt), abs=1e-4)
+    assert rows["ls"]["psnr_T"] == pytest.approx(_hand_psnr(T_ls, gt), abs=1e-2)
+    md = (out / "results.md").read_text()
+    assert f"| overall | tfp | 1 | {_hand_psnr(tfp, gt):.2f} |" in md, md

@@ -58,12 +58,19 @@ def test_noise_free_stream_gives_the_closed_form_estimate():
 def test_estimate_scales_with_the_true_exposure_on_a_noisy_sensor():
     """Default sensor (shot noise, dark current, fixed pattern): the estimate is proportional to the
     true exposure, and within [1.0, 1.25] of the noise-free value (the per-pixel gain mismatch,
-    sigma 5.8 %, lifts the top percentile; measured 1.13).
+    sigma 5.8 %, lifts the top percentile), for each of five noise draws (fixed pattern and noise: seeds 0-4).
+
+    Bounds: measured over seeds 0-4, max / min of the three ratios 1.005-1.010 (bound 1.03, 3x the worst excess);
+    estimate / noise-free 1.11-1.16 (bound 1.25).
     """
     _, _, st = _scene()
-    r = [estimate_exposure(_stream(st, e)).exposure / e for e in (0.1, 0.3, 1.0)]
-    assert max(r) / min(r) < 1.03, r  # measured 1.010
-    assert all(1.0 <= x / _oracle(st) <= 1.25 for x in r), [x / _oracle(st) for x in r]
+    spread, lifts = [], []
+    for seed in range(5):
+        r = [estimate_exposure(_stream(st, e, seed=seed)).exposure / e for e in (0.1, 0.3, 1.0)]
+        spread.append(max(r) / min(r))
+        lifts += [x / _oracle(st) for x in r]
+    assert max(spread) < 1.03, spread
+    assert 1.0 <= min(lifts) and max(lifts) <= 1.25, lifts
 
 
 def test_dark_stream_is_refused():

@@ -88,7 +88,12 @@ def test_ls_variance_under_poisson_and_quantized_counts():
 def test_integrate_fire_count_variance_matches_the_simulator():
     """spike_sim's pixel (full DEFAULT noise model: shot, reset, thermal, dark, fixed pattern) at constant light:
     the variance of 13-step window counts over time, per pixel, against count_variance at the pixel's own
-    expected count m = (gain I + dark) L / theta; mean over pixels within 10 %, and Poisson (var = m) far off.
+    expected count m = (gain I + dark) L / theta; mean over pixels within 5 %, and Poisson (var = m) far off; for
+    each of five draws of the pixels and the noise (seeds 0-4).
+
+    Bounds: measured over seeds 0-4, |variance / model - 1| at most 0.53 %, against the nominal-exposure model
+    1.5 % (bounds 5 %: 3x that worst); count bias at most 0.00055 spikes (bound 0.05); variance 23.1-23.5 x below
+    Poisson (bound 3 x).
     """
     import dataclasses
 
@@ -98,25 +103,35 @@ def test_integrate_fire_count_variance_matches_the_simulator():
     H, W, L, nwin = 8, 32, 13, 400
     cfg = dataclasses.replace(DEFAULT, height=H, width=W, exposure=3.0)
     I = np.repeat(np.linspace(0.005, 0.2, W)[None], H, 0)  # 0.2 .. 7.8 expected spikes per window
-    sp = simulate_constant(I, L * nwin, cfg, seed=5).astype(np.int64)
-    counts = sp.reshape(nwin, L, H * W).sum(1)[1:]  # (windows, pixels); drop the first (initial residue)
-    pp = make_pixel_params(cfg, 5)
-    m = (pp.gain.astype(np.float64) * I.ravel() + pp.dark) * L / pp.theta
-    emp = counts.var(0)
-    model = count_variance(m, photons_per_threshold=cfg.photons_per_threshold, reset_sigma=cfg.reset_sigma)
-    assert abs(emp.mean() / model.mean() - 1) < 0.1
-    assert abs(np.mean(counts.mean(0) - m)) < 0.05  # the counts are unbiased
-    assert m.mean() > 3 * emp.mean()  # a Poisson model would be several times too noisy (measured: 23 x)
     # what the evaluation uses: the nominal count exposure I L, the quantization averaged over the pixel spread
     rel = float(np.sqrt(cfg.gain_sigma**2 + cfg.offset_sigma**2 + cfg.threshold_sigma**2))
     nominal = count_variance(3.0 * I.ravel() * L, photons_per_threshold=cfg.photons_per_threshold, reset_sigma=cfg.reset_sigma, rel_sigma=rel)
-    assert abs(emp.mean() / nominal.mean() - 1) < 0.1
+    own, nom, bias, below = [], [], [], []
+    for seed in range(5):
+        sp = simulate_constant(I, L * nwin, cfg, seed=seed).astype(np.int64)
+        counts = sp.reshape(nwin, L, H * W).sum(1)[1:]  # (windows, pixels); drop the first (initial residue)
+        pp = make_pixel_params(cfg, seed)
+        m = (pp.gain.astype(np.float64) * I.ravel() + pp.dark) * L / pp.theta
+        emp = counts.var(0)
+        model = count_variance(m, photons_per_threshold=cfg.photons_per_threshold, reset_sigma=cfg.reset_sigma)
+        own.append(abs(emp.mean() / model.mean() - 1))
+        nom.append(abs(emp.mean() / nominal.mean() - 1))
+        bias.append(abs(np.mean(counts.mean(0) - m)))  # the counts are unbiased
+        below.append(m.mean() / emp.mean())  # a Poisson model would be several times too noisy
+    assert max(own) < 0.05, own
+    assert max(nom) < 0.05, nom
+    assert max(bias) < 0.05, bias
+    assert min(below) > 3.0, below
 
 
 def test_the_evaluation_bound_equals_the_unclipped_ls_error_on_a_stored_group(tmp_path):
     """A stored integrate-and-fire group (tests/recon/test_evaluate.py's writer, static, known pane): the
     evaluation's share context gives the bound the evaluation reports, and the unclipped LS estimate of R with the
-    true zeta has a mean squared error within 10 % of its mean variance (measured: 1-5 %).
+    true zeta has a mean squared error within 10 % of its mean variance over five groups (seeds 0-4: layers, pane
+    and integrate-and-fire start), and within 15 % on each.
+
+    Bounds: measured error / variance - 1 = -8.8, -1.9, -4.1, -4.6, -6.5 % for seeds 0-4 (mean -5.2 %: the variance
+    model is a few per cent high here); bounds 10 % on the mean (2x) and 15 % per group (1.7x the worst).
     """
     import torch
 
@@ -125,24 +140,29 @@ def test_the_evaluation_bound_equals_the_unclipped_ls_error_on_a_stored_group(tm
     from reconstruct.stream.groups import load_store_group
     from tests.recon.test_evaluate import _write_store
 
-    _write_store(tmp_path / "g0", H=32, W=48, n_frames=14, exposure=1.5)
-    g = load_store_group(tmp_path / "g0")
     cfg = EvalConfig(rir=False, methods="ls", dtype="float64")
-    noise = group_noise(g, cfg)
-    assert noise["exposure"] == 1.5 and noise["window_steps"] == 13 and noise["model"] == "integrate_fire"
-    ctx = share_context(g, cfg)
     K = 3
-    err, var = [], []
-    for i in range(K, g.I.shape[0] - K):
-        Zw = ctx["Z"][i - K : i + K + 1]
-        r = solve("ls", torch.from_numpy(Zw)[None], torch.from_numpy(g.I[i - K : i + K + 1].astype(np.float64))[None])
-        err.append(float(((r.R[0].numpy() - g.R[i]) ** 2).mean()))
-        var.append(float(ls_layer_variance(Zw, window_mean_variance(0.5 * ((1 - Zw) * g.T[i] + Zw * g.R[i]), **noise))[1].mean()))
-        sc = share_scores(ctx, i, K)
-        assert sc["psnr_R_bound_all"] == pytest.approx(10 * np.log10(1 / var[-1]))
-        vR = ls_layer_variance(Zw, window_mean_variance(0.5 * ((1 - Zw) * g.T[i] + Zw * g.R[i]), **noise))[1]
-        assert sc["bound_frac_22"] == pytest.approx(float((vR[sc["mask"]] <= 10 ** -2.2).mean()))
-    assert abs(np.mean(err) / np.mean(var) - 1) < 0.1
+    ratios = []
+    for seed in range(5):
+        _write_store(tmp_path / f"g{seed}", H=32, W=48, n_frames=14, exposure=1.5, seed=seed)
+        g = load_store_group(tmp_path / f"g{seed}")
+        noise = group_noise(g, cfg)
+        assert noise["exposure"] == 1.5 and noise["window_steps"] == 13 and noise["model"] == "integrate_fire"
+        ctx = share_context(g, cfg)
+        err, var = [], []
+        for i in range(K, g.I.shape[0] - K):
+            Zw = ctx["Z"][i - K : i + K + 1]
+            r = solve("ls", torch.from_numpy(Zw)[None], torch.from_numpy(g.I[i - K : i + K + 1].astype(np.float64))[None])
+            err.append(float(((r.R[0].numpy() - g.R[i]) ** 2).mean()))
+            vR = ls_layer_variance(Zw, window_mean_variance(0.5 * ((1 - Zw) * g.T[i] + Zw * g.R[i]), **noise))[1]
+            var.append(float(vR.mean()))
+            sc = share_scores(ctx, i, K)
+            assert sc["psnr_R_bound_all"] == pytest.approx(10 * np.log10(1 / var[-1]))
+            assert sc["bound_frac_22"] == pytest.approx(float((vR[sc["mask"]] <= 10 ** -2.2).mean()))
+        ratios.append(np.mean(err) / np.mean(var))
+    assert abs(np.mean(ratios) - 1) < 0.1, ratios
+    assert max(abs(x - 1) for x in ratios) < 0.15, ratios
+    # the table's bound columns, on the last group
     rep = evaluate_groups([g], cfg)
     ls = next(r for r in rep.rows if r["group"] == "overall" and r["method"] == "ls")
     sc = [share_scores(ctx, i, K) for i in range(K, g.I.shape[0] - K)]

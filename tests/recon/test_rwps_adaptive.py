@@ -58,30 +58,47 @@ def _psnr(method, zeta, I, T, cfg):
     return float(np.mean([psnr(Th[j], T[j]) for j in range(len(T))]))
 
 
+#: draws of the regimes' windows (textures, angles, Poisson counts): the properties below hold for the worst of them
+SEEDS = (0, 1, 2, 3, 4)
+
+
 @pytest.mark.parametrize("regime", list(REGIMES))
 def test_adaptive_rwps_never_loses_to_ls_or_ridge(regime):
-    zeta, I, T = _regime_windows(regime)
-    ls = _psnr("ls", zeta, I, T, PHYSICS_SOLVER_CONFIG)
-    ridge = _psnr("ridge", zeta, I, T, PHYSICS_SOLVER_CONFIG)
-    rwps = _psnr("rwps", zeta, I, T, PHYSICS_SOLVER_CONFIG)
-    assert rwps >= max(ls, ridge) - 0.3, f"{regime}: rwps {rwps:.2f} ls {ls:.2f} ridge {ridge:.2f}"
+    """RWPS within 0.3 dB of the better of LS and ridge on every draw.  Measured over seeds 0-4: RWPS minus the
+    better one at least -0.006 dB (weak_reflection_normal, where LS and ridge agree), up to +4.3 dB.
+    """
+    worst = []
+    for seed in SEEDS:
+        zeta, I, T = _regime_windows(regime, seed=seed)
+        ls = _psnr("ls", zeta, I, T, PHYSICS_SOLVER_CONFIG)
+        ridge = _psnr("ridge", zeta, I, T, PHYSICS_SOLVER_CONFIG)
+        rwps = _psnr("rwps", zeta, I, T, PHYSICS_SOLVER_CONFIG)
+        worst.append(round(rwps - max(ls, ridge), 3))
+    assert min(worst) >= -0.3, f"{regime}: rwps minus the better of ls and ridge, seeds {SEEDS}: {worst}"
 
 
 def test_regimes_span_both_winners():
-    """The regimes are not all alike: LS wins some and ridge wins others by a clear margin."""
-    gaps = {}
-    for r in REGIMES:
-        zeta, I, T = _regime_windows(r)
-        gaps[r] = _psnr("ls", zeta, I, T, PHYSICS_SOLVER_CONFIG) - _psnr("ridge", zeta, I, T, PHYSICS_SOLVER_CONFIG)
-    assert gaps["strong_bright"] > 1.0 and gaps["normal_dim"] < -3.0, gaps
+    """The regimes are not all alike: LS wins some and ridge wins others by a clear margin, on every draw.
+    Measured over seeds 0-4: LS minus ridge 14.2-14.7 dB (strong_bright), -6.4 to -6.7 dB (normal_dim).
+    """
+    gaps = {r: [] for r in ("strong_bright", "normal_dim")}
+    for seed in SEEDS:
+        for r in gaps:
+            zeta, I, T = _regime_windows(r, seed=seed)
+            gaps[r].append(_psnr("ls", zeta, I, T, PHYSICS_SOLVER_CONFIG) - _psnr("ridge", zeta, I, T, PHYSICS_SOLVER_CONFIG))
+    assert min(gaps["strong_bright"]) > 1.0 and max(gaps["normal_dim"]) < -3.0, gaps
 
 
 def test_adaptive_conf_follows_conditioning_and_noise():
+    # worst of seeds 0-4: measured mean Conf 0.9978-0.9981 (strong_bright, bound 0.9) and 0.092-0.107 (normal_dim, bound 0.2)
+    cs, cn = [], []
+    for seed in SEEDS:
+        zs, Is, _ = _regime_windows("strong_bright", seed=seed)
+        zn, In, _ = _regime_windows("normal_dim", seed=seed)
+        cs.append(float(adaptive_confidence(zs, 2 * Is, torch.ones_like(Is)).mean()))
+        cn.append(float(adaptive_confidence(zn, 2 * In, torch.ones_like(In)).mean()))
+    assert min(cs) > 0.9 and max(cn) < 0.2, (cs, cn)
     zs, Is, _ = _regime_windows("strong_bright")
-    zn, In, _ = _regime_windows("normal_dim")
-    cs = adaptive_confidence(zs, 2 * Is, torch.ones_like(Is)).mean()
-    cn = adaptive_confidence(zn, 2 * In, torch.ones_like(In)).mean()
-    assert cs > 0.9 and cn < 0.2
     # same zeta, noise-free observations: the conditioning SNR is huge, Conf -> 1, and rwps is LS
     g = torch.Generator().manual_seed(6)
     R = torch.rand(zs.shape[0], 1, *zs.shape[-2:], dtype=zs.dtype, generator=g)
