@@ -114,11 +114,16 @@ def _r_plane_in_front(scene, r_plane, tex_r: np.ndarray, ext: float) -> tuple[np
 def footprint_stokes(scene, t_s: float = 0.0, subpixels: int = SUBPIXELS) -> tuple[np.ndarray, np.ndarray]:
     """(analytic Stokes, path tracer's expected Stokes), each (3, H, W), at time ``t_s``, mono at 550 nm.
 
-    The second is the full tier's pixel without its Monte Carlo noise (see the module docstring).
+    The second is the full tier's pixel without its Monte Carlo noise (see the module docstring).  A
+    single interface's T plane is enlarged to catch the bent rays, and its texture re-gridded to a
+    whole number of texels: the grid follows the indices the full tier renders with (a dispersive
+    glass: the spectral bands', as the spectral reference; measured on bk7_single at 80 x 50, the
+    predicted difference map regresses on the path-traced one with slope 1.01 this way, 0.29 with
+    the 550 nm grid).
     """
     from generator.analytic import analytic_maps, frame_stokes, layer_planes, sample_layers
     from generator.layers import LayerContent
-    from generator.tiers_mitsuba import _texture, single_interface_t_scale
+    from generator.tiers_mitsuba import DEFAULT_BANDS, DEFAULT_RESPONSE, _bands_for, _texture, single_interface_t_scale
 
     H, W = scene.camera.height, scene.camera.width
     K = int(subpixels)
@@ -130,7 +135,8 @@ def footprint_stokes(scene, t_s: float = 0.0, subpixels: int = SUBPIXELS) -> tup
     fine = dataclasses.replace(scene, camera=dataclasses.replace(scene.camera, width=W * K, height=H * K))
     mf = analytic_maps(fine)  # pixel centres of the K x finer grid = the stratified sub-pixel rays
     t_plane, r_plane = layer_planes(scene)
-    t_scale = single_interface_t_scale(scene, t_plane, [scene.pane.index(550.0)], tc.extent)
+    indices, _, _ = _bands_for(scene, True, DEFAULT_BANDS, DEFAULT_RESPONSE)
+    t_scale = single_interface_t_scale(scene, t_plane, indices, tc.extent)
     tex_t, tex_r = _texture(tc, t_s, t_scale), _texture(rc, t_s)
     L_T = _box_mean(tex_t, tc.extent * t_scale, *mf.t_xy)
     L_R = _box_mean(tex_r, rc.extent, *mf.r_xy)
