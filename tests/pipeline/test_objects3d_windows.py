@@ -44,7 +44,7 @@ def test_train_windows_come_from_both_kinds_of_group(mixed):
     from reconstruct.net.onthefly import WindowConfig
     from reconstruct.net.windows import StoreWindows
 
-    ds = StoreWindows(mixed, WindowConfig(crop=CROP), split="train", seed=1)
+    ds = StoreWindows(mixed, WindowConfig(crop=CROP), split="train", seed=1, centre_every=9)
     names = [g.name for g in ds.groups]
     assert sorted(names) == ["layers", "objects"]
     seen = {names[ds.locate(j)[0]] for j in range(len(ds))}
