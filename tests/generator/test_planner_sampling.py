@@ -72,3 +72,45 @@ def test_sampling_term_predicts_the_path_tracers_difference():
     measured = math.sqrt(max(err * err - noise * noise, 0.0))
     assert f["sampling_p99"] > 2 * noise, (f["sampling_p99"], noise)  # the case resolves the effect
     assert 0.5 <= f["sampling_p99"] / measured <= 2.0, (f["sampling_p99"], measured, noise)
+
+
+def _steep_single_scene(width: int = 40, height: int = 25):
+    """A single interface tilted 58.5 deg whose R layer plane crosses the pane inside the view."""
+    from generator.scene import scene_from_dict
+
+    d = to_dict(small_scene("brewster", width, height, model="single", n=1.7183, tilt_deg=58.533, tilt_axis_deg=85.057,
+                            distance_m=1.147, size_m=[19.5, 8.8]))
+    d["camera"].update(fov_deg=53.822, look_at=[-0.13884, -0.10998, -0.98419], roll_deg=-0.091)
+    d["layers"]["transmission"] = {"source": "procedural:noise", "seed": 44240, "brightness": 0.871, "distance_m": 3.042}
+    d["layers"]["reflection"] = {"source": "procedural:stripes", "brightness": 0.351, "distance_m": 1.827}
+    return scene_from_dict(d)
+
+
+def test_r_plane_in_front_of_the_pane_is_seen_directly_by_the_path_tracer():
+    """Where the R layer's plane stands between the camera and a steep pane, the path tracer's pixel is R itself
+    (unpolarized: S1 = S2 = 0), not the pane's mixture; the emulated image matches a 256 spp render to its noise
+    there, and the analytic image does not.
+    """
+    require_mitsuba()
+    from generator.analytic import layer_planes
+    from generator.layers import LayerContent
+    from generator.planner import _worst
+    from generator.planner_footprint import _r_plane_in_front, footprint_stokes
+    from generator.render import RenderOptions
+    from generator.tiers_mitsuba import FullRenderer, _texture
+
+    sc = _steep_single_scene()
+    _, r_plane = layer_planes(sc)
+    rc = LayerContent(sc.layers.reflection, (sc.camera.height, sc.camera.width))
+    occ, _ = _r_plane_in_front(sc, r_plane, _texture(rc, 0.0), rc.extent)
+    assert 0.05 < occ.mean() < 0.5  # a strip of the view
+    from scipy.ndimage import binary_erosion
+
+    occ = binary_erosion(occ, border_value=1)  # pixels wholly in the strip (their edge pixels mix both)
+    S_a, S_box = footprint_stokes(sc)
+    assert np.all(S_box[1:, occ] == 0.0)
+    S = [np.asarray(FullRenderer(sc, RenderOptions(tier="full", spp=256, variant="llvm", seed=s), {"modelled": {}}).stokes(0.0, 0)) for s in (1, 2)]
+    S_f = 0.5 * (S[0] + S[1])
+    noise = float(np.percentile(_worst(S[0], S[1])[occ], 99)) / 2.0
+    assert float(np.percentile(_worst(S_box, S_f)[occ], 99)) < 2.5 * noise + 0.01
+    assert float(np.percentile(_worst(S_a, S_f)[occ], 99)) > 4 * noise + 0.05
