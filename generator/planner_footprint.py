@@ -12,7 +12,8 @@ refraction, a sprite's hard edge, a layer plane that ends inside the view.
 :func:`footprint_stokes` computes the path tracer's expected pixel in closed form, without Monte
 Carlo: the pane maps on a ``K x K`` finer grid (sub-pixel rays), each ray's layer value the exact
 mean of the same nearest-texel textures the full tier hands to Mitsuba over the ray's cell (a
-summed-area table), zero where the full tier sees no layer, the R layer seen directly where its
+summed-area table), zero where the full tier sees no layer (a layer plane that ends, an R point
+beyond the pane, a T plane crossed before the pane), the R layer seen directly where its
 plane stands between the camera and the pane, and the Stokes images averaged over each pixel's
 ``K x K`` rays.  The
 planner's sampling term is the error measure between it and the analytic image.
@@ -94,6 +95,19 @@ def _r_behind_pane(scene, r_plane, X: np.ndarray, Y: np.ndarray) -> np.ndarray:
         return ~(((P - np.asarray(pp.point, float)) @ nrm) > 0)
 
 
+def _t_plane_in_front(scene, t_plane) -> np.ndarray:
+    """Camera rays that cross the T layer's plane before the pane (a grazing pane crosses it): that part of
+    the plane is clipped, and the transmitted ray, already past the plane, meets no T (black in the full tier).
+    """
+    from polphysics.geometry import Plane, incidence_geometry, intersect_plane
+
+    cam = scene.camera_model()
+    geo = incidence_geometry(cam, scene.pane_plane())
+    t_t, _ = intersect_plane(cam.position + np.zeros_like(geo["d"]), geo["d"], Plane(t_plane.center, t_plane.normal))
+    with np.errstate(invalid="ignore"):
+        return np.isfinite(t_t) & (t_t > 0) & (t_t < geo["t"])
+
+
 def _r_plane_in_front(scene, r_plane, tex_r: np.ndarray, ext: float) -> tuple[np.ndarray, np.ndarray]:
     """Camera rays that meet the R layer's plane before the pane (its part on the camera side of a
     steeply tilted pane stands in the view): mask and the R radiance seen directly (unpolarized).
@@ -141,6 +155,7 @@ def footprint_stokes(scene, t_s: float = 0.0, subpixels: int = SUBPIXELS) -> tup
     L_T = _box_mean(tex_t, tc.extent * t_scale, *mf.t_xy)
     L_R = _box_mean(tex_r, rc.extent, *mf.r_xy)
     L_R[_r_behind_pane(scene, r_plane, *mf.r_xy)] = 0.0
+    L_T[_t_plane_in_front(fine, t_plane)] = 0.0
     L_G = _box_mean(tex_r, rc.extent, *mf.g_xy) if mf.g_xy is not None else None
     S_fine = frame_stokes(mf, L_T, L_R, L_G)
     S_fine = np.nan_to_num(S_fine, nan=0.0, posinf=0.0, neginf=0.0)
