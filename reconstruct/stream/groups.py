@@ -379,7 +379,11 @@ def load_store_group(
         pol_rate = float(pol.get("rate_hz", 30.0))
         phi_nom = g.phi_nominal_rad
         phi_tr = g.phi_true_rad
-        c, phi_i = frame_centres(phi_nom, cfg)
+        # the simulator places its centres (and stores the GT there) from its clock's angle at t = 0, the nominal
+        # phase; the same start here gives the same centres to the bit (extrapolating it from the first two steps
+        # differs by float noise, and every third centre sits on a half step at 30 rev/s and 20 kHz)
+        phi_start = float(np.deg2rad(pol["phase_deg"])) if "phase_deg" in pol else None
+        c, phi_i = frame_centres(phi_nom, cfg, phi_start_rad=phi_start)
         if max_frames:
             c, phi_i = c[:max_frames], phi_i[:max_frames]
         if c.size == 0:
