@@ -324,8 +324,9 @@ def _layer_coverage_warnings(scene, tc, rc, t_scale: float = 1.0) -> list[str]:
     behind = ((P - np.asarray(pp.point, float)) @ nrm) <= 0
     if behind.any():
         out.append(
-            f"R layer is not visible in {100 * behind.mean():.2f}% of the view (its plane lies beyond the pane there; "
-            "black in the full tier, mirrored texture in the analytic ground truth); raise layers.reflection.distance_m"
+            f"R layer plane crosses the pane in {100 * behind.mean():.2f}% of the view (the full tier sees no reflection "
+            "there, or R itself where the plane stands between the camera and the pane; the analytic tier draws the "
+            "pane's mixture); raise layers.reflection.distance_m"
         )
     return out
 
