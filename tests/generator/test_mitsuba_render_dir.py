@@ -239,7 +239,7 @@ def test_maps_are_evaluated_once_per_scene_not_per_frame(tmp_path, monkeypatch):
 
 
 def test_r_layer_beyond_the_pane_is_a_render_json_warning():
-    """An R plane so close that part of it lies beyond the tilted pane: not visible there -> warning."""
+    """An R plane so close that part of it lies beyond the tilted pane: the full tier differs there -> warning."""
     require_mitsuba()
     from generator import tiers_mitsuba as tm
     from generator.scene import scene_from_dict
@@ -249,7 +249,7 @@ def test_r_layer_beyond_the_pane_is_a_render_json_warning():
     d["layers"]["reflection"]["distance_m"] = 0.2
     info: dict = {}
     tm.FullRenderer(scene_from_dict(d), _opts("full", spp=1), info)
-    assert any("R layer is not visible" in w for w in info["modelled"]["warnings"])
+    assert any("R layer plane crosses the pane" in w for w in info["modelled"]["warnings"])
     info = {}
     tm.FullRenderer(_scene(), _opts("full", spp=1), info)
     assert "warnings" not in info["modelled"]
