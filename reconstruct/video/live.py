@@ -59,6 +59,7 @@ class LiveConfig:
     video: bool = opt(True, "write T.mp4, R.mp4 and preview.mp4")
     max_frames: int = opt(0, "stop after this many output frames (0 = all)", lo=0, hi=10**9)
     gain_frames: int = opt(64, "display gains from the histogram of the first this many frames, then kept", lo=1, hi=10**9)
+    solver: str = opt("fused", "fused numba kernels where one exists (ls, physics rwps; RIR shifts applied inside) or torch (the streaming path's solver)", choices=("fused", "torch"))
     preset: str = opt("ultrafast", "x264 preset of the videos", choices=("ultrafast", "superfast", "veryfast", "faster", "fast", "medium"))
     poll_s: float = opt(0.01, "follow: wait between looks at the growing file, seconds", lo=0.0, hi=10.0)
     idle_s: float = opt(5.0, "follow: stop when the file has not grown for this long, seconds (0 = only Ctrl-C stops)", lo=0.0, hi=1e6)
@@ -285,7 +286,12 @@ def reconstruct_live(
     cen = _Centres(phi0_rad, rev_per_s, rate_hz, agg)
     fps = output_fps(rev_per_s, cfg.stride_deg) if rev_per_s > 0 else 1.0
     H, W = reader.height, reader.width
-    fused = model.method == "ls" and not model.rir
+    fused = cfg.solver == "fused" and model.method == "ls" and not model.rir
+    fused_rwps = False
+    if cfg.solver == "fused" and model.method == "rwps":
+        from reconstruct.physics.fused_rwps import rwps_fused, rwps_fused_supports
+
+        fused_rwps = rwps_fused_supports(model.solver_cfg)
     maps = model.maps
     zeta_of = _ZetaFrames(maps, model.span_rad)
     chained = None
@@ -385,6 +391,17 @@ def reconstruct_live(
                     if fused:  # the least-squares sums do not depend on the order of the frames: the ring as it is
                         with times("solve"):
                             T, R = _ls(ring_Z, ring_I)
+                        emit(writers, ring_I[centre].copy(), T, R, arr)
+                    elif fused_rwps:  # nor do RWPS's (per-pixel sums, min and mean over the window); shifts follow the ring
+                        sh = None
+                        if model.rir and N > 1:
+                            order = [(nxt - N + k) % N for k in range(N)]
+                            with times("rir"):
+                                sw = chained.window_shifts(torch.from_numpy(ring_I[order]), torch.from_numpy(ring_phi[order]), np.arange(nxt - N, nxt)).numpy()
+                            sh = np.empty_like(sw)
+                            sh[order] = sw
+                        with times("solve"):
+                            T, R = rwps_fused(ring_Z, ring_I, model.solver_cfg, sh)
                         emit(writers, ring_I[centre].copy(), T, R, arr)
                     else:
                         order = [(nxt - N + k) % N for k in range(N)]
