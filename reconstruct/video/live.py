@@ -48,6 +48,10 @@ __all__ = ["LiveConfig", "reconstruct_live", "StageTimes", "to8_table"]
 log = logging.getLogger(__name__)
 
 
+VIDEO_CRF = {"fast": 23, "high": 10}
+"""x264 constant rate factor of the live videos per ``LiveConfig.video_quality`` (imageio's quality 8 = CRF 10)."""
+
+
 @dataclasses.dataclass(frozen=True)
 class LiveConfig:
     """Options of :func:`reconstruct_live`."""
@@ -61,6 +65,8 @@ class LiveConfig:
     gain_frames: int = opt(64, "display gains from the histogram of the first this many frames, then kept", lo=1, hi=10**9)
     solver: str = opt("fused", "fused numba kernels where one exists (ls, physics rwps; RIR shifts applied inside) or torch (the streaming path's solver)", choices=("fused", "torch"))
     preset: str = opt("ultrafast", "x264 preset of the videos", choices=("ultrafast", "superfast", "veryfast", "faster", "fast", "medium"))
+    video_quality: str = opt("fast", "videos: fast (x264 CRF 23, -tune zerolatency) | high (CRF 10, the streaming path's level; more encoder CPU)", choices=tuple(VIDEO_CRF))
+    rir_finest: int = opt(1, "RIR: finest level of the chained fit, 1 = full resolution, 2 = 2 x 2 blocks (cheaper; error measured in docs/realtime.md)", lo=1, hi=2)
     poll_s: float = opt(0.01, "follow: wait between looks at the growing file, seconds", lo=0.0, hi=10.0)
     idle_s: float = opt(5.0, "follow: stop when the file has not grown for this long, seconds (0 = only Ctrl-C stops)", lo=0.0, hi=1e6)
 
@@ -127,8 +133,9 @@ class _LiveWriters:
         import imageio.v2 as iio
 
         tmp = self.stack.enter_context(atomic_path(self.out / f"{name}.mp4"))
-        w = iio.get_writer(str(tmp), format="FFMPEG", mode="I", fps=self.fps, codec="libx264", quality=8, macro_block_size=1, pixelformat="yuv420p",
-                           ffmpeg_log_level="error", output_params=["-preset", self.cfg.preset])
+        extra = ["-tune", "zerolatency"] if self.cfg.video_quality == "fast" else []
+        w = iio.get_writer(str(tmp), format="FFMPEG", mode="I", fps=self.fps, codec="libx264", quality=None, macro_block_size=1, pixelformat="yuv420p",
+                           ffmpeg_log_level="error", output_params=["-preset", self.cfg.preset, "-crf", str(VIDEO_CRF[self.cfg.video_quality]), *extra])
         self.stack.callback(w.close)
         return w
 
@@ -154,10 +161,10 @@ class _LiveWriters:
     def _encode(self, i: int, I2: np.ndarray, T: np.ndarray, R: np.ndarray) -> None:
         g = self.gain
         even = lambda a: a[: a.shape[0] // 2 * 2, : a.shape[1] // 2 * 2]  # noqa: E731
-        t8, r8 = _to8_fast(T, g["T"]), _to8_fast(R, g["R"])
+        from reconstruct.video.display8 import to8_frames
+
+        t8, r8, prev = to8_frames(I2, T, R, g, _TO8)  # the table lookup of _to8_fast, in one pass
         if self.cfg.video:
-            gP = g["preview"]
-            prev = np.concatenate([_to8_fast(I2, gP), _to8_fast(T, gP), _to8_fast(R, gP)], 1)
             for name, img in (("T", t8), ("R", r8), ("preview", prev)):
                 if name not in self.vw:
                     self.vw[name] = self._open(name)
@@ -298,7 +305,7 @@ def reconstruct_live(
     if model.rir:
         from reconstruct.physics.rir import ChainedRir
 
-        chained = ChainedRir()
+        chained = ChainedRir(finest=cfg.rir_finest, fused=cfg.solver == "fused")
     scale = np.float32(cfg.window_steps * exposure)
     ring_I = np.zeros((N, H, W), np.float32)  # Eq. (3) frame j in slot j % N
     ring_Z = np.zeros((N, H, W), np.float32)
