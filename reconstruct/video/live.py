@@ -65,7 +65,7 @@ class LiveConfig:
     gain_frames: int = opt(64, "display gains from the histogram of the first this many frames, then kept", lo=1, hi=10**9)
     solver: str = opt("fused", "fused numba kernels where one exists (ls, physics rwps; RIR shifts applied inside) or torch (the streaming path's solver)", choices=("fused", "torch"))
     preset: str = opt("ultrafast", "x264 preset of the videos", choices=("ultrafast", "superfast", "veryfast", "faster", "fast", "medium"))
-    video_quality: str = opt("fast", "videos: fast (x264 CRF 23, -tune zerolatency) | high (CRF 10, the streaming path's level; more encoder CPU)", choices=tuple(VIDEO_CRF))
+    video_quality: str = opt("fast", "videos: fast (x264 CRF 23, one encoder thread per video) | high (CRF 10, the streaming path's level; more encoder CPU)", choices=tuple(VIDEO_CRF))
     rir_finest: int = opt(1, "RIR: finest level of the chained fit, 1 = full resolution, 2 = 2 x 2 blocks (cheaper; error measured in docs/realtime.md)", lo=1, hi=2)
     poll_s: float = opt(0.01, "follow: wait between looks at the growing file, seconds", lo=0.0, hi=10.0)
     idle_s: float = opt(5.0, "follow: stop when the file has not grown for this long, seconds (0 = only Ctrl-C stops)", lo=0.0, hi=1e6)
@@ -133,7 +133,7 @@ class _LiveWriters:
         import imageio.v2 as iio
 
         tmp = self.stack.enter_context(atomic_path(self.out / f"{name}.mp4"))
-        extra = ["-tune", "zerolatency"] if self.cfg.video_quality == "fast" else []
+        extra = ["-threads", "1"] if self.cfg.video_quality == "fast" else []  # one x264 thread per video: less sync work
         w = iio.get_writer(str(tmp), format="FFMPEG", mode="I", fps=self.fps, codec="libx264", quality=None, macro_block_size=1, pixelformat="yuv420p",
                            ffmpeg_log_level="error", output_params=["-preset", self.cfg.preset, "-crf", str(VIDEO_CRF[self.cfg.video_quality]), *extra])
         self.stack.callback(w.close)
