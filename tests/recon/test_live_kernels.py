@@ -20,7 +20,7 @@ TOL_MAX, TOL_MEAN = 2e-5, 1e-6  # fused (float64 sums) vs torch (float32), relat
 
 
 def _window(seed: int, noise: bool = True, counts: float = 26.0):
-    """zeta by paper Eq. (2) on random pane maps, I by Eq. (1) on random layers, Poisson counts when ``noise``."""
+    """Window of N frames: zeta by paper Eq. (2) on random pane maps, I by Eq. (1) on random layers, Poisson counts when ``noise``."""
     rng = np.random.default_rng(seed)
     phi = np.linspace(0.0, math.pi, N, endpoint=False) + rng.uniform(0, math.pi)
     rp = rng.uniform(0.05, 0.4, (H, W))
@@ -68,7 +68,8 @@ def test_fused_rwps_equals_the_torch_solver(seed, shifted):
 
 def test_fused_rwps_recovers_the_layers_of_a_noise_free_window():
     """Without noise the residual variance is 0, Conf -> 1 and lambda -> lambda_low = 0: the plain weighted least
-    squares, which is exact on Eq. (1)-(2) data."""
+    squares, which is exact on Eq. (1)-(2) data.
+    """
     from reconstruct.physics.fused_rwps import rwps_fused
 
     Z, I, T, R = _window(5, noise=False)
