@@ -83,7 +83,6 @@ def test_live_equals_stream_within_float_tolerance(dat, tmp_path, method):
         assert s_new["display_gain"][k] == pytest.approx(s_old["display_gain"][k], rel=1e-12)
 
 
-@pytest.mark.slow
 def test_live_fused_rwps_with_rir_equals_the_torch_solver_on_a_moving_stream(tmp_path):
     """RWPS with RIR on a panning stream: the fused kernel (shifts applied while reading the ring of frames, numba
     Gauss-Newton) gives the frames of the torch path (warped windows in stream order, torch fit) within the tolerance.
