@@ -7,14 +7,17 @@ linear T and R equal to float32 rounding, tested), by a path that keeps up with 
 * Eq. (3) counts summed on the packed bits (:mod:`reconstruct.stream.packed`), reading only the steps inside
   windows;
 * zeta (paper Eq. (2)) once per Eq. (3) frame, not once per window it appears in;
-* ``ls`` without RIR as one fused pass per pixel (:func:`reconstruct.physics.fused.ls_fused`); other solvers and
-  RIR through the torch solver on batches of windows, RIR by the chained whole-frame alignment
+* ``ls`` without RIR as one fused pass per pixel (:func:`reconstruct.physics.fused.ls_fused`); ``rwps`` with the
+  physics constants as fused passes with the RIR shifts applied while reading
+  (:func:`reconstruct.physics.fused_rwps.rwps_fused`); other solvers (or ``solver = "torch"``) through the torch
+  solver on batches of windows; RIR by the chained whole-frame alignment
   (:class:`reconstruct.physics.rir.ChainedRir`: each frame registered once onto the one before; the shifts
   differ from :func:`reconstruct.physics.rir.estimate_shifts`'s, the quality change is measured in
   docs/realtime.md); torch on one thread;
 * display gains from the running histogram of the first ``gain_frames`` frames (the whole video when it is
   shorter; a longer one keeps those gains: the display can be shown live), 8-bit conversion by a table and
-  H.264 encoding on a background thread.
+  H.264 encoding on a background thread (the five 8-bit images by one numba pass,
+  :func:`reconstruct.video.display8.to8_frames`; CRF by ``video_quality``).
 
 With ``follow`` the .dat may still be growing: frames are made as their last step arrives, and the latency (the
 time from the arrival of a window's last step to its output) is measured per frame.  ``stop`` (an event, set by
