@@ -126,6 +126,24 @@ def _block_mean(img: np.ndarray, f: int) -> np.ndarray:
     return img[:H, :W].reshape(H // f, f, W // f, f).mean(axis=(1, 3))
 
 
+def _block_sum_mean(img: np.ndarray, f: int) -> np.ndarray:
+    """:func:`_block_mean` by strided sums (equal up to the order of the additions; a few times faster)."""
+    H, W = (img.shape[0] // f) * f, (img.shape[1] // f) * f
+    rows = img[0:H:f, :W].copy()
+    for k in range(1, f):
+        rows += img[k:H:f, :W]
+    out = rows[:, 0:W:f].copy()
+    for k in range(1, f):
+        out += rows[:, k:W:f]
+    return out / (f * f)
+
+
+def _gradient_stack(img: np.ndarray) -> torch.Tensor:
+    """:func:`_with_gradient` by numpy (the same central differences, one-sided at the borders)."""
+    gy, gx = np.gradient(img)
+    return torch.from_numpy(np.stack([img, gy, gx]))
+
+
 def _erode(mask: np.ndarray, px: int) -> np.ndarray:
     if px <= 0:
         return mask
@@ -314,10 +332,10 @@ class ChainedRir:
     def _pyramid(self, frame: np.ndarray) -> dict:
         f0 = self.finest
         if f0 > 1:
-            sm = _smooth(_block_mean(frame, f0), self.config.smooth_sigma_px / f0)
-            return {lv: _with_gradient(torch.from_numpy(_block_mean(sm, lv // f0) if lv > f0 else sm)) for lv in self.levels}
+            sm = _smooth(_block_sum_mean(frame, f0), self.config.smooth_sigma_px / f0)
+            return {lv: _gradient_stack(_block_sum_mean(sm, lv // f0) if lv > f0 else sm) for lv in self.levels}
         sm = _smooth(frame, self.config.smooth_sigma_px)
-        return {lv: _with_gradient(torch.from_numpy(_block_mean(sm, lv) if lv > 1 else sm)) for lv in self.levels}
+        return {lv: _gradient_stack(_block_sum_mean(sm, lv) if lv > 1 else sm) for lv in self.levels}
 
     def _pair(self, ref: dict, mov: dict) -> torch.Tensor:
         s = torch.zeros(2, dtype=torch.float64)
