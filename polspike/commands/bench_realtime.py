@@ -23,6 +23,7 @@ def bench_realtime_cmd(
     latency_s: float = typer.Option(1.0, "--latency-s", help="seconds written at real time for the --follow latency (0 = skip)"),
     reference: bool = typer.Option(True, "--reference/--no-reference", help="also run the streaming path (the ratio)"),
     video: bool = typer.Option(True, "--video/--no-video", help="write and time the MP4s"),
+    variants: str = typer.Option("torch", "--live-variants", help="comma-separated live-path settings also run, each a ratio: torch (torch solvers and RIR fit, CRF-10 videos: the live path before its fused kernels), high-video, coarse-rir; '' for none"),
     quiet: bool = typer.Option(False, "--quiet", help="no progress lines"),
 ) -> None:
     """Frames/s (wall and CPU) of the live path and the streaming path, per-stage real-time factors, --follow latency, peak RSS."""
@@ -30,18 +31,21 @@ def bench_realtime_cmd(
 
     from polinfra.atomic import write_json, write_text
     from polinfra.errors import ConfigError
-    from reconstruct.evaluate.realtime_bench import bench_realtime, realtime_markdown
+    from reconstruct.evaluate.realtime_bench import LIVE_VARIANTS, bench_realtime, realtime_markdown
 
     ms = tuple(m.strip() for m in methods.split(",") if m.strip())
     bad = [m for m in ms if m not in ("ls", "rwps", "ridge", "irls", "ls+rir", "rwps+rir", "ridge+rir", "irls+rir")]
     if bad or not ms:
         raise ConfigError(f"--methods {methods!r}: choose among ls, rwps, ridge, irls, each optionally +rir")
+    vs = tuple(v.strip() for v in variants.split(",") if v.strip())
+    if [v for v in vs if v not in LIVE_VARIANTS]:
+        raise ConfigError(f"--live-variants {variants!r}: choose among {', '.join(LIVE_VARIANTS)}")
     if not 0 < short_s < long_s:
         raise ConfigError(f"--short-s {short_s} / --long-s {long_s}: need 0 < short < long")
     if (height * width) % 8:
         raise ConfigError(f"{width} x {height}: a .dat frame needs H W divisible by 8")
     con = Console(stderr=True)
-    res = bench_realtime(width, height, short_s, long_s, memory_s, latency_s, ms, reference, video, progress=None if quiet else (lambda s: con.print(f"[dim]{s}[/]")))
+    res = bench_realtime(width, height, short_s, long_s, memory_s, latency_s, ms, reference, video, progress=None if quiet else (lambda s: con.print(f"[dim]{s}[/]")), variants=vs)
     md = realtime_markdown(res)
     write_json(out / "realtime.json", res)
     write_text(out / "realtime.md", md)

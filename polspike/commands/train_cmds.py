@@ -149,6 +149,7 @@ def reconstruct_cmd(
     follow: bool = typer.Option(False, "--follow", help=".dat: the file is still being written (a camera): output frames as their spikes arrive, the latency on stderr and in reconstruct.json; Ctrl-C stops with every output complete (physics methods on pane maps)"),
     follow_idle: float = typer.Option(5.0, "--follow-idle", help="--follow: stop when the file has not grown for this many seconds (0 = only Ctrl-C stops)"),
     path: str = typer.Option("auto", "--path", help="live (packed reads, fused solver, background encoding: the real-time path; physics methods on pane maps over a .dat) | stream (the general streaming path) | auto (live where it applies)"),
+    video_quality: str = typer.Option("fast", "--video-quality", help="live path videos: fast (x264 CRF 23, less encoder CPU) | high (CRF 10, as the streaming path)"),
 ) -> None:
     """Turn a spike group or a .dat into reflection-free T and R video at the output cadence (~343 FPS)."""
     import dataclasses
@@ -210,6 +211,8 @@ def reconstruct_cmd(
     cfg = ReconstructConfig(window_steps=window_steps, stride_deg=stride_deg, exposure=exposure or 1.0, frames=frames, max_frames=max_frames, precision=precision)
     if path not in ("auto", "live", "stream"):
         raise ConfigError(f"--path {path!r}: choose auto, live or stream")
+    if video_quality not in ("fast", "high"):
+        raise ConfigError(f"--video-quality {video_quality!r}: choose fast or high")
     is_dat = input.suffix.lower() == ".dat"
     if (follow or path == "live") and (not is_dat or method == "net" or anchor != "none"):
         raise ConfigError(f"{'--follow' if follow else '--path live'} runs a physics solver (--method ls, ridge, irls, rwps) on pane maps over a .dat, without --anchor mean")
@@ -296,7 +299,7 @@ def reconstruct_cmd(
         from reconstruct.stream.packed import PackedDat
         from reconstruct.video.live import LiveConfig
 
-        lcfg = LiveConfig(window_steps=window_steps, stride_deg=stride_deg, frames=frames, max_frames=max_frames, idle_s=follow_idle)
+        lcfg = LiveConfig(window_steps=window_steps, stride_deg=stride_deg, frames=frames, max_frames=max_frames, idle_s=follow_idle, video_quality=video_quality)
         reader = reader or PackedDat(input, height, width)
         s = run_live(reader, model, out, lcfg, phi0_rad=math.radians(phi0_deg), rev_per_s=rev_per_s, rate_hz=rate_hz,
                      exposure=src.exposure if src.exposure is not None else cfg.exposure, name=input.name, follow=follow, meta=meta, quiet=quiet)

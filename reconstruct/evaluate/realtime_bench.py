@@ -7,7 +7,8 @@ throughput is taken between the two lengths, so start-up cancels.  Each figure i
 in CPU time (the process's threads plus its encoder children): on a shared, loaded machine the wall clock
 measures the neighbours as much as the code, the CPU time does not.
 
-Real-time factor = seconds of recording per second of processing (>= 1 keeps up with the camera).  Per stage
+Each live-path setting runs once on the short recording before it is timed (the numba kernels load or compile on
+their first call).  Real-time factor = seconds of recording per second of processing (>= 1 keeps up with the camera).  Per stage
 (live path): read, aggregate, zeta, RIR, solve, write, encode, and the self-calibration (once, on the first
 0.1 s).  Memory: a long stream (default 60 s, one second of packed spikes repeated: 30 whole polarizer turns, so
 the phase is continuous) made on the fly and run through the live path in a child process, peak RSS beside a
@@ -47,6 +48,16 @@ def _model(method: str, rir: bool, maps, span: float):
     return PhysicsModel(method, 7, maps=maps, span_rad=span, rir=rir)
 
 
+LIVE_VARIANTS = {
+    "torch": {"solver": "torch", "video_quality": "high", "rir_finest": 1},
+    "high-video": {"video_quality": "high"},
+    "coarse-rir": {"rir_finest": 2},
+}
+"""Live-path settings the bench can run beside the defaults: ``torch`` = the torch solvers, the torch RIR fit and the
+CRF-10 videos (the live path before its fused kernels), ``high-video`` = CRF-10 videos only, ``coarse-rir`` = the
+RIR fit stopping at 2 x 2 blocks."""
+
+
 def _run(path: str, dat: Path, cfg, model, out: Path, video: bool) -> dict[str, Any]:
     from reconstruct.stream.packed import PackedDat
     from reconstruct.stream.sources import dat_source
@@ -55,9 +66,10 @@ def _run(path: str, dat: Path, cfg, model, out: Path, video: bool) -> dict[str, 
 
     w0, c0 = time.perf_counter(), _cpu()
     times = None
-    if path == "live":
+    if path.startswith("live"):
         times = StageTimes()
-        s = reconstruct_live(PackedDat(dat, cfg.height, cfg.width), model, out, LiveConfig(video=video), phi0_rad=cfg.phi0_rad, rev_per_s=cfg.rev_per_s,
+        over = LIVE_VARIANTS[path.split(":")[1]] if ":" in path else {}
+        s = reconstruct_live(PackedDat(dat, cfg.height, cfg.width), model, out, LiveConfig(video=video, **over), phi0_rad=cfg.phi0_rad, rev_per_s=cfg.rev_per_s,
                              rate_hz=cfg.rate_hz, exposure=cfg.exposure, times=times)
     else:
         src = dat_source(dat, cfg.height, cfg.width, cfg.phi0_rad, cfg.rev_per_s, cfg.rate_hz)
@@ -138,7 +150,8 @@ def _latency(dat: Path, cfg, model, seconds: float, chunk_steps: int) -> dict[st
 
 
 def bench_realtime(width: int = 400, height: int = 250, short_s: float = 0.25, long_s: float = 1.0, memory_s: float = 60.0, latency_s: float = 1.0,
-                   methods: tuple[str, ...] = ("ls", "rwps+rir"), reference: bool = True, video: bool = True, workdir: str | None = None, progress=None) -> dict[str, Any]:
+                   methods: tuple[str, ...] = ("ls", "rwps+rir"), reference: bool = True, video: bool = True, workdir: str | None = None, progress=None,
+                   variants: tuple[str, ...] = ("torch",)) -> dict[str, Any]:
     """Measure the live path against the streaming path (module docstring).
 
     Args:
@@ -149,6 +162,7 @@ def bench_realtime(width: int = 400, height: int = 250, short_s: float = 0.25, l
         methods: ``ls`` (no RIR) and/or ``rwps+rir`` (RIR on), also ``rwps``, ``ls+rir``.
         reference: also run today's streaming path.
         video: write the MP4s (the encode stage).
+        variants: live-path settings run beside the defaults (:data:`LIVE_VARIANTS`), each a ratio.
     """
     from reconstruct.pane.source import calibrate_stream
     from reconstruct.physics.zeta import PaneMaps
@@ -158,7 +172,8 @@ def bench_realtime(width: int = 400, height: int = 250, short_s: float = 0.25, l
     # a pan of 20 px/s for RIR to follow (0.06 px per output frame); static where no method registers
     cfg = PaneStreamConfig(width=width, height=height, exposure=2.0, motion_px_s=(0.0, 20.0) if any(m.endswith("+rir") for m in methods) else (0.0, 0.0))
     res: dict[str, Any] = {"config": {"width": width, "height": height, "short_s": short_s, "long_s": long_s, "camera_fps": CAMERA_FPS, "video": video,
-                                      "stream": dataclasses.asdict(cfg), "cpu_count": os.cpu_count(), "load_avg_start": os.getloadavg()}, "methods": {}}
+                                      "stream": dataclasses.asdict(cfg), "cpu_count": os.cpu_count(), "load_avg_start": os.getloadavg(),
+                                      "variants": {v: LIVE_VARIANTS[v] for v in variants}}, "methods": {}}
     tick = (lambda s: progress(s)) if progress else (lambda s: None)
     with tempfile.TemporaryDirectory(dir=workdir) as d:
         d = Path(d)
@@ -179,17 +194,31 @@ def bench_realtime(width: int = 400, height: int = 250, short_s: float = 0.25, l
         for m in methods:
             method, rir = m.split("+")[0], m.endswith("+rir")
             row: dict[str, Any] = {}
-            for path in ("live", "stream") if reference else ("live",):
+            paths = ("live", *(f"live:{v}" for v in variants if not (v == "coarse-rir" and not rir)), *(("stream",) if reference else ()))
+            for path in paths:
+                if path.startswith("live"):  # warm-up: the numba kernels load (or compile) on their first call
+                    _run(path, dats["short"], cfg, _model(method, rir, maps, span), d / f"w_{m}_{path.replace(':', '_')}", video)
                 runs = {}
                 for tag in ("short", "long"):
                     tick(f"{m} {path} {tag}")
-                    runs[tag] = _run(path, dats[tag], cfg, _model(method, rir, maps, span), d / f"o_{m}_{path}_{tag}", video)
-                row[path] = {"runs": runs, "marginal": _marginal(runs["short"], runs["long"])}
-            if "stream" in row and None not in (row["live"]["marginal"]["fps_wall"], row["stream"]["marginal"]["fps_wall"], row["live"]["marginal"]["fps_cpu"], row["stream"]["marginal"]["fps_cpu"]):
-                row["speedup_wall"] = row["live"]["marginal"]["fps_wall"] / row["stream"]["marginal"]["fps_wall"]
-                row["speedup_cpu"] = row["live"]["marginal"]["fps_cpu"] / row["stream"]["marginal"]["fps_cpu"]
+                    runs[tag] = _run(path, dats[tag], cfg, _model(method, rir, maps, span), d / f"o_{m}_{path.replace(':', '_')}_{tag}", video)
+                row[path] = {"runs": runs, "marginal": _marginal(runs["short"], runs["long"]), "load_avg": os.getloadavg()}
+            new = row["live"]["marginal"]
+            row["ratio"] = {}
+            for path in paths[1:]:
+                ref = row[path]["marginal"]
+                if None not in (new["fps_wall"], new["fps_cpu"], ref["fps_wall"], ref["fps_cpu"]):
+                    row["ratio"][path] = {"wall": new["fps_wall"] / ref["fps_wall"], "cpu": new["fps_cpu"] / ref["fps_cpu"]}
+            if "stream" in row["ratio"]:
+                row["speedup_wall"], row["speedup_cpu"] = row["ratio"]["stream"]["wall"], row["ratio"]["stream"]["cpu"]
             st = row["live"]["runs"]["long"]["stages"]
             secs = long_s
+            row["stage_ms_per_frame_cpu"] = {}  # marginal between the two lengths: one-off costs cancel
+            for path in [p for p in paths if p.startswith("live")]:
+                a, b = row[path]["runs"]["short"], row[path]["runs"]["long"]
+                df = b["frames"] - a["frames"]
+                if df > 0:
+                    row["stage_ms_per_frame_cpu"][path] = {k: 1e3 * (b["stages"]["cpu"][k] - a["stages"]["cpu"].get(k, 0.0)) / df for k in b["stages"]["cpu"]}
             row["stages_rtf_cpu"] = {k: secs / v if v > 1e-9 else None for k, v in st["cpu"].items()}
             row["stages_rtf_wall"] = {k: secs / v if v > 1e-9 else None for k, v in st["wall"].items()}
             res["methods"][m] = row
@@ -212,19 +241,25 @@ def realtime_markdown(res: dict[str, Any]) -> str:
     keys = sorted({k for row in res["methods"].values() for k in row["stages_rtf_cpu"]})
     L = [f"Live path vs the streaming path at {c['width']} x {c['height']}, marginal throughput between {c['short_s']} s and {c['long_s']} s recordings "
          f"(camera: {c['camera_fps']:.1f} frames/s; load average {c['load_avg_start'][0]:.1f} at the start on {c['cpu_count']} cores).", "",
-         "| method | path | frames/s (wall) | frames/s (CPU) | real-time factor (CPU) |", "|---|---|---:|---:|---:|"]
+         "| method | path | frames | frames/s (wall) | frames/s (CPU) | real-time factor (CPU) | load average after |", "|---|---|---:|---:|---:|---:|---:|"]
     for m, row in res["methods"].items():
-        for path in ("live", "stream"):
-            if path in row:
-                mg = row[path]["marginal"]
-                L.append(f"| {m} | {path} | {_f(mg['fps_wall'])} | {_f(mg['fps_cpu'])} | {_f(mg['fps_cpu'] and mg['fps_cpu'] / c['camera_fps'], 2)} |")
-        if "speedup_cpu" in row:
-            L.append(f"| {m} | live / stream | {row['speedup_wall']:.1f} x | {row['speedup_cpu']:.1f} x | |")
+        for path in [p for p in row if p == "live" or p.startswith("live:") or p == "stream"]:
+            mg = row[path]["marginal"]
+            fr = f"{row[path]['runs']['short']['frames']} -> {row[path]['runs']['long']['frames']}"
+            la = row[path].get("load_avg")
+            L.append(f"| {m} | {path} | {fr} | {_f(mg['fps_wall'])} | {_f(mg['fps_cpu'])} | {_f(mg['fps_cpu'] and mg['fps_cpu'] / c['camera_fps'], 2)} | {_f(la and la[0])} |")
+        for path, r in row.get("ratio", {}).items():
+            L.append(f"| {m} | live / {path} | | {r['wall']:.1f} x | {r['cpu']:.1f} x | | |")
     L += ["", f"Self-calibration (once, first 0.1 s): {res['selfcal']['wall_s']:.1f} s wall, {res['selfcal']['cpu_s']:.1f} s CPU.", "",
           "Real-time factor per stage of the live path (seconds of recording per second of the stage, CPU time; encode = the background thread, without the x264 children):", "",
           "| method | " + " | ".join(keys) + " |", "|---|" + "---:|" * len(keys)]
     for m, row in res["methods"].items():
         L.append(f"| {m} | " + " | ".join(_f(row["stages_rtf_cpu"].get(k)) for k in keys) + " |")
+    L += ["", "CPU milliseconds per output frame per stage, marginal between the two lengths (encode = the background thread; the x264 "
+          "processes are only in the totals above):", "", "| method | path | " + " | ".join(keys) + " |", "|---|---|" + "---:|" * len(keys)]
+    for m, row in res["methods"].items():
+        for path, st in row.get("stage_ms_per_frame_cpu", {}).items():
+            L.append(f"| {m} | {path} | " + " | ".join(_f(st.get(k), 2) for k in keys) + " |")
     if "latency" in res:
         la = res["latency"]
         L += ["", f"--follow at real time ({la['seconds']} s written in chunks of {la['chunk_steps']} steps): latency median {1e3 * la['median']:.0f} ms, "

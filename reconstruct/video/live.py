@@ -7,14 +7,17 @@ linear T and R equal to float32 rounding, tested), by a path that keeps up with 
 * Eq. (3) counts summed on the packed bits (:mod:`reconstruct.stream.packed`), reading only the steps inside
   windows;
 * zeta (paper Eq. (2)) once per Eq. (3) frame, not once per window it appears in;
-* ``ls`` without RIR as one fused pass per pixel (:func:`reconstruct.physics.fused.ls_fused`); other solvers and
-  RIR through the torch solver on batches of windows, RIR by the chained whole-frame alignment
+* ``ls`` without RIR as one fused pass per pixel (:func:`reconstruct.physics.fused.ls_fused`); ``rwps`` with the
+  physics constants as fused passes with the RIR shifts applied while reading
+  (:func:`reconstruct.physics.fused_rwps.rwps_fused`); other solvers (or ``solver = "torch"``) through the torch
+  solver on batches of windows; RIR by the chained whole-frame alignment
   (:class:`reconstruct.physics.rir.ChainedRir`: each frame registered once onto the one before; the shifts
   differ from :func:`reconstruct.physics.rir.estimate_shifts`'s, the quality change is measured in
   docs/realtime.md); torch on one thread;
 * display gains from the running histogram of the first ``gain_frames`` frames (the whole video when it is
   shorter; a longer one keeps those gains: the display can be shown live), 8-bit conversion by a table and
-  H.264 encoding on a background thread.
+  H.264 encoding on a background thread (the five 8-bit images by one numba pass,
+  :func:`reconstruct.video.display8.to8_frames`; CRF by ``video_quality``).
 
 With ``follow`` the .dat may still be growing: frames are made as their last step arrives, and the latency (the
 time from the arrival of a window's last step to its output) is measured per frame.  ``stop`` (an event, set by
@@ -48,6 +51,10 @@ __all__ = ["LiveConfig", "reconstruct_live", "StageTimes", "to8_table"]
 log = logging.getLogger(__name__)
 
 
+VIDEO_CRF = {"fast": 23, "high": 10}
+"""x264 constant rate factor of the live videos per ``LiveConfig.video_quality`` (imageio's quality 8 = CRF 10)."""
+
+
 @dataclasses.dataclass(frozen=True)
 class LiveConfig:
     """Options of :func:`reconstruct_live`."""
@@ -59,7 +66,10 @@ class LiveConfig:
     video: bool = opt(True, "write T.mp4, R.mp4 and preview.mp4")
     max_frames: int = opt(0, "stop after this many output frames (0 = all)", lo=0, hi=10**9)
     gain_frames: int = opt(64, "display gains from the histogram of the first this many frames, then kept", lo=1, hi=10**9)
+    solver: str = opt("fused", "fused numba kernels where one exists (ls, physics rwps; RIR shifts applied inside) or torch (the streaming path's solver)", choices=("fused", "torch"))
     preset: str = opt("ultrafast", "x264 preset of the videos", choices=("ultrafast", "superfast", "veryfast", "faster", "fast", "medium"))
+    video_quality: str = opt("fast", "videos: fast (x264 CRF 23, one encoder thread per video) | high (CRF 10, the streaming path's level; more encoder CPU)", choices=tuple(VIDEO_CRF))
+    rir_finest: int = opt(1, "RIR: finest level of the chained fit, 1 = full resolution, 2 = 2 x 2 blocks (cheaper; error measured in docs/realtime.md)", lo=1, hi=2)
     poll_s: float = opt(0.01, "follow: wait between looks at the growing file, seconds", lo=0.0, hi=10.0)
     idle_s: float = opt(5.0, "follow: stop when the file has not grown for this long, seconds (0 = only Ctrl-C stops)", lo=0.0, hi=1e6)
 
@@ -126,8 +136,9 @@ class _LiveWriters:
         import imageio.v2 as iio
 
         tmp = self.stack.enter_context(atomic_path(self.out / f"{name}.mp4"))
-        w = iio.get_writer(str(tmp), format="FFMPEG", mode="I", fps=self.fps, codec="libx264", quality=8, macro_block_size=1, pixelformat="yuv420p",
-                           ffmpeg_log_level="error", output_params=["-preset", self.cfg.preset])
+        extra = ["-threads", "1"] if self.cfg.video_quality == "fast" else []  # one x264 thread per video: less sync work
+        w = iio.get_writer(str(tmp), format="FFMPEG", mode="I", fps=self.fps, codec="libx264", quality=None, macro_block_size=1, pixelformat="yuv420p",
+                           ffmpeg_log_level="error", output_params=["-preset", self.cfg.preset, "-crf", str(VIDEO_CRF[self.cfg.video_quality]), *extra])
         self.stack.callback(w.close)
         return w
 
@@ -153,10 +164,10 @@ class _LiveWriters:
     def _encode(self, i: int, I2: np.ndarray, T: np.ndarray, R: np.ndarray) -> None:
         g = self.gain
         even = lambda a: a[: a.shape[0] // 2 * 2, : a.shape[1] // 2 * 2]  # noqa: E731
-        t8, r8 = _to8_fast(T, g["T"]), _to8_fast(R, g["R"])
+        from reconstruct.video.display8 import to8_frames
+
+        t8, r8, prev = to8_frames(I2, T, R, g, _TO8)  # the table lookup of _to8_fast, in one pass
         if self.cfg.video:
-            gP = g["preview"]
-            prev = np.concatenate([_to8_fast(I2, gP), _to8_fast(T, gP), _to8_fast(R, gP)], 1)
             for name, img in (("T", t8), ("R", r8), ("preview", prev)):
                 if name not in self.vw:
                     self.vw[name] = self._open(name)
@@ -285,14 +296,19 @@ def reconstruct_live(
     cen = _Centres(phi0_rad, rev_per_s, rate_hz, agg)
     fps = output_fps(rev_per_s, cfg.stride_deg) if rev_per_s > 0 else 1.0
     H, W = reader.height, reader.width
-    fused = model.method == "ls" and not model.rir
+    fused = cfg.solver == "fused" and model.method == "ls" and not model.rir
+    fused_rwps = False
+    if cfg.solver == "fused" and model.method == "rwps":
+        from reconstruct.physics.fused_rwps import rwps_fused, rwps_fused_supports
+
+        fused_rwps = rwps_fused_supports(model.solver_cfg)
     maps = model.maps
     zeta_of = _ZetaFrames(maps, model.span_rad)
     chained = None
     if model.rir:
         from reconstruct.physics.rir import ChainedRir
 
-        chained = ChainedRir()
+        chained = ChainedRir(finest=cfg.rir_finest, fused=cfg.solver == "fused")
     scale = np.float32(cfg.window_steps * exposure)
     ring_I = np.zeros((N, H, W), np.float32)  # Eq. (3) frame j in slot j % N
     ring_Z = np.zeros((N, H, W), np.float32)
@@ -385,6 +401,17 @@ def reconstruct_live(
                     if fused:  # the least-squares sums do not depend on the order of the frames: the ring as it is
                         with times("solve"):
                             T, R = _ls(ring_Z, ring_I)
+                        emit(writers, ring_I[centre].copy(), T, R, arr)
+                    elif fused_rwps:  # nor do RWPS's (per-pixel sums, min and mean over the window); shifts follow the ring
+                        sh = None
+                        if model.rir and N > 1:
+                            order = [(nxt - N + k) % N for k in range(N)]
+                            with times("rir"):
+                                sw = chained.window_shifts(torch.from_numpy(ring_I[order]), torch.from_numpy(ring_phi[order]), np.arange(nxt - N, nxt)).numpy()
+                            sh = np.empty_like(sw)
+                            sh[order] = sw
+                        with times("solve"):
+                            T, R = rwps_fused(ring_Z, ring_I, model.solver_cfg, sh)
                         emit(writers, ring_I[centre].copy(), T, R, arr)
                     else:
                         order = [(nxt - N + k) % N for k in range(N)]

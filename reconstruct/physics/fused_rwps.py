@@ -1,0 +1,329 @@
+"""The physics RWPS solver as fused numba passes, for the real-time stream; registration shifts applied on the fly.
+
+:func:`rwps_fused` gives what ``solve("rwps", zeta, I, config=cfg)`` of :mod:`reconstruct.physics.solvers` gives
+for the adaptive, pooled-prior configuration without Huber passes (:data:`reconstruct.physics.solvers.
+PHYSICS_SOLVER_CONFIG`: ``lambda_map = "adaptive"``, ``rwps_prior = "pooled"``, no IRLS), clamped at 0 as the
+stream clamps, in three passes instead of some sixty (N, H, W) tensor operations:
+
+1. per pixel, over the N observations held in registers: the first ridge solve (``lambda_high``), the Poisson
+   reliability weights (:func:`reconstruct.physics.solvers.poisson_reliability`), the weighted moments, the
+   weighted least-squares solve and its residual variance (``_ls_noise``);
+2. on (H, W) maps: the box means of the noise and of the pooled prior
+   (:func:`reconstruct.physics.solvers.pooled_difference_prior`; edge-aware like ``avg_pool2d`` with
+   ``count_include_pad=False``, by prefix sums), Conf and lambda (supp. Eq. (8));
+3. per pixel: the final weighted ridge solve with the prior lambda (R - T - D0)^2 (supp. Eq. (9)).
+
+With ``shifts`` (N, 2) the observations are read through the bilinear, border-replicated translation of
+:func:`reconstruct.physics.rir.warp` (frames and zeta alike), so the warped window is never materialised.
+
+Sums and solves run in float64 with the float32 constants of the torch solver (eps 1e-7, its tiny floors); the
+torch path computes in float32, so the two agree to float32 rounding amplified by the conditioning of the pixel
+(tested against the torch solver as the oracle: docs/realtime.md gives the tolerance).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from reconstruct.physics.solvers import SolverConfig
+
+__all__ = ["rwps_fused", "rwps_fused_supports", "box_mean"]
+
+_F32_TINY = float(np.finfo(np.float32).tiny)
+_TINY2 = _F32_TINY**0.5  # the torch solver's tiny in moments / Conf / priors (float32)
+_TINY4 = _F32_TINY**0.25  # its floor constant of the 2 x 2 solve (float32)
+_EPS = 1e-7  # its relative diagonal floor (float32)
+_POISSON_FLOOR = 0.05  # poisson_reliability's relative offset c
+
+
+def rwps_fused_supports(config: SolverConfig) -> bool:
+    """Whether :func:`rwps_fused` computes ``solve("rwps", ..., config=config)`` (else use the torch solver)."""
+    iters = config.rwps_irls_iters if config.rwps_irls_iters >= 0 else config.irls_iters
+    return config.lambda_map == "adaptive" and config.rwps_prior == "pooled" and iters == 0
+
+
+def _load_row(img, k, y, oy, ox, fy, fx, warp, scale, dst):  # pragma: no cover - compiled
+    """Row y of img[k] times scale into dst (W,), read at (y - dy, x - dx) when ``warp``: bilinear, border-replicated (the
+    sample position y + oy + fy, 0 <= fy < 1, clamped to the image, as grid_sample's border padding).
+    """
+    _, H, W = img.shape
+    if not warp:
+        for x in range(W):
+            dst[x] = scale * np.float64(img[k, y, x])
+        return
+    y0 = min(max(y + oy, 0), H - 1)
+    y1 = min(max(y + oy + 1, 0), H - 1)
+    for x in range(W):
+        x0 = min(max(x + ox, 0), W - 1)
+        x1 = min(max(x + ox + 1, 0), W - 1)
+        top = (1.0 - fx) * np.float64(img[k, y0, x0]) + fx * np.float64(img[k, y0, x1])
+        bot = (1.0 - fx) * np.float64(img[k, y1, x0]) + fx * np.float64(img[k, y1, x1])
+        dst[x] = scale * ((1.0 - fy) * top + fy * bot)
+
+
+def _pass_pixels(z, I, oy, ox, fy, fx, warp, lam1, out, a, b, w, acc):  # pragma: no cover - compiled
+    """Pass 1 (module docstring), one image row at a time, the observation loop outside the pixel loop (so the
+    pixel loops vectorise): out (9, H, W) = S_rr, S_rt, S_tt, sum w, A^T W b (R, T), det M, sigma^2, D.
+    Scratch: a, b, w (N, W); acc (16, W).
+    """
+    N, H, W = z.shape
+    srr, srt, stt, rr, rt, sw, sww = acc[0], acc[1], acc[2], acc[3], acc[4], acc[5], acc[6]
+    R1, T1, pmin, psum = acc[7], acc[8], acc[9], acc[10]
+    for y in range(H):
+        for k in range(N):
+            _load_row_c(z, k, y, oy[k], ox[k], fy[k], fx[k], warp, 1.0, a[k])
+            _load_row_c(I, k, y, oy[k], ox[k], fy[k], fx[k], warp, 2.0, b[k])
+        # first pass of the reliability weights: unweighted ridge, lambda_high (poisson_reliability)
+        for x in range(W):
+            srr[x] = 0.0
+            srt[x] = 0.0
+            stt[x] = 0.0
+            rr[x] = 0.0
+            rt[x] = 0.0
+        for k in range(N):
+            ak, bk = a[k], b[k]
+            for x in range(W):
+                bt = 1.0 - ak[x]
+                srr[x] += ak[x] * ak[x]
+                srt[x] += ak[x] * bt
+                stt[x] += bt * bt
+                rr[x] += ak[x] * bk[x]
+                rt[x] += bt * bk[x]
+        for x in range(W):
+            diag = lam1 * N + _EPS * (srr[x] + stt[x]) + _TINY4
+            m11 = srr[x] + diag
+            m22 = stt[x] + diag
+            det = m11 * m22 - srt[x] * srt[x]
+            R1[x] = (m22 * rr[x] - srt[x] * rt[x]) / det
+            T1[x] = (m11 * rt[x] - srt[x] * rr[x]) / det
+            pmin[x] = 1e300  # not inf: fastmath assumes finite values
+            psum[x] = 0.0
+        for k in range(N):
+            ak, wk = a[k], w[k]
+            for x in range(W):
+                p = max(ak[x] * R1[x] + (1.0 - ak[x]) * T1[x], 0.0)
+                wk[x] = p
+                psum[x] += p
+                pmin[x] = min(pmin[x], p)
+        # weighted moments, weighted least squares and its residual noise (_ls_noise)
+        for x in range(W):
+            c = _POISSON_FLOOR * psum[x] / N + _TINY2
+            psum[x] = c
+            pmin[x] += c
+            srr[x] = 0.0
+            srt[x] = 0.0
+            stt[x] = 0.0
+            rr[x] = 0.0
+            rt[x] = 0.0
+            sw[x] = 0.0
+            sww[x] = 0.0
+        for k in range(N):
+            ak, bk, wk = a[k], b[k], w[k]
+            for x in range(W):
+                wx = pmin[x] / (wk[x] + psum[x])
+                wk[x] = wx
+                bt = 1.0 - ak[x]
+                wa = wx * ak[x]
+                wb = wx * bt
+                srr[x] += wa * ak[x]
+                srt[x] += wa * bt
+                stt[x] += wb * bt
+                sw[x] += wx
+                sww[x] += wx * wx
+                rr[x] += wa * bk[x]
+                rt[x] += wb * bk[x]
+        for x in range(W):
+            fl = _EPS * (srr[x] + stt[x]) + _TINY4
+            m11 = srr[x] + fl
+            m22 = stt[x] + fl
+            det = m11 * m22 - srt[x] * srt[x]
+            R1[x] = (m22 * rr[x] - srt[x] * rt[x]) / det
+            T1[x] = (m11 * rt[x] - srt[x] * rr[x]) / det
+            psum[x] = 0.0
+        for k in range(N):
+            ak, bk, wk = a[k], b[k], w[k]
+            for x in range(W):
+                r = bk[x] - (ak[x] * R1[x] + (1.0 - ak[x]) * T1[x])
+                psum[x] += wk[x] * r * r
+        o0, o1, o2, o3, o4, o5, o6, o7, o8 = out[0, y], out[1, y], out[2, y], out[3, y], out[4, y], out[5, y], out[6, y], out[7, y], out[8, y]
+        for x in range(W):
+            n_eff = sw[x] * sw[x] / (sww[x] + _TINY2)
+            dof = max(n_eff - 2.0, 0.5)
+            o0[x] = srr[x]
+            o1[x] = srt[x]
+            o2[x] = stt[x]
+            o3[x] = sw[x]
+            o4[x] = rr[x]
+            o5[x] = rt[x]
+            o6[x] = max(srr[x] * stt[x] - srt[x] * srt[x], 0.0)
+            o7[x] = psum[x] / (sw[x] + _TINY2) * n_eff / dof
+            o8[x] = R1[x] - T1[x]
+
+
+def _box_mean(x, k, out, cs):  # pragma: no cover - compiled
+    """Edge-aware k x k box mean of each (H, W) map of x (M, H, W) into out: rows, then columns; cs scratch
+    (H + 1, W).  The box of output i covers i - k // 2 .. i - k // 2 + k - 1 (avg_pool2d, padding k // 2,
+    count_include_pad=False, cropped).
+    """
+    M, H, W = x.shape
+    h = k // 2
+    for m in range(M):
+        for j in range(W):
+            cs[0, j] = 0.0
+        for i in range(H):
+            for j in range(W):
+                cs[i + 1, j] = cs[i, j] + x[m, i, j]
+        for i in range(H):
+            lo = max(i - h, 0)
+            hi = min(i - h + k, H)
+            inv = 1.0 / (hi - lo)
+            for j in range(W):
+                out[m, i, j] = (cs[hi, j] - cs[lo, j]) * inv
+        for i in range(H):
+            c = cs[0]
+            c[0] = 0.0
+            for j in range(W):
+                c[j + 1] = c[j] + out[m, i, j]
+            for j in range(W):
+                lo = max(j - h, 0)
+                hi = min(j - h + k, W)
+                out[m, i, j] = (c[hi] - c[lo]) / (hi - lo)
+
+
+def _pass_maps(s, noise_pool, pool, kappa0, snr_kappa, lam_lo, lam_hi, T, R, work, box, cs):  # pragma: no cover - compiled
+    """Passes 2 and 3 (module docstring) on the pixel sums s (9, H, W); T, R (H, W) float32 out, clamped at 0."""
+    _, H, W = s.shape
+    # sigma^2 pooled over noise_pool
+    work[0] = s[7]
+    _box_mean_c(work[0:1], noise_pool, box[0:1], cs)
+    for y in range(H):
+        for x in range(W):
+            sw = s[3, y, x]
+            detm = s[6, y, x]
+            v = box[0, y, x] * sw / (detm + _EPS * sw * sw + _TINY2)
+            v = v if v < 1e12 else 1e12
+            u = detm / (sw + _TINY2)
+            work[0, y, x] = v  # v_D (kept: box holds the pooled ones below)
+            work[1, y, x] = u
+            work[2, y, x] = u * s[8, y, x]
+            work[3, y, x] = u * v
+            work[4, y, x] = 4.0 * detm / (sw * sw + _TINY2)
+    _box_mean_c(work[1:5], pool, box[1:5], cs)
+    for y in range(H):
+        for x in range(W):
+            d0 = box[2, y, x] / (box[1, y, x] + _TINY2)
+            e = s[8, y, x] - d0
+            work[2, y, x] = d0
+            work[3, y, x] = work[1, y, x] * e * e
+    _box_mean_c(work[3:4], pool, box[0:1], cs)  # box[0] <- <u (D - D0)^2>
+    for y in range(H):
+        for x in range(W):
+            bu = box[1, y, x] + _TINY2
+            s2 = (box[0, y, x] - box[3, y, x]) / bu
+            s2 = s2 if s2 > 0.0 else 0.0
+            bd = box[4, y, x]
+            d0 = work[2, y, x] * bd / (bd + kappa0 + _TINY2)
+            q = s2 / (work[0, y, x] + _TINY2)
+            conf = q / (q + snr_kappa)
+            lam = lam_lo * conf + lam_hi * (1.0 - conf)  # supp. Eq. (8)
+            srr, srt, stt, sw = s[0, y, x], s[1, y, x], s[2, y, x], s[3, y, x]
+            ls = lam * sw
+            rR = s[4, y, x] + ls * d0
+            rT = s[5, y, x] - ls * d0
+            fl = _EPS * (srr + stt) + _TINY4
+            m11 = srr + ls + fl
+            m22 = stt + ls + fl
+            m12 = srt - ls
+            det = m11 * m22 - m12 * m12
+            r = (m22 * rR - m12 * rT) / det  # supp. Eq. (9), 2x2 adjugate
+            t = (m11 * rT - m12 * rR) / det
+            R[y, x] = r if r > 0.0 else 0.0
+            T[y, x] = t if t > 0.0 else 0.0
+
+
+_load_row_c = None
+_box_mean_c = None
+_k: dict = {}
+
+
+def _get():
+    global _load_row_c, _box_mean_c
+    if not _k:
+        import numba
+
+        jit = numba.njit(cache=True, nogil=True, fastmath=True)
+        _load_row_c = jit(_load_row)
+        _box_mean_c = jit(_box_mean)
+        _k["pixels"] = jit(_pass_pixels)
+        _k["maps"] = jit(_pass_maps)
+        _k["box"] = _box_mean_c
+    return _k
+
+
+class _Scratch:
+    """Work arrays of one frame size, made once."""
+
+    def __init__(self, N: int, H: int, W: int):
+        self.s = np.empty((9, H, W))
+        self.work = np.empty((5, H, W))
+        self.box = np.empty((5, H, W))
+        self.cs = np.empty((H + 1, W + 1))
+        self.rows = (np.empty((N, W)), np.empty((N, W)), np.empty((N, W)), np.empty((16, W)))
+
+
+_scratch: dict[tuple[int, int, int], _Scratch] = {}
+
+
+def _shift_parts(shifts: np.ndarray | None, N: int):
+    """Integer offsets and fractions of the sample positions y - dy, x - dx (floor decomposition)."""
+    if shifts is None:
+        z = np.zeros(N, np.int64)
+        f = np.zeros(N)
+        return z, z, f, f, False
+    s = np.asarray(shifts, np.float64).reshape(N, 2)
+    py, px = -s[:, 0], -s[:, 1]
+    oy, ox = np.floor(py), np.floor(px)
+    return oy.astype(np.int64), ox.astype(np.int64), py - oy, px - ox, bool(np.any(s != 0.0))
+
+
+def rwps_fused(zeta: np.ndarray, I: np.ndarray, config: SolverConfig, shifts: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """RWPS T, R (H, W) float32, clamped at 0, of one window (module docstring).
+
+    Args:
+        zeta, I: (N, H, W) mixing coefficients and observations (radiance units, paper Eq. (1)).
+        config: solver parameters; :func:`rwps_fused_supports` must hold.
+        shifts: optional (N, 2) (dy, dx) registration shifts (:func:`reconstruct.physics.rir.warp`'s convention),
+            applied to zeta and I alike.
+
+    Returns:
+        (T, R), each (H, W) float32.
+    """
+    from polinfra.errors import ConfigError, ShapeError
+
+    if not rwps_fused_supports(config):
+        raise ConfigError("the fused RWPS takes the adaptive, pooled-prior solver without Huber passes (PHYSICS_SOLVER_CONFIG)")
+    if I.ndim != 3 or zeta.shape != I.shape:
+        raise ShapeError(f"zeta and I must both be (N, H, W); got {zeta.shape} and {I.shape}", actual_shape=tuple(I.shape), expected_shape="(N, H, W)")
+    N, H, W = I.shape
+    k = _get()
+    sc = _scratch.get((N, H, W))
+    if sc is None:
+        sc = _scratch[(N, H, W)] = _Scratch(N, H, W)
+    oy, ox, fy, fx, warp = _shift_parts(shifts, N)
+    z = np.ascontiguousarray(zeta, np.float32)
+    i = np.ascontiguousarray(I, np.float32)
+    k["pixels"](z, i, oy, ox, fy, fx, warp, float(config.lambda_high), sc.s, *sc.rows)
+    T = np.empty((H, W), np.float32)
+    R = np.empty((H, W), np.float32)
+    k["maps"](sc.s, int(config.noise_pool), int(config.prior_pool), float(config.prior_kappa), float(config.snr_kappa), float(config.lambda_low), float(config.lambda_high),
+              T, R, sc.work, sc.box, sc.cs)
+    return T, R
+
+
+def box_mean(x: np.ndarray, k: int) -> np.ndarray:
+    """Edge-aware k x k box mean of (H, W) or (M, H, W) maps (the kernel's; float64)."""
+    x = np.asarray(x, np.float64)
+    x3 = np.ascontiguousarray(x.reshape((-1,) + x.shape[-2:]))
+    out = np.empty_like(x3)
+    _get()["box"](x3, int(k), out, np.empty((x3.shape[-2] + 1, x3.shape[-1] + 1)))
+    return out.reshape(x.shape)

@@ -1,0 +1,143 @@
+"""The live path's numba kernels against the torch code they replace.
+
+Oracles: the torch RWPS solver (``solve("rwps", ..., PHYSICS_SOLVER_CONFIG)``, after ``warp`` when shifted) on seeded
+paper Eq. (1)-(2) windows with Poisson noise; the true layers of a noise-free Eq. (1)-(2) window; the solvers' box
+mean; the torch Gauss-Newton translation fit; the table lookup of the 8-bit display.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from reconstruct.physics.solvers import PHYSICS_SOLVER_CONFIG
+
+N, H, W = 7, 48, 64
+TOL_MAX, TOL_MEAN = 2e-5, 1e-6  # fused (float64 sums) vs torch (float32), relative to the layer's peak
+
+
+def _window(seed: int, noise: bool = True, counts: float = 26.0):
+    """Window of N frames: zeta by paper Eq. (2) on random pane maps, I by Eq. (1) on random layers, Poisson counts when ``noise``."""
+    rng = np.random.default_rng(seed)
+    phi = np.linspace(0.0, math.pi, N, endpoint=False) + rng.uniform(0, math.pi)
+    rp = rng.uniform(0.05, 0.4, (H, W))
+    rl = rp * rng.uniform(0.0, 0.5, (H, W))
+    pp = rng.uniform(0, math.pi, (H, W))
+    Z = 0.5 * (rp + rl) + 0.5 * (rp - rl) * np.cos(2 * (phi[:, None, None] - pp))  # Eq. (2)
+    R = rng.uniform(0.0, 1.0, (H, W))
+    T = rng.uniform(0.0, 1.0, (H, W))
+    I = 0.5 * (Z * R + (1 - Z) * T)  # Eq. (1)
+    if noise:
+        I = rng.poisson(I * counts) / counts
+    return Z.astype(np.float32), I.astype(np.float32), T, R
+
+
+def _torch(Z, I, shifts=None):
+    from reconstruct.physics.rir import warp
+    from reconstruct.physics.solvers import solve
+
+    z, i = torch.from_numpy(Z), torch.from_numpy(I)
+    if shifts is not None:
+        s = torch.from_numpy(shifts).float()
+        z, i = warp(z, s), warp(i, s)
+    r = solve("rwps", z, i, config=PHYSICS_SOLVER_CONFIG)
+    return r.T.clamp_min(0).numpy(), r.R.clamp_min(0).numpy()
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+@pytest.mark.parametrize("shifted", [False, True])
+def test_fused_rwps_equals_the_torch_solver(seed, shifted):
+    from reconstruct.physics.fused_rwps import rwps_fused
+
+    Z, I, _, _ = _window(seed)
+    sh = None
+    if shifted:
+        sh = np.random.default_rng(100 + seed).uniform(-1.7, 1.7, (N, 2))
+        sh[N // 2] = 0.0
+    T0, R0 = _torch(Z, I, sh)
+    T1, R1 = rwps_fused(Z, I, PHYSICS_SOLVER_CONFIG, sh)
+    assert T1.dtype == np.float32 and T1.shape == (H, W)
+    for a, b in ((T0, T1), (R0, R1)):
+        peak = float(a.max())
+        d = np.abs(a - b)
+        assert peak > 0 and float(d.max()) <= TOL_MAX * peak and float(d.mean()) <= TOL_MEAN * peak, (float(d.max()) / peak, float(d.mean()) / peak)
+
+
+def test_fused_rwps_recovers_the_layers_of_a_noise_free_window():
+    """Without noise the residual variance is 0, Conf -> 1 and lambda -> lambda_low = 0: the plain weighted least
+    squares, which is exact on Eq. (1)-(2) data.
+    """
+    from reconstruct.physics.fused_rwps import rwps_fused
+
+    Z, I, T, R = _window(5, noise=False)
+    T1, R1 = rwps_fused(Z, I, PHYSICS_SOLVER_CONFIG)
+    assert float(np.abs(T1 - T).max()) < 2e-4 and float(np.abs(R1 - R).max()) < 3e-3
+
+
+@pytest.mark.parametrize("k", [1, 4, 5, 31])
+def test_box_mean_equals_the_solvers_box(k):
+    from reconstruct.physics.fused_rwps import box_mean
+    from reconstruct.physics.solvers import _box
+
+    x = np.random.default_rng(k).normal(size=(2, 23, 37))
+    np.testing.assert_allclose(box_mean(x, k), _box(torch.from_numpy(x), k).numpy(), rtol=0, atol=1e-12)
+
+
+def test_fused_rwps_takes_only_the_configuration_it_computes():
+    import dataclasses
+
+    from polinfra.errors import ConfigError
+    from reconstruct.physics.fused_rwps import rwps_fused, rwps_fused_supports
+
+    Z, I, _, _ = _window(0)
+    for cfg in (dataclasses.replace(PHYSICS_SOLVER_CONFIG, rwps_irls_iters=1), dataclasses.replace(PHYSICS_SOLVER_CONFIG, rwps_prior="zero"),
+                dataclasses.replace(PHYSICS_SOLVER_CONFIG, lambda_map="fixed")):
+        assert not rwps_fused_supports(cfg)
+        with pytest.raises(ConfigError):
+            rwps_fused(Z, I, cfg)
+    assert rwps_fused_supports(PHYSICS_SOLVER_CONFIG)
+
+
+def test_fused_gauss_newton_equals_the_torch_fit():
+    from scipy.ndimage import gaussian_filter, shift
+
+    from reconstruct.physics.fused_rir import gauss_newton_fused
+    from reconstruct.physics.rir import _gauss_newton, _with_gradient
+
+    rng = np.random.default_rng(7)
+    ref = gaussian_filter(rng.normal(size=(90, 120)), 3.0)
+    mov = shift(ref, (0.6, -1.2), order=3, mode="nearest")
+    st = _with_gradient(torch.from_numpy(mov))
+    pts = torch.from_numpy(np.argwhere(np.ones(ref.shape, bool))[::5]).double()
+    r = torch.from_numpy(ref)[pts[:, 0].long(), pts[:, 1].long()]
+    for s0 in (np.zeros(2), np.array([0.3, -0.4])):
+        a = _gauss_newton(r, st, pts, torch.from_numpy(s0), 8).numpy()
+        b = gauss_newton_fused(r.numpy(), st.numpy(), pts.numpy(), s0, 8)
+        assert np.abs(a - b).max() < 1e-9 and np.abs(a - [-0.6, 1.2]).max() < 0.05, (a, b)
+
+
+def test_display_frames_equal_the_table_lookup():
+    from reconstruct.video.display8 import to8_frames
+    from reconstruct.video.live import _TO8, _to8_fast
+
+    rng = np.random.default_rng(3)
+    I2, T, R = (rng.uniform(-0.2, 1.4, (31, 45)).astype(np.float32) for _ in range(3))
+    g = {"T": 0.93, "R": 1.7, "preview": 0.8}
+    t8, r8, p8 = to8_frames(I2, T, R, g, _TO8)
+    assert np.array_equal(t8, _to8_fast(T, g["T"])) and np.array_equal(r8, _to8_fast(R, g["R"]))
+    assert np.array_equal(p8, np.concatenate([_to8_fast(x, g["preview"]) for x in (I2, T, R)], 1))
+
+
+def test_live_flags_reject_bad_values_through_the_console_script(tmp_path, polspike_cli):
+    f = tmp_path / "x.dat"
+    f.write_bytes(bytes(8 * 16 * 20))
+    geo = ("--height", 16, "--width", 20, "--phi0-deg", 0, "--rev-per-s", 30)
+    r = polspike_cli("reconstruct", f, *geo, "--method", "ls", "--video-quality", "best", "--out", tmp_path / "o")
+    polspike_cli.one_line_exit_2(r, "--video-quality", "fast", "high")
+    assert not (tmp_path / "o").exists()
+    r = polspike_cli("bench", "realtime", "--live-variants", "torch,turbo", "--out", tmp_path / "b")
+    polspike_cli.one_line_exit_2(r, "--live-variants", "coarse-rir")
+    assert not (tmp_path / "b").exists()
