@@ -179,8 +179,9 @@ def reconstruct_stream(
     Args:
         source: spike stream and calibrated polarizer angles.
         model: :class:`reconstruct.net.network.PolSpikeNet` (eval mode), or any object following the
-            protocol of :func:`run_model_on_windows` (``cfg.n_obs``; ``model(I, phi)`` -> ``T``, ``R``,
-            ``T_base``, ``R_base``), e.g. a physics-only reconstructor.  Models with
+            protocol of :func:`run_model_on_windows` (``cfg.n_obs``, ``cfg.inputs``; ``model(I, phi, **inputs)`` -> ``T``,
+            ``R``, ``T_base``, ``R_base``), e.g. a physics-only reconstructor.  The stream builds what ``cfg.inputs`` names
+            (the long spike mean, its harmonic, the wide windows, the exposure and span length) beside each window.  Models with
             ``cacheable = True`` must also provide ``encode_obs(frames, scales)`` and accept
             ``feats=`` (:class:`FeatureCache`); others run window by window.
         out_dir: output directory (created).
