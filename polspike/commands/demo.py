@@ -174,7 +174,7 @@ def reconstruct_and_score(group_dir: Path, figs: Path, n_frames: int, crop: int)
     phi = np.stack([g.phi_nominal[i - K : i + K + 1] for i in idx])
     zw = None if Z is None else np.stack([Z[i - K : i + K + 1][:, sl[0], sl[1]] for i in idx]).astype(np.float32)
     with torch.no_grad():  # with the long span the network reads (reconstruct.stream.groups.network_inputs)
-        res = run_model_on_windows(model, I, phi, zeta=zw, **network_inputs(g, model, idx, K, sl))
+        res = run_model_on_windows(model, network_inputs(g, model, I, phi, idx, K, sl), zeta=zw)
     est = {"TFP (window mean)": (2 * I.mean(1), None), "RWPS only": (res["T_base"], res["R_base"]), "full network": (res["T"], res["R"])}
     rows = []
     for name, (T, R) in est.items():

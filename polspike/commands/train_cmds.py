@@ -348,7 +348,8 @@ def heldout_wide_steps() -> int:
 
 def heldout_inputs(model) -> dict:
     """The long-span keywords of :func:`heldout_test_set` a network takes (``mean_steps``, ``wide_steps``)."""
-    return {"mean_steps": heldout_mean_steps() if model.cfg.use_mean else 0, "wide_steps": heldout_wide_steps() if getattr(model.cfg, "wide_input", False) else 0}
+    need = model.cfg.inputs
+    return {"mean_steps": heldout_mean_steps() if "I_mean" in need else 0, "wide_steps": heldout_wide_steps() if "I_wide" in need else 0}
 
 
 def heldout_test_set(crop: int = 64, items: int = 96, seed: int = 20_000, manifest: str = "", scenes: int = 10, scene_seed: int = 0, light: str = "range", mean_steps: int = 0, wide_steps: int = 0):

@@ -129,7 +129,8 @@ def count_flops(model, height: int = 250, width: int = 400) -> float:
     from reconstruct.video.tiling import standin_inputs
 
     with torch.inference_mode(), fc:
-        model(I, phi, **standin_inputs(model, I))
+        x = standin_inputs(model, I, phi)
+        model(x.I, x.phi, **x.extras())
     return float(fc.get_total_flops())
 
 
@@ -140,13 +141,13 @@ def _frame_fps(model, height: int, width: int, frames: int, tile: int, precision
     N = model.cfg.n_obs
     I = (0.1 + 0.3 * g.random((1, N, height, width))).astype(np.float32)
     phi = ((np.arange(N) - N // 2) * np.radians(31.5))[None].astype(np.float32)
-    kw = standin_inputs(model, I)
-    run_model_on_windows(model, I, phi, device, tile, precision=precision, **kw)  # warm-up
+    x = standin_inputs(model, I, phi)
+    run_model_on_windows(model, x, device, tile, precision=precision)  # warm-up
     best = float("inf")
     cpu = float("inf")
     for _ in range(frames):
         t0, c0 = time.perf_counter(), time.process_time()
-        run_model_on_windows(model, I, phi, device, tile, precision=precision, **kw)  # returns numpy: synchronised
+        run_model_on_windows(model, x, device, tile, precision=precision)  # returns numpy: synchronised
         best = min(best, time.perf_counter() - t0)
         cpu = min(cpu, time.process_time() - c0)
     _frame_fps.last_cpu_s = cpu  # CPU seconds of the best pass (all threads): robust to other processes' load
@@ -221,7 +222,7 @@ def bench_reconstruct_net(
     import tempfile
     from pathlib import Path
 
-    from reconstruct.net.network import count_parameters
+    from reconstruct.net.network import NetConfig, count_parameters
 
     work = Path(work_dir or tempfile.mkdtemp(prefix="bench_net_"))
     out: dict = {"config": {"width": width, "height": height, "frames": frames, "threads": list(threads), "torch": torch.__version__, "machine": platform.machine()}, "models": {}}
@@ -248,7 +249,7 @@ def bench_reconstruct_net(
         for name, model in models.items():
             from reconstruct.video.tiling import auto_tile
 
-            r: dict = {"arch": getattr(model.cfg, "arch", "?"), "parameters": count_parameters(model), "tile": auto_tile(model, "cpu")}
+            r: dict = {"arch": model.cfg.arch if isinstance(model.cfg, NetConfig) else "?", "parameters": count_parameters(model), "tile": auto_tile(model, "cpu")}
             torch.set_num_threads(1)
             r["gflop_per_frame"] = count_flops(model, height, width) / 1e9
             for t in threads:

@@ -461,8 +461,8 @@ def evaluate_groups(
             if net_rows:
                 t0 = time.perf_counter()
                 zn = None if Znet is None else np.stack([np.ascontiguousarray(Znet[i - K : i + K + 1], np.float32) for i in cb])
-                span_kw = network_inputs(g, model, cb, K)  # the long span it reads; ConfigError where the group lacks it
-                o = run_model_on_windows(model, raw.float().cpu().numpy(), Pw.float().cpu().numpy(), device=next(model.parameters()).device, tile=cfg.net_tile, zeta=zn, **span_kw)
+                x = network_inputs(g, model, raw.float().cpu().numpy(), Pw.float().cpu().numpy(), cb, K)  # with the long span it reads; ConfigError where the group lacks it
+                o = run_model_on_windows(model, x, device=next(model.parameters()).device, tile=cfg.net_tile, zeta=zn)
                 est[net_rows[0]] = (o["T"], o["R"])
                 est[net_rows[1]] = (o["T_base"], o["R_base"])
                 t["network"] += time.perf_counter() - t0

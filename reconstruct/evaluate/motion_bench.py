@@ -147,6 +147,7 @@ def run_cell(cell: dict, *, width: int = 96, height: int = 64, frames: int = 1, 
     from reconstruct.physics.zeta import zeta_from_maps
     from reconstruct.stream.motion_scenes import MotionSceneConfig, make_motion_stream
     from reconstruct.stream.motion_span import compensated_span
+    from reconstruct.stream.window_inputs import WindowInputs, inputs_of
     from reconstruct.video.tiling import run_model_on_windows
 
     if calibrate not in ("still", "cell"):
@@ -195,7 +196,8 @@ def run_cell(cell: dict, *, width: int = 96, height: int = 64, frames: int = 1, 
                 if mspan is None:
                     mspan = compensated_span(st.spikes[lo:hi], st.phi[lo:hi], st.exposure)
                 kw["I_mean"], kw["I_harm"] = mspan[0][None], mspan[1][None]
-            o = run_model_on_windows(model, I[None], phi[None].astype(np.float32), "cpu", 0, **kw)
+            x = WindowInputs(I[None], phi[None].astype(np.float32), **kw).only(inputs_of(model))  # what this network reads of the span
+            o = run_model_on_windows(model, x, "cpu", 0)
             out[m] = (o["T"][0], o["R"][0])
         for m, (T, R) in out.items():
             for key, est, gt in (("T", T, Tg), ("R", R, Rg)):

@@ -56,6 +56,7 @@ from polinfra.errors import ConfigError, ShapeError
 from reconstruct.physics.solvers import SolverConfig, solve
 from reconstruct.physics.span import anchor_to_mean, gaussian_kernel, long_span_separation, separable_blur, span_blend, span_weights, zbar_of
 from reconstruct.physics.symmetry import symmetry_angles, symmetry_harmonic, symmetry_image
+from reconstruct.stream.window_inputs import WindowInputs
 
 __all__ = ["NetConfig", "NetOutput", "AngleAttention", "ParameterBranch", "LowResParameterBranch", "Refinement", "window_scale", "PolSpikeNet", "count_parameters", "init_weights", "predict_parameters", "SYMMETRY_CODES", "check_ensemble_size", "SymmetryEnsemble"]
 
@@ -101,6 +102,29 @@ class NetConfig:
     floor: bool = opt(True, "data-consistency floor at inference (reconstruct.physics.consistency): the final (T, R) must predict the N aligned windows (paper Eq. (1)-(2)) within floor_tol noise variances of the physics-only RWPS's residual on the same zeta; where it does not, it is pulled back toward that physics. No weights; off while training")
     floor_tol: float = opt(4.0, "the floor's allowed excess residual, in noise variances of one observation (4: the floored error is the smaller of the refinement's and the physics', reconstruct.physics.consistency)", lo=0.0, hi=1e6)
     floor_mode: str = opt("shrink", "the floor: shrink (keep the fraction min(1, floor_tol sigma^2 / excess) of the refinement's move from the physics) | hard (the physics wherever the excess exceeds floor_tol sigma^2)", choices=("shrink", "hard"))
+
+    def __post_init__(self) -> None:
+        """The feature combinations: a :class:`ConfigError` naming what cannot be built."""
+        anchored = [k for k, on in (("base = anchored", self.base == "anchored"), ("use_harm", self.use_harm), ("use_wide", self.use_wide), ("t_level_px", self.t_level_px > 0),
+                                    ("r_level_from = wide", self.r_level_from == "wide"), ("span_level", self.span_level)) if on]
+        if anchored and not self.use_mean:
+            raise ConfigError(f"{', '.join(anchored)} need{'s' if len(anchored) == 1 else ''} use_mean = true (the anchor is the long spike mean)")
+        ch = self.feat_ch if self.arch == "v1" else self.lr_ch
+        if self.use_attention and ch % self.heads:
+            raise ConfigError(f"{'feat_ch' if self.arch == 'v1' else 'lr_ch'} = {ch} must be a multiple of heads = {self.heads} (the angle attention splits its channels over the heads)")
+
+    @property
+    def inputs(self) -> frozenset[str]:
+        """What the network reads beside its windows (names of :class:`reconstruct.stream.window_inputs.WindowInputs`)."""
+        return frozenset(k for k, on in (("I_mean", self.use_mean), ("I_harm", self.harm_input), ("I_wide", self.wide_input),
+                                         ("exposure", self.span_level), ("span_steps", self.span_level)) if on)
+
+    @property
+    def reach_px(self) -> int:
+        """Pixels an output pixel reads around itself beyond the convolutions: the widest blur of the levels and the span's
+        correction (a tile's margin must cover it).
+        """
+        return max(gaussian_radius(self.r_level_px), gaussian_radius(self.t_level_px), gaussian_radius(self.span_level_px) if self.span_level else 0)
 
     @property
     def wide_input(self) -> bool:
@@ -159,7 +183,7 @@ class AngleAttention(nn.Module):
     def __init__(self, ch: int, heads: int = 2):
         super().__init__()
         if ch % heads:
-            raise ShapeError(f"attention channels {ch} must be divisible by heads {heads}", actual_shape=(ch,), expected_shape=f"multiple of {heads}")
+            raise ConfigError(f"attention channels {ch} must be a multiple of heads {heads}")
         self.heads = heads
         self.q = nn.Linear(ch, ch)
         self.k = nn.Linear(ch, ch)
@@ -374,7 +398,7 @@ class PolSpikeNet(nn.Module):
     def encode_obs(self, I: torch.Tensor, scale: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """v2: per-observation features of frames I (M, H, W) at scales (M,) (see :class:`LowResParameterBranch`)."""
         if not self.cacheable:
-            raise ShapeError("encode_obs needs a v2 network with RIR off", actual_shape=None, expected_shape="arch v2, use_rir false")
+            raise ConfigError("encode_obs needs a v2 network with RIR off")
         return self.param.encode_obs(I, scale)
 
     def align(self, I: torch.Tensor, phi: torch.Tensor, zeta_gt: torch.Tensor | None, *more: torch.Tensor | None) -> tuple[torch.Tensor | None, ...]:
@@ -424,7 +448,8 @@ class PolSpikeNet(nn.Module):
             scale: v2 only: (B,) or (B, 1, 1, 1) brightness normaliser of the parameter branch
                 (default :func:`window_scale` of ``I``); tiles of one frame share the frame's.
             I_mean: (B, H, W) the long spike mean around the centre frame, radiance units; required by a
-                ``use_mean`` network, ignored otherwise.
+                ``use_mean`` network.  Each input beside the windows is given exactly when ``cfg.inputs`` names it
+                (:meth:`reconstruct.stream.window_inputs.WindowInputs.check`: a ShapeError names what is missing or extra).
             zeta_scale: optional (B,) factors applied to ``zeta_gt`` where it is fed to the solver (teacher
                 forcing), not where the losses compare with it: training for an imperfect external zeta
                 (``--zeta self``, whose errors are mostly of scale; RECONSTRUCTION_NOTES "scale vs shape").
@@ -435,34 +460,31 @@ class PolSpikeNet(nn.Module):
                 ``zeta_shape`` / ``zeta_scale``), the losses still comparing with ``zeta_gt``: e.g. the window's zeta under
                 the glass the self-calibration assumes (``window.assumed_n``).
             I_harm: (B, 2, H, W) the first harmonic (cos 2 phi, sin 2 phi) of the spikes over I_mean's span, radiance
-                units; required by a ``use_harm`` network, ignored otherwise.
+                units; required by a ``use_harm`` or ``span_level`` network.
             I_wide: (B, N, H, W) the observations over the wide window (same centres and angles as ``I``), radiance
-                units; required where ``NetConfig.wide_input`` (use_wide, t_level_px, r_level_from = wide), ignored otherwise.  Its solver takes zeta as given for
+                units; required where ``NetConfig.wide_input`` (use_wide, t_level_px, r_level_from = wide).  Its solver takes zeta as given for
                 the narrow windows (the wide window's averaging lowers zeta's modulation by ~5 % at 57 steps).
             exposure, span_steps: the stream's exposure (spikes per step per unit radiance) and the number of steps of
                 I_mean's span, numbers or (B,) tensors; required by a ``span_level`` network (the span's noise and
-                saturation), ignored otherwise.
+                saturation).
 
         Returns:
             :class:`NetOutput`.
         """
-        if I.dim() != 4 or I.shape[1] != self.cfg.n_obs:
-            raise ShapeError(f"I must be (B, {self.cfg.n_obs}, H, W); got {tuple(I.shape)}", actual_shape=tuple(I.shape), expected_shape=f"(B, {self.cfg.n_obs}, H, W)")
-        if phi.shape != I.shape[:2]:
-            raise ShapeError(f"phi must be (B, N) = {tuple(I.shape[:2])}; got {tuple(phi.shape)}", actual_shape=tuple(phi.shape), expected_shape=tuple(I.shape[:2]))
+        WindowInputs(I, phi, I_mean, I_harm, I_wide, exposure, span_steps).check(self.cfg)  # what this configuration reads, of the windows' shapes
         H, W = I.shape[-2:]
         m = self.pad_multiple
         if H % m or W % m:
             raise ShapeError(f"H and W must be multiples of {m} (pad the input); got {H}x{W}", actual_shape=(H, W), expected_shape=f"multiples of {m}")
         if feats is not None and not self.cacheable:
-            raise ShapeError("precomputed features need a v2 network with RIR off", actual_shape=None, expected_shape="feats=None")
+            raise ConfigError("precomputed features need a v2 network with RIR off")
         if alpha > 0 and zeta_gt is None:
             raise ShapeError("teacher forcing alpha > 0 needs zeta_gt", actual_shape=None, expected_shape="(B, N, H, W)")
         if self.cfg.use_rir:
             I, zeta_gt, zeta_feed, I_wide = self.align(I, phi, zeta_gt, zeta_feed, I_wide)
         if self.cfg.arch == "v1":
             if scale is not None:
-                raise ShapeError("scale is a v2 option (v1 normalises each window by its own mean)", actual_shape=None, expected_shape="scale=None")
+                raise ConfigError("scale is a v2 option (v1 normalises each window by its own mean)")
             zeta_hat, w, _ = self.param(I, phi)
         else:
             zeta_hat, w, _ = self.param(I, phi, feats, scale)
@@ -490,21 +512,15 @@ class PolSpikeNet(nn.Module):
         Tb, Rb = T0, R0
         Rlev = None
         if self.cfg.use_mean:
-            if I_mean is None or I_mean.shape != I_c.shape:
-                raise ShapeError(f"a use_mean network needs I_mean {tuple(I_c.shape)} (the long spike mean around the centre frame)", actual_shape=None if I_mean is None else tuple(I_mean.shape), expected_shape=tuple(I_c.shape))
             I_mean = I_mean.float()
             zbar = zeta_used.mean(1) if self.cfg.anchor_zbar == "window" else zbar_of(zeta_used, phi)
             Ta, Ra = anchor_to_mean(T0, R0, I_mean, zbar)
             ch += [2 * I_mean, Ta]  # the spike mean and T anchored to it
             if self.cfg.use_harm:
-                if I_harm is None or I_harm.shape != (I_c.shape[0], 2, *I_c.shape[1:]):
-                    raise ShapeError(f"a use_harm network needs I_harm {(I_c.shape[0], 2, *I_c.shape[1:])} (the long span's first harmonic)", actual_shape=None if I_harm is None else tuple(I_harm.shape), expected_shape=(I_c.shape[0], 2, *I_c.shape[1:]))
                 Tl, Rl = long_span_separation(I_mean, I_harm.float(), zeta_used, phi)
                 lim = 50.0 * I_mean.abs() + 0.05  # per pixel (tiles agree): bounded inputs where noise is divided by a weak modulation
                 ch += [torch.maximum(torch.minimum(Tl, lim), -lim), torch.maximum(torch.minimum(Rl, lim), -lim)]
             if self.cfg.wide_input:
-                if I_wide is None or I_wide.shape != I.shape:
-                    raise ShapeError(f"this network (use_wide, t_level_px or r_level_from = wide) needs I_wide {tuple(I.shape)} (the observations over the wide window)", actual_shape=None if I_wide is None else tuple(I_wide.shape), expected_shape=tuple(I.shape))
                 # an input like I_mean: no gradient into zeta through this second solve (its Poisson weights' backward overflows)
                 with torch.no_grad():
                     rw = solve(self.cfg.solver_method, zeta_used.detach(), I_wide.float(), None, self.solver_cfg)
@@ -515,8 +531,6 @@ class PolSpikeNet(nn.Module):
                     Rlev = Rw
             if self.cfg.base == "anchored":
                 Tb, Rb = Ta, Ra
-        elif self.cfg.base == "anchored" or self.cfg.harm_input or self.cfg.wide_input:
-            raise ShapeError("base = anchored, use_harm, use_wide, t_level_px, r_level_from = wide and span_level need a use_mean network (the anchor is the long spike mean)", actual_shape=None, expected_shape="use_mean = true")
         x = torch.stack(ch, 1)
         dT, dR = self.refine(x)
         R = Rb + dR
@@ -528,10 +542,6 @@ class PolSpikeNet(nn.Module):
             T = T + gaussian_blur(Tw - Tb, self.cfg.t_level_px)
         if self.cfg.span_level and zeta_gt is not None and alpha >= 1.0:  # on an external zeta only (self-calibrated or given):
             # the span's D is as right as zeta's orientation over the whole span, which the learned per-window zeta does not check
-            if I_harm is None or I_harm.shape != (I_c.shape[0], 2, *I_c.shape[1:]):
-                raise ShapeError(f"a span_level network needs I_harm {(I_c.shape[0], 2, *I_c.shape[1:])} (the long span's first harmonic)", actual_shape=None if I_harm is None else tuple(I_harm.shape), expected_shape=(I_c.shape[0], 2, *I_c.shape[1:]))
-            if exposure is None or span_steps is None:
-                raise ShapeError("a span_level network needs the stream's exposure and span_steps (the span's noise and saturation)", actual_shape=None, expected_shape="exposure, span_steps")
             with torch.no_grad():  # a move of D computed without gradient, like the other levels' inputs
                 peak = I.max(1).values if I_wide is None else torch.maximum(I.max(1).values, I_wide.float().max(1).values)
                 zs = zeta_used.detach()
@@ -664,7 +674,7 @@ class SymmetryEnsemble(nn.Module):
 
     def forward(self, I: torch.Tensor, phi: torch.Tensor, zeta_gt: torch.Tensor | None = None, alpha: float = 0.0, feats=None, **kw) -> NetOutput:
         if feats is not None:
-            raise ShapeError("a symmetry ensemble takes no precomputed features", actual_shape=None, expected_shape="feats=None")
+            raise ConfigError("a symmetry ensemble takes no precomputed features")
         acc: dict[str, torch.Tensor] = {}
         for code in self.codes:
             def fw(t):

@@ -42,6 +42,7 @@ from reconstruct.net.network import NetConfig, PolSpikeNet, count_parameters, in
 from reconstruct.net.onthefly import WindowConfig
 from reconstruct.physics.identifiability import SHARE_MIN
 from reconstruct.physics.solvers import SolverConfig
+from reconstruct.stream.window_inputs import EXTRA_INPUTS, WindowInputs
 
 __all__ = ["TrainConfig", "alpha_at", "lr_at", "collate", "evaluate_model", "train", "TINY"]
 
@@ -124,20 +125,15 @@ def collate(items: list[dict[str, torch.Tensor]]) -> dict[str, torch.Tensor]:
     return {k: torch.stack([it[k] for it in items]) for k in sorted(keys) if isinstance(items[0][k], torch.Tensor)}
 
 
-SPAN_KEYS = ("I_mean", "I_harm", "I_wide")
-"""Batch keys of the long span a network may read beside its windows (:class:`reconstruct.net.network.PolSpikeNet`)."""
-
-
-def span_inputs(b: dict[str, torch.Tensor], device, span_level: bool = False) -> dict[str, torch.Tensor]:
-    """The :data:`SPAN_KEYS` a batch carries, on ``device``, as keyword inputs of the network; for a ``span_level``
-    network also each item's exposure and span length.
+def batch_inputs(b: dict[str, torch.Tensor], device, cfg: NetConfig) -> WindowInputs:
+    """The windows of a batch (``I``, ``phi``) with what a network of configuration ``cfg`` reads beside them
+    (``cfg.inputs``, those the batch carries), on ``device``; ConfigError where a ``span_level`` network's items lack the
+    long span's length.
     """
-    kw = {k: b[k].to(device) for k in SPAN_KEYS if k in b}
-    if span_level:
-        if "span_steps" not in b:
-            raise ConfigError("a span_level network needs items with the long span (set [window] mean_steps, e.g. 350)")
-        kw.update(exposure=b["exposure"].to(device), span_steps=b["span_steps"].to(device))
-    return kw
+    need = cfg.inputs
+    if "span_steps" in need and "span_steps" not in b:
+        raise ConfigError("a span_level network needs items with the long span (set [window] mean_steps, e.g. 350)")
+    return WindowInputs(b["I"].to(device), b["phi"].to(device), **{k: b[k].to(device) for k in EXTRA_INPUTS if k in need and k in b})
 
 
 def _device(name: str) -> torch.device:
@@ -185,13 +181,14 @@ def evaluate_model(model: PolSpikeNet, dataset, batch_size: int = 8, device: tor
     n_refl = n_all = 0
     for s in range(0, len(dataset), batch_size):
         b = collate([dataset[i] for i in range(s, min(len(dataset), s + batch_size))])
-        I, phi, T, R, z = (b[k].to(device) for k in ("I", "phi", "T", "R", "zeta"))
-        span = span_inputs(b, device, getattr(model.cfg, "span_level", False))
-        out = model(I, phi, **span)
+        x = batch_inputs(b, device, model.cfg)
+        I, phi = x.I, x.phi
+        T, R, z = (b[k].to(device) for k in ("T", "R", "zeta"))
+        out = model(I, phi, **x.extras())
         orc = solve("rwps", z, I, None, model.solver_cfg_in)
         ests = {"T": out.T, "T_base": out.T_base, "T_oracle": orc.T, "T_tfp": 2.0 * I.mean(1), "R": out.R, "R_base": out.R_base, "R_oracle": orc.R}
         if forced:
-            fo = model(I, phi, zeta_gt=z, alpha=1.0, **span)
+            fo = model(I, phi, zeta_gt=z, alpha=1.0, **x.extras())
             ests.update({"T_forced": fo.T, "R_forced": fo.R})
         zc = z[:, z.shape[1] // 2]
         share = zc * R / (zc * R + (1 - zc) * T + 1e-6)
@@ -474,7 +471,9 @@ def train(
     for b in loader:
         epoch = step // spe
         alpha = alpha_at(epoch, cfg)
-        I, phi, T, R, z = (b[k].to(dev) for k in ("I", "phi", "T", "R", "zeta"))
+        x = batch_inputs(b, dev, cfg.net)
+        I, phi = x.I, x.phi
+        T, R, z = (b[k].to(dev) for k in ("T", "R", "zeta"))
         scale = shape = feed = None
         if cfg.force_prob > 0 and alpha < 1.0:
             g = torch.Generator().manual_seed(cfg.seed * 1_000_003 + step)
@@ -486,7 +485,7 @@ def train(
                     shape = torch.exp(cfg.zeta_shape_jitter * torch.randn(cfg.batch_size, generator=g)[rws]).to(dev)
                 if cfg.assumed_prob > 0:  # drawn last, for the same reason
                     feed, scale = assumed_glass_feed(b, z, scale, cfg, g, cfg.batch_size, rws)
-        out = net(I, phi, zeta_gt=z, alpha=alpha, **span_inputs(b, dev, cfg.net.span_level), zeta_scale=scale, zeta_shape=shape, zeta_feed=feed)
+        out = net(I, phi, zeta_gt=z, alpha=alpha, **x.extras(), zeta_scale=scale, zeta_shape=shape, zeta_feed=feed)
         loss, parts = total_loss(out, T, R, alpha, cfg.loss)
         if not math.isfinite(parts["loss"]):
             raise FloatingPointError(f"non-finite loss at step {step}: {parts}")

@@ -31,6 +31,7 @@ import numpy as np
 
 from polinfra.errors import ConfigError, DataFormatError
 from reconstruct.physics.zeta import PaneMaps
+from reconstruct.stream.window_inputs import WindowInputs, inputs_of
 
 __all__ = ["EvalGroup", "list_groups", "load_store_group", "window_steps_from_ms", "spike_mean_frames", "SpikeMeanSums", "SPIKE_MEAN_MS", "spike_mean_steps", "spike_mean_span", "span_harmonic", "HARMONIC_RIDGE", "wide_window_steps", "window_means", "harmonic_design", "network_inputs"]
 
@@ -82,30 +83,31 @@ class EvalGroup:
     saturation a ``span_level`` network weighs"""
 
 
-def network_inputs(group: EvalGroup, model, centres, K: int, crop: tuple[slice, slice] = (slice(None), slice(None))) -> dict:
-    """The long-span keywords of :func:`reconstruct.video.tiling.run_model_on_windows` that ``model`` reads (its ``cfg``:
-    ``use_mean``, ``harm_input``, ``wide_input``, ``span_level``) for the output frames at ``centres`` of a group, each
-    window's N = 2K + 1 frames around its centre, cropped to ``crop`` (rows, columns); ConfigError naming what the
+def network_inputs(group: EvalGroup, model, I, phi, centres, K: int, crop: tuple[slice, slice] = (slice(None), slice(None))) -> WindowInputs:
+    """Windows ``I`` (B, N, H, W), ``phi`` (B, N) of the output frames at ``centres`` of a group, with the long span that
+    ``model`` reads beside them (``model.cfg.inputs``: I_mean, I_harm, I_wide, exposure, span_steps), each window's
+    N = 2K + 1 frames around its centre, cropped to ``crop`` (rows, columns); ConfigError naming what the
     group lacks (only stored groups and the synthetic set carry the long span).
     """
-    cfg = getattr(model, "cfg", None)
-    mean, harm, wide, span = (bool(getattr(cfg, k, False)) for k in ("use_mean", "harm_input", "wide_input", "span_level"))
-    for need, have, what in ((mean, group.I_mean, "the long spike mean"), (harm, group.I_harm, "the long span's first harmonic"),
-                             (wide, group.I_wide, "the observations over the wide window"), (span, group.exposure, "the stream's exposure"),
-                             (span, group.span_steps, "the long span's length")):
-        if need and have is None:
+    need = inputs_of(model)
+    for name, have, what in (("I_mean", group.I_mean, "the long spike mean"), ("I_harm", group.I_harm, "the long span's first harmonic"),
+                             ("I_wide", group.I_wide, "the observations over the wide window"), ("exposure", group.exposure, "the stream's exposure"),
+                             ("span_steps", group.span_steps, "the long span's length")):
+        if name in need and have is None:
             raise ConfigError(f"group {group.name}: the network takes {what}, which only stored groups (spikes.h5) and synthetic groups give; evaluate it on a built dataset")
     ys, xs = crop
     kw: dict = {}
-    if mean:
+    if "I_mean" in need:
         kw["I_mean"] = np.stack([group.I_mean[i][ys, xs] for i in centres])
-    if harm:
+    if "I_harm" in need:
         kw["I_harm"] = np.stack([group.I_harm[i][:, ys, xs] for i in centres])
-    if wide:
+    if "I_wide" in need:
         kw["I_wide"] = np.stack([group.I_wide[i - K : i + K + 1][:, ys, xs] for i in centres])
-    if span:
-        kw.update(exposure=group.exposure, span_steps=group.span_steps)
-    return kw
+    if "exposure" in need:
+        kw["exposure"] = group.exposure
+    if "span_steps" in need:
+        kw["span_steps"] = group.span_steps
+    return WindowInputs(I, phi, **kw)
 
 
 SPIKE_MEAN_MS = 17.5

@@ -36,7 +36,7 @@ import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 import torch
@@ -45,6 +45,7 @@ from polinfra.atomic import atomic_path, ensure_dir, write_json
 from polinfra.config import opt
 from polinfra.errors import ConfigError
 from reconstruct.stream.display import DisplayHistogram, display_gain
+from reconstruct.stream.window_inputs import inputs_of
 
 __all__ = ["LiveConfig", "reconstruct_live", "StageTimes", "to8_table"]
 
@@ -247,6 +248,18 @@ class _Centres:
         return int(np.searchsorted(self.c + self.agg.half, n_steps - 1, side="right"))
 
 
+class _LiveWindow(NamedTuple):
+    """A window waiting for its batch: the N Eq. (3) frames (N, H, W), their zeta (N, H, W) and angles (N,), when its
+    last step arrived (None: not timed), and the indices of its frames.
+    """
+
+    I: np.ndarray
+    Z: np.ndarray
+    phi: np.ndarray
+    arrived: float | None
+    frames: np.ndarray
+
+
 def reconstruct_live(
     reader,
     model,
@@ -285,7 +298,7 @@ def reconstruct_live(
     """
     from spike_sim.aggregate import AggregateConfig, output_fps
 
-    if getattr(model, "maps", None) is None or getattr(model.cfg, "use_mean", False):
+    if getattr(model, "maps", None) is None or "I_mean" in inputs_of(model):
         raise ConfigError("the real-time path takes a physics solver on pane maps (--zeta self, gt, physics or --pane) without --anchor mean")
 
     out = ensure_dir(out_dir)
@@ -314,7 +327,7 @@ def reconstruct_live(
     ring_Z = np.zeros((N, H, W), np.float32)
     ring_phi = np.zeros(N, np.float32)
     arrived: dict[int, float] = {}  # Eq. (3) frame -> when its last step was seen
-    pending: list[tuple[np.ndarray, np.ndarray, np.ndarray, float | None]] = []
+    pending: list[_LiveWindow] = []
     lat: list[float] = []
     stats = {"nan_frames": 0}
     done = 0
@@ -341,14 +354,14 @@ def reconstruct_live(
     def flush(writers):
         if not pending:
             return
-        I = torch.from_numpy(np.stack([p[0] for p in pending]))
-        Z = torch.from_numpy(np.stack([p[1] for p in pending]))
-        ph = torch.from_numpy(np.stack([p[2] for p in pending]))
+        I = torch.from_numpy(np.stack([p.I for p in pending]))
+        Z = torch.from_numpy(np.stack([p.Z for p in pending]))
+        ph = torch.from_numpy(np.stack([p.phi for p in pending]))
         if model.rir and N > 1:
             from reconstruct.physics.rir import warp
 
             with times("rir"):
-                sh = torch.stack([chained.window_shifts(I[b], ph[b], p[4]) for b, p in enumerate(pending)]).to(I.dtype)
+                sh = torch.stack([chained.window_shifts(I[b], ph[b], p.frames) for b, p in enumerate(pending)]).to(I.dtype)
                 I = warp(I, sh)
                 Z = warp(Z, sh)
         from reconstruct.physics.solvers import solve
@@ -357,7 +370,7 @@ def reconstruct_live(
             r = solve(model.method, Z, I, config=model.solver_cfg)
             T, R = r.T.clamp_min(0.0).numpy(), r.R.clamp_min(0.0).numpy()
         for b, p in enumerate(pending):
-            emit(writers, p[0][K], T[b], R[b], p[3])
+            emit(writers, p.I[K], T[b], R[b], p.arrived)
         pending.clear()
 
     writers = _LiveWriters(out, fps, cfg, times)
@@ -415,7 +428,7 @@ def reconstruct_live(
                         emit(writers, ring_I[centre].copy(), T, R, arr)
                     else:
                         order = [(nxt - N + k) % N for k in range(N)]
-                        pending.append((ring_I[order], ring_Z[order], ring_phi[order], arr, np.arange(nxt - N, nxt)))
+                        pending.append(_LiveWindow(ring_I[order], ring_Z[order], ring_phi[order], arr, np.arange(nxt - N, nxt)))
                         if len(pending) >= (1 if follow else cfg.batch):
                             flush(writers)
             if cfg.max_frames and done + len(pending) >= cfg.max_frames:

@@ -62,6 +62,11 @@ class _Cfg:
     n_obs: int
     use_mean: bool = False  # True: the stream passes the long spike mean (anchor = "mean")
 
+    @property
+    def inputs(self) -> frozenset[str]:
+        """What the model reads beside its windows (:class:`reconstruct.stream.window_inputs.WindowInputs`)."""
+        return frozenset({"I_mean"}) if self.use_mean else frozenset()
+
 
 class PhysicsModel:
     """A solver on a zeta source, callable like the network (module docstring).

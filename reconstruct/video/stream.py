@@ -44,6 +44,7 @@ from polinfra.errors import ConfigError
 from reconstruct.stream.display import DisplayHistogram, _to8, display_gain
 from reconstruct.stream.groups import SpikeMeanSums, spike_mean_steps, wide_window_steps, window_means
 from reconstruct.stream.sources import SpikeSource
+from reconstruct.stream.window_inputs import WindowInputs, inputs_of
 from reconstruct.video.tiling import FeatureCache, auto_tile, run_model_on_windows
 
 __all__ = ["ReconstructConfig", "reconstruct_stream"]
@@ -70,6 +71,14 @@ class ReconstructConfig:
     cache: bool = opt(True, "reuse per-observation features across overlapping windows (v2 networks, RIR off, whole frames)")
 
 
+
+
+@dataclasses.dataclass(frozen=True)
+class _Pending:
+    """A window waiting for its batch: the window's inputs without the batch axis, and the indices of its N Eq. (3) frames."""
+
+    window: WindowInputs
+    frames: np.ndarray
 
 
 class _Writers:
@@ -170,8 +179,9 @@ def reconstruct_stream(
     Args:
         source: spike stream and calibrated polarizer angles.
         model: :class:`reconstruct.net.network.PolSpikeNet` (eval mode), or any object following the
-            protocol of :func:`run_model_on_windows` (``cfg.n_obs``; ``model(I, phi)`` -> ``T``, ``R``,
-            ``T_base``, ``R_base``), e.g. a physics-only reconstructor.  Models with
+            protocol of :func:`run_model_on_windows` (``cfg.n_obs``, ``cfg.inputs``; ``model(I, phi, **inputs)`` -> ``T``,
+            ``R``, ``T_base``, ``R_base``), e.g. a physics-only reconstructor.  The stream builds what ``cfg.inputs`` names
+            (the long spike mean, its harmonic, the wide windows, the exposure and span length) beside each window.  Models with
             ``cacheable = True`` must also provide ``encode_obs(frames, scales)`` and accept
             ``feats=`` (:class:`FeatureCache`); others run window by window.
         out_dir: output directory (created).
@@ -202,21 +212,22 @@ def reconstruct_stream(
     fps = output_fps(source.polarizer_rev_s, cfg.stride_deg) if source.polarizer_rev_s > 0 else 1.0
     t0 = time.perf_counter()
     frames_I: deque[np.ndarray] = deque(maxlen=N)
-    wide = bool(getattr(model.cfg, "wide_input", False))
+    need = inputs_of(model)
+    wide = "I_wide" in need
     n_total = source.phi_step_rad.size
     widths = (cfg.window_steps, wide_window_steps(source.rate_hz, source.polarizer_rev_s, cfg.stride_deg)) if wide else (cfg.window_steps,)
     reach = max(w // 2 for w in widths)  # steps a frame needs on each side of its centre
     frames_W: deque[np.ndarray] = deque(maxlen=N)
-    pending: list[tuple[np.ndarray, np.ndarray]] = []
+    pending: list[_Pending] = []
     stats = {"nan_frames": 0, "tfp_corr": [], "tfp_psnr": []}
     done = 0
     next_c = 0  # index into centres of the next Eq. (3) frame to aggregate
     tail = np.zeros((0, source.height, source.width), np.uint8)
     tail_start = 0
 
-    mean_steps = spike_mean_steps(source.rate_hz) if getattr(model.cfg, "use_mean", False) else 0
-    use_harm = bool(getattr(model.cfg, "harm_input", False))
-    span_kw = {"exposure": exposure, "span_steps": mean_steps} if getattr(model.cfg, "span_level", False) else {}
+    mean_steps = spike_mean_steps(source.rate_hz) if "I_mean" in need else 0
+    use_harm = "I_harm" in need
+    span_kw = {"exposure": exposure if "exposure" in need else None, "span_steps": mean_steps if "span_steps" in need else None}
     prefix = SpikeMeanSums(centres, mean_steps, source.phi_step_rad.size, (source.height, source.width), source.phi_step_rad if use_harm else None) if mean_steps else None
     tile = auto_tile(model, device) if cfg.tile < 0 else cfg.tile
     cache = FeatureCache(model, device, cfg.precision) if (cfg.cache and tile == 0 and getattr(model, "cacheable", False)) else None
@@ -225,15 +236,12 @@ def reconstruct_stream(
         nonlocal done
         if not pending:
             return
-        I = np.stack([p[0] for p in pending])
-        ph = np.stack([p[1] for p in pending])
-        im = np.stack([p[3] for p in pending]) if prefix is not None else None
-        ih = np.stack([p[4] for p in pending]) if use_harm else None
-        iw = np.stack([p[5] for p in pending]) if wide else None
+        x = WindowInputs.batch([p.window for p in pending], **span_kw)
+        I = x.I
         if cache is not None:
-            res = cache.run(I, ph, np.stack([p[2] for p in pending]), I_mean=im, I_harm=ih, I_wide=iw, **span_kw)
+            res = cache.run(x, np.stack([p.frames for p in pending]))
         else:
-            res = run_model_on_windows(model, I, ph, device, tile, precision=cfg.precision, I_mean=im, I_harm=ih, I_wide=iw, **span_kw)
+            res = run_model_on_windows(model, x, device, tile, precision=cfg.precision)
         for b in range(I.shape[0]):
             T, R = res["T"][b], res["R"][b]
             if not (np.isfinite(T).all() and np.isfinite(R).all()):
@@ -265,8 +273,8 @@ def reconstruct_stream(
                 if len(frames_I) == N:
                     j = next_c - 1 - K
                     hj = prefix.harmonic(j, exposure) if use_harm else None  # before mean(j), which frees older sums
-                    pending.append((np.stack(frames_I), phi_i[next_c - N : next_c], np.arange(next_c - N, next_c), prefix.mean(j, exposure) if prefix is not None else None, hj,
-                                    np.stack(frames_W) if wide else None))
+                    window = WindowInputs(np.stack(frames_I), phi_i[next_c - N : next_c], prefix.mean(j, exposure) if prefix is not None else None, hj, np.stack(frames_W) if wide else None)
+                    pending.append(_Pending(window, np.arange(next_c - N, next_c)))
                     if len(pending) >= cfg.batch:
                         flush(writers)
             if done + len(pending) >= n_out:

@@ -17,7 +17,7 @@ class _OneConv(torch.nn.Module):
 
     def __init__(self, n_obs=7):
         super().__init__()
-        self.cfg = SimpleNamespace(n_obs=n_obs, arch="conv")
+        self.cfg = SimpleNamespace(n_obs=n_obs, inputs=frozenset())
         self.pad_multiple = 8
         self.conv = torch.nn.Conv2d(n_obs, 5, 3, padding=1)
 

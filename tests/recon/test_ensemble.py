@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import torch
 
-from polinfra.errors import ConfigError, ShapeError
+from polinfra.errors import ConfigError
 from reconstruct.net.network import SYMMETRY_CODES, NetConfig, PolSpikeNet, SymmetryEnsemble, init_weights
 from reconstruct.net.onthefly import flip_item
 from reconstruct.physics.symmetry import symmetry_angles, symmetry_image
@@ -116,7 +116,7 @@ def test_bad_size_and_features_are_errors():
     ens = SymmetryEnsemble(_net(), 2)
     assert not ens.cacheable and ens.pad_multiple == ens.net.pad_multiple
     I, phi = _window()
-    with pytest.raises(ShapeError, match="precomputed features"):
+    with pytest.raises(ConfigError, match="precomputed features"):
         ens(I, phi, feats=(torch.zeros(1), torch.zeros(1)))
 
 
@@ -127,14 +127,15 @@ def test_ensemble_runs_in_the_video_path():
     equivariant), the ensemble is within 0.009 of their mean (tile borders fall on other pixels of a mirrored
     window); the bound 0.03 is 3x that and 7 % of the spread (an ensemble of one member, code 0 four times, is 0.44 off).
     """
+    from reconstruct.stream.window_inputs import WindowInputs
     from reconstruct.video.tiling import run_model_on_windows
 
     net = _net(4)
     I, phi = _window(B=1, H=40, W=56, seed=6)
-    ens = run_model_on_windows(SymmetryEnsemble(net, 4), I.numpy(), phi.numpy(), tile=16, margin=16)
+    ens = run_model_on_windows(SymmetryEnsemble(net, 4), WindowInputs(I.numpy(), phi.numpy()), tile=16, margin=16)
     members = []
     for code in SYMMETRY_CODES[4]:
-        r = run_model_on_windows(net, symmetry_image(I, code).numpy(), symmetry_angles(phi, code).numpy(), tile=16, margin=16)
+        r = run_model_on_windows(net, WindowInputs(symmetry_image(I, code).numpy(), symmetry_angles(phi, code).numpy()), tile=16, margin=16)
         members.append(symmetry_image(torch.as_tensor(r["T"]), code, inverse=True).numpy())
     mean = np.mean(members, 0)
     assert ens["T"].shape == mean.shape and np.isfinite(ens["T"]).all()

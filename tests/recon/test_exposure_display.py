@@ -126,7 +126,7 @@ class _Tfp:
     stream_tile = 0
 
     def __init__(self, n_obs=7):
-        self.cfg = type("C", (), {"n_obs": n_obs})()
+        self.cfg = type("C", (), {"n_obs": n_obs, "inputs": frozenset()})()
 
     def __call__(self, I, phi):
         out = type("O", (), {})()

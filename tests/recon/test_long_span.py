@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 import torch
 
-from polinfra.errors import ShapeError
+from polinfra.errors import ConfigError, ShapeError
 from reconstruct.net.network import NetConfig, PolSpikeNet, SymmetryEnsemble, init_weights
 from reconstruct.net.train import _widened
 from reconstruct.physics.span import HARMONIC_FLOOR, harmonic_of, long_span_separation, zbar_of
@@ -185,8 +185,8 @@ def test_widened_harmonic_network_starts_as_the_mean_network_and_needs_the_harmo
     assert float((c.T - d.T).abs().max()) > 1e-4
     with pytest.raises(ShapeError, match="I_harm"):
         wide(I, phi, I_mean=Im)
-    with pytest.raises(ShapeError, match="use_mean"):
-        PolSpikeNet(dataclasses.replace(SMALL, use_mean=False, base="solver", use_harm=True))(I, phi)
+    with pytest.raises(ConfigError, match="use_harm needs use_mean"):  # a configuration problem, found when the config is made
+        dataclasses.replace(SMALL, use_mean=False, base="solver", use_harm=True)
 
 
 @pytest.mark.parametrize("size", [8, 4])
@@ -216,7 +216,7 @@ class _Recorder(torch.nn.Module):
     def __init__(self, key: str, **cfg):
         super().__init__()
         self.key = key
-        self.cfg = types.SimpleNamespace(n_obs=7, use_mean=True, arch="v1", **cfg)
+        self.cfg = NetConfig(arch="v1", use_mean=True, **cfg)
         self.seen: list[np.ndarray] = []
 
     def forward(self, I, phi, I_mean=None, **kw):
@@ -250,7 +250,7 @@ def test_stream_gives_the_network_the_store_harmonic(tmp_path, chunk):
     from spike_sim.aggregate import AggregateConfig, frame_centres
     from spike_sim.store import open_group
 
-    got, src, g = _streamed(tmp_path, chunk, 3, _Recorder("I_harm", use_harm=True, harm_input=True))
+    got, src, g = _streamed(tmp_path, chunk, 3, _Recorder("I_harm", use_harm=True))
     np.testing.assert_allclose(got, g.I_harm[3 : 3 + got.shape[0]], rtol=1e-5, atol=1e-6)
     with open_group(tmp_path / "g") as sg:  # and both are the direct fit of the raw spikes (exposure 1 here or not)
         c, _ = frame_centres(sg.phi_nominal_rad, AggregateConfig())
@@ -356,7 +356,7 @@ def test_stream_gives_the_network_the_store_wide_windows(tmp_path, chunk):
     """reconstruct_stream (chunked) hands a use_wide network each output's N wide windows exactly as the stored
     group's (load_store_group: counts over the clipped wide window / its length / exposure).
     """
-    got, _, g = _streamed(tmp_path, chunk, 4, _Recorder("I_wide", use_wide=True, wide_input=True))
+    got, _, g = _streamed(tmp_path, chunk, 4, _Recorder("I_wide", use_wide=True))
     want = np.stack([g.I_wide[i - 3 : i + 4] for i in range(3, 3 + got.shape[0])])
     np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-6)
     assert float(np.abs(g.I_wide - g.I).mean()) > 0  # not the narrow windows
@@ -405,5 +405,5 @@ def test_wide_levels_move_only_low_frequencies_whatever_the_refinement():
     torch.testing.assert_close(diffs[0][1], diffs[1][1], rtol=0, atol=1e-5)
     dT = diffs[0][0]
     assert float((dT - gaussian_blur(dT, 1.0)).abs().max()) < 0.2 * float(dT.abs().max())  # smooth at 1 px
-    with pytest.raises(ShapeError, match="use_wide"):
+    with pytest.raises(ShapeError, match="missing: I_wide"):
         PolSpikeNet(dataclasses.replace(SMALL, t_level_px=2.0))(I, phi, I_mean=Im)

@@ -28,7 +28,7 @@ class _EchoZeta:
     pad_multiple = 4
 
     def __init__(self, n_obs=5):
-        self.cfg = type("C", (), {"n_obs": n_obs, "arch": "v1"})()
+        self.cfg = type("C", (), {"n_obs": n_obs, "inputs": frozenset()})()
 
     def __call__(self, I, phi, zeta_gt=None, alpha=0.0):
         assert alpha == 1.0 and zeta_gt is not None and zeta_gt.shape == I.shape
@@ -41,12 +41,13 @@ class _EchoZeta:
 
 @pytest.mark.parametrize("tile", [0, 16])
 def test_windows_zeta_reaches_the_model_whole_and_tiled(tile):
+    from reconstruct.stream.window_inputs import WindowInputs
     from reconstruct.video.tiling import run_model_on_windows
 
     rng = np.random.default_rng(0)
     I = rng.random((2, 5, 37, 45)).astype(np.float32)
     Z = rng.random((2, 5, 37, 45)).astype(np.float32)
-    out = run_model_on_windows(_EchoZeta(), I, np.zeros((2, 5), np.float32), tile=tile, margin=4, zeta=Z)
+    out = run_model_on_windows(_EchoZeta(), WindowInputs(I, np.zeros((2, 5), np.float32)), tile=tile, margin=4, zeta=Z)
     np.testing.assert_array_equal(out["T"], Z[:, 2])
     np.testing.assert_array_equal(out["R"], I[:, 2])
 

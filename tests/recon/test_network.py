@@ -8,7 +8,7 @@ import math
 import pytest
 import torch
 
-from polinfra.errors import ShapeError
+from polinfra.errors import ConfigError, ShapeError
 from reconstruct.net.network import AngleAttention, NetConfig, PolSpikeNet, count_parameters, init_weights
 
 PAPER_PARAMS = 0.51e6  # supp. Sec. 10: "about 0.51M parameters"
@@ -60,7 +60,7 @@ def test_v2_cached_features_give_the_same_output():
     torch.testing.assert_close(f1, f, atol=1e-5, rtol=1e-4)  # batched vs one-at-a-time convolutions: float rounding only
     torch.testing.assert_close(out.T, ref.T, atol=1e-5, rtol=1e-4)
     torch.testing.assert_close(out.weights, ref.weights, atol=1e-5, rtol=1e-4)
-    with pytest.raises(ShapeError):  # RIR warps the frames: cached features would be wrong
+    with pytest.raises(ConfigError, match="RIR off"):  # RIR warps the frames: cached features would be wrong
         PolSpikeNet(NetConfig(use_rir=True))(I, phi, feats=(f, g))
 
 

@@ -175,14 +175,15 @@ def test_feature_cache_gives_the_same_frames_as_window_by_window(tmp_path):
 
 def test_batched_tiles_match_whole_frame_inside():
     """Tiles batched through the model: away from tile seams (receptive field inside the margin) they equal the whole-frame pass."""
+    from reconstruct.stream.window_inputs import WindowInputs
     from reconstruct.video.tiling import run_model_on_windows
 
     rng = np.random.default_rng(3)
     m = _v2_model(1)
     I = (0.1 + 0.3 * rng.random((2, 7, 40, 56))).astype(np.float32)
     phi = np.tile((np.arange(7) - 3) * math.radians(31.5), (2, 1)).astype(np.float32)
-    whole = run_model_on_windows(m, I, phi, tile=0)
-    tiled = run_model_on_windows(m, I, phi, tile=16, margin=16, max_batch=5)
+    whole = run_model_on_windows(m, WindowInputs(I, phi), tile=0)
+    tiled = run_model_on_windows(m, WindowInputs(I, phi), tile=16, margin=16, max_batch=5)
     for k in ("T", "R", "T_base", "R_base"):
         assert tiled[k].shape == whole[k].shape == (2, 40, 56)
         assert np.isfinite(tiled[k]).all()
@@ -192,7 +193,7 @@ def test_batched_tiles_match_whole_frame_inside():
     import torch.nn.functional as F
 
     xp = F.pad(torch.from_numpy(I), (16, 16 + 64 - 56, 16, 16 + 48 - 40), mode="replicate").numpy()
-    one = run_model_on_windows(m, xp[:, :, 16:64, 16:64], phi, tile=0)  # tile (row 1, col 1) with its margins
+    one = run_model_on_windows(m, WindowInputs(xp[:, :, 16:64, 16:64], phi), tile=0)  # tile (row 1, col 1) with its margins
     np.testing.assert_allclose(tiled["T"][:, 16:32, 16:32], one["T"][:, 16:32, 16:32], atol=1e-5)
 
 

@@ -66,7 +66,7 @@ def test_stored_scores_match_psnr_computed_here_by_hand():
     import numpy as np
 
     from polspike.commands.train_cmds import heldout_inputs, heldout_test_set
-    from reconstruct.net.train import collate, span_inputs
+    from reconstruct.net.train import batch_inputs, collate
 
     doc = _scores()
     st, stored = doc["reduced"]["setting"], doc["reduced"]["metrics"]
@@ -74,7 +74,8 @@ def test_stored_scores_match_psnr_computed_here_by_hand():
     ds = heldout_test_set(st["crop"], st["items"], st["seed"], str(REPO / st["manifest"]), light=st.get("light", "range"), **heldout_inputs(model))
     b = collate([ds[i] for i in range(len(ds))])
     with torch.no_grad():
-        out = model.eval()(b["I"], b["phi"], **span_inputs(b, "cpu", getattr(model.cfg, "span_level", False)))
+        x = batch_inputs(b, "cpu", model.cfg)
+        out = model.eval()(x.I, x.phi, **x.extras())
     T = b["T"].double().numpy()
 
     def psnr(est):

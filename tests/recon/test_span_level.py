@@ -19,6 +19,7 @@ from reconstruct.net.network import NetConfig, PolSpikeNet, init_weights
 from reconstruct.physics.span import SPAN_SATURATION, harmonic_of, long_span_separation, span_blend, span_weights
 from reconstruct.physics.zeta import zeta_from_maps
 from reconstruct.stream.groups import span_harmonic
+from reconstruct.stream.window_inputs import WindowInputs
 from tests.recon.test_long_span import _static_scene
 
 SMALL = NetConfig(arch="v2", feat_ch=8, lr_ch=8, w_ch=4, ref_ch=(8, 8, 8), dec_ch=(8, 8, 8), use_rir=False, use_mean=True, base="anchored", anchor_zbar="harmonic")
@@ -174,7 +175,7 @@ class _BlendOnly(torch.nn.Module):
 
     def __init__(self, sigma):
         super().__init__()
-        self.cfg = types.SimpleNamespace(n_obs=7, arch="v1", span_level=True, span_level_px=sigma)
+        self.cfg = NetConfig(arch="v1", use_mean=True, span_level=True, span_level_px=sigma)
 
     def forward(self, I, phi, zeta_gt=None, alpha=0.0, I_mean=None, I_harm=None, exposure=None, span_steps=None):
         T = 2 * I_mean - 0.05
@@ -192,9 +193,9 @@ def test_span_level_tiles_agree_with_the_whole_frame():
 
     I, phi, Im, h, Z = _inputs(H=40, W=36)
     m = _BlendOnly(3.0)
-    kw = dict(zeta=Z.numpy(), I_mean=Im.numpy(), I_harm=h.numpy(), exposure=1.0, span_steps=SPAN)
-    whole = run_model_on_windows(m, I.numpy(), phi.numpy(), tile=0, **kw)
-    tiled = run_model_on_windows(m, I.numpy(), phi.numpy(), tile=16, margin=1, **kw)
+    x = WindowInputs(I.numpy(), phi.numpy(), I_mean=Im.numpy(), I_harm=h.numpy(), exposure=1.0, span_steps=SPAN)
+    whole = run_model_on_windows(m, x, tile=0, zeta=Z.numpy())
+    tiled = run_model_on_windows(m, x, tile=16, margin=1, zeta=Z.numpy())
     inner = (slice(None), slice(9, -9), slice(9, -9))  # the frame's own border is padded differently (replicate vs reflect)
     np.testing.assert_allclose(tiled["R"][inner], whole["R"][inner], atol=1e-6)
     np.testing.assert_allclose(tiled["T"][inner], whole["T"][inner], atol=1e-6)
@@ -206,7 +207,7 @@ class _SpanRecorder(torch.nn.Module):
 
     def __init__(self):
         super().__init__()
-        self.cfg = types.SimpleNamespace(n_obs=7, use_mean=True, arch="v1", harm_input=True, span_level=True, span_level_px=2.0)
+        self.cfg = NetConfig(arch="v1", use_mean=True, span_level=True, span_level_px=2.0)
         self.seen: list[np.ndarray] = []  # the harmonics, per call (what test_long_span._streamed concatenates)
         self.span: list[tuple] = []
 
@@ -234,7 +235,7 @@ def test_training_items_carry_what_a_span_level_network_reads_and_the_forced_sco
     """
     from polinfra.errors import ConfigError
     from reconstruct.net.onthefly import OnTheFlyWindows
-    from reconstruct.net.train import TINY, evaluate_model, span_inputs
+    from reconstruct.net.train import TINY, batch_inputs, evaluate_model
     from tests.recon.test_train import _stream_item
 
     wcfg = dataclasses.replace(TINY.window, mean_steps=SPAN, crop=24)
@@ -247,7 +248,7 @@ def test_training_items_carry_what_a_span_level_network_reads_and_the_forced_sco
     assert sc["on"]["psnr_R_forced"] != sc["off"]["psnr_R_forced"]
     assert sc["on"]["psnr_T"] == sc["off"]["psnr_T"]  # the network's own zeta: unchanged
     with pytest.raises(ConfigError, match="mean_steps"):
-        span_inputs({"I": item["I"][None], "exposure": item["exposure"][None]}, "cpu", span_level=True)
+        batch_inputs({"I": item["I"][None], "phi": item["phi"][None], "exposure": item["exposure"][None]}, "cpu", nets["on"].cfg)
 
 
 def test_span_weights_take_one_exposure_and_span_per_image():

@@ -7,6 +7,7 @@ import pytest
 import torch
 
 from reconstruct.net.network import NetConfig, PolSpikeNet, init_weights, window_scale
+from reconstruct.stream.window_inputs import WindowInputs
 from reconstruct.video.tiling import run_model_on_windows
 
 
@@ -38,7 +39,7 @@ def test_every_tile_gets_the_whole_frames_scale():
     net = init_weights(PolSpikeNet(NetConfig(arch="v2", use_rir=False)), torch.Generator().manual_seed(1)).eval()
     rec = _Recorder(net)
     I, phi = _frame()
-    run_model_on_windows(rec, I, phi, tile=64, margin=16, max_batch=1)
+    run_model_on_windows(rec, WindowInputs(I, phi), tile=64, margin=16, max_batch=1)
     whole = float(window_scale(torch.as_tensor(I)).reshape(()))
     own = [float(window_scale(torch.as_tensor(I[..., :64])).reshape(())), float(window_scale(torch.as_tensor(I[..., 64:])).reshape(()))]
     assert own[0] != own[1]  # the case that made seams: each tile's own power of two differs
@@ -59,11 +60,11 @@ def test_explicit_scale_equal_to_the_default_changes_nothing():
 
 
 def test_v1_refuses_a_scale():
-    from polinfra.errors import ShapeError
+    from polinfra.errors import ConfigError
 
     net = PolSpikeNet(NetConfig(arch="v1", use_rir=False)).eval()
     I, phi = _frame(32, 32)
-    with pytest.raises(ShapeError, match="v2 option"):
+    with pytest.raises(ConfigError, match="v2 option"):
         net(torch.as_tensor(I), torch.as_tensor(phi), scale=torch.ones(1))
 
 
@@ -81,7 +82,7 @@ def test_tiles_keep_the_r_level_blur_inside_their_margin():
     sigma = 8.0
 
     class Blur:
-        cfg = types.SimpleNamespace(n_obs=3, r_level_px=sigma, arch="v1")
+        cfg = NetConfig(n_obs=3, r_level_px=sigma, arch="v1")
         pad_multiple = 4
 
         def __call__(self, I, phi, **kw):
@@ -91,7 +92,7 @@ def test_tiles_keep_the_r_level_blur_inside_their_margin():
     rng = np.random.default_rng(0)
     I = rng.random((1, 3, 96, 120)).astype(np.float32)
     phi = np.zeros((1, 3), np.float32)
-    whole = run_model_on_windows(Blur(), I, phi, tile=0)["R"][0]
-    tiled = run_model_on_windows(Blur(), I, phi, tile=32, margin=4)["R"][0]
+    whole = run_model_on_windows(Blur(), WindowInputs(I, phi), tile=0)["R"][0]
+    tiled = run_model_on_windows(Blur(), WindowInputs(I, phi), tile=32, margin=4)["R"][0]
     r = 24  # near the frame's border the tiles see replicated, the whole frame reflected pixels
     np.testing.assert_allclose(tiled[r:-r, r:-r], whole[r:-r, r:-r], atol=1e-5)
