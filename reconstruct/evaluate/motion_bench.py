@@ -12,6 +12,8 @@ Methods (:data:`METHODS`), all on the same Eq. (3) windows (13 steps, N = 7, 31.
 * ``mean17``: T = 2 x the plain spike mean over the 17.5 ms span (351 steps) the network reads;
 * ``mean``: T = 2 x the spike mean over a motion-adapted span: L = 1 / v steps (1 px of smear), v the fastest
   RIR shift of the N windows per step, clipped to [13, 351] steps;
+* ``anchor``: the best physics per pixel (:func:`reconstruct.physics.anchor.physics_anchor`: least squares, the span
+  mean or a blend, chosen from the windows' noise statistics), the floor's fallback;
 * ``ls``, ``ridge``, ``irls``, ``rwps``: the physics solvers (:data:`reconstruct.physics.solvers.PHYSICS_SOLVER_CONFIG`)
   on the self-calibrated zeta (:func:`reconstruct.pane.source.calibrate_source`; ``calibrate = "still"``, the default:
   on the still stream of the same rig, scene and light, once for every motion, as ``polspike calibrate-pane`` then
@@ -53,7 +55,7 @@ LIGHTS = {"dim": 0.02, "bright": 0.3}
 
 PHYSICS = ("ls", "ridge", "irls", "rwps")
 NETS = ("net", "net+rir", "net+floor", "net+floor+mspan")
-METHODS = ("tfp", "mean17", "mean", *PHYSICS, *NETS)
+METHODS = ("tfp", "mean17", "mean", *PHYSICS, "anchor", *NETS)
 """Methods of the bench (module docstring)."""
 
 K, N_OBS, WINDOW, WIDE, SPAN = 3, 7, 13, 57, 350
@@ -188,6 +190,12 @@ def run_cell(cell: dict, *, width: int = 96, height: int = 64, frames: int = 1, 
             if m in methods:
                 r = solve(m, Zw, Iw, None, PHYSICS_SOLVER_CONFIG)
                 out[m] = (r.T.clamp_min(0).numpy(), r.R.clamp_min(0).numpy())
+        if "anchor" in methods:
+            from reconstruct.physics.anchor import physics_anchor
+            from reconstruct.physics.span import zbar_of
+
+            a = physics_anchor(Zw, Iw, torch.from_numpy(I_mean).double(), zbar_of(Zw, pt.double()))
+            out["anchor"] = (a.T.numpy(), a.R.numpy())
         mspan = None
         for m, model in nets.items():
             kw = {"I_mean": I_mean[None], "I_harm": I_harm[None], "I_wide": I_wide[None], "exposure": st.exposure, "span_steps": hi - lo}
@@ -214,7 +222,7 @@ def holds(row: dict) -> dict[str, Any]:
     if "net+floor" not in s:
         return {}
     net = s["net+floor"]["T_psnr"]
-    refs = {m: s[m]["T_psnr"] for m in (*PHYSICS, "mean17", "mean") if m in s}
+    refs = {m: s[m]["T_psnr"] for m in (*PHYSICS, "anchor", "mean17", "mean") if m in s}
     worst = min(net - v for v in refs.values()) if refs else None
     return {"margin_db": worst, "holds": bool(worst is not None and worst >= 0.0)}
 
