@@ -21,7 +21,8 @@ Methods (:data:`METHODS`), all on the same Eq. (3) windows (13 steps, N = 7, 31.
   so), RIR on; the networks run on the same zeta;
 * ``net``: the shipped checkpoint as trained (RIR off, no floor); ``net+rir``: RIR on; ``net+floor``: RIR on and the
   data-consistency floor (:mod:`reconstruct.physics.consistency`, the network's default); ``net+floor+mspan``: that,
-  with the long span motion-compensated (:mod:`reconstruct.stream.motion_span`).
+  with the long span motion-compensated (:mod:`reconstruct.stream.motion_span`); ``net+bestfloor``: RIR on and the
+  floor at the best physics (``NetConfig.floor_anchor = "best"``, :mod:`reconstruct.physics.anchor`).
 
 Scores: PSNR and SSIM of T and R at each output frame's centre step against the true layers there, with a gain
 fitted (least squares) and the data range of the true layer, over the frame less a ``crop``-pixel border.
@@ -54,7 +55,7 @@ LIGHTS = {"dim": 0.02, "bright": 0.3}
 """Light levels, mean spikes per pixel per step."""
 
 PHYSICS = ("ls", "ridge", "irls", "rwps")
-NETS = ("net", "net+rir", "net+floor", "net+floor+mspan")
+NETS = ("net", "net+rir", "net+floor", "net+floor+mspan", "net+bestfloor")
 METHODS = ("tfp", "mean17", "mean", *PHYSICS, "anchor", *NETS)
 """Methods of the bench (module docstring)."""
 
@@ -111,12 +112,14 @@ _MODELS: dict = {}
 _PANES: dict = {}
 
 
-def _net(weights, use_rir: bool, floor: bool):
+def _net(weights, use_rir: bool, floor: bool, anchor: str = "rwps"):
     from reconstruct.net.checkpoint import DEFAULT_WEIGHTS, load_model
 
-    key = (str(weights or DEFAULT_WEIGHTS), use_rir, floor)
+    key = (str(weights or DEFAULT_WEIGHTS), use_rir, floor, anchor)
     if key not in _MODELS:
-        _MODELS[key] = load_model(weights or DEFAULT_WEIGHTS, "cpu", use_rir=use_rir, floor=floor)[0]
+        m = load_model(weights or DEFAULT_WEIGHTS, "cpu", use_rir=use_rir, floor=floor)[0]
+        m.cfg = dataclasses.replace(m.cfg, floor_anchor=anchor)
+        _MODELS[key] = m
     return _MODELS[key]
 
 
@@ -166,7 +169,7 @@ def run_cell(cell: dict, *, width: int = 96, height: int = 64, frames: int = 1, 
     st = make_motion_stream(cfg)
     span_rad = 2 * math.pi * rev * WINDOW / rate_hz
     maps, zsrc = _pane(st, cfg, calibrate, steps, rate_hz, rev)
-    nets = {m: MapsZetaNet(_net(weights, m != "net", m not in ("net", "net+rir")), maps, span_rad) for m in methods if m in NETS}
+    nets = {m: MapsZetaNet(_net(weights, m != "net", m not in ("net", "net+rir"), "best" if m == "net+bestfloor" else "rwps"), maps, span_rad) for m in methods if m in NETS}
     acc: dict[str, dict[str, list]] = {m: {"T_psnr": [], "T_ssim": [], "R_psnr": [], "R_ssim": []} for m in methods}
     for f in range(frames):
         c = reach + int(round(f * stride))

@@ -165,7 +165,7 @@ class AnchoredFloorResult:
 
 def anchored_floor(T: torch.Tensor, R: torch.Tensor, zeta: torch.Tensor, I: torch.Tensor, I_mean: torch.Tensor | None = None,
                    zbar_span: torch.Tensor | None = None, cfg: AnchorFloorConfig = AnchorFloorConfig(), model_var: torch.Tensor | None = None,
-                   span_ratio: float = SPAN_RATIO) -> AnchoredFloorResult:
+                   span_ratio: float = SPAN_RATIO, reference: tuple[torch.Tensor, torch.Tensor] | None = None) -> AnchoredFloorResult:
     """Floor a candidate (T, R) (..., H, W) at the best physics (:func:`physics_anchor`) by the windows ``I`` on ``zeta``.
 
     Two checks, each a kept fraction of the candidate's move from the anchor (x = x_a + s (x_n - x_a)):
@@ -191,9 +191,10 @@ def anchored_floor(T: torch.Tensor, R: torch.Tensor, zeta: torch.Tensor, I: torc
     a = physics_anchor(z, Iw, None if I_mean is None else I_mean.to(torch.float64), None if zbar_span is None else zbar_span.to(torch.float64),
                        span_ratio, cfg.pool, s2)
     Tn, Rn = T.to(torch.float64), R.to(torch.float64)
-    Ad = z * (Rn - a.R_ls).unsqueeze(-3) + (1.0 - z) * (Tn - a.T_ls).unsqueeze(-3)
-    r_ls = observation_residual(a.T_ls, a.R_ls, z, Iw)
-    excess = box_mean((Ad * Ad).sum(-3) - 2.0 * (r_ls * Ad).sum(-3), cfg.pool)
+    Tr, Rr = (a.T, a.R) if reference is None else (reference[0].to(torch.float64), reference[1].to(torch.float64))
+    Ad = z * (Rn - Rr).unsqueeze(-3) + (1.0 - z) * (Tn - Tr).unsqueeze(-3)
+    r_a = observation_residual(Tr, Rr, z, Iw)
+    excess = box_mean((Ad * Ad).sum(-3) - 2.0 * (r_a * Ad).sum(-3), cfg.pool)  # RSS(candidate) - RSS(reference)
 
     def frac(allow, move):
         return torch.where(move <= allow, torch.ones_like(move), allow / move.clamp_min(1e-300)).clamp(0.0, 1.0)
