@@ -12,6 +12,8 @@ Methods (:data:`METHODS`), all on the same Eq. (3) windows (13 steps, N = 7, 31.
 * ``mean17``: T = 2 x the plain spike mean over the 17.5 ms span (351 steps) the network reads;
 * ``mean``: T = 2 x the spike mean over a motion-adapted span: L = 1 / v steps (1 px of smear), v the fastest
   RIR shift of the N windows per step, clipped to [13, 351] steps;
+* ``anchor``: the best physics per pixel (:func:`reconstruct.physics.anchor.physics_anchor`: least squares, the span
+  mean or a blend, chosen from the windows' noise statistics), the floor's fallback;
 * ``ls``, ``ridge``, ``irls``, ``rwps``: the physics solvers (:data:`reconstruct.physics.solvers.PHYSICS_SOLVER_CONFIG`)
   on the self-calibrated zeta (:func:`reconstruct.pane.source.calibrate_source`; ``calibrate = "still"``, the default:
   on the still stream of the same rig, scene and light, once for every motion, as ``polspike calibrate-pane`` then
@@ -19,7 +21,8 @@ Methods (:data:`METHODS`), all on the same Eq. (3) windows (13 steps, N = 7, 31.
   so), RIR on; the networks run on the same zeta;
 * ``net``: the shipped checkpoint as trained (RIR off, no floor); ``net+rir``: RIR on; ``net+floor``: RIR on and the
   data-consistency floor (:mod:`reconstruct.physics.consistency`, the network's default); ``net+floor+mspan``: that,
-  with the long span motion-compensated (:mod:`reconstruct.stream.motion_span`).
+  with the long span motion-compensated (:mod:`reconstruct.stream.motion_span`); ``net+bestfloor``: RIR on and the
+  floor at the best physics (``NetConfig.floor_anchor = "best"``, :mod:`reconstruct.physics.anchor`).
 
 Scores: PSNR and SSIM of T and R at each output frame's centre step against the true layers there, with a gain
 fitted (least squares) and the data range of the true layer, over the frame less a ``crop``-pixel border.
@@ -52,8 +55,8 @@ LIGHTS = {"dim": 0.02, "bright": 0.3}
 """Light levels, mean spikes per pixel per step."""
 
 PHYSICS = ("ls", "ridge", "irls", "rwps")
-NETS = ("net", "net+rir", "net+floor", "net+floor+mspan")
-METHODS = ("tfp", "mean17", "mean", *PHYSICS, *NETS)
+NETS = ("net", "net+rir", "net+floor", "net+floor+mspan", "net+bestfloor")
+METHODS = ("tfp", "mean17", "mean", *PHYSICS, "anchor", *NETS)
 """Methods of the bench (module docstring)."""
 
 K, N_OBS, WINDOW, WIDE, SPAN = 3, 7, 13, 57, 350
@@ -109,12 +112,14 @@ _MODELS: dict = {}
 _PANES: dict = {}
 
 
-def _net(weights, use_rir: bool, floor: bool):
+def _net(weights, use_rir: bool, floor: bool, anchor: str = "rwps"):
     from reconstruct.net.checkpoint import DEFAULT_WEIGHTS, load_model
 
-    key = (str(weights or DEFAULT_WEIGHTS), use_rir, floor)
+    key = (str(weights or DEFAULT_WEIGHTS), use_rir, floor, anchor)
     if key not in _MODELS:
-        _MODELS[key] = load_model(weights or DEFAULT_WEIGHTS, "cpu", use_rir=use_rir, floor=floor)[0]
+        m = load_model(weights or DEFAULT_WEIGHTS, "cpu", use_rir=use_rir, floor=floor)[0]
+        m.cfg = dataclasses.replace(m.cfg, floor_anchor=anchor)
+        _MODELS[key] = m
     return _MODELS[key]
 
 
@@ -165,7 +170,7 @@ def run_cell(cell: dict, *, width: int = 96, height: int = 64, frames: int = 1, 
     st = make_motion_stream(cfg)
     span_rad = 2 * math.pi * rev * WINDOW / rate_hz
     maps, zsrc = _pane(st, cfg, calibrate, steps, rate_hz, rev)
-    nets = {m: MapsZetaNet(_net(weights, m != "net", m not in ("net", "net+rir")), maps, span_rad) for m in methods if m in NETS}
+    nets = {m: MapsZetaNet(_net(weights, m != "net", m not in ("net", "net+rir"), "best" if m == "net+bestfloor" else "rwps"), maps, span_rad) for m in methods if m in NETS}
     acc: dict[str, dict[str, list]] = {m: {"T_psnr": [], "T_ssim": [], "R_psnr": [], "R_ssim": []} for m in methods}
     for f in range(frames):
         c = reach + int(round(f * stride))
@@ -189,6 +194,12 @@ def run_cell(cell: dict, *, width: int = 96, height: int = 64, frames: int = 1, 
             if m in methods:
                 r = solve(m, Zw, Iw, None, PHYSICS_SOLVER_CONFIG)
                 out[m] = (r.T.clamp_min(0).numpy(), r.R.clamp_min(0).numpy())
+        if "anchor" in methods:
+            from reconstruct.physics.anchor import physics_anchor
+            from reconstruct.physics.span import zbar_of
+
+            a = physics_anchor(Zw, Iw, torch.from_numpy(I_mean).double(), zbar_of(Zw, pt.double()))
+            out["anchor"] = (a.T.numpy(), a.R.numpy())
         mspan = None
         for m, model in nets.items():
             kw = {"I_mean": I_mean[None], "I_harm": I_harm[None], "I_wide": I_wide[None], "exposure": st.exposure, "span_steps": hi - lo}
@@ -216,7 +227,7 @@ def holds(row: dict) -> dict[str, Any]:
     if "net+floor" not in s:
         return {}
     net = s["net+floor"]["T_psnr"]
-    refs = {m: s[m]["T_psnr"] for m in (*PHYSICS, "mean17", "mean") if m in s}
+    refs = {m: s[m]["T_psnr"] for m in (*PHYSICS, "anchor", "mean17", "mean") if m in s}
     worst = min(net - v for v in refs.values()) if refs else None
     return {"margin_db": worst, "holds": bool(worst is not None and worst >= 0.0)}
 

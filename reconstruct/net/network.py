@@ -101,6 +101,7 @@ class NetConfig:
     span_rad: float = opt(math.radians(7.02), "polarizer rotation inside one aggregation window (0.65 ms at 30 rev/s), rad; recorded with the weights, not used by the layers", lo=0.0, hi=math.pi)
     floor: bool = opt(True, "data-consistency floor at inference (reconstruct.physics.consistency): the final (T, R) must predict the N aligned windows (paper Eq. (1)-(2)) within floor_tol noise variances of the physics-only RWPS's residual on the same zeta; where it does not, it is pulled back toward that physics. No weights; off while training")
     floor_tol: float = opt(4.0, "the floor's allowed excess residual, in noise variances of one observation (4: the floored error is the smaller of the refinement's and the physics', reconstruct.physics.consistency)", lo=0.0, hi=1e6)
+    floor_anchor: str = opt("rwps", "what the floor falls back to: rwps (the physics-only RWPS, the data check only) | best (per pixel the best physics the observations support, least squares, the spike mean or a blend, reconstruct.physics.anchor; T and R are also judged by their own error against it)", choices=("rwps", "best"))
     floor_mode: str = opt("shrink", "the floor: shrink (keep the fraction min(1, floor_tol sigma^2 / excess) of the refinement's move from the physics) | hard (the physics wherever the excess exceeds floor_tol sigma^2)", choices=("shrink", "hard"))
 
     def __post_init__(self) -> None:
@@ -551,28 +552,35 @@ class PolSpikeNet(nn.Module):
                 T, R = span_blend(T, R, I_mean, I_harm, zs, phi, wsp, self.cfg.span_level_px, self.cfg.span_level_tol * light, tol_t)
         keep = None
         if self.cfg.floor and not self.training:
-            T, R, keep = self.data_floor(T, R, zeta_used, I, exposure)
+            T, R, keep = self.data_floor(T, R, zeta_used, I, exposure, I_mean if self.cfg.use_mean else None, phi)
         return NetOutput(T=T, R=R, T_base=T0, R_base=R0, zeta_hat=zeta_hat, zeta_used=zeta_used, weights=w, conf=res.conf, res=resid, I=I, zeta_gt=zeta_gt, floor_keep=keep)
 
     @torch.no_grad()
-    def data_floor(self, T: torch.Tensor, R: torch.Tensor, zeta: torch.Tensor, I: torch.Tensor, exposure=None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    def data_floor(self, T: torch.Tensor, R: torch.Tensor, zeta: torch.Tensor, I: torch.Tensor, exposure=None, I_mean=None, phi=None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """The data-consistency floor (:mod:`reconstruct.physics.consistency`): (T, R) against the physics-only RWPS
         (Poisson reliability weights, :data:`reconstruct.physics.solvers.PHYSICS_SOLVER_CONFIG`, layers >= 0: what
         ``polspike reconstruct --method rwps`` returns on this zeta) on the same (aligned) windows -> (T, R, kept fraction).
         Given the stream's ``exposure``, the noise is capped at the windows' Poisson noise, var(2 I) = 4 I / (exposure L)
         with L = 13 steps (0.65 ms at 20 kHz: the windows this network reads), so misalignment or a wrong zeta in the
-        residual does not widen the allowance.
+        residual does not widen the allowance.  ``floor_anchor = "best"`` falls back to the best physics
+        per pixel instead (:func:`reconstruct.physics.anchor.anchored_floor`, with the long span's ``I_mean`` where the
+        network reads it, at the polarizer-cycle mean zeta of the windows' angles ``phi``); the kept fraction returned is T's.
         """
+        from reconstruct.physics.anchor import AnchorFloorConfig, anchored_floor
         from reconstruct.physics.consistency import FloorConfig, consistency_floor
         from reconstruct.physics.solvers import PHYSICS_SOLVER_CONFIG
 
         z = zeta.detach().float()
         Iw = I.detach().float()
-        ph = solve("rwps", z, Iw, None, PHYSICS_SOLVER_CONFIG)
         mv = None
         if exposure is not None:
             e = torch.as_tensor(exposure, dtype=torch.float32, device=Iw.device).reshape(-1, 1, 1) if torch.is_tensor(exposure) else float(exposure)
             mv = 4.0 * Iw.mean(1).clamp_min(0.0) / (e * 13.0) + 1e-12
+        ph = solve("rwps", z, Iw, None, PHYSICS_SOLVER_CONFIG)
+        if self.cfg.floor_anchor == "best":
+            g = anchored_floor(T.float(), R.float(), z, Iw, None if I_mean is None else I_mean.detach().float(), None if I_mean is None else zbar_of(z, phi.float()),
+                               AnchorFloorConfig(tol=self.cfg.floor_tol), mv, reference=(ph.T.clamp_min(0.0), ph.R.clamp_min(0.0)))
+            return g.T.to(T.dtype), g.R.to(R.dtype), g.keep_T
         f = consistency_floor(T.float(), R.float(), ph.T.clamp_min(0.0), ph.R.clamp_min(0.0), z, Iw, FloorConfig(tol=self.cfg.floor_tol, mode=self.cfg.floor_mode), mv, "min")
         return f.T.to(T.dtype), f.R.to(R.dtype), f.keep
 

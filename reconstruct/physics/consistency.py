@@ -53,7 +53,7 @@ import torch
 from polinfra.config import opt
 from polinfra.errors import ShapeError
 
-__all__ = ["FloorConfig", "FloorResult", "observation_residual", "observation_noise", "consistency_floor"]
+__all__ = ["FloorConfig", "FloorResult", "observation_residual", "observation_noise", "consistency_floor", "box_mean"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -89,7 +89,8 @@ def observation_residual(T: torch.Tensor, R: torch.Tensor, zeta: torch.Tensor, I
     return 2.0 * I - (zeta * R.unsqueeze(-3) + (1.0 - zeta) * T.unsqueeze(-3))
 
 
-def _box(x: torch.Tensor, k: int) -> torch.Tensor:
+def box_mean(x: torch.Tensor, k: int) -> torch.Tensor:
+    """Mean of (..., H, W) maps over a k x k box (stride 1, borders averaged over the pixels inside)."""
     if k <= 1:
         return x
     shp = x.shape
@@ -113,7 +114,7 @@ def observation_noise(zeta: torch.Tensor, I: torch.Tensor, pool: int = 5) -> tor
     # where zeta is (nearly) constant the 2x2 system is singular: the fit keeps one dof, not two
     modulates = zeta.std(-3) > 1e-4
     dof = torch.where(modulates, torch.full_like(rss, max(N - 2, 1)), torch.full_like(rss, max(N - 1, 1)))
-    return _box(rss / dof, pool)
+    return box_mean(rss / dof, pool)
 
 
 def consistency_floor(T: torch.Tensor, R: torch.Tensor, T_p: torch.Tensor, R_p: torch.Tensor, zeta: torch.Tensor, I: torch.Tensor,
@@ -138,7 +139,7 @@ def consistency_floor(T: torch.Tensor, R: torch.Tensor, T_p: torch.Tensor, R_p: 
     if model_var is not None:
         if combine not in ("max", "min"):
             raise ValueError(f"combine {combine!r}: max or min")
-        mv = _box(torch.broadcast_to(model_var.to(sigma2.dtype), sigma2.shape), cfg.pool)
+        mv = box_mean(torch.broadcast_to(model_var.to(sigma2.dtype), sigma2.shape), cfg.pool)
         sigma2 = torch.maximum(sigma2, mv) if combine == "max" else torch.minimum(sigma2, mv)
     sigma2 = sigma2.clamp_min(torch.finfo(T.dtype).tiny ** 0.5)
     r_p = observation_residual(T_p, R_p, zeta, I)
@@ -147,7 +148,7 @@ def consistency_floor(T: torch.Tensor, R: torch.Tensor, T_p: torch.Tensor, R_p: 
     a = (Ad * Ad).sum(-3)
     c = (r_p * Ad).sum(-3)
     allow = cfg.tol * sigma2
-    e1 = _box(a - 2.0 * c, cfg.pool)
+    e1 = box_mean(a - 2.0 * c, cfg.pool)
     ok = e1 <= allow
     if cfg.mode == "hard":
         s = ok.to(T.dtype)

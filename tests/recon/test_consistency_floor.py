@@ -106,3 +106,128 @@ def test_network_with_garbage_refinement_gives_the_physics():
         assert psnr(getattr(on, key)[0].numpy(), gt) >= p_phys - 1.0
     assert psnr(off.T[0].numpy(), g.T[4]) < psnr(Tp.numpy(), g.T[4]) - 5.0
     assert on.floor_keep is not None and float(on.floor_keep.mean()) < 0.2
+
+
+# ---- the best-physics anchor (reconstruct/physics/anchor.py) and the floor at it ----
+
+def _closed_form(sigma: float, sigma_span: float, seed: int = 0, size: int = 48):
+    """N = 7 windows of paper Eq. (1)-(2) with Gaussian noise of sd ``sigma`` on b = 2 I, zeta modulated by the
+    polarizer (31.5 deg apart), smooth random layers, and the span mean 2 I_mean = (1 - zbar) T + zbar R (zbar the
+    polarizer-cycle mean of zeta) with noise of sd ``sigma_span``.
+    """
+    rng = np.random.default_rng(seed)
+    yy, xx = np.mgrid[0:size, 0:size] / size
+
+    def field():
+        k = rng.uniform(1.0, 4.0, (3, 2))
+        p = rng.uniform(0, 2 * np.pi, 3)
+        return sum(np.sin(2 * np.pi * (k[i, 0] * xx + k[i, 1] * yy) + p[i]) for i in range(3))
+
+    T = 0.55 + 0.12 * field()
+    R = 0.4 + 0.1 * field()
+    z0 = 0.15 + 0.03 * xx
+    amp = 0.1 + 0.02 * yy
+    phi = np.deg2rad(31.5 * np.arange(7) + 10.0)
+    Z = z0 + amp * np.cos(2 * phi)[:, None, None]
+    b = (1 - Z) * T + Z * R + sigma * rng.standard_normal(Z.shape)
+    m = (1 - z0) * T + z0 * R + sigma_span * rng.standard_normal(T.shape)
+    t = lambda a: torch.tensor(a, dtype=torch.float64)  # noqa: E731
+    return t(T), t(R), t(Z), t(b / 2), t(m / 2), t(z0)
+
+
+def _p(x, ref):
+    return psnr(x.numpy(), ref.numpy(), float(ref.max()))
+
+
+def test_anchor_is_the_mean_where_the_windows_are_noise_limited():
+    """Noise of sd 0.5 on each window (the layers' own contrast is ~0.1): the modulation is not resolvable, and the
+    anchor is the span mean read as T, 2 I_mean / (1 - zbar) (Wiener weight on the least-squares reflection ~0, the span
+    level's share ~1): within 0.5 dB of it, and > 10 dB above least squares.
+    """
+    from reconstruct.physics.anchor import physics_anchor
+
+    T, R, Z, I, Im, z0 = _closed_form(0.5, 0.002)
+    a = physics_anchor(Z, I, Im, z0)
+    mean_like = 2 * Im / (1 - z0)
+    assert float(a.w.median()) < 0.05 and float(a.span_weight.median()) > 0.9
+    assert _p(a.T, T) >= _p(mean_like, T) - 0.5
+    assert _p(a.T, T) >= _p(a.T_ls, T) + 10.0
+
+
+def test_anchor_is_the_physics_where_the_modulation_is_resolved():
+    """Noise of sd 0.002: the reflection is resolved (Wiener weight ~1) and the anchor's T is within 0.5 dB of least
+    squares' or better, > 5 dB above the mean read as T (which keeps the reflection zbar R / (1 - zbar)).
+    """
+    from reconstruct.physics.anchor import physics_anchor
+
+    T, R, Z, I, Im, z0 = _closed_form(0.002, 0.0005)
+    a = physics_anchor(Z, I, Im, z0)
+    assert float(a.w.median()) > 0.9
+    assert _p(a.T, T) >= _p(a.T_ls, T) - 0.5
+    assert _p(a.T, T) >= _p(2 * Im / (1 - z0), T) + 5.0
+    assert _p(a.R, R) >= _p(a.R_ls, R) - 0.5
+
+
+def test_anchor_leaves_a_smeared_span():
+    """The span mean taken from layers shifted by 6 px (a pan over the span): the anchor's level comes from the
+    windows where the smear shows, and its T is within 1 dB of least squares' or better, far above the smeared span's.
+    """
+    from reconstruct.physics.anchor import physics_anchor
+
+    T, R, Z, I, Im, z0 = _closed_form(0.01, 0.001)
+    Ims = 0.5 * ((1 - z0) * torch.roll(T, 6, -1) + z0 * torch.roll(R, 6, -1))
+    a = physics_anchor(Z, I, Ims, z0)
+    assert _p(a.T, T) >= _p(a.T_ls, T) - 1.0
+    assert _p(a.T, T) >= _p((a.T_ls * 0 + 2 * Ims - z0 * a.R_ls) / (1 - z0), T) + 3.0
+
+
+@pytest.mark.parametrize("sigma", [0.5, 0.002])
+def test_garbage_candidate_gives_the_best_physics(sigma):
+    """anchored_floor on a candidate that is noise of amplitude 3 (layers in [0, 1]) ends at the anchor: T and R PSNR
+    within 0.5 dB of the anchor's where the modulation is resolved; where the windows are noise-limited, within 2.5 dB
+    (the floor lets T move as far as the reflection the windows cannot exclude: a rms of sqrt(2 P_T_max)), and
+    above the candidate's (> 13 dB).
+    """
+    from reconstruct.physics.anchor import anchored_floor
+
+    T, R, Z, I, Im, z0 = _closed_form(sigma, sigma / 250)
+    gen = torch.Generator().manual_seed(5)
+    Tn = T + 3.0 * torch.randn(T.shape, generator=gen, dtype=T.dtype)
+    Rn = R + 3.0 * torch.randn(R.shape, generator=gen, dtype=T.dtype)
+    f = anchored_floor(Tn, Rn, Z, I, Im, z0)
+    tol = 0.5 if sigma < 0.01 else 2.5
+    assert _p(f.T, T) >= _p(f.anchor.T, T) - tol
+    assert _p(f.R, R) >= _p(f.anchor.R, R) - tol
+    assert _p(f.T, T) > _p(Tn, T) + 13.0
+
+
+def test_truth_passes_the_anchored_floor():
+    """The true layers pass the anchored floor unchanged on >= 95 % of the pixels (noise-limited and resolved)."""
+    from reconstruct.physics.anchor import anchored_floor
+
+    for sigma in (0.5, 0.002):
+        T, R, Z, I, Im, z0 = _closed_form(sigma, sigma / 250)
+        f = anchored_floor(T, R, Z, I, Im, z0)
+        assert float((f.keep_T == 1).double().mean()) >= 0.95, sigma
+
+
+def test_network_with_garbage_refinement_gives_the_best_physics():
+    """floor_anchor = "best": a PolSpikeNet whose refinement outputs garbage returns T and R within 1 dB of the
+    best-physics anchor's PSNR on the same windows and zeta (reconstruct.physics.anchor.physics_anchor).
+    """
+    from reconstruct.net.network import NetConfig, PolSpikeNet, init_weights
+    from reconstruct.physics.anchor import physics_anchor
+
+    g, I, Z, Tp, Rp = _window("integrate_fire", 3.0)
+    net = init_weights(PolSpikeNet(NetConfig(arch="v2", lr_ch=8, w_ch=4, ref_ch=(8, 8, 8), dec_ch=(8, 8, 8), use_rir=False, floor_anchor="best")), torch.Generator().manual_seed(0))
+    with torch.no_grad():
+        for dec in (net.refine.dec_t, net.refine.dec_r):
+            dec.out.weight.normal_(0.0, 10.0, generator=torch.Generator().manual_seed(4))
+            dec.out.bias.fill_(0.7)
+    net.eval()
+    with torch.inference_mode():
+        on = net(I[None], torch.tensor(g.phi_nominal[1:8])[None].float(), zeta_gt=Z[None], alpha=1.0)
+    a = physics_anchor(Z.double(), I.double())
+    for key, ref, gt in (("T", a.T, g.T[4]), ("R", a.R, g.R[4])):
+        assert psnr(getattr(on, key)[0].numpy(), gt) >= psnr(ref.float().numpy(), gt) - 1.0
+    assert float(on.floor_keep.mean()) < 0.2

@@ -1,0 +1,206 @@
+"""The best physics per pixel, chosen from the observations alone: the anchor of the data-consistency floor.
+
+Paper Eq. (1)-(2) in the solvers' units, b_k = 2 I_k = (1 - zeta_k) T + zeta_k R, k = 1..N, written in the level L(z)
+= T + z D and the difference D = R - T:
+
+    b_k = L(zbar_w) + (zeta_k - zbar_w) D,        zbar_w = mean_k zeta_k.
+
+Unweighted least squares (the ``ls`` solver) is exactly L_w = mean_k b_k and D_ls = sum_k dz_k (b_k - L_w) / sum_k dz_k^2
+(dz_k = zeta_k - zbar_w), with independent errors of variance sigma^2 / N and v_D = sigma^2 / sum_k dz_k^2 for
+observations of noise variance sigma^2 (:func:`reconstruct.physics.consistency.observation_noise`); T_ls = L_w - zbar_w
+D_ls.  Every estimate here is a level and a difference, T = L - z D^ and R = L + (1 - z) D^; they differ in where the
+level comes from and how much of D_ls they trust.
+
+**The difference, shrunk by what the windows resolve.**  D^ = w D_ls with the Wiener weight w = D^2 / (D^2 + v_D),
+D^2 = max(0, <D_ls^2> - <v_D>) the unbiased estimate of the difference's power over a ``pool`` x ``pool`` box (<.>).
+Its error power is w v_D (= D^2 v_D / (D^2 + v_D), the smaller of v_D and D^2).  Where the modulation is resolvable
+(D^2 >> v_D: bright light, a pane that modulates) w -> 1 and the estimate is least squares; where the windows are
+noise-limited (dim light, weak modulation) w -> 0, and the estimate is the plain level with no modulation model: the
+spike mean.  This is the statistic that tells "noise-limited, the mean is best" from "modulated signal resolvable": the
+windows' explained modulation power against its own noise.
+
+**The level, from the windows or from the long span.**  Two levels: the windows' mean L_w at zbar_w (variance
+sigma^2 / N, no bias: the windows are aligned), and the long span's spike mean m = 2 I_mean at zbar_s (the span's mean
+zeta, :func:`reconstruct.physics.span.zbar_of`), from ``span_ratio`` times the windows' steps (variance
+v_m = sigma^2 / span_ratio; 27 for the 351-step span against 13-step windows) but smeared by any motion over the span.
+The smear is measured: the span's level against the windows' least-squares level at the same zbar_s,
+q = m - (L_w + (zbar_s - zbar_w) D_ls), has E q^2 = bias^2 + v_m + sigma^2 / N + (zbar_s - zbar_w)^2 v_D, so the span
+level's error power is r_s = max(v_m, <q^2> - sigma^2 / N - (zbar_s - zbar_w)^2 <v_D>).  The two levels are weighed by
+their inverse error powers (the minimum-variance combination of two independent estimates), r_L = 1 / (1 / r_w + 1 / r_s)
+with r_w = sigma^2 / N: the span wins where the scene holds still, the windows where a pan smeared the span.
+
+**The anchor** (:func:`physics_anchor`) is T_a = L - z D^, R_a = L + (1 - z) D^ with L and z the weighted levels and
+zbar's, and its stated error powers P_T = r_L + z^2 w v_D, P_R = r_L + (1 - z)^2 w v_D.  It is, per pixel, the plain
+spike mean (w = 0, span level), the mean anchored to the windows' difference (``--anchor mean``: w = 1, span level),
+least squares (w = 1, window level), the mean of the windows (TFP-like: w = 0, window level), or a blend of them, as
+the noise statistics decide: no constant is tuned, every weight is a ratio of measured error powers.  Without a span
+mean only the window level is used.  Everything is closed form and vectorised (a few box filters per frame).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import torch
+
+from polinfra.config import opt
+from reconstruct.physics.consistency import _check, box_mean, observation_noise, observation_residual
+
+SIG = 2.0
+"""A power counts as resolved where its pooled estimate exceeds the noise's expectation by SIG standard deviations of
+the pool's chi-square (sd = sqrt(2 / pool^2) of the mean; 2: ~2.5 % false detections where there is only noise)."""
+
+__all__ = ["AnchorResult", "physics_anchor", "SPAN_RATIO", "AnchorFloorConfig", "AnchoredFloorResult", "anchored_floor"]
+
+SPAN_RATIO = 351.0 / 13.0
+"""Steps of the network's long span over the steps of one window: the span mean's variance is sigma^2 over this."""
+
+
+def _null_log_sd(ratio: torch.Tensor, pool: int) -> torch.Tensor:
+    """The spread, in log units, of the pooled power ratio where there is only noise, per frame (..., 1, 1): the larger
+    of the pool's chi-square sd sqrt(2 / pool^2) and the frame's lower tail, -log(10th percentile) / 1.2816 (a
+    log-normal's 10th percentile lies 1.2816 sd below its median, 1).  A smear only raises the ratio, so the lower tail
+    is the noise's even where every pixel is smeared; it is wider than chi-square's because the noise estimate is itself
+    pooled and local, and dim integrate-and-fire counts are far from Gaussian.
+    """
+    q10 = torch.quantile(ratio.flatten(-2).float(), 0.1, dim=-1).to(ratio.dtype).clamp(1e-6, 1.0)
+    return torch.clamp_min(-torch.log(q10) / 1.2816, (2.0 / pool**2) ** 0.5)[..., None, None]
+
+
+@dataclasses.dataclass
+class AnchorResult:
+    """The anchor's layers (..., H, W), their stated error powers ``P_T``, ``P_R`` (same units as T^2), the Wiener
+    weight ``w`` on the least-squares difference, the span level's share ``span_weight`` (0 = the windows' level),
+    sigma^2 of one observation, and the least-squares layers.
+    """
+
+    T: torch.Tensor
+    R: torch.Tensor
+    P_T: torch.Tensor
+    P_R: torch.Tensor
+    P_T_max: torch.Tensor
+    P_R_max: torch.Tensor
+    w: torch.Tensor
+    span_weight: torch.Tensor
+    sigma2: torch.Tensor
+    T_ls: torch.Tensor
+    R_ls: torch.Tensor
+
+
+def physics_anchor(zeta: torch.Tensor, I: torch.Tensor, I_mean: torch.Tensor | None = None, zbar_span: torch.Tensor | None = None,
+                   span_ratio: float = SPAN_RATIO, pool: int = 5, sigma2: torch.Tensor | None = None) -> AnchorResult:
+    """The best physics per pixel (module docstring) from N windows ``I`` (..., N, H, W) on ``zeta`` and, optionally, the
+    long span's mean ``I_mean`` (..., H, W) with its mean zeta ``zbar_span`` (default: the windows' mean zeta).
+
+    ``sigma2``: the noise variance of one observation b = 2 I (default :func:`observation_noise` over ``pool``).
+    """
+    z, b = zeta.double(), 2.0 * I.double()
+    N = b.shape[-3]
+    tiny = 1e-30
+    s2 = (observation_noise(z, I.double(), pool) if sigma2 is None else sigma2.double()).clamp_min(tiny)
+    zw = z.mean(-3)
+    dz = z - zw.unsqueeze(-3)
+    szz = (dz * dz).sum(-3)
+    mod = szz > 1e-12  # zeta modulates: D is determined (else only the level is)
+    Lw = b.mean(-3)
+    D_ls = torch.where(mod, (dz * (b - Lw.unsqueeze(-3))).sum(-3) / szz.clamp_min(tiny), torch.zeros_like(Lw))
+    vD = torch.where(mod, s2 / szz.clamp_min(tiny), torch.full_like(s2, 1e30))
+    r_w = s2 / N
+    R_ls = Lw + (1.0 - zw) * D_ls
+    vR = r_w + (1.0 - zw) ** 2 * vD
+    pR2, pvR, sd = box_mean(R_ls * R_ls, pool), box_mean(vR, pool), SIG * (2.0 / pool**2) ** 0.5
+    R2 = (pR2 - pvR * (1.0 + sd)).clamp_min(0.0)
+    R2_up = torch.minimum((pR2 - pvR * (1.0 - sd)).clamp_min(0.0), vR)  # the most reflection the windows cannot exclude
+    w = R2 / (R2 + vR)
+    Rh = w * R_ls
+    one = 1e-3
+    uw = (1.0 - zw).clamp_min(one)
+    rw_T = r_w / uw**2
+    if I_mean is None:
+        T = (Lw - zw * Rh) / uw
+        zz, rL_T, sw = zw, rw_T, torch.zeros_like(Lw)
+    else:
+        m = 2.0 * I_mean.double()
+        zs = zw if zbar_span is None else zbar_span.double()
+        dzs = zs - zw
+        q = m - (Lw + dzs * D_ls)
+        v_m = s2 / span_ratio**2  # integrate-and-fire: a count's error is a fraction of one spike, so the mean's falls as 1 / steps
+        e0 = v_m + r_w + box_mean(dzs * dzs * torch.where(mod, vD, torch.zeros_like(vD)), pool)  # E q^2 without smear
+        ratio = box_mean(q * q, pool) / e0.clamp_min(tiny)
+        r_s = v_m + ((ratio - torch.exp(SIG * _null_log_sd(ratio, pool))) * e0).clamp_min(0.0)  # smear beyond SIG sd of the statistic's null
+        us = (1.0 - zs).clamp_min(one)
+        rs_T = r_s / us**2
+        sw = rw_T / (rw_T + rs_T)
+        T = (1.0 - sw) * (Lw - zw * Rh) / uw + sw * (m - zs * Rh) / us
+        zz = (1.0 - sw) * zw + sw * zs
+        rL_T = rw_T * rs_T / (rw_T + rs_T)
+    k2 = (zz / (1.0 - zz).clamp_min(one)) ** 2
+    Rerr = (1.0 - w) ** 2 * R2_up + w * w * vR  # the shrunk reflection's error power at the largest reflection allowed
+    dt = I.dtype if I.dtype.is_floating_point else torch.float32
+    return AnchorResult(T=T.to(dt), R=Rh.to(dt), P_T=(rL_T + k2 * w * vR).to(dt), P_R=(w * vR).to(dt), P_T_max=(rL_T + k2 * Rerr).to(dt), P_R_max=Rerr.to(dt),
+                        w=w.to(dt), span_weight=sw.to(dt), sigma2=s2.to(dt), T_ls=(Lw - zw * D_ls).to(dt), R_ls=R_ls.to(dt))
+
+
+@dataclasses.dataclass(frozen=True)
+class AnchorFloorConfig:
+    """Parameters of :func:`anchored_floor`; each tolerance is a multiple of a measured error power (docstring)."""
+
+    tol: float = opt(4.0, "allowed excess residual over least squares' on the N windows, in noise variances of one observation (4 = twice least squares' own error power in the metric of the data, 2 dof)", lo=0.0, hi=1e6)
+    tol_layer: float = opt(2.0, "allowed mean square move of T (of R) from the anchor, in units of the anchor's stated error power P_T (P_R) (2: the floored error is the smaller of the candidate's and the anchor's)", lo=0.0, hi=1e6)
+    pool: int = opt(5, "side (pixels) of the box over which the noise, the powers and the moves are averaged", lo=1, hi=101)
+
+
+@dataclasses.dataclass
+class AnchoredFloorResult:
+    """The floored layers, the kept fractions of T's and R's moves from the anchor (1 = the candidate, 0 = the
+    anchor), and the :class:`AnchorResult`.
+    """
+
+    T: torch.Tensor
+    R: torch.Tensor
+    keep_T: torch.Tensor
+    keep_R: torch.Tensor
+    anchor: AnchorResult
+
+
+def anchored_floor(T: torch.Tensor, R: torch.Tensor, zeta: torch.Tensor, I: torch.Tensor, I_mean: torch.Tensor | None = None,
+                   zbar_span: torch.Tensor | None = None, cfg: AnchorFloorConfig = AnchorFloorConfig(), model_var: torch.Tensor | None = None,
+                   span_ratio: float = SPAN_RATIO, reference: tuple[torch.Tensor, torch.Tensor] | None = None) -> AnchoredFloorResult:
+    """Floor a candidate (T, R) (..., H, W) at the best physics (:func:`physics_anchor`) by the windows ``I`` on ``zeta``.
+
+    Two checks, each a kept fraction of the candidate's move from the anchor (x = x_a + s (x_n - x_a)):
+
+    * the data: the candidate's excess residual over least squares on the N windows, E = <RSS(x_n) - RSS(x_ls)>,
+      s_d = min(1, tol sigma^2 / E) (:mod:`reconstruct.physics.consistency`: the truth's excess is sigma^2 chi^2_2);
+    * each layer's own error: the move's power M_T = <(T_n - T_a)^2> against the anchor's stated error power P_T,
+      s_T = min(1, tol_layer <P_T> / M_T) (and R alike).  The anchor's error being independent of the candidate's
+      (power tau^2), M_T = P_T + tau^2, and the blend's error (1 - s)^2 P_T + s^2 tau^2 is min(tau^2, P_T) with
+      tol_layer = 2 (:mod:`reconstruct.physics.consistency` derives it): a candidate better than the best physics
+      passes, a worse one ends at the physics' error.
+
+    T keeps min(s_d, s_T), R keeps min(s_d, s_R).  ``model_var`` caps sigma^2 at the spikes' own noise (the floor's
+    ``combine = "min"``).
+    """
+    _check(zeta, I)
+    dt = T.dtype
+    z, Iw = zeta.to(torch.float64), I.to(torch.float64)
+    s2 = observation_noise(z, Iw, cfg.pool)
+    if model_var is not None:
+        s2 = torch.minimum(s2, box_mean(torch.broadcast_to(model_var.to(s2.dtype), s2.shape), cfg.pool))
+    s2 = s2.clamp_min(1e-30)
+    a = physics_anchor(z, Iw, None if I_mean is None else I_mean.to(torch.float64), None if zbar_span is None else zbar_span.to(torch.float64),
+                       span_ratio, cfg.pool, s2)
+    Tn, Rn = T.to(torch.float64), R.to(torch.float64)
+    Tr, Rr = (a.T, a.R) if reference is None else (reference[0].to(torch.float64), reference[1].to(torch.float64))
+    Ad = z * (Rn - Rr).unsqueeze(-3) + (1.0 - z) * (Tn - Tr).unsqueeze(-3)
+    r_a = observation_residual(Tr, Rr, z, Iw)
+    excess = box_mean((Ad * Ad).sum(-3) - 2.0 * (r_a * Ad).sum(-3), cfg.pool)  # RSS(candidate) - RSS(reference)
+
+    def frac(allow, move):
+        return torch.where(move <= allow, torch.ones_like(move), allow / move.clamp_min(1e-300)).clamp(0.0, 1.0)
+
+    s_d = frac(cfg.tol * s2, excess)
+    dT, dR = Tn - a.T, Rn - a.R
+    s_T = torch.minimum(s_d, frac(cfg.tol_layer * box_mean(a.P_T_max, cfg.pool), box_mean(dT * dT, cfg.pool)))
+    s_R = torch.minimum(s_d, frac(cfg.tol_layer * box_mean(a.P_R_max, cfg.pool), box_mean(dR * dR, cfg.pool)))
+    return AnchoredFloorResult(T=(a.T + s_T * dT).to(dt), R=(a.R + s_R * dR).to(dt), keep_T=s_T.to(dt), keep_R=s_R.to(dt), anchor=a)
