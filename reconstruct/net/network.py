@@ -54,7 +54,7 @@ import torch.nn.functional as F
 from polinfra.config import opt
 from polinfra.errors import ConfigError, ShapeError
 from reconstruct.physics.solvers import SolverConfig, solve
-from reconstruct.physics.span import anchor_to_mean, gaussian_kernel, long_span_separation, separable_blur, span_blend, span_weights, zbar_of
+from reconstruct.physics.span import anchor_to_mean, gaussian_blur, gaussian_radius, long_span_separation, span_blend, span_weights, zbar_of
 from reconstruct.physics.symmetry import symmetry_angles, symmetry_harmonic, symmetry_image
 from reconstruct.stream.window_inputs import WindowInputs
 
@@ -583,19 +583,6 @@ class PolSpikeNet(nn.Module):
             return g.T.to(T.dtype), g.R.to(R.dtype), g.keep_T
         f = consistency_floor(T.float(), R.float(), ph.T.clamp_min(0.0), ph.R.clamp_min(0.0), z, Iw, FloorConfig(tol=self.cfg.floor_tol, mode=self.cfg.floor_mode), mv, "min")
         return f.T.to(T.dtype), f.R.to(R.dtype), f.keep
-
-
-def gaussian_radius(sigma: float) -> int:
-    """Kernel radius (pixels) of :func:`gaussian_blur`: 3 sigma, at least 1 (0 for sigma 0: no blur)."""
-    return max(1, int(math.ceil(3.0 * sigma))) if sigma > 0 else 0
-
-
-def gaussian_blur(x: torch.Tensor, sigma: float) -> torch.Tensor:
-    """Separable Gaussian blur of (B, H, W) maps (kernel radius :func:`gaussian_radius`, reflected borders; replicated
-    where the map is narrower than the radius): :func:`reconstruct.physics.span.separable_blur` with
-    :func:`reconstruct.physics.span.gaussian_kernel`.
-    """
-    return separable_blur(x, gaussian_kernel(sigma, x.dtype, x.device))
 
 
 def count_parameters(model: nn.Module) -> int:

@@ -181,3 +181,15 @@ def anchor_to_mean(T, R, I_mean, zbar):
     D = R - T
     Ta = 2.0 * I_mean - zbar * D
     return Ta, Ta + D
+
+
+def gaussian_radius(sigma: float) -> int:
+    """Kernel radius (pixels) of :func:`gaussian_blur`: 3 sigma, at least 1 (0 for sigma 0: no blur)."""
+    return max(1, int(math.ceil(3.0 * sigma))) if sigma > 0 else 0
+
+
+def gaussian_blur(x: torch.Tensor, sigma: float) -> torch.Tensor:
+    """Separable Gaussian blur of (B, H, W) maps (kernel radius :func:`gaussian_radius`, reflected borders; replicated
+    where the map is narrower than the radius): :func:`separable_blur` with :func:`gaussian_kernel`.
+    """
+    return separable_blur(x, gaussian_kernel(sigma, x.dtype, x.device))

@@ -381,7 +381,7 @@ def test_wide_levels_move_only_low_frequencies_whatever_the_refinement():
     """t_level_px / r_level_from = wide replace the base's low frequencies by the wide windows' (inference only): the
     change of T (R) is G_s * (T_wide - T_base) (R likewise), the same for any refinement weights, and smooth.
     """
-    from reconstruct.net.network import gaussian_blur
+    from reconstruct.physics.span import gaussian_blur
 
     cfg0 = dataclasses.replace(SMALL, use_wide=True, base="anchored", anchor_zbar="harmonic", r_level_px=4.0, floor=False)  # the levels before the floor
     I, phi, Im, _ = _window(7, H=32, W=32)

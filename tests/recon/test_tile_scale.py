@@ -76,7 +76,7 @@ def test_tiles_keep_the_r_level_blur_inside_their_margin():
 
     import numpy as np
 
-    from reconstruct.net.network import gaussian_blur
+    from reconstruct.physics.span import gaussian_blur
     from reconstruct.video.tiling import run_model_on_windows
 
     sigma = 8.0

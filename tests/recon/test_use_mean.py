@@ -199,8 +199,7 @@ def test_r_level_takes_rs_level_from_the_base_and_its_structure_from_the_refinem
     """
     from scipy.ndimage import gaussian_filter
 
-    from reconstruct.net.network import gaussian_blur
-    from reconstruct.physics.span import anchor_to_mean, zbar_of
+    from reconstruct.physics.span import anchor_to_mean, gaussian_blur, zbar_of
 
     x = torch.rand(2, 40, 50, dtype=torch.float64, generator=torch.Generator().manual_seed(0))
     ref = np.stack([gaussian_filter(a, 3.0, mode="mirror", truncate=3.0) for a in x.numpy()])
