@@ -8,13 +8,14 @@ import math
 import numpy as np
 
 from reconstruct.pane.camera import (
+    CHI2_1_MEDIAN,
     FOV_BOUNDS_DEG,
     _pane_phi_perp,
     _phi_perp_many,
     camera_for,
     normal_from_angles,
 )
-from reconstruct.pane.orientation import OrientationField, block_sum
+from reconstruct.pane.orientation import OrientationField, block_orientation_variance, block_sum
 
 log = logging.getLogger(__name__)
 
@@ -121,28 +122,56 @@ POLISH_MIN_BLOCK = 4
 """Smallest block (pixels per side) whose orientation variance the polish measures from its pixels' scatter."""
 
 
-def polish_geometry(of: OrientationField, block: int, tilt: float, az: float, fov_deg: float, fit_fov: bool) -> dict | None:
-    """The robust, scatter-weighted geometry fit (:func:`reconstruct.pane.geometry_fit.fit_geometry`, calibrate-pane's)
-    from (tilt, az, fov) on the self-calibration's block grid (:class:`reconstruct.pane.geometry_fit.BlockPaneModel`),
-    a local refinement: no other fov starts.  Blocks smaller than :data:`POLISH_MIN_BLOCK` are summed into blocks of
-    that size first.  Returns {"tilt", "azimuth", "fov_deg"} (radians, radians, degrees), or None with too few blocks.
-    """
-    from polinfra.errors import ConfigError
-    from reconstruct.pane.geometry_fit import BlockPaneModel, fit_geometry
+POLISH_ROBUST_C = 4.0
+"""Cauchy scale of the scatter-weighted geometry polish, in standard deviations of a block's orientation."""
 
-    H, W = of.s4_px.shape
+
+def polish_geometry(of: OrientationField, block: int, tilt: float, az: float, fov_deg: float, fit_fov: bool) -> dict | None:
+    """Scatter-weighted, robust least squares of the pane geometry on the block orientation field, from (tilt, az, fov).
+
+    Each block weighs 1 / (v_b + floor): v_b its orientation's measured variance (:func:`block_orientation_variance`),
+    the floor the misfit the best-measured quarter of the blocks shows beyond their noise (content moving through the
+    harmonic fit), re-estimated once; Cauchy loss at :data:`POLISH_ROBUST_C` standard deviations.  Blocks without a
+    measurable modulation (|s4| under its noise, or modulation in <= a quarter of their pixels) are left out.  The
+    residual is sin(2 delta) / 2 (delta = psi - phi_perp): invariant to the 90 deg flip where R < T.
+    Returns {"tilt", "azimuth", "fov_deg"} (radians, radians, degrees), or None with fewer than 8 usable blocks.
+    """
+    from scipy.optimize import least_squares
+
+    s4, q, psi = of.s4, of.q, of.psi
     if block < POLISH_MIN_BLOCK:  # a variance from a handful of pixels is too noisy to weigh by: re-block
         block = POLISH_MIN_BLOCK
-        if H // block < 2 or W // block < 2:
+        H, W = of.s4_px.shape
+        hb, wb = H // block, W // block
+        if hb < 2 or wb < 2:
             return None
-        s4 = block_sum(of.s4_px, block)
-        of = OrientationField(s4=s4, q=block_sum(of.q_px, block), psi=np.mod(0.25 * np.angle(s4), 0.5 * math.pi), s4_px=of.s4_px, q_px=of.q_px)
-    x0 = np.array([tilt, az, math.radians(fov_deg), 1.5])
-    try:
-        g = fit_geometry(of, W, H, block, x0, fit_fov, fov_starts=(), pane_model=BlockPaneModel)
-    except ConfigError:
+        s4, q = block_sum(of.s4_px, block), block_sum(of.q_px, block)
+        psi = np.angle(s4) / 4.0
+    h, w = s4.shape
+    v, n_eff = block_orientation_variance(s4, of.s4_px, block)
+    mask = (np.abs(s4) > np.sqrt(0.5 * np.maximum(q, 1e-300))) & (n_eff >= 0.25 * block * block) & (v > 0)
+    if mask.sum() < 8:
         return None
-    return {"tilt": float(g.x[0]), "azimuth": float(g.x[1]) % (2 * math.pi), "fov_deg": math.degrees(float(g.x[2])) if fit_fov else float(fov_deg)}
+    v = v[mask]
+    psi = psi[mask]
+    top = v <= np.quantile(v, 0.25)
+
+    def pp(x):
+        return _pane_phi_perp(w, h, x[0], x[1], x[2] if fit_fov else fov_deg)[mask]
+
+    x = np.array([tilt, az] + ([fov_deg] if fit_fov else []), np.float64)
+    lb = [0.0, az - math.pi] + ([FOV_BOUNDS_DEG[0]] if fit_fov else [])
+    ub = [math.radians(89.9), az + math.pi] + ([FOV_BOUNDS_DEG[1]] if fit_fov else [])
+    x = np.clip(x, lb, ub)
+    sys2 = math.radians(1.0) ** 2
+    for _ in range(2):
+        sd = np.sqrt(v + sys2)
+        r = least_squares(lambda z: 0.5 * np.sin(2.0 * (psi - pp(z))) / sd, x, bounds=(lb, ub), loss="cauchy", f_scale=POLISH_ROBUST_C,
+                          x_scale=[0.1, 0.1] + ([10.0] if fit_fov else []))
+        x = r.x
+        d = 0.5 * np.abs(np.sin(2.0 * (psi - pp(x))))
+        sys2 = max(math.radians(0.1) ** 2, float(np.median(d[top] ** 2)) / CHI2_1_MEDIAN - float(np.median(v[top])))
+    return {"tilt": float(x[0]), "azimuth": float(x[1]) % (2 * math.pi), "fov_deg": float(x[2]) if fit_fov else float(fov_deg)}
 
 
 def valley_candidates(s4: np.ndarray, width_blocks: int, height_blocks: int, seeds: list[tuple[float, float, float]], fov_deg: float | None,
