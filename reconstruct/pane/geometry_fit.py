@@ -119,47 +119,6 @@ class GeometryFit:
     seconds: float
 
 
-class BlockPaneModel:
-    """The orientation maps (theta, phi_perp) of a pane hypothesis x = (tilt, azimuth, fov, n) on the self-calibration's
-    block-grid camera (:func:`reconstruct.pane.camera.camera_for` of width // block x height // block pixels, whose
-    pixel centres are the block centres), by :func:`polphysics.geometry.incidence_geometry`; the Jacobian by central
-    differences.  A :class:`reconstruct.pane.levenberg.PaneModelFactory` for :func:`fit_geometry` on the geometry
-    only (``model`` is ignored: the orientation maps do not depend on it), where the differentiable maps tier
-    (generator) may not be imported.
-    """
-
-    STEP = 1e-6
-    """Central-difference step (radians)."""
-
-    def __init__(self, width: int, height: int, model: str = "single", *, sub: int = 1, block: int = 0):
-        b = max(1, int(block))
-        self.w, self.h = int(width) // b, int(height) // b
-
-    def maps(self, x) -> dict[str, np.ndarray]:
-        """Theta and phi_perp (h, w) for hypothesis x."""
-        from polphysics.geometry import Plane, incidence_geometry
-        from reconstruct.pane.camera import camera_for, normal_from_angles
-
-        cam = camera_for(self.w, self.h, math.degrees(float(x[2])))
-        g = incidence_geometry(cam, Plane(cam.position + cam.forward, normal_from_angles(float(x[0]), float(x[1]), cam)))
-        return {"theta": g["theta"], "phi_perp": g["phi_perp"]}
-
-    def maps_and_jacobian(self, x, wrt: tuple[int, ...] = (0, 1, 2)) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
-        """:meth:`maps` and their derivatives along ``wrt`` (phi_perp's differences taken modulo 180 deg)."""
-        x = np.asarray(x, np.float64)
-        m = self.maps(x)
-        J = {"theta": np.empty((len(wrt), self.h, self.w)), "phi_perp": np.empty((len(wrt), self.h, self.w))}
-        for k, i in enumerate(wrt):
-            xp, xm = x.copy(), x.copy()
-            xp[i] += self.STEP
-            xm[i] -= self.STEP
-            a, b = self.maps(xp), self.maps(xm)
-            J["theta"][k] = (a["theta"] - b["theta"]) / (2 * self.STEP)
-            J["phi_perp"][k] = np.mod(a["phi_perp"] - b["phi_perp"] + math.pi / 2, math.pi) - math.pi / 2
-            J["phi_perp"][k] /= 2 * self.STEP
-        return m, J
-
-
 INCIDENCE_QUANTILE = 0.995
 """The feasibility check of the fitted fov reads this quantile of the modulating blocks' incidence (the top 0.5 %,
 which noise can flag at the image's edge, do not decide)."""

@@ -745,25 +745,6 @@ def test_content_parts_follow_the_span_in_half_turns():
     assert content_parts_for(0.3 + step * np.arange(300), 300, parts=3) == 3
 
 
-def test_block_pane_model_matches_the_differentiable_maps_tier():
-    """The self-calibration's numpy pane model (block-grid camera, central-difference Jacobian) against the
-    differentiable maps tier (Dr.Jit forward AD) at the same block centres: theta and phi_perp (mod 180 deg) and their
-    derivatives along tilt, azimuth and fov agree, for a view the block size divides and one with a ragged edge.
-    """
-    from generator.pane_fit import PaneModelAD
-    from reconstruct.pane.geometry_fit import BlockPaneModel
-
-    for W, H, block, (tilt, az, fov) in ((96, 64, 4, (50.0, 30.0, 55.0)), (160, 100, 5, (70.0, 250.0, 20.0))):
-        x = np.r_[np.radians([tilt, az, fov]), 1.5]
-        m, J = BlockPaneModel(W, H, block=block).maps_and_jacobian(x, (0, 1, 2))
-        ma, Ja = PaneModelAD(W, H, "single", block=block).maps_and_jacobian(x, (0, 1, 2))
-        assert m["theta"].shape == ma["theta"].shape == (H // block, W // block)
-        assert np.max(np.abs(m["theta"] - ma["theta"])) < 1e-5
-        assert np.max(np.abs(np.mod(m["phi_perp"] - ma["phi_perp"] + np.pi / 2, np.pi) - np.pi / 2)) < 1e-5
-        for k in ("theta", "phi_perp"):
-            assert np.max(np.abs(J[k] - Ja[k])) < 1e-3 * max(1.0, float(np.max(np.abs(Ja[k])))), k
-
-
 def test_orientation_field_and_geometry_fit_are_frozen_records_that_carry_what_the_callers_read():
     """orientation_field and fit_geometry return frozen records (no caller can change a fit in place); the geometry
     fit of a known pane's stream lands on it and carries the uncertainty the report prints.
