@@ -253,13 +253,13 @@ def valley(dataset: Path, weightings: list[str]) -> None:
         for wname in weightings:
             geo = fit_geometry(of, W, H, block, x0, fit_fov=True, weighting=wname, pane_model=PaneModelAD)
             giv = fit_geometry(of, W, H, block, np.r_[x0[:2], fov_t, cfg.prior_n], fit_fov=False, weighting=wname, pane_model=PaneModelAD)
-            mask = geo["mask"]
+            mask = geo.mask
             if wname == "scatter":
-                v = block_orientation_variance(of, block)[0][mask]
+                v = block_orientation_variance(of.s4, of.s4_px, block)[0][mask]
             else:
-                v = (np.maximum(of["q"], 1e-300) / (32.0 * np.maximum(np.abs(of["s4"]), 1e-300) ** 2))[mask]
-            resid = lambda x: _wrap90(of["psi"][mask] - pmb.maps(x)["phi_perp"][mask])  # noqa: E731
-            d = resid(geo["x"])
+                v = (np.maximum(of.q, 1e-300) / (32.0 * np.maximum(np.abs(of.s4), 1e-300) ** 2))[mask]
+            resid = lambda x: _wrap90(of.psi[mask] - pmb.maps(x)["phi_perp"][mask])  # noqa: E731
+            d = resid(geo.x)
             top = v <= np.quantile(v, 0.25)
             sys2 = max(math.radians(0.1) ** 2, float(np.median(d[top] ** 2)) / 0.455 - float(np.median(v[top])))
             w = 1.0 / (v + sys2)
@@ -267,12 +267,12 @@ def valley(dataset: Path, weightings: list[str]) -> None:
             cost = lambda x: float(np.sum(w * (1.0 - np.cos(4.0 * resid(x)))))  # noqa: E731
             prof = []
             for rel in (0.75, 0.9, 1.0, 1.1, 1.25):
-                gp = fit_geometry(of, W, H, block, np.r_[geo["x"][:2], fov_t * rel, cfg.prior_n], fit_fov=False, rounds=1, weighting=wname, pane_model=PaneModelAD)
-                prof.append([round(math.degrees(fov_t * rel), 2), round(cost(gp["x"]), 3), round(th_err(gp["x"]), 2)])
-            row[wname] = {"fitted": {"theta_err": round(th_err(geo["x"]), 3), "theta_sigma": round(geo["sigma_theta_deg_median"], 3), "fov": round(math.degrees(geo["x"][2]), 2),
-                                     "starts_end_fov": [round(t["end"][2], 2) for t in geo["starts"]]},
-                          "given": {"theta_err": round(th_err(giv["x"]), 3), "theta_sigma": round(giv["sigma_theta_deg_median"], 3)},
-                          "cost_fit_truth": [round(cost(geo["x"]), 3), round(cost(xt), 3)], "chi2_per_block_at_truth": round(float(np.mean(resid(xt) ** 2 / (v + sys2))), 3),
+                gp = fit_geometry(of, W, H, block, np.r_[geo.x[:2], fov_t * rel, cfg.prior_n], fit_fov=False, rounds=1, weighting=wname, pane_model=PaneModelAD)
+                prof.append([round(math.degrees(fov_t * rel), 2), round(cost(gp.x), 3), round(th_err(gp.x), 2)])
+            row[wname] = {"fitted": {"theta_err": round(th_err(geo.x), 3), "theta_sigma": round(geo.sigma_theta_deg_median, 3), "fov": round(math.degrees(geo.x[2]), 2),
+                                     "starts_end_fov": [round(t["end"][2], 2) for t in geo.starts]},
+                          "given": {"theta_err": round(th_err(giv.x), 3), "theta_sigma": round(giv.sigma_theta_deg_median, 3)},
+                          "cost_fit_truth": [round(cost(geo.x), 3), round(cost(xt), 3)], "chi2_per_block_at_truth": round(float(np.mean(resid(xt) ** 2 / (v + sys2))), 3),
                           "profile_fov_cost_theta_err": prof}
         print(json.dumps(row), flush=True)
 

@@ -120,13 +120,13 @@ def calibrate_frames(I: np.ndarray, phi: np.ndarray, cfg: CalibratePaneConfig = 
     fit_fov = cfg.fov_deg <= 0
     geo = fit_geometry(of, W, H, block, x0, fit_fov=fit_fov, pane_model=pane_model)
     fov_kept = None
-    if fit_fov and _degenerate_view(geo["x"], True) and not _degenerate_view(x0, True):
+    if fit_fov and _degenerate_view(geo.x, True) and not _degenerate_view(x0, True):
         # every start slid down the fov-tilt valley to an orthographic (or fish-eye) view: the field's curvature is
         # below the noise.  Keep the self-calibration's field of view (its vanishing-point start is not degenerate)
         # and fit the orientation at it; the fov is reported NOT identified.
-        fov_kept = {"by": "self_calibration", "ended_at": [math.degrees(v) for v in geo["x"][:3]], "fov_deg": math.degrees(x0[2]),
-                    "why": f"NOT identified: the orientation fit with the fov free ran into its bounds (tilt {math.degrees(geo['x'][0]):.1f} deg, fov "
-                           f"{math.degrees(geo['x'][2]):.1f} deg: a degenerate view; the field's curvature is below the noise), so the self-calibration's "
+        fov_kept = {"by": "self_calibration", "ended_at": [math.degrees(v) for v in geo.x[:3]], "fov_deg": math.degrees(x0[2]),
+                    "why": f"NOT identified: the orientation fit with the fov free ran into its bounds (tilt {math.degrees(geo.x[0]):.1f} deg, fov "
+                           f"{math.degrees(geo.x[2]):.1f} deg: a degenerate view; the field's curvature is below the noise), so the self-calibration's "
                            f"fov {math.degrees(x0[2]):.2f} deg was kept and the orientation fitted at it; theta(p) is as uncertain as that fov: give --fov-deg if the lens is known"}
         geo = fit_geometry(of, W, H, block, x0, fit_fov=False, pane_model=pane_model)
     timings["geometry_s"] = time.perf_counter() - t0
@@ -141,20 +141,20 @@ def calibrate_frames(I: np.ndarray, phi: np.ndarray, cfg: CalibratePaneConfig = 
         if progress:
             progress("90 deg twin")
         t0 = time.perf_counter()
-        tw = find_twin(of, W, H, block, geo["x"], fit_fov, pane_model=pane_model)
-        v_best, st_b, gl_b = _cone_violation(I, phi, geo["x"], W, H, gblock, gain, models, fixed_n, cfg, pane_model=pane_model)
-        twin = {"orientation_twin_ratio": init.twin_ratio, "best": {**_angles_deg(geo["x"]), "cone_violation_chi2": v_best}}
+        tw = find_twin(of, W, H, block, geo.x, fit_fov, pane_model=pane_model)
+        v_best, st_b, gl_b = _cone_violation(I, phi, geo.x, W, H, gblock, gain, models, fixed_n, cfg, pane_model=pane_model)
+        twin = {"orientation_twin_ratio": init.twin_ratio, "best": {**_angles_deg(geo.x), "cone_violation_chi2": v_best}}
         if tw is not None:
-            v_tw, st_t, gl_t = _cone_violation(I, phi, tw["x"], W, H, gblock, gain, models, fixed_n, cfg, pane_model=pane_model)
-            twin["twin"] = {**_angles_deg(tw["x"]), "cone_violation_chi2": v_tw}
+            v_tw, st_t, gl_t = _cone_violation(I, phi, tw.x, W, H, gblock, gain, models, fixed_n, cfg, pane_model=pane_model)
+            twin["twin"] = {**_angles_deg(tw.x), "cone_violation_chi2": v_tw}
         else:
             v_tw = float("inf")
         timings["twin_s"] = time.perf_counter() - t0
         report["twin"] = twin
         # a candidate pushed against the bounds is a degenerate view (_degenerate_view): it cannot win
-        if _degenerate_view(geo["x"], fit_fov):
+        if _degenerate_view(geo.x, fit_fov):
             v_best = float("inf")
-        if tw is not None and _degenerate_view(tw["x"], fit_fov):
+        if tw is not None and _degenerate_view(tw.x, fit_fov):
             v_tw = float("inf")
         twin["best"]["eligible"] = bool(np.isfinite(v_best))
         if "twin" in twin:
@@ -171,20 +171,20 @@ def calibrate_frames(I: np.ndarray, phi: np.ndarray, cfg: CalibratePaneConfig = 
             twin["chosen"] = "best"
         twin["why"] = (f"modulo 90 deg the orientation field could not tell the two panes apart ({100 * init.twin_ratio:.1f} %); the modulation depths violate "
                        f"the {twin['chosen']}'s cone [-DoP_T, DoP_R] by chi^2 {min(v_best, v_tw):.1f}, the other's by {max(v_best, v_tw):.1f}")
-    if amb_reason is None and fit_fov and init.twin_ratio is not None and init.twin_ratio >= cfg.twin_check_ratio and not _degenerate_view(geo["x"], True):
+    if amb_reason is None and fit_fov and init.twin_ratio is not None and init.twin_ratio >= cfg.twin_check_ratio and not _degenerate_view(geo.x, True):
         # the orientation field chose narrowly: ask the cone along the twin family's fov valley too
         if progress:
             progress("90 deg twin")
         t0 = time.perf_counter()
-        v_best, st_b, gl_b = _cone_violation(I, phi, geo["x"], W, H, gblock, gain, models, fixed_n, cfg, pane_model=pane_model)
-        prof_t = twin_fov_profile(I, phi, of, W, H, block, gblock, gain, geo["x"], geo["score"], models, fixed_n, cfg, pane_model=pane_model)
-        twin = {"orientation_twin_ratio": init.twin_ratio, "best": {**_angles_deg(geo["x"]), "cone_violation_chi2": v_best}, "profile": prof_t["points"]}
+        v_best, st_b, gl_b = _cone_violation(I, phi, geo.x, W, H, gblock, gain, models, fixed_n, cfg, pane_model=pane_model)
+        prof_t = twin_fov_profile(I, phi, of, W, H, block, gblock, gain, geo.x, geo.score, models, fixed_n, cfg, pane_model=pane_model)
+        twin = {"orientation_twin_ratio": init.twin_ratio, "best": {**_angles_deg(geo.x), "cone_violation_chi2": v_best}, "profile": prof_t["points"]}
         pre = (st_b, gl_b)
         twin["chosen"] = "best"
         cand = prof_t["best"]
         if cand is not None and cand[0]["cone_violation_chi2"] <= v_best - cfg.twin_delta_chi2 and cand[0]["cone_violation_chi2"] * cfg.twin_close_factor <= v_best:
             row, g_t = cand
-            geo = fit_geometry(of, W, H, block, g_t["x"], fit_fov=False, pane_model=pane_model)  # the twin at the profile's fov (the orientation alone would slide it away)
+            geo = fit_geometry(of, W, H, block, g_t.x, fit_fov=False, pane_model=pane_model)  # the twin at the profile's fov (the orientation alone would slide it away)
             fov_kept = {"by": "twin_profile", "fov_deg": row["fov_deg"],
                         "why": f"NOT identified: the 90 deg twin was taken at fov {row['fov_deg']:g} deg, the point of its fov valley the modulation depths fit best "
                                f"(a grid of {len(TWIN_FOVS_DEG)} fields of view; the orientation alone slides it to a wide view): give --fov-deg if the lens is known"}
@@ -200,31 +200,31 @@ def calibrate_frames(I: np.ndarray, phi: np.ndarray, cfg: CalibratePaneConfig = 
                            + f" against {v_best:.1f} here: kept (overturned only below both {v_best - cfg.twin_delta_chi2:.1f} and 1/{cfg.twin_close_factor:g} of it)")
         timings["twin_s"] = time.perf_counter() - t0
         report["twin"] = twin
-    if fit_fov and fov_kept is None and cfg.max_incidence_deg < 90.0 and not _degenerate_view(geo["x"], True):
+    if fit_fov and fov_kept is None and cfg.max_incidence_deg < 90.0 and not _degenerate_view(geo.x, True):
         # after the twin decisions, which compare the panes where the orientation put them (a narrowed pane's cone
         # would be judged at a fov the data did not choose either); a degenerate end is refused below
         t0 = time.perf_counter()
-        mi_fit = max_incidence_deg(geo["x"], W, H, block, geo["coherent"], INCIDENCE_QUANTILE)
+        mi_fit = max_incidence_deg(geo.x, W, H, block, geo.coherent, INCIDENCE_QUANTILE)
         if mi_fit > cfg.max_incidence_deg:
             # the fov-tilt valley ran to a view in which modulating blocks would see the pane edge-on or not at all:
             # impossible.  Bisect the fov for the widest view whose orientation fit (fov fixed) keeps them in front
-            lo, hi, best = math.radians(FOV_INNER_DEG[0]), float(geo["x"][2]), None
+            lo, hi, best = math.radians(FOV_INNER_DEG[0]), float(geo.x[2]), None
             for _ in range(8):
                 mid = 0.5 * (lo + hi)
-                g = fit_geometry(of, W, H, block, np.r_[geo["x"][:2], mid, x0[3]], fit_fov=False, pane_model=pane_model)
-                if max_incidence_deg(g["x"], W, H, block, g["coherent"], INCIDENCE_QUANTILE) <= cfg.max_incidence_deg:
+                g = fit_geometry(of, W, H, block, np.r_[geo.x[:2], mid, x0[3]], fit_fov=False, pane_model=pane_model)
+                if max_incidence_deg(g.x, W, H, block, g.coherent, INCIDENCE_QUANTILE) <= cfg.max_incidence_deg:
                     lo, best = mid, g
                 else:
                     hi = mid
             if best is not None:
-                fov_kept = {"by": "feasibility", "ended_at": [math.degrees(v) for v in geo["x"][:3]], "fov_deg": math.degrees(best["x"][2]), "max_incidence_deg_there": mi_fit,
-                            "why": f"NOT identified: the orientation fit with the fov free ended at fov {math.degrees(geo['x'][2]):.1f} deg, tilt {math.degrees(geo['x'][0]):.1f} deg, "
+                fov_kept = {"by": "feasibility", "ended_at": [math.degrees(v) for v in geo.x[:3]], "fov_deg": math.degrees(best.x[2]), "max_incidence_deg_there": mi_fit,
+                            "why": f"NOT identified: the orientation fit with the fov free ended at fov {math.degrees(geo.x[2]):.1f} deg, tilt {math.degrees(geo.x[0]):.1f} deg, "
                                    f"where modulating blocks would meet the pane at {mi_fit:.1f} deg (99.5th percentile; edge-on or behind: they could not modulate); the widest view that keeps "
-                                   f"the modulating blocks below {cfg.max_incidence_deg:g} deg, fov {math.degrees(best['x'][2]):.2f} deg, was taken (the fov-tilt valley is shallow: "
+                                   f"the modulating blocks below {cfg.max_incidence_deg:g} deg, fov {math.degrees(best.x[2]):.2f} deg, was taken (the fov-tilt valley is shallow: "
                                    f"the truth may be narrower still): give --fov-deg if the lens is known"}
                 geo, pre = best, None  # the cone statistics are recomputed at the narrowed pane
             timings["feasibility_s"] = time.perf_counter() - t0
-    x = geo["x"]
+    x = geo.x
     if _degenerate_view(x, fit_fov):
         report.update({"ok": False, "reason": f"the orientation fit ran into its bounds (tilt {math.degrees(x[0]):.1f} deg, fov {math.degrees(x[2]):.1f} deg): "
                                               "a degenerate view in which theta is not identified (give --fov-deg if it is known)"})
@@ -248,7 +248,7 @@ def calibrate_frames(I: np.ndarray, phi: np.ndarray, cfg: CalibratePaneConfig = 
         timings["dop_fov_s"] = time.perf_counter() - t1
         if prof["used"]:
             geo = prof.pop("geo")
-            x = geo["x"]
+            x = geo.x
             gl = fit_glass_to_edges(st, W, H, gblock, x, models, fixed_n, cfg, pane_model=pane_model)
             sel = _select_glass(gl, cfg, fixed_n, forced_model)
     if sel["n"]["identified"]:
@@ -257,7 +257,7 @@ def calibrate_frames(I: np.ndarray, phi: np.ndarray, cfg: CalibratePaneConfig = 
         key = sel["model_key"]
         n_hat = gl["models"][key]["n"]
         shifts = []
-        for xp in _one_sigma_geometries(x, geo):
+        for xp in _one_sigma_geometries(x, geo.cov, geo.wrt):
             g2 = fit_glass_to_edges(st, W, H, gblock, xp, (key,), None, cfg, n_grid=np.round(np.arange(n_hat - 0.1, n_hat + 0.1001, 0.02), 4), pane_model=pane_model)
             shifts.append(g2["models"][key]["n"] - n_hat)
         s_geo = float(np.sqrt(np.sum(np.square(shifts))))
@@ -290,7 +290,7 @@ def calibrate_frames(I: np.ndarray, phi: np.ndarray, cfg: CalibratePaneConfig = 
             # the content test read n at the fitted geometry; a theta off by its uncertainty moves the index whose
             # reflection DoP it matches (a view 1.3 deg off in theta claimed 1.54 for a true 1.585).
             # Its own 1-sigma: indices max_n_sigma away are rejected by content_z standard errors
-            s_geo = content_n_sigma_from_geometry(pm_full, x, geo, sel["model_key"], content["n"]["value"])
+            s_geo = content_n_sigma_from_geometry(pm_full, x, geo.cov, geo.wrt, sel["model_key"], content["n"]["value"])
             content["n"]["sigma_from_geometry"] = s_geo
             if s_geo <= cfg.max_n_sigma:
                 sel["n"] = {"identified": True, "value": content["n"]["value"], "sigma": math.hypot(cfg.max_n_sigma / max(cfg.content_z, 1.0), s_geo), "sigma_from_geometry": s_geo,
@@ -316,21 +316,21 @@ def calibrate_frames(I: np.ndarray, phi: np.ndarray, cfg: CalibratePaneConfig = 
                                     f"({CONTENT_N_GRID[0]:.2f}-{CONTENT_N_GRID[-1]:.2f}), no minimum: the prior stays")
     n_final = float(sel["n"]["value"])
     model_final = sel["model"]["value"]
-    x = np.r_[x[:3], n_final]  # a new vector: geo["x"] stays the geometry fit's
+    x = np.r_[x[:3], n_final]  # a new vector: geo.x stays the geometry fit's
     if progress:
         progress("maps")
     t0 = time.perf_counter()
     maps = pane_model(W, H, model_final, sub=cfg.sub).maps(x)
     timings["maps_s"] = time.perf_counter() - t0
     timings["total_s"] = time.perf_counter() - t_all
-    sig = geo["sigma"]
+    sig = geo.sigma
     tilt, az, fov = (math.degrees(v) for v in x[:3])
     if not fit_fov:
         fov_verdict = {"identified": None, "why": "given (--fov-deg)"}
     else:
         # the field of view is read from phi_perp's weak curvature: fov and tilt slide along a shallow valley of
         # the orientation fit, and theta(p) with them; claim it only where the propagated theta 1-sigma is small
-        s_th = float(geo["sigma_theta_deg_median"])
+        s_th = float(geo.sigma_theta_deg_median)
         ok_fov = s_th <= cfg.max_theta_sigma_deg and fov_kept is None
         fov_verdict = {"identified": bool(ok_fov), "value": fov, "sigma_deg": math.degrees(sig[2]), "theta_sigma_deg_median": s_th,
                        "why": (fov_kept["why"] if fov_kept else prof["why"] if prof and prof["used"] else
@@ -344,14 +344,14 @@ def calibrate_frames(I: np.ndarray, phi: np.ndarray, cfg: CalibratePaneConfig = 
         "ok": True,
         "params": params,
         "uncertainty_1sigma": {"tilt_deg": math.degrees(sig[0]), "azimuth_deg": math.degrees(sig[1]), "fov_deg": math.degrees(sig[2]) if cfg.fov_deg <= 0 else 0.0,
-                               "n": sel["n"].get("sigma"), "correlation_geometry": geo["corr"],
-                               "theta_deg_median": geo["sigma_theta_deg_median"], "theta_deg_max": geo["sigma_theta_deg_max"],
-                               "phi_perp_deg_median": geo["sigma_phi_perp_deg_median"], "phi_perp_deg_max": geo["sigma_phi_perp_deg_max"],
+                               "n": sel["n"].get("sigma"), "correlation_geometry": geo.corr,
+                               "theta_deg_median": geo.sigma_theta_deg_median, "theta_deg_max": geo.sigma_theta_deg_max,
+                               "phi_perp_deg_median": geo.sigma_phi_perp_deg_median, "phi_perp_deg_max": geo.sigma_phi_perp_deg_max,
                                "method": "Gauss-Newton covariance (J^T J)^-1 x residual variance (geometry: relative weights 1 / (variance of psi_b measured from its pixels' scatter + misfit floor), x (1 + 2 rho_x)(1 + 2 rho_y) for the lag-1 correlation of neighbouring blocks' residuals; n: edge residuals in noise units, geometry errors not propagated), Jacobians by Dr.Jit forward AD"},
-        "geometry": {"blocks": [int(v) for v in of["psi"].shape[::-1]], "block_px": block, "fitted_blocks": int(geo["mask"].sum()), "coherent_blocks": int(geo["coherent"].sum()),
-                     "orientation_residual_deg_median": geo["residual_deg_median"], "converged": geo["converged"], "iterations": len(geo["history"]) - 1,
-                     "init_tilt_deg": init.tilt_deg, "init_azimuth_deg": init.azimuth_deg, "init_fov_deg": init.fov_deg, "starts": geo["starts"],
-                     "residual_lag1_correlation_xy": geo["residual_lag1_correlation"], "covariance_inflation": geo["covariance_inflation"],
+        "geometry": {"blocks": [int(v) for v in of.psi.shape[::-1]], "block_px": block, "fitted_blocks": int(geo.mask.sum()), "coherent_blocks": int(geo.coherent.sum()),
+                     "orientation_residual_deg_median": geo.residual_deg_median, "converged": geo.converged, "iterations": len(geo.history) - 1,
+                     "init_tilt_deg": init.tilt_deg, "init_azimuth_deg": init.azimuth_deg, "init_fov_deg": init.fov_deg, "starts": geo.starts,
+                     "residual_lag1_correlation_xy": geo.residual_lag1_correlation, "covariance_inflation": geo.covariance_inflation,
                      "dop_fov_profile": prof, "fov_kept": fov_kept},
         "glass": {"chunks": st["chunks"], "block_px": gblock, "valid_blocks": int(st["valid"].sum()),
                   "models": {k: {kk: vv for kk, vv in v.items() if kk not in ("dop_R", "dop_T", "grid_n", "grid_loss", "history")} for k, v in gl["models"].items()}},
@@ -367,7 +367,7 @@ def calibrate_frames(I: np.ndarray, phi: np.ndarray, cfg: CalibratePaneConfig = 
         "timings_s": timings,
         "variant": pm_full.variant,
     })
-    figs = {"history": geo["history"], "psi": of["psi"], "mask": geo["mask"], "residual_deg": geo["residual_deg_blocks"], "st": st, "gl": gl,
+    figs = {"history": geo.history, "psi": of.psi, "mask": geo.mask, "residual_deg": geo.residual_deg_blocks, "st": st, "gl": gl,
             "phi_fit_blocks": pane_model(W, H, "single", block=block).maps(x)["phi_perp"], "theta_g": pane_model(W, H, "single", block=gblock).maps(x)["theta"],
             "model_key": sel["model_key"]}
     return {"ok": True, "report": report, "maps": maps, "params": params, "x": x, "figs": figs}

@@ -11,6 +11,7 @@ import torch
 
 from polinfra.errors import ConfigError
 from reconstruct.pane.camera import CHI2_1_MEDIAN, camera_for, normal_from_angles
+from reconstruct.pane.glass import index_grid
 from reconstruct.pane.orientation import block_sum
 from reconstruct.physics.harmonic_fit import half_turn_frames, harmonic_fit
 
@@ -18,8 +19,9 @@ log = logging.getLogger(__name__)
 
 
 # --------------------------------------------------------------------------- the polarization cone
-CONE_N_GRID = (1.4, 1.45, 1.5, 1.55, 1.6, 1.65, 1.7)
-"""Indices tried by the cone test (common glasses); the index that explains the data best is reported."""
+CONE_N_GRID = tuple(float(n) for n in index_grid(1.40, 1.70, 0.05))
+"""Indices tried by the cone test (common glasses; why this range: :data:`reconstruct.pane.glass.INDEX_GRID`); the
+index that explains the data best is reported."""
 
 
 CONE_MODELS = ("single", "thin_slab")

@@ -10,12 +10,14 @@ import numpy as np
 
 from polinfra.errors import ConfigError
 from reconstruct.pane.calibrate_config import CalibratePaneConfig
+from reconstruct.pane.glass import index_grid
 
 log = logging.getLogger(__name__)
 
 
-CONTENT_N_GRID = np.round(np.arange(1.40, 2.0001, 0.02), 4)
-"""Index grid of the content test (common glasses; a best index at either end is not used)."""
+CONTENT_N_GRID = index_grid(1.40, 2.00, 0.02)
+"""Index grid of the content test (common glasses; a best index at either end is not used; why this range:
+:data:`reconstruct.pane.glass.INDEX_GRID`)."""
 
 
 CONTENT_PART_HALF_TURNS = 3
@@ -24,21 +26,21 @@ parts much longer than that blur the moving layers (an eval_fresh_val build at 0
 11 of 16 with 2 parts of 0.1 s, 12 of 16 with 4 of 0.05 s; docs/calibrate_pane.md, round 5)."""
 
 
-def _one_sigma_geometries(x: np.ndarray, geo: dict) -> list[np.ndarray]:
-    """The geometry ``x`` moved by one standard deviation along each principal direction of the fit's covariance
-    (``geo["cov"]`` over the parameters ``geo["wrt"]``): where an index read at ``x`` is re-read to propagate the
+def _one_sigma_geometries(x: np.ndarray, cov: np.ndarray, wrt: tuple[int, ...]) -> list[np.ndarray]:
+    """The geometry ``x`` moved by one standard deviation along each principal direction of a fit's covariance
+    (``cov`` over the parameters ``wrt``, as :class:`reconstruct.pane.geometry_fit.GeometryFit` carries them): where an index read at ``x`` is re-read to propagate the
     geometry's uncertainty into it.
     """
-    ev, evec = np.linalg.eigh(np.asarray(geo["cov"], np.float64))
+    ev, evec = np.linalg.eigh(np.asarray(cov, np.float64))
     out = []
     for lam, v in zip(ev, evec.T):
         xp = np.asarray(x, np.float64).copy()
-        xp[list(geo["wrt"])] += math.sqrt(max(float(lam), 0.0)) * v
+        xp[list(wrt)] += math.sqrt(max(float(lam), 0.0)) * v
         out.append(xp)
     return out
 
 
-def content_n_sigma_from_geometry(pm, x: np.ndarray, geo: dict, model: str, n_hat: float, step: int = 4) -> float:
+def content_n_sigma_from_geometry(pm, x: np.ndarray, cov: np.ndarray, wrt: tuple[int, ...], model: str, n_hat: float, step: int = 4) -> float:
     """1-sigma of a content-test index from the geometry's uncertainty.  The content test finds the zeta under
     which the layers do not leak into each other, i.e. the reflection's DoP (R_perp - R_par) / (R_perp + R_par)
     per pixel (the leak is alpha = A - A' B / B', docs/calibrate_pane.md); so for each principal direction
@@ -57,7 +59,7 @@ def content_n_sigma_from_geometry(pm, x: np.ndarray, geo: dict, model: str, n_ha
     d0 = dop(pm.maps(x)["theta"][::step, ::step], n_hat)
     grid = n_hat + np.arange(-0.2, 0.2001, 0.0025)
     shifts = []
-    for xp in _one_sigma_geometries(x, geo):
+    for xp in _one_sigma_geometries(x, cov, wrt):
         th = pm.maps(xp)["theta"][::step, ::step]
         cost = [float(np.mean((dop(th, g) - d0) ** 2)) for g in grid]
         shifts.append(float(grid[int(np.argmin(cost))] - n_hat))

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 
@@ -11,20 +12,23 @@ from polinfra.errors import ConfigError
 from reconstruct.pane.calibrate_config import CalibratePaneConfig
 from reconstruct.pane.camera import FOV_INNER_DEG
 from reconstruct.pane.geometry_fit import (
+    GeometryFit,
     _degenerate_view,
     _expected_max,
     _sigma_maps,
     _turned_against,
     fit_geometry,
 )
+from reconstruct.pane.glass import index_grid
 from reconstruct.pane.levenberg import PaneModelFactory
-from reconstruct.pane.orientation import block_sum
+from reconstruct.pane.orientation import OrientationField, block_sum
 
 log = logging.getLogger(__name__)
 
 
-N_GRID = np.round(np.arange(1.30, 2.2001, 0.02), 4)
-"""Index grid of the glass search (before the Gauss-Newton refinement)."""
+N_GRID = index_grid(1.30, 2.20, 0.02)
+"""Index grid of the glass search (before the Gauss-Newton refinement, bounded by its ends; why this range:
+:data:`reconstruct.pane.glass.INDEX_GRID`)."""
 
 
 # --------------------------------------------------------------------------- glass
@@ -146,7 +150,7 @@ def fit_glass_to_edges(st: dict, width: int, height: int, block: int, x_geo: np.
     return out
 
 
-def dop_fov_profile(of: dict, st: dict, width: int, height: int, block: int, gblock: int, geo: dict, model: str, fixed_n: float | None,
+def dop_fov_profile(of: OrientationField, st: dict, width: int, height: int, block: int, gblock: int, geo: GeometryFit, model: str, fixed_n: float | None,
                     cfg: CalibratePaneConfig, rel: tuple[float, float] = (0.85, 1.15), points: int = 9, *, pane_model: PaneModelFactory) -> dict:
     """Profile the fov-tilt valley of the orientation fit with the modulation depth's theta dependence.
 
@@ -160,23 +164,23 @@ def dop_fov_profile(of: dict, st: dict, width: int, height: int, block: int, gbl
     Returns the profile and, when used, the geometry at the minimum with a 3 x 3 covariance (the fov's
     variance from the profile's curvature, carried along the valley).
     """
-    f0 = float(geo["x"][2])
+    f0 = float(geo.x[2])
     fovs = f0 * np.linspace(rel[0], rel[1], points)
     fovs = fovs[(fovs > math.radians(FOV_INNER_DEG[0])) & (fovs < math.radians(FOV_INNER_DEG[1]))]
     rows = []
     for f in fovs:
-        xs = geo["x"].copy()
+        xs = geo.x.copy()
         xs[2] = f
         g = fit_geometry(of, width, height, block, xs, fit_fov=False, fov_starts=(), rounds=1, pane_model=pane_model)
-        gg = fit_glass_to_edges(st, width, height, gblock, g["x"], (model,), fixed_n, cfg, pane_model=pane_model)
-        rows.append((float(f), float(g["chi2"]), float(gg["models"][model]["violation_chi2"]), float(gg["models"][model]["n"]), g))
+        gg = fit_glass_to_edges(st, width, height, gblock, g.x, (model,), fixed_n, cfg, pane_model=pane_model)
+        rows.append((float(f), float(g.chi2), float(gg["models"][model]["violation_chi2"]), float(gg["models"][model]["n"]), g))
     o = np.array([r[1] for r in rows])
-    dof = max(1, int(geo["mask"].sum()) - 2)
-    o_chi2 = (o - o.min()) / max(o.min() / dof, 1e-300) / max(float(geo["covariance_inflation"]), 1.0)
+    dof = max(1, int(geo.mask.sum()) - 2)
+    o_chi2 = (o - o.min()) / max(o.min() / dof, 1e-300) / max(float(geo.covariance_inflation), 1.0)
     v = np.array([r[2] for r in rows])
     tot = o_chi2 + v
     i = int(np.argmin(tot))
-    prof = {"fov_deg": [math.degrees(r[0]) for r in rows], "tilt_deg": [math.degrees(r[4]["x"][0]) for r in rows], "orientation_chi2": o_chi2.tolist(),
+    prof = {"fov_deg": [math.degrees(r[0]) for r in rows], "tilt_deg": [math.degrees(r[4].x[0]) for r in rows], "orientation_chi2": o_chi2.tolist(),
             "violation_chi2": v.tolist(), "n": [r[3] for r in rows], "used": False}
     if not (0 < i < len(rows) - 1 and min(v[0], v[-1]) - v[i] >= cfg.dop_fov_delta_chi2):
         prof["why"] = "the modulation depths do not pin the fov along the orientation's valley (no interior minimum of the cone's violations)"
@@ -189,36 +193,36 @@ def dop_fov_profile(of: dict, st: dict, width: int, height: int, block: int, gbl
     F = np.array([rows[j][0] for j in (i - 1, i, i + 1)])
 
     def total(f):
-        xs_ = rows[i][4]["x"].copy()
+        xs_ = rows[i][4].x.copy()
         xs_[2] = f
         g_ = fit_geometry(of, width, height, block, xs_, fit_fov=False, fov_starts=(), rounds=1, pane_model=pane_model)
-        v_ = fit_glass_to_edges(st, width, height, gblock, g_["x"], (model,), fixed_n, cfg, pane_model=pane_model)["models"][model]["violation_chi2"]
-        return (g_["chi2"] - o.min()) / max(o.min() / dof, 1e-300) / max(float(geo["covariance_inflation"]), 1.0) + v_
+        v_ = fit_glass_to_edges(st, width, height, gblock, g_.x, (model,), fixed_n, cfg, pane_model=pane_model)["models"][model]["violation_chi2"]
+        return (g_.chi2 - o.min()) / max(o.min() / dof, 1e-300) / max(float(geo.covariance_inflation), 1.0) + v_
 
     opt_ = minimize_scalar(total, bounds=(float(F[0]), float(F[2])), method="bounded", options={"xatol": math.radians(0.05), "maxiter": 12})
     f_hat = float(opt_.x)
     a = np.polyfit(F, tot[i - 1:i + 2], 2)[0]
     s_f = max(float(math.sqrt(1.0 / a)) if a > 0 else float(F[2] - F[0]), 0.5 * float(F[1] - F[0]))
-    xs = rows[i][4]["x"].copy()
+    xs = rows[i][4].x.copy()
     xs[2] = f_hat
     g = fit_geometry(of, width, height, block, xs, fit_fov=False, fov_starts=(), rounds=0, pane_model=pane_model)
     # slope of (tilt, azimuth) along the valley: the fov's uncertainty carried into them
-    T = np.array([r[4]["x"][0] for r in rows[i - 1:i + 2]])
-    A = np.array([r[4]["x"][1] for r in rows[i - 1:i + 2]])
+    T = np.array([r[4].x[0] for r in rows[i - 1:i + 2]])
+    A = np.array([r[4].x[1] for r in rows[i - 1:i + 2]])
     dv = np.array([np.polyfit(F, T, 1)[0], np.polyfit(F, A, 1)[0], 1.0])
     cov3 = np.zeros((3, 3))
-    cov3[:2, :2] = g["cov"]
+    cov3[:2, :2] = g.cov
     cov3 += s_f**2 * np.outer(dv, dv)
     sig = np.sqrt(np.maximum(np.diag(cov3), 0.0))
-    g.update({"cov": cov3, "wrt": (0, 1, 2), "sigma": np.concatenate([sig, [0.0]]), "corr": (cov3 / np.outer(sig, sig)).tolist() if np.all(sig > 0) else None})
-    g.update(_sigma_maps(g, pane_model(width, height, "single", block=block), cov3, (0, 1, 2)))
+    g = dataclasses.replace(g, cov=cov3, wrt=(0, 1, 2), sigma=np.concatenate([sig, [0.0]]), corr=(cov3 / np.outer(sig, sig)).tolist() if np.all(sig > 0) else None)
+    g = dataclasses.replace(g, **_sigma_maps(g, pane_model(width, height, "single", block=block), cov3, (0, 1, 2)))
     prof.update({"used": True, "fov_fitted_deg": math.degrees(f_hat), "fov_sigma_deg": math.degrees(s_f),
                  "why": f"the cone's violations and the orientation together are least at fov {math.degrees(f_hat):.2f} +- {math.degrees(s_f):.2f} deg "
                         f"(violation chi^2 {v[i]:.1f} there, {v[0]:.1f} / {v[-1]:.1f} at the ends of the profile)"})
     return {**prof, "geo": g}
 
 
-def twin_fov_profile(I, phi, of: dict, width: int, height: int, block: int, gblock: int, gain: float, x_best: np.ndarray, best_score: float,
+def twin_fov_profile(I, phi, of: OrientationField, width: int, height: int, block: int, gblock: int, gain: float, x_best: np.ndarray, best_score: float,
                      models: tuple[str, ...], fixed_n: float | None, cfg: CalibratePaneConfig, *, pane_model: PaneModelFactory) -> dict:
     """The 90 deg twin family profiled along the field of view, each point judged by the cone.
 
@@ -240,15 +244,15 @@ def twin_fov_profile(I, phi, of: dict, width: int, height: int, block: int, gblo
             xs = np.asarray(x_best, np.float64).copy()
             xs[0], xs[1], xs[2] = tl, az, math.radians(f)
             g = fit_geometry(of, width, height, block, xs, False, fov_starts=(), rounds=1, pane_model=pane_model)
-            if turned(g["x"]) and not _degenerate_view(g["x"], False) and (top is None or g["score"] < top["score"]):
+            if turned(g.x) and not _degenerate_view(g.x, False) and (top is None or g.score < top.score):
                 top = g
-        prev = None if top is None else top["x"]
+        prev = None if top is None else top.x
         if top is None:
             continue
-        row = {"fov_deg": f, "tilt_deg": math.degrees(top["x"][0]), "azimuth_deg": math.degrees(top["x"][1]) % 360.0, "orientation_cost": top["score"],
-               "cost_ratio": top["score"] / max(best_score, 1e-300)}
-        if top["score"] <= (1.0 + cfg.twin_profile_cost_tol) * best_score:
-            row["cone_violation_chi2"] = _cone_violation(I, phi, top["x"], width, height, gblock, gain, models, fixed_n, cfg, pane_model=pane_model)[0]
+        row = {"fov_deg": f, "tilt_deg": math.degrees(top.x[0]), "azimuth_deg": math.degrees(top.x[1]) % 360.0, "orientation_cost": top.score,
+               "cost_ratio": top.score / max(best_score, 1e-300)}
+        if top.score <= (1.0 + cfg.twin_profile_cost_tol) * best_score:
+            row["cone_violation_chi2"] = _cone_violation(I, phi, top.x, width, height, gblock, gain, models, fixed_n, cfg, pane_model=pane_model)[0]
             judged.append((row, top))
         points.append(row)
     if judged:

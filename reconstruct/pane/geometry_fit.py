@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 import time
@@ -11,6 +12,7 @@ import numpy as np
 from polinfra.errors import ConfigError
 from reconstruct.pane.camera import CHI2_1_MEDIAN, FOV_BOUNDS_DEG, FOV_INNER_DEG
 from reconstruct.pane.levenberg import PaneModelFactory
+from reconstruct.pane.orientation import OrientationField
 
 log = logging.getLogger(__name__)
 
@@ -73,13 +75,57 @@ def max_incidence_deg(x: np.ndarray, width: int, height: int, block: int, mask: 
     return float(a.max() if quantile >= 1.0 else np.quantile(a, quantile))
 
 
+@dataclasses.dataclass(frozen=True)
+class GeometryFit:
+    """A fit of the pane's geometry to the orientation field (:func:`fit_geometry`).
+
+    Attributes:
+        x: (4,) tilt, azimuth, fov (radians) and the index it was started with (not fitted here).
+        sigma: (4,) 1-sigma of x (0 where not fitted); cov: covariance of the fitted parameters ``wrt``; corr: its
+            correlation matrix (None where a sigma is 0).
+        wrt: indices of x that were fitted ((0, 1) or (0, 1, 2)).
+        mask: (h, w) blocks in the fit; coherent: blocks modulating above ``coherence_sigmas``.
+        score: the bounded orientation cost sum_b w_b (1 - cos 4 delta_b) (comparable across starts and fits).
+        chi2, dof, converged, history: the Gauss-Newton's; starts: each start's end and cost.
+        residual_deg_blocks: (h, w) |psi_b - phi_perp_b| folded to 45 deg; residual_deg_median: its |s4|-weighted median
+            over the mask.
+        residual_lag1_correlation: (x, y) lag-1 correlation of neighbouring blocks' residuals; covariance_inflation:
+            the factor (1 + 2 rho_x)(1 + 2 rho_y) applied to the covariance.
+        sigma_theta_deg_max / _median, sigma_phi_perp_deg_max / _median: the covariance propagated to the maps over the mask.
+        seconds: wall time of the fit.
+    """
+
+    x: np.ndarray
+    sigma: np.ndarray
+    cov: np.ndarray
+    wrt: tuple[int, ...]
+    mask: np.ndarray
+    coherent: np.ndarray
+    score: float
+    chi2: float
+    dof: int
+    converged: bool
+    history: list
+    starts: list
+    residual_deg_blocks: np.ndarray
+    residual_deg_median: float
+    residual_lag1_correlation: list
+    covariance_inflation: float
+    sigma_theta_deg_max: float
+    sigma_theta_deg_median: float
+    sigma_phi_perp_deg_max: float
+    sigma_phi_perp_deg_median: float
+    corr: list | None
+    seconds: float
+
+
 INCIDENCE_QUANTILE = 0.995
 """The feasibility check of the fitted fov reads this quantile of the modulating blocks' incidence (the top 0.5 %,
 which noise can flag at the image's edge, do not decide)."""
 
 
-def fit_geometry(of: dict, width: int, height: int, block: int, x0: np.ndarray, fit_fov: bool, coherence_sigmas: float = 4.0, weighting: str = "scatter",
-                 fov_starts: tuple[float, ...] = (25.0, 40.0, 55.0, 70.0), rounds: int = 0, *, pane_model: PaneModelFactory) -> dict:
+def fit_geometry(of: OrientationField, width: int, height: int, block: int, x0: np.ndarray, fit_fov: bool, coherence_sigmas: float = 4.0, weighting: str = "scatter",
+                 fov_starts: tuple[float, ...] = (25.0, 40.0, 55.0, 70.0), rounds: int = 0, *, pane_model: PaneModelFactory) -> GeometryFit:
     """Gauss-Newton of (tilt, azimuth[, fov]) on the block orientation field (module docstring, step 3).
 
     ``weighting``: ``scatter`` (default) weighs each block by 1 / (its measured orientation variance
@@ -96,7 +142,7 @@ def fit_geometry(of: dict, width: int, height: int, block: int, x0: np.ndarray, 
     from reconstruct.pane.levenberg import gauss_newton
     from reconstruct.pane.orientation import block_orientation_variance
 
-    s4, q = of["s4"], of["q"]
+    s4, q = of.s4, of.q
     coherent = np.abs(s4) > coherence_sigmas * np.sqrt(0.5 * np.maximum(q, 1e-300))
     # every block with some signal takes part; noise blocks have random phases and large noise variance (small weights)
     mask = np.abs(s4) > 1.0 * np.sqrt(0.5 * np.maximum(q, 1e-300))
@@ -105,7 +151,7 @@ def fit_geometry(of: dict, width: int, height: int, block: int, x0: np.ndarray, 
     if weighting not in ("scatter", "floor", "snr2", "s4"):
         raise ConfigError(f"unknown geometry weighting {weighting!r}; use scatter, floor, snr2 or s4")
     if weighting == "scatter":
-        v_all, n_eff = block_orientation_variance(of, block)
+        v_all, n_eff = block_orientation_variance(s4, of.s4_px, block)
         # a block whose modulation comes from a few of its pixels (a hot pixel, the pane's edge) has no
         # scatter to measure its noise with: it is left out
         mask &= (n_eff >= 0.25 * block * block) & (v_all > 0)
@@ -130,7 +176,7 @@ def fit_geometry(of: dict, width: int, height: int, block: int, x0: np.ndarray, 
     sys2 = math.radians(1.0) ** 2
     w = _weights(sys2)
     sw = np.sqrt(w)
-    psi = of["psi"][mask]
+    psi = of.psi[mask]
     pm = pane_model(width, height, "single", block=block)  # phi_perp depends on the geometry only
     wrt = (0, 1, 2) if fit_fov else (0, 1)
     x_full = np.asarray(x0, np.float64).copy()
@@ -196,7 +242,7 @@ def fit_geometry(of: dict, width: int, height: int, block: int, x0: np.ndarray, 
     m, J = pm.maps_and_jacobian(x, wrt)
     # neighbouring blocks share content and motion: their residuals correlate, so the blocks are fewer
     # independent samples than they look; inflate the covariance by the lag-1 factor (1 + 2 rho_x)(1 + 2 rho_y)
-    rfield = np.where(mask, _wrap90(of["psi"] - m["phi_perp"]), np.nan)
+    rfield = np.where(mask, _wrap90(of.psi - m["phi_perp"]), np.nan)
     rho = []
     for a, b in ((rfield[:, 1:], rfield[:, :-1]), (rfield[1:, :], rfield[:-1, :])):
         ok = np.isfinite(a) & np.isfinite(b)
@@ -204,29 +250,27 @@ def fit_geometry(of: dict, width: int, height: int, block: int, x0: np.ndarray, 
     rho = [max(0.0, r) if np.isfinite(r) else 0.0 for r in rho]
     inflate = (1 + 2 * rho[0]) * (1 + 2 * rho[1])
     cov = cov * inflate
-    d = np.degrees(np.abs(_wrap90(of["psi"] - m["phi_perp"])))
+    d = np.degrees(np.abs(_wrap90(of.psi - m["phi_perp"])))
     # propagate to the maps: sigma of theta and phi_perp per block
     sig_theta = np.sqrt(np.maximum(np.einsum("ihw,ij,jhw->hw", J["theta"], cov, J["theta"]), 0.0))
     sig_phi = np.sqrt(np.maximum(np.einsum("ihw,ij,jhw->hw", J["phi_perp"], cov, J["phi_perp"]), 0.0))
     sig = np.sqrt(np.maximum(np.diag(cov), 0.0))
     full_sig = np.zeros(4)
     full_sig[list(wrt)] = sig
-    return {
-        "x": x, "sigma": full_sig, "cov": cov, "wrt": wrt, "mask": mask, "coherent": coherent, "starts": tried,
-        "residual_lag1_correlation": rho, "covariance_inflation": inflate, "residual_deg_blocks": d, "history": res.history,
-        "converged": res.converged, "chi2": res.chi2, "dof": res.dof, "seconds": time.perf_counter() - t0, "score": float(best[0]),
-        "residual_deg_median": _wmedian(d[mask], np.abs(s4)[mask]), "sigma_theta_deg_max": float(np.degrees(sig_theta[mask].max())),
-        "sigma_phi_perp_deg_max": float(np.degrees(sig_phi[mask].max())), "sigma_theta_deg_median": float(np.degrees(np.median(sig_theta[mask]))),
-        "sigma_phi_perp_deg_median": float(np.degrees(np.median(sig_phi[mask]))),
-        "corr": (cov / np.outer(sig, sig)).tolist() if np.all(sig > 0) else None,
-    }
+    return GeometryFit(
+        x=x, sigma=full_sig, cov=cov, wrt=wrt, mask=mask, coherent=coherent, score=float(best[0]), chi2=res.chi2, dof=res.dof, converged=res.converged,
+        history=res.history, starts=tried, residual_deg_blocks=d, residual_deg_median=_wmedian(d[mask], np.abs(s4)[mask]), residual_lag1_correlation=rho,
+        covariance_inflation=inflate, sigma_theta_deg_max=float(np.degrees(sig_theta[mask].max())), sigma_theta_deg_median=float(np.degrees(np.median(sig_theta[mask]))),
+        sigma_phi_perp_deg_max=float(np.degrees(sig_phi[mask].max())), sigma_phi_perp_deg_median=float(np.degrees(np.median(sig_phi[mask]))),
+        corr=(cov / np.outer(sig, sig)).tolist() if np.all(sig > 0) else None, seconds=time.perf_counter() - t0,
+    )
 
 
 # --------------------------------------------------------------------------- fov from the modulation depth
-def _sigma_maps(geo: dict, pm, cov: np.ndarray, wrt: tuple[int, ...]) -> dict:
-    """Theta / phi_perp 1-sigma on the block grid for covariance ``cov`` of the parameters ``wrt``."""
-    _, J = pm.maps_and_jacobian(geo["x"], wrt)
-    mask = geo["mask"]
+def _sigma_maps(geo: GeometryFit, pm, cov: np.ndarray, wrt: tuple[int, ...]) -> dict:
+    """Theta / phi_perp 1-sigma on the block grid for covariance ``cov`` of the parameters ``wrt`` (GeometryFit's sigma_* fields)."""
+    _, J = pm.maps_and_jacobian(geo.x, wrt)
+    mask = geo.mask
     st_ = np.sqrt(np.maximum(np.einsum("ihw,ij,jhw->hw", J["theta"], cov, J["theta"]), 0.0))[mask]
     sp_ = np.sqrt(np.maximum(np.einsum("ihw,ij,jhw->hw", J["phi_perp"], cov, J["phi_perp"]), 0.0))[mask]
     return {"sigma_theta_deg_max": float(np.degrees(st_.max())), "sigma_theta_deg_median": float(np.degrees(np.median(st_))),
@@ -234,13 +278,13 @@ def _sigma_maps(geo: dict, pm, cov: np.ndarray, wrt: tuple[int, ...]) -> dict:
 
 
 # --------------------------------------------------------------------------- the 90 deg twin
-def _turned_against(of: dict, width: int, height: int, block: int, x_best: np.ndarray, *, pane_model: PaneModelFactory):
+def _turned_against(of: OrientationField, width: int, height: int, block: int, x_best: np.ndarray, *, pane_model: PaneModelFactory):
     """A test of whether a pane ``x`` belongs to ``x_best``'s 90 deg twin family: its phi_perp field turned against
     ``x_best``'s (the orientation field's weighted mean of cos 2 delta below 0).
     """
     pm = pane_model(width, height, "single", block=block)
     p1 = pm.maps(x_best)["phi_perp"]
-    w = np.abs(of["s4"])
+    w = np.abs(of.s4)
     return lambda x: float(np.sum(w * np.cos(2.0 * (pm.maps(x)["phi_perp"] - p1)))) < 0
 
 
@@ -249,7 +293,7 @@ def _angles_deg(x: np.ndarray) -> dict:
     return {"tilt_deg": math.degrees(x[0]), "azimuth_deg": math.degrees(x[1]), "fov_deg": math.degrees(x[2])}
 
 
-def find_twin(of: dict, width: int, height: int, block: int, x_best: np.ndarray, fit_fov: bool, *, pane_model: PaneModelFactory) -> dict | None:
+def find_twin(of: OrientationField, width: int, height: int, block: int, x_best: np.ndarray, fit_fov: bool, *, pane_model: PaneModelFactory) -> GeometryFit | None:
     """The best pane whose phi_perp field runs along ``x_best``'s p-directions (its 90 deg twin: modulo 90 deg
     the two fields agree up to the field's curvature), as a :func:`fit_geometry` result, or None.
     """
@@ -260,8 +304,8 @@ def find_twin(of: dict, width: int, height: int, block: int, x_best: np.ndarray,
             xs = np.asarray(x_best, np.float64).copy()
             xs[0], xs[1] = tl, x_best[1] + da
             g = fit_geometry(of, width, height, block, xs, fit_fov, fov_starts=(), rounds=1, pane_model=pane_model)
-            if turned(g["x"]) and (found is None or g["score"] < found["score"]):
+            if turned(g.x) and (found is None or g.score < found.score):
                 found = g
     if found is None:
         return None
-    return fit_geometry(of, width, height, block, found["x"], fit_fov, pane_model=pane_model)
+    return fit_geometry(of, width, height, block, found.x, fit_fov, pane_model=pane_model)

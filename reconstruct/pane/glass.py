@@ -4,7 +4,34 @@ from __future__ import annotations
 
 import logging
 
+import numpy as np
+
 log = logging.getLogger(__name__)
+
+
+INDEX_GRID = np.round(np.arange(1.30, 2.2001, 0.01), 4)
+"""The refractive indices any pane fit tries: every 0.01 from 1.30 to 2.20 (below crown glass to dense flint).  Each
+fit reads a range of it through :func:`index_grid`; the ranges and steps differ, each for a reason given where it is
+used:
+
+- the self-calibration's cone (:data:`reconstruct.pane.cone.CONE_N_GRID`): 1.40-1.70 every 0.05.  It scores every
+  hypothesis on every stream that ``--zeta self`` calibrates, and it claims an index only when the indices within
+  its margin form an interval inside the range (:func:`fit_glass`); a range ending at 1.70 keeps that claim to the
+  common glasses it was measured on (docs/selfcal.md);
+- calibrate-pane's edge fit (:data:`reconstruct.pane.edges.N_GRID`): 1.30-2.20 every 0.02, the start of a
+  Gauss-Newton refinement of n bounded by the same range, so it spans every glass the maps tier renders;
+- calibrate-pane's content test (:data:`reconstruct.pane.content_glass.CONTENT_N_GRID`): 1.40-2.00 every 0.02; a best
+  index at either end is no minimum and is not used, so the range's ends are the common glasses' (a fixed pattern
+  reads n low: an end at 1.30 would let it pull the guess below any glass)."""
+
+
+def index_grid(lo: float, hi: float, step: float) -> np.ndarray:
+    """The indices of :data:`INDEX_GRID` from ``lo`` to ``hi`` (both kept) every ``step`` (a multiple of 0.01)."""
+    k = int(round(step / 0.01))
+    i0, i1 = (int(round((v - float(INDEX_GRID[0])) / 0.01)) for v in (lo, hi))
+    if k < 1 or abs(k * 0.01 - step) > 1e-9 or not 0 <= i0 <= i1 < INDEX_GRID.size:
+        raise ValueError(f"no range {lo:g}-{hi:g} every {step:g} in the index grid {INDEX_GRID[0]:g}-{INDEX_GRID[-1]:g} every 0.01")
+    return INDEX_GRID[i0:i1 + 1:k].copy()
 
 
 def fit_glass(scores: dict, prior_n: float, prior_model: str, margin: float) -> dict:

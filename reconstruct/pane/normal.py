@@ -15,7 +15,7 @@ from reconstruct.pane.camera import (
     camera_for,
     normal_from_angles,
 )
-from reconstruct.pane.orientation import block_orientation_variance, block_sum
+from reconstruct.pane.orientation import OrientationField, block_orientation_variance, block_sum
 
 log = logging.getLogger(__name__)
 
@@ -126,7 +126,7 @@ POLISH_ROBUST_C = 4.0
 """Cauchy scale of the scatter-weighted geometry polish, in standard deviations of a block's orientation."""
 
 
-def polish_geometry(of: dict, block: int, tilt: float, az: float, fov_deg: float, fit_fov: bool) -> dict | None:
+def polish_geometry(of: OrientationField, block: int, tilt: float, az: float, fov_deg: float, fit_fov: bool) -> dict | None:
     """Scatter-weighted, robust least squares of the pane geometry on the block orientation field, from (tilt, az, fov).
 
     Each block weighs 1 / (v_b + floor): v_b its orientation's measured variance (:func:`block_orientation_variance`),
@@ -138,22 +138,22 @@ def polish_geometry(of: dict, block: int, tilt: float, az: float, fov_deg: float
     """
     from scipy.optimize import least_squares
 
-    if block < POLISH_MIN_BLOCK and "q_px" in of:  # a variance from a handful of pixels is too noisy to weigh by: re-block
+    s4, q, psi = of.s4, of.q, of.psi
+    if block < POLISH_MIN_BLOCK:  # a variance from a handful of pixels is too noisy to weigh by: re-block
         block = POLISH_MIN_BLOCK
-        H, W = of["s4_px"].shape
+        H, W = of.s4_px.shape
         hb, wb = H // block, W // block
         if hb < 2 or wb < 2:
             return None
-        s4b = block_sum(of["s4_px"], block)
-        of = {"s4": s4b, "q": block_sum(of["q_px"], block), "psi": np.angle(s4b) / 4.0, "s4_px": of["s4_px"]}
-    s4, q = of["s4"], of["q"]
+        s4, q = block_sum(of.s4_px, block), block_sum(of.q_px, block)
+        psi = np.angle(s4) / 4.0
     h, w = s4.shape
-    v, n_eff = block_orientation_variance(of, block)
+    v, n_eff = block_orientation_variance(s4, of.s4_px, block)
     mask = (np.abs(s4) > np.sqrt(0.5 * np.maximum(q, 1e-300))) & (n_eff >= 0.25 * block * block) & (v > 0)
     if mask.sum() < 8:
         return None
     v = v[mask]
-    psi = of["psi"][mask]
+    psi = psi[mask]
     top = v <= np.quantile(v, 0.25)
 
     def pp(x):

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 
@@ -22,7 +23,43 @@ def block_sum(x: np.ndarray, s: int) -> np.ndarray:
     return x[..., : h * s, : w * s].reshape(*x.shape[:-2], h, s, w, s).sum(axis=(-3, -1))
 
 
-def orientation_field(I: np.ndarray, phi: np.ndarray, block: int) -> dict:
+@dataclasses.dataclass(frozen=True)
+class OrientationField:
+    """The orientation field of a span (:func:`orientation_field`): block sums of z4 and what the fits read from them.
+
+    Attributes:
+        s4: (h, w) complex block sums of z4 (angle 4 AoLP).
+        q: (h, w) block sums of |z4|^2, the noise scale: Var Re(s4 e^{-i t}) = q / 2 under pure noise.
+        psi: (h, w) block orientation arg(s4) / 4 in [0, pi/2).
+        s4_px, q_px: (H, W) the per-pixel sums before blocking.
+        energy: (h, w) block sums of |z4|; coherence: |s4| / energy in [0, 1].
+        dop: (H, W) mean per-window DoP; a0: (H, W) mean intensity.
+        samples: chunks x block^2; chunks: half-turn chunks in the span; windows: sliding windows summed;
+            chunk_frames: frames per chunk.
+    The descriptive fields (energy onwards) are None / 0 for a field built from given sums.
+    """
+
+    s4: np.ndarray
+    q: np.ndarray
+    psi: np.ndarray
+    s4_px: np.ndarray
+    q_px: np.ndarray
+    energy: np.ndarray | None = None
+    coherence: np.ndarray | None = None
+    dop: np.ndarray | None = None
+    a0: np.ndarray | None = None
+    samples: int = 0
+    chunks: int = 0
+    windows: int = 0
+    chunk_frames: int = 0
+
+    @property
+    def blocks(self) -> tuple[int, int]:
+        """(h, w): the block grid's shape."""
+        return self.psi.shape
+
+
+def orientation_field(I: np.ndarray, phi: np.ndarray, block: int) -> OrientationField:
     """Modulation orientation (mod 90 deg) and coherence on a block grid (module docstring, step 1).
 
     Each chunk's harmonic coefficients are normalised by the chunk mean (a0, with a small floor):
@@ -36,11 +73,7 @@ def orientation_field(I: np.ndarray, phi: np.ndarray, block: int) -> dict:
         block: block size s in pixels.
 
     Returns:
-        dict with block-grid (h, w) fields ``s4`` (complex sum of z4), ``q`` (sum |z4|^2, the
-        noise scale: Var Re(s4 e^{-i t}) = q / 2 under pure noise), ``energy`` (sum |z4|),
-        ``psi`` = arg(s4) / 4 in [0, pi/2), ``coherence`` = |s4| / energy in [0, 1]; and
-        ``samples`` (chunks x s^2), ``chunks``, ``chunk_frames``, full-grid ``dop`` (mean per-chunk DoP),
-        ``a0`` (mean intensity), ``s4_px`` and ``q_px`` (the per-pixel sums before blocking).
+        :class:`OrientationField`.
     """
     I = np.asarray(I, np.float64)
     phi = np.asarray(phi, np.float64)
@@ -79,18 +112,18 @@ def orientation_field(I: np.ndarray, phi: np.ndarray, block: int) -> dict:
     ben, bq = block_sum(en, block), block_sum(q, block)
     coh = np.where(ben > 0, np.abs(bs4) / np.maximum(ben, 1e-300), 0.0)
     psi = np.mod(0.25 * np.angle(bs4), 0.5 * math.pi)
-    return {"s4": bs4, "q": bq, "energy": ben, "psi": psi, "coherence": coh, "samples": n_chunks * block * block, "chunks": n_chunks, "windows": n_win, "chunk_frames": L, "dop": dop / n_win, "a0": a0s / n_win,
-            "s4_px": s4, "q_px": q}
+    return OrientationField(s4=bs4, q=bq, psi=psi, s4_px=s4, q_px=q, energy=ben, coherence=coh, dop=dop / n_win, a0=a0s / n_win,
+                            samples=n_chunks * block * block, chunks=n_chunks, windows=n_win, chunk_frames=L)
 
 
-def block_orientation_variance(of: dict, block: int) -> tuple[np.ndarray, np.ndarray]:
-    """Noise variance (rad^2) of each block's orientation psi_b = arg(s4_b) / 4, measured from the scatter of its
-    pixels' sums s4_px perpendicular to the block's direction: Var Im(s4_b e^{-i 4 psi_b}) = (pixels) x their
+def block_orientation_variance(s4: np.ndarray, s4_px: np.ndarray, block: int) -> tuple[np.ndarray, np.ndarray]:
+    """Noise variance (rad^2) of each block's orientation psi_b = arg(s4_b) / 4 (``s4``: (h, w) block sums), measured from
+    the scatter of its pixels' sums ``s4_px`` (H, W) perpendicular to the block's direction: Var Im(s4_b e^{-i 4 psi_b}) = (pixels) x their
     variance, and 4 |s4_b| dpsi = Im(...).  Unlike q / (32 |s4|^2) (the pure-noise scale, which holds the signal's
     power too), this is the orientation's actual spread, spike noise and content alike.  Also returns the block's
     effective number of contributing pixels (sum |s4_px|)^2 / sum |s4_px|^2.
     """
-    s4, sp = of["s4"], of["s4_px"]
+    sp = s4_px
     h, w = s4.shape
     b = int(block)
     sp = sp[: h * b, : w * b].reshape(h, b, w, b)

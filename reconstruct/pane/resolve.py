@@ -33,11 +33,11 @@ def _resolve_by_cone(I, phi, f, fit, W, H, fov_given, cfg) -> dict:
     violation of each family (``v_family``), ``chosen_family`` (0 = the orientation optimum's) and the
     aggregates of the chosen pane (``aggs``) for the glass fit.
     """
-    h, w = f["psi"].shape
+    h, w = f.psi.shape
     seeds = [(fit["tilt"], fit["azimuth"], fit["fov_deg"])]
     if "twin_tilt" in fit:
         seeds.append((fit["twin_tilt"], fit["twin_azimuth"], fit["twin_fov_deg"]))
-    cands = valley_candidates(f["s4"], w, h, seeds, fov_given, tilt_step_deg=cfg.valley_step_deg, keep_ratio=cfg.valley_ratio, drop_fov_bounds=cfg.valley_drop_fov_bounds)
+    cands = valley_candidates(f.s4, w, h, seeds, fov_given, tilt_step_deg=cfg.valley_step_deg, keep_ratio=cfg.valley_ratio, drop_fov_bounds=cfg.valley_drop_fov_bounds)
     cands += [{"tilt": t, "azimuth": a, "fov_deg": fv, "score": sc, "family": k}
               for k, (t, a, fv, sc) in enumerate([(fit["tilt"], fit["azimuth"], fit["fov_deg"], fit["score"])]
                                                  + ([(fit["twin_tilt"], fit["twin_azimuth"], fit["twin_fov_deg"], fit["twin_score"])] if "twin_tilt" in fit else []))]

@@ -285,7 +285,7 @@ class _Calibration:
         self.I, self.phi, self.cfg, self.name = I, phi, cfg, name
         self.f, self.mask, self.diag, self.fit, self.fov_given = f, mask, diag, fit, fov_given
         self.H, self.W = I.shape[-2:]
-        self.h, self.w = f["psi"].shape
+        self.h, self.w = f.psi.shape
         self.frac = float(mask.mean())
         self.auto = cfg.model == "auto"
         self.aggs = None
@@ -295,16 +295,16 @@ class _Calibration:
 
     def modulation(self) -> None:
         pp = _hypothesis_maps(self.W, self.H, self.fit["tilt"], self.fit["azimuth"], self.fit["fov_deg"])[0]
-        self.diag["modulating_px"] = modulating_fraction(self.f["s4_px"], self.f["q_px"], pp, 1)
-        self.diag["modulating_blocks"] = modulating_fraction(self.f["s4_px"], self.f["q_px"], pp, 4)
+        self.diag["modulating_px"] = modulating_fraction(self.f.s4_px, self.f.q_px, pp, 1)
+        self.diag["modulating_blocks"] = modulating_fraction(self.f.s4_px, self.f.q_px, pp, 4)
 
     def residual(self) -> float | None:
         """Weighted median orientation residual over the coherent blocks, degrees (a report, not a gate)."""
         if not self.mask.any():
             return None
-        d = self.f["psi"] - _pane_phi_perp(self.w, self.h, self.fit["tilt"], self.fit["azimuth"], self.fit["fov_deg"])
+        d = self.f.psi - _pane_phi_perp(self.w, self.h, self.fit["tilt"], self.fit["azimuth"], self.fit["fov_deg"])
         d = np.abs(np.mod(d + math.pi / 4, math.pi / 2) - math.pi / 4)[self.mask]
-        wv = np.abs(self.f["s4"])[self.mask]
+        wv = np.abs(self.f.s4)[self.mask]
         o = np.argsort(d)
         cw = np.cumsum(wv[o])
         return float(np.degrees(d[o][min(len(o) - 1, int(np.searchsorted(cw, 0.5 * cw[-1])))]))
@@ -407,7 +407,7 @@ def _stage_polish(c: _Calibration) -> StageOutcome:
         return c.outcome("polish", "skipped", "too few blocks for the scatter-weighted fit")
     pp0 = _pane_phi_perp(c.w, c.h, fit["tilt"], fit["azimuth"], fit["fov_deg"])
     pp1 = _pane_phi_perp(c.w, c.h, pol["tilt"], pol["azimuth"], pol["fov_deg"])
-    a4 = np.abs(c.f["s4"])
+    a4 = np.abs(c.f.s4)
     same = float(np.sum(a4 * np.cos(2.0 * (pp1 - pp0))) / max(float(a4.sum()), 1e-300))
     moved = math.degrees(_sep(fit["tilt"], fit["azimuth"], pol["tilt"], pol["azimuth"]))
     diag["polish"] = {"from": [math.degrees(fit["tilt"]), math.degrees(fit["azimuth"]) % 360.0, float(fit["fov_deg"])],
@@ -497,10 +497,10 @@ def self_calibrate(I: np.ndarray, phi: np.ndarray, cfg: SelfCalConfig = SelfCalC
     I, phi = I[:m], np.asarray(phi)[:m]
     f = orientation_field(I, phi, s)
     thr = cfg.coherence_sigmas
-    mask = np.abs(f["s4"]) > thr * np.sqrt(0.5 * np.maximum(f["q"], 1e-300))  # blocks that modulate on their own
-    diag = {"psi": f["psi"], "coherence": f["coherence"], "mask": mask, "block_px": s, "threshold": thr, "frames": m, "chunks": f["chunks"], "dop": f["dop"], "s4": f["s4"], "saturated_px": sat_px}
+    mask = np.abs(f.s4) > thr * np.sqrt(0.5 * np.maximum(f.q, 1e-300))  # blocks that modulate on their own
+    diag = {"psi": f.psi, "coherence": f.coherence, "mask": mask, "block_px": s, "threshold": thr, "frames": m, "chunks": f.chunks, "dop": f.dop, "s4": f.s4, "saturated_px": sat_px}
     fov_given = cfg.fov_deg if cfg.fov_deg > 0 else None
-    fit = fit_normal(f["s4"], f["q"], f["psi"].shape[1], f["psi"].shape[0], fov_given, cfg.fov_init_deg)
+    fit = fit_normal(f.s4, f.q, f.psi.shape[1], f.psi.shape[0], fov_given, cfg.fov_init_deg)
     diag.update({"z": fit["z"], "alignment": fit["alignment"]})
     c = _Calibration(I, phi, cfg, name, f, mask, diag, fit, fov_given)
     diag["stages"] = []

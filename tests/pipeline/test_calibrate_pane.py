@@ -7,6 +7,7 @@ model.  Sizes are tiny (96 x 64, 0.1 s) so each case takes seconds.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 
@@ -145,8 +146,7 @@ def test_a_fov_fit_that_ends_in_a_degenerate_view_keeps_the_self_calibrated_fov(
         geo = real(of, width, height, block, x0, fit_fov, **kw)
         calls.append(fit_fov)
         if fit_fov:  # the valley's end: the bound
-            geo["x"] = geo["x"].copy()
-            geo["x"][2] = math.radians(5.0)
+            geo = dataclasses.replace(geo, x=np.r_[geo.x[:2], math.radians(5.0), geo.x[3:]])
         return geo
 
     monkeypatch.setattr(core, "fit_geometry", sliding)
@@ -202,8 +202,7 @@ def test_a_fov_fit_that_ends_where_modulating_blocks_could_not_see_the_pane_is_n
     def too_wide(of, width, height, block, x0, fit_fov, **kw):
         geo = real(of, width, height, block, x0, fit_fov, **kw)
         if fit_fov:
-            geo["x"] = geo["x"].copy()
-            geo["x"][2] = math.radians(140.0)
+            geo = dataclasses.replace(geo, x=np.r_[geo.x[:2], math.radians(140.0), geo.x[3:]])
         return geo
 
     tilt, az = CASES[2][:2]
@@ -371,8 +370,7 @@ def test_content_index_uncertainty_from_the_geometry_matches_the_dop_slope(tilt,
 
     pm = PaneModelAD(64, 40, "single", sub=1)
     x = np.array([math.radians(tilt), 0.3, math.radians(10.0), n])
-    geo = {"cov": np.diag([math.radians(sigma_deg) ** 2, 1e-14]), "wrt": (0, 1)}
-    got = content_n_sigma_from_geometry(pm, x, geo, "single", n)
+    got = content_n_sigma_from_geometry(pm, x, np.diag([math.radians(sigma_deg) ** 2, 1e-14]), (0, 1), "single", n)
 
     def dop(t, m):
         c = pane_coefficients(np.array([t]), m, model="single")
@@ -381,7 +379,7 @@ def test_content_index_uncertainty_from_the_geometry_matches_the_dop_slope(tilt,
     t0, e = math.radians(tilt), 1e-5
     slope = abs((dop(t0 + e, n) - dop(t0 - e, n)) / (dop(t0, n + e) - dop(t0, n - e)))
     assert got == pytest.approx(slope * math.radians(sigma_deg), abs=0.003)
-    assert content_n_sigma_from_geometry(pm, x, {"cov": np.zeros((2, 2)), "wrt": (0, 1)}, "single", n) < 1e-9
+    assert content_n_sigma_from_geometry(pm, x, np.zeros((2, 2)), (0, 1), "single", n) < 1e-9
 
 
 def test_content_test_claims_nothing_without_content():
@@ -611,15 +609,15 @@ def test_the_90_deg_twin_is_told_apart_by_the_modulation_depth():
     of = orientation_field(I, phi, block)
     x_true = np.array([math.radians(tilt), math.radians(az), math.radians(fov), 1.5])
     g_true = fit_geometry(of, W, H, block, x_true, fit_fov=False, pane_model=PaneModelAD)
-    tw = find_twin(of, W, H, block, g_true["x"], fit_fov=False, pane_model=PaneModelAD)
+    tw = find_twin(of, W, H, block, g_true.x, fit_fov=False, pane_model=PaneModelAD)
     assert tw is not None
     pm = PaneModelAD(W, H, "single", block=block)
-    w = np.abs(of["s4"])
-    assert np.sum(w * np.cos(2 * (pm.maps(tw["x"])["phi_perp"] - pm.maps(g_true["x"])["phi_perp"]))) < 0
-    assert tw["score"] < 1.5 * g_true["score"] + 1.0  # nearly as good an explanation of the orientation field
+    w = np.abs(of.s4)
+    assert np.sum(w * np.cos(2 * (pm.maps(tw.x)["phi_perp"] - pm.maps(g_true.x)["phi_perp"]))) < 0
+    assert tw.score < 1.5 * g_true.score + 1.0  # nearly as good an explanation of the orientation field
     gain = math.sin(span) / span
-    v_true = _cone_violation(I, phi, g_true["x"], W, H, block, gain, ("single", "thin_slab"), None, CalibratePaneConfig(), pane_model=PaneModelAD)[0]
-    v_twin = _cone_violation(I, phi, tw["x"], W, H, block, gain, ("single", "thin_slab"), None, CalibratePaneConfig(), pane_model=PaneModelAD)[0]
+    v_true = _cone_violation(I, phi, g_true.x, W, H, block, gain, ("single", "thin_slab"), None, CalibratePaneConfig(), pane_model=PaneModelAD)[0]
+    v_twin = _cone_violation(I, phi, tw.x, W, H, block, gain, ("single", "thin_slab"), None, CalibratePaneConfig(), pane_model=PaneModelAD)[0]
     assert v_twin - v_true >= CalibratePaneConfig().twin_delta_chi2, (v_true, v_twin)
 
 
@@ -627,8 +625,9 @@ def test_unknown_geometry_weighting_is_refused():
     from generator.pane_fit import PaneModelAD
     from polinfra.errors import ConfigError
     from reconstruct.pane.geometry_fit import fit_geometry
+    from reconstruct.pane.orientation import OrientationField
 
-    of = {"s4": np.ones((4, 4), complex), "q": np.ones((4, 4)), "psi": np.zeros((4, 4))}
+    of = OrientationField(s4=np.ones((4, 4), complex), q=np.ones((4, 4)), psi=np.zeros((4, 4)), s4_px=np.ones((16, 16), complex), q_px=np.ones((16, 16)))
     with pytest.raises(ConfigError, match="weighting"):
         fit_geometry(of, 16, 16, 4, np.array([0.5, 0.0, 1.0, 1.5]), fit_fov=False, weighting="bogus", pane_model=PaneModelAD)
 
@@ -649,7 +648,7 @@ def test_block_orientation_variance_matches_the_monte_carlo_spread_of_psi():
     for _ in range(400):
         sp = clean + sig * (rng.standard_normal(clean.shape) + 1j * rng.standard_normal(clean.shape))
         s4 = sp.reshape(hb, b, wb, b).sum(axis=(1, 3))
-        v, n_eff = block_orientation_variance({"s4": s4, "s4_px": sp}, b)
+        v, n_eff = block_orientation_variance(s4, sp, b)
         draws.append(np.mod(np.angle(s4) / 4 - psi0 + np.pi / 4, np.pi / 2) - np.pi / 4)
         v_est.append(v)
     v_mc = np.var(np.array(draws), axis=0)
@@ -658,7 +657,7 @@ def test_block_orientation_variance_matches_the_monte_carlo_spread_of_psi():
     assert np.all(n_eff > 0.8 * b * b)
     one = np.zeros((b, b), complex)
     one[1, 2] = 5.0
-    v1, n1 = block_orientation_variance({"s4": one.sum()[None, None], "s4_px": one}, b)
+    v1, n1 = block_orientation_variance(one.sum()[None, None], one, b)
     assert n1[0, 0] == pytest.approx(1.0)
 
 
@@ -720,7 +719,7 @@ def test_a_narrowly_chosen_twin_is_overturned_by_the_cone_along_the_other_family
 
     def handing_over_the_twin(*a, **kw):
         r = real(*a, **kw)
-        return dataclasses.replace(r, ok=True, reason="", tilt_deg=math.degrees(tw["x"][0]), azimuth_deg=math.degrees(tw["x"][1]), fov_deg=math.degrees(tw["x"][2]), twin_ratio=0.97)
+        return dataclasses.replace(r, ok=True, reason="", tilt_deg=math.degrees(tw.x[0]), azimuth_deg=math.degrees(tw.x[1]), fov_deg=math.degrees(tw.x[2]), twin_ratio=0.97)
 
     monkeypatch.setattr(sc, "self_calibrate", handing_over_the_twin)
     res = calibrate_frames(I, phi, CalibratePaneConfig(), span_rad=span)
@@ -744,3 +743,26 @@ def test_content_parts_follow_the_span_in_half_turns():
         M = int(span_s * 20000) // 13
         assert content_parts_for(0.3 + step * np.arange(M), M) == want, span_s
     assert content_parts_for(0.3 + step * np.arange(300), 300, parts=3) == 3
+
+
+def test_orientation_field_and_geometry_fit_are_frozen_records_that_carry_what_the_callers_read():
+    """orientation_field and fit_geometry return frozen records (no caller can change a fit in place); the geometry
+    fit of a known pane's stream lands on it and carries the uncertainty the report prints.
+    """
+    from generator.pane_fit import PaneModelAD
+    from reconstruct.pane.geometry_fit import GeometryFit, fit_geometry
+    from reconstruct.pane.orientation import OrientationField, orientation_field
+
+    tilt, az, fov = 50.0, 30.0, 55.0
+    I, phi, span, geo = pane_stream(tilt, az, fov_deg=fov)
+    of = orientation_field(I, phi, 4)
+    assert isinstance(of, OrientationField) and of.blocks == (16, 24) and of.s4_px.shape == (64, 96)
+    assert np.allclose(np.mod(np.angle(of.s4) / 4, np.pi / 2), of.psi) and np.all((0 <= of.coherence) & (of.coherence <= 1))
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        of.psi = of.psi + 1.0
+    g = fit_geometry(of, 96, 64, 4, np.r_[np.radians([tilt + 5.0, az - 5.0, fov]), 1.5], fit_fov=False, pane_model=PaneModelAD)
+    assert isinstance(g, GeometryFit) and g.wrt == (0, 1) and g.mask.shape == of.blocks
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        g.x = g.x * 0
+    assert abs(math.degrees(g.x[0]) - tilt) < 0.5 and abs(math.degrees(g.x[1]) - az) < 0.5
+    assert 0 < g.sigma_theta_deg_median <= g.sigma_theta_deg_max and g.sigma[2] == 0.0

@@ -199,16 +199,16 @@ def test_valley_candidates_whose_fov_ran_into_its_bounds_are_left_out():
 
     g, _ = _t_dominated_narrow_glancing()
     f = orientation_field(g.I, g.phi_nominal, 2)
-    h, w = f["psi"].shape
-    fit = fit_normal(f["s4"], f["q"], w, h, None)
+    h, w = f.psi.shape
+    fit = fit_normal(f.s4, f.q, w, h, None)
     seeds = [(fit["tilt"], fit["azimuth"], fit["fov_deg"])] + ([(fit["twin_tilt"], fit["twin_azimuth"], fit["twin_fov_deg"])] if "twin_tilt" in fit else [])
     key = lambda c: (c["family"], round(c["tilt"], 6))  # noqa: E731
-    every = valley_candidates(f["s4"], w, h, seeds, None, tilt_step_deg=4.0)
-    kept = valley_candidates(f["s4"], w, h, seeds, None, tilt_step_deg=4.0, drop_fov_bounds=True)
+    every = valley_candidates(f.s4, w, h, seeds, None, tilt_step_deg=4.0)
+    kept = valley_candidates(f.s4, w, h, seeds, None, tilt_step_deg=4.0, drop_fov_bounds=True)
     at_bound = [c for c in every if not FOV_BOUNDS_DEG[0] + 0.05 < c["fov_deg"] < FOV_BOUNDS_DEG[1] - 0.05]
     assert at_bound and len(kept) == len(every) - len(at_bound)
     assert {key(c) for c in kept} == {key(c) for c in every} - {key(c) for c in at_bound}
-    given = valley_candidates(f["s4"], w, h, seeds[:1], 5.0, tilt_step_deg=8.0, drop_fov_bounds=True)  # a given fov is the lens: kept
+    given = valley_candidates(f.s4, w, h, seeds[:1], 5.0, tilt_step_deg=8.0, drop_fov_bounds=True)  # a given fov is the lens: kept
     assert given and all(c["fov_deg"] == 5.0 for c in given)
     # a uniform field (an orthographic view's): every candidate of both families sits on the 5 deg bound; dropping them
     # would leave a family empty, to lose by default, so nothing is dropped and the ambiguity stands
@@ -436,7 +436,7 @@ def test_scatter_polish_discounts_blocks_whose_pixels_scatter():
 
     from reconstruct.pane.camera import _phi_perp_grid, camera_for, normal_from_angles
     from reconstruct.pane.normal import polish_geometry
-    from reconstruct.pane.orientation import block_orientation_variance
+    from reconstruct.pane.orientation import OrientationField, block_orientation_variance
 
     w, h, b, fov = 24, 16, 4, 50.0
     tilt, az = math.radians(50.0), math.radians(30.0)
@@ -450,13 +450,13 @@ def test_scatter_polish_discounts_blocks_whose_pixels_scatter():
     sig = np.kron(np.where(weak, 2.0, 0.3), np.ones((b, b)))
     sp = np.exp(4j * px_ang) + sig * (rng.standard_normal(px_ang.shape) + 1j * rng.standard_normal(px_ang.shape)) / math.sqrt(2)
     s4 = sp.reshape(h, b, w, b).sum(axis=(1, 3))
-    of = {"s4": s4, "s4_px": sp, "q": (np.abs(sp) ** 2).reshape(h, b, w, b).sum(axis=(1, 3)), "psi": np.angle(s4) / 4}
-    v, _ = block_orientation_variance(of, b)
+    of = OrientationField(s4=s4, q=(np.abs(sp) ** 2).reshape(h, b, w, b).sum(axis=(1, 3)), psi=np.angle(s4) / 4, s4_px=sp, q_px=np.abs(sp) ** 2)
+    v, _ = block_orientation_variance(s4, sp, b)
     assert np.median(v[weak]) > 20 * np.median(v[~weak])
     pol = polish_geometry(of, b, tilt + math.radians(3.0), az, fov, fit_fov=False)
     e_pol = float(np.median(np.degrees(np.abs(ppf(pol["tilt"], pol["azimuth"]) - pp))))
     sw = np.sqrt(np.abs(s4)).ravel()  # the |sum z4| weighting of the grid search, same residuals
-    r = least_squares(lambda x: sw * 0.5 * np.sin(2.0 * (of["psi"] - ppf(x[0], x[1]))).ravel(), [tilt + math.radians(3.0), az])
+    r = least_squares(lambda x: sw * 0.5 * np.sin(2.0 * (of.psi - ppf(x[0], x[1]))).ravel(), [tilt + math.radians(3.0), az])
     e_s4 = float(np.median(np.degrees(np.abs(ppf(*r.x) - pp))))
     assert e_pol < 0.8 and e_s4 > 3 * e_pol, (e_pol, e_s4)
 
