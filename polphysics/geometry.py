@@ -144,11 +144,16 @@ class PinholeCamera:
 
     def ray_directions(self, subpixel: tuple[float, float] = (0.5, 0.5)):
         """Unit ray directions (H, W, 3) through pixel positions (centre by default)."""
-        u, v = self.pixel_grid(subpixel)
+        return normalize(self.directions_at(*self.pixel_grid(subpixel)))
+
+    def directions_at(self, u, v):
+        """Ray directions (..., 3), not normalised, through normalised image coordinates (u, v) in [-1, 1]
+        (v grows downward, as :meth:`pixel_grid`): forward + u tan(fov_x / 2) right - v tan(fov_y / 2) up.
+        """
+        u, v = np.asarray(u, np.float64), np.asarray(v, np.float64)
         tx = np.tan(0.5 * self.fov_x_rad)
         ty = tx * self.height / self.width
-        d = self.forward + (u * tx)[..., None] * self.right - (v * ty)[..., None] * self.up
-        return normalize(d)
+        return self.forward + (u * tx)[..., None] * self.right - (v * ty)[..., None] * self.up
 
     def stokes_frame(self, d):
         """Per-ray Stokes reference axes (x_ref, y_ref), each (..., 3) (Mitsuba's frame)."""

@@ -10,7 +10,7 @@ import time
 import numpy as np
 
 from polinfra.errors import ConfigError
-from reconstruct.pane.camera import CHI2_1_MEDIAN, FOV_BOUNDS_DEG, FOV_INNER_DEG
+from reconstruct.pane.camera import CHI2_1_MEDIAN, FOV_BOUNDS_DEG, FOV_INNER_DEG, camera_for, normal_from_angles
 from reconstruct.pane.levenberg import PaneModelFactory
 from reconstruct.pane.orientation import OrientationField
 
@@ -63,11 +63,9 @@ def max_incidence_deg(x: np.ndarray, width: int, height: int, block: int, mask: 
     tilt, az, fov = (float(v) for v in x[:3])
     gh, gw = mask.shape
     yp, xp = (np.mgrid[0:gh, 0:gw] + 0.5) * block
-    u, v = xp / width * 2.0 - 1.0, yp / height * 2.0 - 1.0
-    tx = math.tan(0.5 * fov)
-    ty = tx * height / width
-    d = np.stack([-u * tx, -v * ty, np.ones_like(u)], -1)  # forward + u tx right - v ty up; right = -x, up = +y
-    N = np.array([-math.sin(tilt) * math.cos(az), math.sin(tilt) * math.sin(az), math.cos(tilt)])
+    cam = camera_for(width, height, math.degrees(fov))
+    d = cam.directions_at(xp / width * 2.0 - 1.0, yp / height * 2.0 - 1.0)
+    N = normal_from_angles(tilt, az, cam)
     c = (d @ N) / np.linalg.norm(d, axis=-1)
     if not mask.any():
         return 0.0
