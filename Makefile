@@ -33,7 +33,7 @@ demo: install
 
 test: install  # the whole suite, the tests marked slow included (what CI runs; budget 20 minutes on 2 cores)
 	@bash .ci/system-deps.sh --test
-	$(BIN)/python -m pytest -q -p no:cacheprovider $(XDIST) $(PYTEST_ARGS)
+	$(BIN)/python -m pytest -q -p no:cacheprovider --durations=30 $(XDIST) $(PYTEST_ARGS)
 
 test-quick: install  # the suite without the tests marked slow (each > ~20 s), for a quick local check
 	@bash .ci/system-deps.sh --test
