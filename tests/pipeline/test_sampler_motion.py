@@ -65,6 +65,36 @@ def test_camera_motion_and_sensor_draws_stay_in_their_ranges(drawn):
     assert len(fast) >= 5
 
 
+def test_camera_motion_draws_stay_in_their_stated_ranges():
+    """2000 draws of :func:`camera_motion`: pans 0.05-3 view widths/s (isotropic in pixels), shakes 0.5-1.5 view/s rms,
+    rotations 30-90 deg/s either way, zooms 0.2-1 1/s either way; every kind near its probability.
+    """
+    from polspike.pipeline.sampler_motion import CAMERA_MOTIONS, camera_motion
+
+    rng = np.random.default_rng(5)
+    aspect = 1.6
+    n = {k: 0 for k, _ in CAMERA_MOTIONS}
+    pans = []
+    for _ in range(2000):
+        c = camera_motion(rng, aspect)
+        n[c["kind"]] += 1
+        vx, vy = c["translate_per_s"][0], c["translate_per_s"][1] / aspect
+        v = math.hypot(vx, vy)
+        if c["kind"] == "pan":
+            assert 0.05 - 1e-3 <= v <= 3.0 + 1e-3
+            pans.append(v)
+        else:
+            assert v == 0.0
+        assert c["shake_per_s"] == 0.0 or (c["kind"] == "shake" and 0.5 <= c["shake_per_s"] <= 1.5 and c["shake_seed"] > 0)
+        assert c["rotate_deg_per_s"] == 0.0 or (c["kind"] == "rotate" and 30.0 <= abs(c["rotate_deg_per_s"]) <= 90.0)
+        assert c["zoom_per_s"] == 0.0 or (c["kind"] == "zoom" and 0.2 <= abs(c["zoom_per_s"]) <= 1.0)
+    for k, w in CAMERA_MOTIONS:
+        assert abs(n[k] - 2000 * w) < 4 * math.sqrt(2000 * w * (1 - w)), n
+    # log-uniform: the median pan is the geometric mean of the bounds, sqrt(0.05 * 3) = 0.39 view/s
+    assert np.median(pans) == pytest.approx(math.sqrt(0.05 * 3.0), rel=0.15)
+    assert max(pans) > 2.5
+
+
 def test_pan_is_added_to_both_layers_on_top_of_their_own_motion(drawn):
     """A camera pan's velocity is the one thing both layers share: T - R = the layers' own motion (each < 1 view/s)."""
     seen = 0
@@ -80,9 +110,9 @@ def test_pan_is_added_to_both_layers_on_top_of_their_own_motion(drawn):
 
 
 def test_paper_motion_draws_are_deterministic_for_a_seed(drawn):
-    again = sample_manifest(300, 7, profile="paper_motion", width=W, height=H, test_fraction=0.0)
-    assert again == drawn
-    assert sample_manifest(300, 8, profile="paper_motion", width=W, height=H, test_fraction=0.0) != drawn
+    again = sample_manifest(40, 7, profile="paper_motion", width=W, height=H, test_fraction=0.0)
+    assert again["groups"] == drawn["groups"][:40]  # one stream per seed: the first 40 groups of the 300
+    assert sample_manifest(40, 8, profile="paper_motion", width=W, height=H, test_fraction=0.0)["groups"] != drawn["groups"][:40]
 
 
 def test_paper_profile_is_unchanged_by_the_motion_profile():
@@ -118,8 +148,8 @@ def test_shake_offset_is_a_random_walk_of_the_stated_rms_speed():
     from generator.layers import SHAKE_KNOT_S, shake_offset
 
     t = np.arange(0, 4000) * SHAKE_KNOT_S
-    d = np.array([shake_offset(1.0, 11, float(s), aspect=1.0) for s in t[::25]])
-    v = np.diff(d, axis=0) / (25 * SHAKE_KNOT_S)
+    d = np.array([shake_offset(1.0, 11, float(s), aspect=1.0) for s in t[::50]])
+    v = np.diff(d, axis=0) / (50 * SHAKE_KNOT_S)
     rms = float(np.sqrt((v**2).sum(1).mean()))
     assert 0.7 < rms < 1.3  # 1 view width/s rms over 8 s (160 correlation times)
     assert shake_offset(1.0, 11, 0.0, 1.0) == (0.0, 0.0)
