@@ -181,29 +181,30 @@ class LayerPlane:
         return rel @ self.right / (2 * self.view_half_w), -(rel @ self.up) / (2 * self.view_half_h)
 
 
-def shake_offset(rms_per_s: float, seed: int, t_s: float, aspect: float) -> tuple[float, float]:
-    """Offset (view fractions x, y) at time ``t_s`` of a hand-held shake: the integral of a stationary
-    Ornstein-Uhlenbeck velocity (correlation time :data:`SHAKE_TAU_S`, knots every :data:`SHAKE_KNOT_S`),
-    isotropic in pixels, whose speed has rms ``rms_per_s`` view widths per second; zero at t = 0.
-    The walk is a function of ``seed`` alone, so two layers with equal (rms, seed) shake as one camera.
+def shake_offset(rms_per_s: float, seed: int, t_s, aspect: float):
+    """Offset (view fractions x, y) at time ``t_s`` (a float or an array) of a hand-held shake: the integral
+    of a stationary Ornstein-Uhlenbeck velocity (correlation time :data:`SHAKE_TAU_S`, knots every
+    :data:`SHAKE_KNOT_S`), isotropic in pixels, whose speed has rms ``rms_per_s`` view widths per second;
+    zero at t <= 0.  The walk is a function of ``seed`` alone, so two layers with equal (rms, seed) shake as
+    one camera.
     """
-    if rms_per_s == 0.0 or t_s <= 0.0:
-        return 0.0, 0.0
-    n = int(np.ceil(t_s / SHAKE_KNOT_S)) + 1
+    from scipy.signal import lfilter
+
+    t = np.asarray(t_s, dtype=np.float64)
+    if rms_per_s == 0.0 or not np.any(t > 0.0):
+        return (np.zeros_like(t), np.zeros_like(t)) if t.ndim else (0.0, 0.0)
+    n = int(np.ceil(float(np.max(t)) / SHAKE_KNOT_S)) + 1
     n = 1024 * int(np.ceil(n / 1024))  # whole blocks: the walk's prefix does not depend on t
     z = np.random.default_rng(int(seed)).standard_normal((n, 2))
     a = float(np.exp(-SHAKE_KNOT_S / SHAKE_TAU_S))
-    v = np.empty_like(z)
-    v[0] = z[0]
-    b = float(np.sqrt(1.0 - a * a))
-    for k in range(1, n):
-        v[k] = a * v[k - 1] + b * z[k]
+    # v[0] = z[0] (stationary start), v[k] = a v[k-1] + sqrt(1 - a^2) z[k]
+    v = lfilter([1.0], [1.0, -a], np.concatenate([z[:1], np.sqrt(1.0 - a * a) * z[1:]]), axis=0)
     v *= rms_per_s / np.sqrt(2.0)  # per axis: the speed's rms is rms_per_s
     cum = np.concatenate([[[0.0, 0.0]], np.cumsum(0.5 * (v[1:] + v[:-1]) * SHAKE_KNOT_S, 0)])
     tk = np.arange(n) * SHAKE_KNOT_S
-    dx = float(np.interp(t_s, tk, cum[:, 0]))
-    dy = float(np.interp(t_s, tk, cum[:, 1])) * aspect  # view widths -> view heights
-    return dx, dy
+    tc = np.maximum(t, 0.0)
+    dx, dy = np.interp(tc, tk, cum[:, 0]), np.interp(tc, tk, cum[:, 1]) * aspect  # view widths -> view heights
+    return (dx, dy) if t.ndim else (float(dx), float(dy))
 
 
 class LayerContent:
