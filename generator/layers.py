@@ -30,7 +30,12 @@ from generator.scene import LayerConfig
 from polinfra.errors import ConfigError, DataFormatError
 from polphysics.geometry import PinholeCamera, Plane, intersect_plane
 
-__all__ = ["LayerPlane", "LayerContent", "load_source", "PROCEDURAL_KINDS", "SKIMAGE_NAMES"]
+__all__ = ["LayerPlane", "LayerContent", "load_source", "shake_offset", "SHAKE_KNOT_S", "SHAKE_TAU_S", "PROCEDURAL_KINDS", "SKIMAGE_NAMES"]
+
+SHAKE_KNOT_S = 0.002
+"""Knot spacing (s) of the shake's velocity random walk."""
+SHAKE_TAU_S = 0.05
+"""Correlation time (s) of the shake's velocity (an Ornstein-Uhlenbeck walk)."""
 
 log = logging.getLogger(__name__)
 
@@ -176,6 +181,32 @@ class LayerPlane:
         return rel @ self.right / (2 * self.view_half_w), -(rel @ self.up) / (2 * self.view_half_h)
 
 
+def shake_offset(rms_per_s: float, seed: int, t_s, aspect: float):
+    """Offset (view fractions x, y) at time ``t_s`` (a float or an array) of a hand-held shake: the integral
+    of a stationary Ornstein-Uhlenbeck velocity (correlation time :data:`SHAKE_TAU_S`, knots every
+    :data:`SHAKE_KNOT_S`), isotropic in pixels, whose speed has rms ``rms_per_s`` view widths per second;
+    zero at t <= 0.  The walk is a function of ``seed`` alone, so two layers with equal (rms, seed) shake as
+    one camera.
+    """
+    from scipy.signal import lfilter
+
+    t = np.asarray(t_s, dtype=np.float64)
+    if rms_per_s == 0.0 or not np.any(t > 0.0):
+        return (np.zeros_like(t), np.zeros_like(t)) if t.ndim else (0.0, 0.0)
+    n = int(np.ceil(float(np.max(t)) / SHAKE_KNOT_S)) + 1
+    n = 1024 * int(np.ceil(n / 1024))  # whole blocks: the walk's prefix does not depend on t
+    z = np.random.default_rng(int(seed)).standard_normal((n, 2))
+    a = float(np.exp(-SHAKE_KNOT_S / SHAKE_TAU_S))
+    # v[0] = z[0] (stationary start), v[k] = a v[k-1] + sqrt(1 - a^2) z[k]
+    v = lfilter([1.0], [1.0, -a], np.concatenate([z[:1], np.sqrt(1.0 - a * a) * z[1:]]), axis=0)
+    v *= rms_per_s / np.sqrt(2.0)  # per axis: the speed's rms is rms_per_s
+    cum = np.concatenate([[[0.0, 0.0]], np.cumsum(0.5 * (v[1:] + v[:-1]) * SHAKE_KNOT_S, 0)])
+    tk = np.arange(n) * SHAKE_KNOT_S
+    tc = np.maximum(t, 0.0)
+    dx, dy = np.interp(tc, tk, cum[:, 0]), np.interp(tc, tk, cum[:, 1]) * aspect  # view widths -> view heights
+    return (dx, dy) if t.ndim else (float(dx), float(dy))
+
+
 class LayerContent:
     """Time-varying content of one layer, sampled in view coordinates.
 
@@ -199,7 +230,7 @@ class LayerContent:
     @property
     def is_static(self) -> bool:
         m = self.cfg.motion
-        return len(self.frames) == 1 and not self.sprites and m.translate_per_s == (0.0, 0.0) and m.rotate_deg_per_s == 0.0 and m.zoom_per_s == 0.0
+        return len(self.frames) == 1 and not self.sprites and m.translate_per_s == (0.0, 0.0) and m.rotate_deg_per_s == 0.0 and m.zoom_per_s == 0.0 and m.shake_per_s == 0.0
 
     def _frame_at(self, t_s: float) -> np.ndarray:
         i = int(np.floor(t_s * self.cfg.content_fps + 1e-9)) % len(self.frames)
@@ -208,8 +239,9 @@ class LayerContent:
     def sample(self, t_s: float, X, Y):
         """Radiance at view coordinates (X, Y) (arrays) at scene time ``t_s`` (s)."""
         m = self.cfg.motion
-        Xs = X - m.translate_per_s[0] * t_s
-        Ys = Y - m.translate_per_s[1] * t_s
+        sx, sy = shake_offset(m.shake_per_s, m.shake_seed, t_s, self.aspect)
+        Xs = X - m.translate_per_s[0] * t_s - sx
+        Ys = Y - m.translate_per_s[1] * t_s - sy
         a = -np.deg2rad(m.rotate_deg_per_s * t_s)
         # rotate in a metric frame (x right, y up), counter-clockwise as seen in the image
         xm, ym = Xs * self.aspect, -Ys

@@ -111,6 +111,8 @@ class MotionConfig:
     translate_per_s: tuple[float, float] = opt((0.0, 0.0), "translation in fractions of the view width/height per second (x right, y down)", lo=-100.0, hi=100.0)
     rotate_deg_per_s: float = opt(0.0, "rotation about the view centre, degrees per second counter-clockwise", lo=-36000.0, hi=36000.0)
     zoom_per_s: float = opt(0.0, "log zoom rate (1/s): scale = exp(zoom_per_s * t)", lo=-10.0, hi=10.0)
+    shake_per_s: float = opt(0.0, "hand-held shake: rms speed (view widths per second) of a random-walk translation added to the motion", lo=0.0, hi=100.0, omit_if_default=True)
+    shake_seed: int = opt(0, "seed of the shake's random walk (one camera: the same seed and rms on both layers)", lo=0, hi=2**31 - 1, omit_if_default=True)
 
 
 @dataclasses.dataclass(frozen=True)

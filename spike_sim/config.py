@@ -30,6 +30,8 @@ rescaled from SCSim's absolute units to threshold units, see each field):
 * reset noise: Gaussian kTC-like perturbation of the residue after each spike;
   leakage: the accumulator decays as exp(-leak_rate_hz * t).
 * random initial accumulator: U[0, 1) of the threshold (else 0).
+* multiplicative increment noise (off in every preset but ``plain_if``): each step's charge
+  is scaled by ``1 + increment_sigma z``, z ~ N(0, 1), so its std grows with the photocurrent.
 """
 
 from __future__ import annotations
@@ -38,7 +40,7 @@ import dataclasses
 
 from polinfra.config import opt
 
-__all__ = ["SpikeSimConfig", "IDEAL", "DEFAULT", "NOISY", "PRESETS", "preset"]
+__all__ = ["SpikeSimConfig", "IDEAL", "DEFAULT", "NOISY", "PLAIN_IF", "PRESETS", "preset"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -67,6 +69,7 @@ class SpikeSimConfig:
     leakage: bool = opt(True, "accumulator leakage between spikes")
     leak_rate_hz: float = opt(1.0, "leak rate: the accumulator decays as exp(-leak_rate_hz t)", lo=0.0, hi=1e6)
     random_init: bool = opt(True, "random initial accumulator U[0,1) of the threshold (else 0)")
+    increment_sigma: float = opt(0.0, "multiplicative increment noise: each step's charge is scaled by 1 + sigma z, z ~ N(0, 1) (0 = off)", lo=0.0, hi=1.0, omit_if_default=True)
 
     @property
     def dt_s(self) -> float:
@@ -97,7 +100,12 @@ IDEAL = dataclasses.replace(
 NOISY = dataclasses.replace(DEFAULT, photons_per_threshold=100.0, reset_sigma=0.02)
 """A deliberately noisier camera (10x fewer photoelectrons per threshold), for robustness studies."""
 
-PRESETS: dict[str, SpikeSimConfig] = {"ideal": IDEAL, "default": DEFAULT, "noisy": NOISY}
+PLAIN_IF = dataclasses.replace(IDEAL, random_init=True, increment_sigma=0.2)
+"""A plain integrate-and-fire pixel (no shot noise, dark current, fixed pattern, thermal or reset noise,
+no leak; random initial charge) whose per-step charge carries multiplicative noise of 20 %: the simpler
+sensor model of other spike simulators."""
+
+PRESETS: dict[str, SpikeSimConfig] = {"ideal": IDEAL, "default": DEFAULT, "noisy": NOISY, "plain_if": PLAIN_IF}
 
 
 def preset(name: str) -> SpikeSimConfig:

@@ -4,6 +4,7 @@ Model (threshold units, see :mod:`spike_sim.config`), per pixel p and step n::
 
     x     = dark_p + sum_j coef[n, j] * basis[j, p]          photocurrent (basis has exposure*gain_p folded in)
     incr  = Poisson(Q max(x, 0)) / Q                        shot noise (or x when off)
+    incr  = incr (1 + sigma_m z_m)                          multiplicative increment noise (sigma_m = 0: off)
     V     = V * leak + incr                                 integrate (leak = exp(-leak_rate / rate))
     fire  = V + sigma_th * z_th >= theta_p                  comparison with thermal noise
     V     = V - theta_p + sigma_reset * z_reset   if fire   subtract the threshold, keep the residue
@@ -135,17 +136,17 @@ def make_pixel_params(cfg: SpikeSimConfig, seed: int) -> PixelParams:
     return PixelParams(gain.astype(np.float32), theta.astype(np.float32), dark.astype(np.float32), key, v0.astype(np.float32))
 
 
-def noise_scalars(cfg: SpikeSimConfig) -> tuple[float, float, float, float]:
-    """(1/Q or 0, thermal sigma or 0, reset sigma or 0, per-step leak factor) for the kernels."""
+def noise_scalars(cfg: SpikeSimConfig) -> tuple[float, float, float, float, float]:
+    """(1/Q or 0, thermal sigma or 0, reset sigma or 0, per-step leak factor, increment sigma) for the kernels."""
     invq = 1.0 / cfg.photons_per_threshold if cfg.shot_noise else 0.0
     sth = cfg.thermal_sigma if cfg.thermal_noise else 0.0
     sres = cfg.reset_sigma if cfg.reset_noise else 0.0
     leak = float(np.exp(-cfg.leak_rate_hz / cfg.rate_hz)) if cfg.leakage else 1.0
-    return invq, sth, sres, leak
+    return invq, sth, sres, leak, float(cfg.increment_sigma)
 
 
 @nb.njit(parallel=True, nogil=True, fastmath=False, error_model="numpy", cache=True)
-def _kernel(basis, coef, stepkey, pkey, dark, theta, V, invq, sth, sres, leak, out):  # pragma: no cover - jitted
+def _kernel(basis, coef, stepkey, pkey, dark, theta, V, invq, sth, sres, leak, smul, out):  # pragma: no cover - jitted
     P = basis.shape[1]
     NS = coef.shape[0]
     BS = BLOCK
@@ -193,7 +194,7 @@ def _kernel(basis, coef, stepkey, pkey, dark, theta, V, invq, sth, sres, leak, o
                 z1 = np.float32(np.int32(h & 255) - np.int32((h >> 8) & 255)) * tri
                 z2 = np.float32(np.int32((h >> 16) & 255) - np.int32(h >> 24)) * tri
                 z3 = np.float32(np.int32((g >> 16) & 255) - np.int32(g >> 24)) * tri
-                vi = v[i] * leak + lam + np.sqrt(lam * invq) * z1
+                vi = v[i] * leak + lam + np.sqrt(lam * invq + smul * smul * lam * lam) * z1
                 t = th[i]
                 f = np.float32(vi + sth * z2 >= t)
                 v[i] = vi - f * (t - sres * z3)
@@ -229,7 +230,7 @@ def run_numba(basis, coef, stepkey, params: PixelParams, V, scalars, out) -> Non
     _check(basis, coef, P)
     if len(coef) == 0:
         return
-    invq, sth, sres, leak = (np.float32(s) for s in scalars)
+    invq, sth, sres, leak, smul = (np.float32(s) for s in scalars)
     _kernel(
         np.ascontiguousarray(basis, dtype=np.float32),
         np.ascontiguousarray(coef, dtype=np.float32),
@@ -242,6 +243,7 @@ def run_numba(basis, coef, stepkey, params: PixelParams, V, scalars, out) -> Non
         sth,
         sres,
         leak,
+        smul,
         out,
     )
 
@@ -253,7 +255,7 @@ def run_numpy(basis, coef, params: PixelParams, V, scalars, out, rng: np.random.
     """
     P = params.theta.size
     _check(basis, coef, P)
-    invq, sth, sres, leak = scalars
+    invq, sth, sres, leak, smul = scalars
     basis64 = np.asarray(basis, dtype=np.float64)
     theta = params.theta.astype(np.float64)
     dark = params.dark.astype(np.float64)
@@ -262,6 +264,8 @@ def run_numpy(basis, coef, params: PixelParams, V, scalars, out, rng: np.random.
         x = dark + coef[s].astype(np.float64) @ basis64
         lam = np.maximum(x, 0.0)
         incr = rng.poisson(lam / invq) * invq if invq > 0 else lam
+        if smul > 0:
+            incr = incr * (1.0 + smul * rng.standard_normal(P))
         v = v * leak + incr
         cmp = v + sth * rng.standard_normal(P) if sth > 0 else v
         fire = cmp >= theta

@@ -22,7 +22,7 @@ def dataset_new(
     duration_s: float = typer.Option(1.0, "--duration-s", help="stream length per group, seconds"),
     tier: str = typer.Option("analytic", "--tier", help="generator tier: analytic, maps, full, auto (with --tolerance)"),
     tolerance: Optional[float] = typer.Option(None, "--tolerance", help="--tier auto: largest acceptable p99 radiance error; the planner picks each group's tier and spp"),
-    ranges: str = typer.Option("paper", "--ranges", help="range profile: paper (the paper's difficulty, paper.toml), v1 (the first, easier ranges, paper_v1.toml) or objects3d (3-D object arrangements with motion, full tier)"),
+    ranges: str = typer.Option("paper", "--ranges", help="range profile: paper (the paper's difficulty, paper.toml), paper_motion (paper + global camera motion and sensor presets), v1 (the first, easier ranges, paper_v1.toml) or objects3d (3-D object arrangements with motion, full tier)"),
     like: Optional[Path] = typer.Option(None, "--like", help="a scene TOML (e.g. calibrate-pane's pane.toml): every group gets its pane and camera fov and size (polspike/pipeline/like.py)"),
     jitter: str = typer.Option("fit", "--jitter", help="with --like: fit (jitter within the 1-sigma of the report.json beside the scene, if any) or none"),
 ) -> None:

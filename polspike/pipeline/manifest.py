@@ -35,7 +35,7 @@ Layout (format ``polspike-manifest/1``)::
     [groups.polarizer]               # overlays PolarizerConfig (rate_hz, phase_deg, extinction_ratio, ...)
     [groups.render]                  # overlays RenderSettings (spp, spectral: maps/full tiers)
     [groups.objects]                 # SceneConfig.objects: 3-D shapes / lights (full tier; sampler profile objects3d)
-    [groups.spike_sim]               # preset = "default" | "ideal" | "noisy", plus any SpikeSimConfig field
+    [groups.spike_sim]               # preset = "default" | "ideal" | "noisy" | "plain_if", plus any SpikeSimConfig field
                                      # (or spike_sim = "ideal": a bare preset name)
 
 Resolution order for a group's scene: SceneConfig defaults < base scene file <

@@ -41,6 +41,11 @@ sensor                      spike_sim preset default or noisy (10x fewer photoel
 polarizer.phase_deg         U[0, 180) deg (rate fixed: ``rate_hz``, 30 rev/s)
 ==========================  =====================================================
 
+Profile ``paper_motion``: the ``paper`` profile whose 30 % camera pan is replaced by a global camera
+motion (static, pan up to 3 view widths/s, hand-held shake, rotation about the optical axis at 30-90
+deg/s, zoom) added to both layers on top of their independent motion, and whose sensor is one of the
+spike_sim presets ideal / default / noisy / plain_if (1/4 each): :mod:`polspike.pipeline.sampler_motion`.
+
 Profile ``v1`` (``paper_v1.toml``, the first ``paper.toml``; kept byte for byte):
 
 ==========================  =====================================================
@@ -90,6 +95,7 @@ import numpy as np
 
 from polinfra.errors import ConfigError, SceneError
 from polspike.pipeline.manifest import MANIFEST_FORMAT, checked_manifest_text
+from polspike.pipeline.sampler_motion import STRESS_CAMERA, add_camera_motion, camera_motion, camera_tag, sensor_preset
 
 __all__ = ["sample_manifest", "sample_manifest_text", "RANGES", "RANGES_V1", "PROFILES", "CONTENT_POOLS"]
 
@@ -154,8 +160,9 @@ RANGES: dict[str, tuple[float, float]] = {
 PANE_MODELS = (("single", 0.2), ("thin_slab", 0.5), ("thick_slab", 0.3))
 MAX_INCIDENCE_DEG = 82.0
 SPRITE_PROB = 0.3
-PROFILES = ("paper", "v1")
-"""Range profiles: ``paper`` (the paper's difficulty, default) and ``v1`` (the first, easier ranges)."""
+PROFILES = ("paper", "v1", "paper_motion")
+"""Range profiles: ``paper`` (the paper's difficulty, default), ``v1`` (the first, easier ranges) and
+``paper_motion`` (``paper`` with global camera motion and sensor-model randomisation)."""
 PAPER_PANE_MODELS = (("single", 1.0 / 3.0), ("thin_slab", 1.0 / 3.0), ("thick_slab", 1.0 / 3.0))
 PAPER_MAX_INCIDENCE_DEG = 88.0
 PAPER_FOV_DEG = (25.0, 55.0)
@@ -318,7 +325,7 @@ def _motion_paper(rng: np.random.Generator, pan: tuple[float, float]) -> dict:
     return {"translate_per_s": [_r(v[0] + pan[0]), _r(v[1] + pan[1])], "rotate_deg_per_s": _r(rot, 3), "zoom_per_s": _r(zoom)}
 
 
-def _group_paper(rng: np.random.Generator, name: str, split: str, width: int, height: int) -> dict:
+def _group_paper(rng: np.random.Generator, name: str, split: str, width: int, height: int, motion: bool = False) -> dict:
     ps = np.array([p for _, p in PAPER_PANE_MODELS])
     need = None
     while need is None:  # rejection sampling of the geometry: the centre incidence is kept for 20 camera draws
@@ -364,9 +371,12 @@ def _group_paper(rng: np.random.Generator, name: str, split: str, width: int, he
     else:
         r_b = min(1.0, r_mean / NOMINAL_CONTENT_MEAN)
         r_offset = r_mean - r_b * NOMINAL_CONTENT_MEAN
-    pan = (_u(rng, "pan_per_s"), _u(rng, "pan_per_s")) if rng.random() < PAN_PROB else (0.0, 0.0)
+    cam = camera_motion(rng, width / height) if motion else None
+    pan = (0.0, 0.0) if motion else (_u(rng, "pan_per_s"), _u(rng, "pan_per_s")) if rng.random() < PAN_PROB else (0.0, 0.0)
     trans = {"source": t_src, "seed": t_seed, "distance_m": _r(_u(rng, "t_distance_m"), 3), "brightness": _r(t_b, 3), "motion": _motion_paper(rng, pan)}
     refl = {"source": r_src, "seed": r_seed, "distance_m": _r(_u(rng, "r_distance_m"), 3), "brightness": _r(r_b, 3), "motion": _motion_paper(rng, pan)}
+    if cam is not None:
+        trans["motion"], refl["motion"] = add_camera_motion(trans["motion"], cam), add_camera_motion(refl["motion"], cam)
     if r_offset > 0.0:
         refl["offset"] = _r(r_offset, 4)
     tags = [f"R/T {ratio:.2f}", f"centre incidence {pane['tilt_deg']:.1f} deg", model]
@@ -398,11 +408,13 @@ def _group_paper(rng: np.random.Generator, name: str, split: str, width: int, he
         tags.append(f"{k} highlight(s)")
     if pan != (0.0, 0.0):
         tags.append("camera pan")
+    if cam is not None and camera_tag(cam):
+        tags.append(camera_tag(cam))
     # light: exposure such that the mean T content fires `rate` spikes per pixel per step
     rate = _lu(rng, "log_rate_dim" if rng.random() < DIM_PROB else "log_rate_bright")
     exposure = rate / (0.5 * NOMINAL_CONTENT_MEAN * max(t_b, 1e-3))
     tags.append(f"{rate:.3f} spikes/px/step")
-    sensor = "noisy" if rng.random() < NOISY_PROB else "default"
+    sensor = sensor_preset(rng) if motion else "noisy" if rng.random() < NOISY_PROB else "default"
     tags.append(f"{sensor} sensor")
     return {
         "name": name,
@@ -446,7 +458,7 @@ def sample_manifest(
         keyframe_fps: radiance keyframes per second.
         rate_hz: polarizer revolutions per second.
         spike_sim_preset: simulator preset name.
-        profile: range profile, ``paper`` (default) or ``v1`` (:data:`PROFILES`).
+        profile: range profile, ``paper`` (default), ``v1`` or ``paper_motion`` (:data:`PROFILES`).
 
     Returns:
         dict ready for :func:`polspike.pipeline.manifest.dump_manifest`; it validates
@@ -471,8 +483,10 @@ def sample_manifest(
     for i in range(n_groups):
         split = "train" if i < n_train else "test"
         idx = i if split == "train" else i - n_train
-        make = _group_paper if profile == "paper" else _group_v1
-        groups.append(make(rng, f"{split}_{idx:03d}", split, width, height))
+        if profile == "v1":
+            groups.append(_group_v1(rng, f"{split}_{idx:03d}", split, width, height))
+        else:
+            groups.append(_group_paper(rng, f"{split}_{idx:03d}", split, width, height, motion=profile == "paper_motion"))
     return {
         "format": MANIFEST_FORMAT,
         "name": name,
@@ -549,6 +563,64 @@ def stress_design() -> list[dict[str, str]]:
     return out
 
 
+def _stress_group(rng: np.random.Generator, d: dict[str, str], width: int, height: int, cam: dict | None = None) -> dict:
+    """One stress group at design point ``d``; ``cam`` (an entry of :data:`STRESS_CAMERA`): a camera-motion
+    regime instead of the grid's layer motion, named ``..._cam-TAG``.
+    """
+    n = 1.52
+    name = "_".join(f"{k}-{v}" for k, v in d.items()) + (f"_cam-{cam['tag']}" if cam else "")
+    tilt = math.degrees(math.atan(n)) if d["inc"] == "brewster" else float(STRESS_LEVELS["inc"][d["inc"]])
+    fov = 18.0 if d["inc"] == "glancing" else 45.0
+    camera = {"width": width, "height": height, "fov_deg": fov, "position": [0.0, 0.0, 0.0], "look_at": [0.0, 0.0, -1.0], "up": [0.0, 1.0, 0.0], "roll_deg": _r(float(rng.uniform(-5, 5)), 3)}
+    for _ in range(50):
+        pane = {"model": STRESS_LEVELS["pane"][d["pane"]], "n": n, "distance_m": 1.0, "tilt_deg": _r(tilt, 3), "tilt_axis_deg": _r(float(rng.uniform(0, 180)), 3), "thickness_mm": 5.0, "size_m": [1000.0, 1000.0]}
+        need = _pane_need({"camera": camera, "pane": pane}, PAPER_MAX_INCIDENCE_DEG)
+        if need is not None:
+            break
+    else:  # pragma: no cover - the levels are chosen to fit
+        raise SceneError(f"stress group {name}: no pane geometry fits")
+    pane["size_m"] = _pane_size(need)
+    if cam and cam.get("natural"):  # photographs only, no procedural content
+        imgs = [s for s in CONTENT_POOLS["test"]["images"] if s.startswith("skimage:")]
+        i, j = rng.choice(len(imgs), 2, replace=False)
+        (t_src, t_seed), (r_src, r_seed) = (imgs[int(i)], 0), (imgs[int(j)], 0)
+    else:
+        t_src, t_seed = _content(rng, "test")
+        r_src, r_seed = _content(rng, "test", avoid=t_src)
+        if r_src == t_src and r_seed == t_seed:
+            r_seed = t_seed + 1
+    t_b = float(cam.get("t_brightness", 0.8)) if cam else 0.8
+    ratio = float(cam.get("ratio", STRESS_LEVELS["refl"][d["refl"]])) if cam else float(STRESS_LEVELS["refl"][d["refl"]])
+    r_mean = min(ratio * t_b * NOMINAL_CONTENT_MEAN, R_MEAN_MAX)
+    r_b = min(1.0, r_mean / NOMINAL_CONTENT_MEAN)
+    if cam:  # global camera motion only: the same image motion on both layers
+        v = float(cam["speed"])
+        cm = camera_motion(rng, width / height, kind=cam["kind"], speed=v)
+        mt = mr = add_camera_motion({}, cm)
+        motion_desc = {"pan": f"camera pan {v} view/s", "shake": f"camera shake {v} view/s rms", "static": "static camera"}[cam["kind"]]
+    else:
+        v = float(STRESS_LEVELS["motion"][d["motion"]])
+        ang = float(rng.uniform(0, 2 * math.pi))
+        mt = {"translate_per_s": [_r(v * math.cos(ang)), _r(v * math.sin(ang))], "rotate_deg_per_s": _r(20.0 * v, 3), "zoom_per_s": 0.0}
+        mr = {"translate_per_s": [_r(-0.6 * v * math.cos(ang)), _r(-0.6 * v * math.sin(ang))], "rotate_deg_per_s": _r(-10.0 * v, 3), "zoom_per_s": 0.0}
+        motion_desc = f"T {v} view/s"
+    refl = {"source": r_src, "seed": r_seed, "distance_m": 2.0, "brightness": _r(r_b, 3), "motion": mr}
+    if r_mean - r_b * NOMINAL_CONTENT_MEAN > 0:
+        refl["offset"] = _r(r_mean - r_b * NOMINAL_CONTENT_MEAN, 4)
+    exposure = float(STRESS_LEVELS["light"][d["light"]]) / (0.5 * NOMINAL_CONTENT_MEAN * t_b)
+    return {
+        "name": name,
+        "split": "test",
+        "description": f"R/T {_r(ratio, 3) if cam else STRESS_LEVELS['refl'][d['refl']]}; centre incidence {tilt:.1f} deg; {pane['model']}; {STRESS_LEVELS['light'][d['light']]} spikes/px/step; {motion_desc}",
+        "seed": int(rng.integers(0, 2**31 - 1)),
+        "camera": camera,
+        "pane": pane,
+        "layers": {"transmission": {"source": t_src, "seed": t_seed, "distance_m": 5.0, "brightness": t_b, "motion": mt}, "reflection": refl},
+        "polarizer": {"phase_deg": _r(float(rng.uniform(0, 180)), 3)},
+        "spike_sim": {"preset": "default", "exposure": _r(exposure, 4)},
+    }
+
+
 def stress_manifest(seed: int = 4242, width: int = 200, height: int = 125, duration_s: float = 0.05) -> dict:
     """Plain data of ``datasets/manifests/stress.toml``: one test group per design point of
     :func:`stress_design`, named by its regime (``refl-..._motion-..._light-..._inc-..._pane-...``).
@@ -557,47 +629,11 @@ def stress_manifest(seed: int = 4242, width: int = 200, height: int = 125, durat
     parameters (tilt axis, camera pose, content, polarizer phase) are drawn from ``seed``.
     """
     rng = np.random.default_rng(seed)
-    groups = []
-    n = 1.52
-    for d in stress_design():
-        name = "_".join(f"{k}-{v}" for k, v in d.items())
-        tilt = math.degrees(math.atan(n)) if d["inc"] == "brewster" else float(STRESS_LEVELS["inc"][d["inc"]])
-        fov = 18.0 if d["inc"] == "glancing" else 45.0
-        camera = {"width": width, "height": height, "fov_deg": fov, "position": [0.0, 0.0, 0.0], "look_at": [0.0, 0.0, -1.0], "up": [0.0, 1.0, 0.0], "roll_deg": _r(float(rng.uniform(-5, 5)), 3)}
-        for _ in range(50):
-            pane = {"model": STRESS_LEVELS["pane"][d["pane"]], "n": n, "distance_m": 1.0, "tilt_deg": _r(tilt, 3), "tilt_axis_deg": _r(float(rng.uniform(0, 180)), 3), "thickness_mm": 5.0, "size_m": [1000.0, 1000.0]}
-            need = _pane_need({"camera": camera, "pane": pane}, PAPER_MAX_INCIDENCE_DEG)
-            if need is not None:
-                break
-        else:  # pragma: no cover - the levels are chosen to fit
-            raise SceneError(f"stress group {name}: no pane geometry fits")
-        pane["size_m"] = _pane_size(need)
-        t_src, t_seed = _content(rng, "test")
-        r_src, r_seed = _content(rng, "test", avoid=t_src)
-        if r_src == t_src and r_seed == t_seed:
-            r_seed = t_seed + 1
-        t_b = 0.8
-        r_mean = min(float(STRESS_LEVELS["refl"][d["refl"]]) * t_b * NOMINAL_CONTENT_MEAN, R_MEAN_MAX)
-        r_b = min(1.0, r_mean / NOMINAL_CONTENT_MEAN)
-        v = float(STRESS_LEVELS["motion"][d["motion"]])
-        ang = float(rng.uniform(0, 2 * math.pi))
-        mt = {"translate_per_s": [_r(v * math.cos(ang)), _r(v * math.sin(ang))], "rotate_deg_per_s": _r(20.0 * v, 3), "zoom_per_s": 0.0}
-        mr = {"translate_per_s": [_r(-0.6 * v * math.cos(ang)), _r(-0.6 * v * math.sin(ang))], "rotate_deg_per_s": _r(-10.0 * v, 3), "zoom_per_s": 0.0}
-        refl = {"source": r_src, "seed": r_seed, "distance_m": 2.0, "brightness": _r(r_b, 3), "motion": mr}
-        if r_mean - r_b * NOMINAL_CONTENT_MEAN > 0:
-            refl["offset"] = _r(r_mean - r_b * NOMINAL_CONTENT_MEAN, 4)
-        exposure = float(STRESS_LEVELS["light"][d["light"]]) / (0.5 * NOMINAL_CONTENT_MEAN * t_b)
-        groups.append({
-            "name": name,
-            "split": "test",
-            "description": f"R/T {STRESS_LEVELS['refl'][d['refl']]}; centre incidence {tilt:.1f} deg; {pane['model']}; {STRESS_LEVELS['light'][d['light']]} spikes/px/step; T {v} view/s",
-            "seed": int(rng.integers(0, 2**31 - 1)),
-            "camera": camera,
-            "pane": pane,
-            "layers": {"transmission": {"source": t_src, "seed": t_seed, "distance_m": 5.0, "brightness": t_b, "motion": mt}, "reflection": refl},
-            "polarizer": {"phase_deg": _r(float(rng.uniform(0, 180)), 3)},
-            "spike_sim": {"preset": "default", "exposure": _r(exposure, 4)},
-        })
+    groups = [_stress_group(rng, d, width, height) for d in stress_design()]
+    rng = np.random.default_rng(seed + 1)  # the camera-motion regimes: the grid's draws stay as they were
+    for c in STRESS_CAMERA:
+        d = {"refl": c["refl"], "motion": "fast" if c["speed"] > 0.5 else "static", "light": c["light"], "inc": c["inc"], "pane": c["pane"]}
+        groups.append(_stress_group(rng, d, width, height, c))
     return {
         "format": MANIFEST_FORMAT,
         "name": "stress",
@@ -615,7 +651,10 @@ def stress_manifest_text(**kw) -> str:
         "R 0.48 view/s the other way, rotation), light dim / bright (0.025 / 0.3 spikes/pixel/step),\n"
         "centre incidence near normal / Brewster / glancing (8 / 56.7 / 74 deg), single interface / thin slab.\n"
         "All 9 reflection x incidence pairs once static and once fast; light and pane alternate, so every\n"
-        "level appears in 9 of the 18 groups.  Each group is named by its regime.\n"
+        "level appears in 9 of the 18 grid groups.  Each group is named by its regime.  Then 5 camera-motion\n"
+        "regimes (name suffix cam-TAG; the same image motion on both layers): horizontal pans at 1.1 and 3\n"
+        "view widths/s, a hand-held shake of 1 view width/s rms, a weak reflection (R/T 0.2) of natural\n"
+        "images under a 1.1 view/s pan, and a near-normal pane whose reflection outshines T eight-fold.\n"
         "Generated by polspike.pipeline.sampler.stress_manifest_text() (tested).\n"
         "Build:    polspike dataset build datasets/manifests/stress.toml --out out/datasets/stress\n"
         "Evaluate: polspike evaluate out/datasets/stress --by-regime --max-frames 3"
