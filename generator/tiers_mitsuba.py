@@ -405,7 +405,7 @@ class FullRenderer:
             "spectral": note,
             "keyframes": "static scene: one render" if self.static else f"path-traced at {self.kf_hz} Hz, Stokes linearly interpolated between",
             "pane_extent": f"finite rectangle {tuple(scene.pane.size_m)} m",
-            "layers": "textured area emitters (bilinear), T plane facing the camera, R plane facing the mirrored camera; each clipped (mask BSDF) to its side of the pane",
+            "layers": "textured area emitters (nearest texel), T plane facing the camera, R plane facing the mirrored camera; each clipped (mask BSDF) to its side of the pane",
             "max_depth": MAX_DEPTH_FULL,
             "backend": self.be.to_dict(),
         }
