@@ -233,14 +233,14 @@ def _coefficients_from_stokes(acc: dict[str, np.ndarray]) -> dict[str, np.ndarra
 
 
 # --------------------------------------------------------------------------- full tier
-def _layer_plane_spec(plane, cam_forward, texture: np.ndarray, name: str, keep_side=None, scale: float = 1.0):
+def _layer_plane_spec(plane, cam_forward, texture: np.ndarray, name: str, keep_side=None, scale: tuple[float, float] = (1.0, 1.0)):
     from generator.mitsuba_scene import LayerPlane as MiPlane
 
     return MiPlane(
         center=tuple(map(float, plane.center)),
         u_axis=tuple(map(float, plane.right)),
         v_axis=tuple(map(float, plane.up)),
-        half_size=(float(plane.half_w * scale), float(plane.half_h * scale)),
+        half_size=(float(plane.half_w * scale[0]), float(plane.half_h * scale[1])),
         texture=texture,
         name=name,
         normal=tuple(map(float, -np.asarray(cam_forward))),
@@ -262,17 +262,34 @@ MAX_TEXTURE = 4096
 """Largest side of a layer texture handed to Mitsuba (enlarged T planes of a single interface)."""
 
 
+def texture_grid(content, scale: float = 1.0) -> tuple[tuple[int, int], tuple[float, float]]:
+    """Texture shape (rows, cols) and per-axis enlargement (x, y) of a layer plane ``scale`` times its content's.
+
+    The content's own texels are kept and padded by a whole number of texels on each side (at least
+    ``scale``, capped at :data:`MAX_TEXTURE`), so every texel of the enlarged plane IS a content texel
+    (or its mirror): no resampling of the content onto a grid that does not line up with its own.
+    """
+    th, tw = content.tex_shape
+    if scale <= 1.0:
+        return (th, tw), (1.0, 1.0)
+
+    def pad(n: int) -> int:
+        return max(0, min(int(math.ceil(0.5 * n * (scale - 1.0) - 1e-9)), (MAX_TEXTURE - n) // 2))
+
+    ph, pw = pad(th), pad(tw)
+    return (th + 2 * ph, tw + 2 * pw), ((tw + 2 * pw) / tw, (th + 2 * ph) / th)
+
+
 def _texture(content, t_s: float, scale: float = 1.0) -> np.ndarray:
     """Layer content on its whole plane (texture grid, row 0 = top), at time t.
 
-    ``scale`` > 1 covers a plane ``scale`` times larger than the content's own
-    (same texel size, capped at :data:`MAX_TEXTURE`; the content continues
-    mirrored beyond its edges, as in the analytic ground truth).
+    ``scale`` > 1 covers a plane about ``scale`` times larger than the content's own (:func:`texture_grid`:
+    the content's texels padded by whole texels; the content continues mirrored beyond its edges, as in
+    the analytic ground truth).
     """
-    th, tw = (min(MAX_TEXTURE, int(math.ceil(x * scale))) for x in content.tex_shape)
-    ext = content.extent * scale
-    X = ((np.arange(tw) + 0.5) / tw - 0.5) * ext
-    Y = ((np.arange(th) + 0.5) / th - 0.5) * ext
+    (th, tw), (sx, sy) = texture_grid(content, scale)
+    X = ((np.arange(tw) + 0.5) / tw - 0.5) * content.extent * sx
+    Y = ((np.arange(th) + 0.5) / th - 0.5) * content.extent * sy
     XX, YY = np.meshgrid(X, Y)
     return np.asarray(content.sample(t_s, XX, YY), dtype=np.float64)
 
@@ -311,8 +328,8 @@ def _layer_coverage_warnings(scene, tc, rc, t_scale: float = 1.0) -> list[str]:
     m = analytic_maps(scene)
     out = []
     for name, (X, Y), content, k in (("T", m.t_xy, tc, t_scale), ("R", m.r_xy, rc, 1.0)):
-        half = 0.5 * content.extent * k
-        outside = (np.abs(X) > half) | (np.abs(Y) > half) | ~np.isfinite(X) | ~np.isfinite(Y)
+        sx, sy = texture_grid(content, k)[1]
+        outside = (np.abs(X) > 0.5 * content.extent * sx) | (np.abs(Y) > 0.5 * content.extent * sy) | ~np.isfinite(X) | ~np.isfinite(Y)
         if outside.any():
             out.append(f"{name} layer plane does not cover {100 * outside.mean():.2f}% of the view; raise layers.{'transmission' if name == 'T' else 'reflection'}.margin")
     # R points on the far side of the pane's front face: clipped (black) in the full tier
@@ -381,14 +398,14 @@ class FullRenderer:
             "slab": "two dielectric interfaces with real thickness (ghost displaced physically)" if scene.pane.model != "single" else False,
             "single_interface": (
                 "T rays refract into glass (bent geometry, as the analytic tier's Snell sampling of T); "
-                f"T radiance x n^2 undoes the 1/n^2 compression; T plane enlarged x{self.t_scale:.2f} (content mirrored beyond its edge) to catch the bent rays"
+                f"T radiance x n^2 undoes the 1/n^2 compression; T plane enlarged x{self.t_scale:.2f} by whole texels of the content (mirrored beyond its edge) to catch the bent rays"
             ) if scene.pane.model == "single" else False,
             "absorption": "not modelled in the full tier (dielectric surfaces only)" if scene.pane.absorption_per_m > 0 else False,
             "radiance_compression_1_over_n2": False,
             "spectral": note,
             "keyframes": "static scene: one render" if self.static else f"path-traced at {self.kf_hz} Hz, Stokes linearly interpolated between",
             "pane_extent": f"finite rectangle {tuple(scene.pane.size_m)} m",
-            "layers": "textured area emitters (bilinear), T plane facing the camera, R plane facing the mirrored camera; each clipped (mask BSDF) to its side of the pane",
+            "layers": "textured area emitters (nearest texel), T plane facing the camera, R plane facing the mirrored camera; each clipped (mask BSDF) to its side of the pane",
             "max_depth": MAX_DEPTH_FULL,
             "backend": self.be.to_dict(),
         }
@@ -426,7 +443,7 @@ class FullRenderer:
             cam, pane = specs_from_scene(self.scene, n=n_b)
             scale_t = n_b**2 if pane.model == "single" else 1.0
             layers = [
-                _layer_plane_spec(self.t_plane, self.fwd_t, tex_t * scale_t, "T", self.side_t, self.t_scale),
+                _layer_plane_spec(self.t_plane, self.fwd_t, tex_t * scale_t, "T", self.side_t, texture_grid(self.tc, self.t_scale)[1]),
                 _layer_plane_spec(self.r_plane, self.fwd_r, tex_r, "R", self.side_r),
             ]
             integ = {"type": "stokes", "inner": {"type": "path", "max_depth": MAX_DEPTH_FULL, "rr_depth": MAX_DEPTH_FULL + 1}}

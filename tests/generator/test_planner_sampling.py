@@ -114,3 +114,27 @@ def test_r_plane_in_front_of_the_pane_is_seen_directly_by_the_path_tracer():
     noise = float(np.percentile(_worst(S[0], S[1])[occ], 99)) / 2.0
     assert float(np.percentile(_worst(S_box, S_f)[occ], 99)) < 2.5 * noise + 0.01
     assert float(np.percentile(_worst(S_a, S_f)[occ], 99)) > 4 * noise + 0.05
+
+
+@pytest.mark.parametrize("scale", [1.0, 1.13, 1.37, 2.05])
+def test_enlarged_t_texture_keeps_the_contents_own_texels(scale):
+    """The enlarged T plane of a single interface is the content's texture padded by whole texels: its middle
+    block is the content's own frame texel for texel (no re-gridding), its padding mirrors the frame about the
+    edge texel (as the analytic tier's mirrored sampling), and it covers at least ``scale`` of the plane.
+    """
+    from generator.layers import LayerContent
+    from generator.scene import load_scene
+    from generator.tiers_mitsuba import _texture, texture_grid
+
+    sc = load_scene("bk7_single")
+    tc = LayerContent(sc.layers.transmission, (25, 40))
+    frame = np.clip(tc.cfg.offset + tc.cfg.brightness * tc.frames[0], 0.0, 1.0)
+    th, tw = tc.tex_shape
+    (Th, Tw), (sx, sy) = texture_grid(tc, scale)
+    tex = _texture(tc, 0.0, scale)
+    assert tex.shape == (Th, Tw) and min(sx, sy) >= scale - 1e-12
+    assert (Th - th) % 2 == 0 and (Tw - tw) % 2 == 0 and sx == Tw / tw and sy == Th / th
+    ph, pw = (Th - th) // 2, (Tw - tw) // 2
+    np.testing.assert_allclose(tex[ph:ph + th, pw:pw + tw], frame, atol=1e-12)
+    if pw:
+        np.testing.assert_allclose(tex[ph:ph + th, pw - 1], frame[:, 1], atol=1e-12)  # mirrored about texel 0
