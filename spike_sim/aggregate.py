@@ -53,9 +53,6 @@ class AggregateConfig:
         return self.n_obs // 2
 
 
-_HALF_STEP_MARGIN = 1e-6  # steps; the angles of one stream computed two ways differ by ~1e-12 step
-
-
 def output_fps(rate_rev_s: float, stride_deg: float) -> float:
     """Output cadence: 360 f / stride (supp. Eq. (18)); 342.86 for 30 rev/s at 31.5 deg."""
     return 360.0 * rate_rev_s / stride_deg
@@ -85,11 +82,9 @@ def frame_centres(phi_step_rad: np.ndarray, cfg: AggregateConfig = AggregateConf
     stride = np.deg2rad(cfg.stride_deg)
     i_max = int(np.floor(turned[-1] / stride))
     targets = np.arange(0, i_max + 1) * stride
-    # fractional step position where the mid-step angle reaches the target, rounded to a step; halves round up,
-    # with a margin far above float noise, so that a centre on a half step (e.g. 174.5) lands on the same step
-    # whether the angles came from the simulator's clock or were re-derived by a reader
+    # fractional step position where the mid-step angle reaches the target, rounded to a step
     pos = np.interp(targets, turned, np.arange(T, dtype=np.float64))
-    c = np.floor(pos + 0.5 + _HALF_STEP_MARGIN).astype(np.int64)
+    c = np.rint(pos).astype(np.int64)
     ok = (c - cfg.half >= 0) & (c + cfg.half <= T - 1)
     c = c[ok]
     csum = np.concatenate([[0.0], np.cumsum(phi)])

@@ -52,22 +52,3 @@ def test_observation_stack_and_validation():
         observation_stack(I, np.arange(10.0), 2, K=3)
     with pytest.raises(ConfigError, match="odd"):
         AggregateConfig(window_steps=12)
-
-
-def test_a_centre_on_a_half_step_lands_on_one_step_however_the_angles_were_derived():
-    """At 30 rev/s and 20 kHz a 31.5 deg stride is 58 1/3 steps, so the 4th frame's centre falls exactly on step
-    174.5 (mid-step angles (k + 1/2) * 0.54 deg reach 3 * 31.5 deg at k = 174.5). The simulator places it from its
-    clock's angle at t = 0, a reader extrapolates that angle from the first two steps: the two differ by float
-    noise, and both must give the same step (the ground truth is stored at it), the next one (halves round up).
-    """
-    step = 2 * np.pi * 30.0 / 20000.0
-    phi = (np.arange(20000 // 50) + 0.5) * step
-    cfg = AggregateConfig()
-    c_clock, _ = frame_centres(phi, cfg, phi_start_rad=0.0)
-    assert 175 in c_clock.tolist()
-    for eps in (-1e-12, 0.0, 1e-12):
-        c_read, _ = frame_centres(phi + eps, cfg)
-        assert c_read.tolist() == c_clock.tolist(), eps
-    # every centre is the nearest step to where the angle reaches its multiple of the stride (58 1/3 steps)
-    i = np.rint((c_clock + 0.5) * 3 / 175)
-    assert np.all(np.abs(c_clock - (i * 175 / 3 - 0.5)) <= 0.5)
