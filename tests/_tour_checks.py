@@ -264,11 +264,12 @@ def _tfp_psnr(group: Path, n_frames: int, K: int = 3, w: int = 13, stride_deg: f
     """
     import h5py
 
-    exposure = json.loads((group / "group.json").read_text())["config"]["exposure"]
+    meta = json.loads((group / "group.json").read_text())
+    exposure = meta["config"]["exposure"]
     with h5py.File(group / "spikes.h5", "r") as f:
         H, W = f["gt/T"].shape[1:]
         phi = f["polarizer/phi_nominal_rad"][:]
-        turned = phi - (phi[0] - 0.5 * (phi[1] - phi[0]))
+        turned = phi - np.radians(meta["polarizer"]["phase_deg"])  # the nominal angle at t = 0 is the phase
         c = np.rint(np.interp(np.arange(0.0, turned[-1], np.radians(stride_deg)), turned, np.arange(phi.size))).astype(int)
         c = c[c >= w // 2]
         gt_at = {int(s): j for j, s in enumerate(f["output/step_index"][:])}

@@ -87,15 +87,10 @@ def test_network_with_garbage_refinement_gives_the_physics():
     """A PolSpikeNet whose refinement outputs garbage (its last layers scaled up 1e3) returns, with the floor on (the
     default at inference), T and R within 1 dB of the physics-only RWPS on the same zeta; with the floor off it does not.
     """
-    from reconstruct.net.network import NetConfig, PolSpikeNet, init_weights
+    from reconstruct.net.network import PolSpikeNet
 
     g, I, Z, Tp, Rp = _window("integrate_fire", 3.0)
-    net = init_weights(PolSpikeNet(NetConfig(arch="v2", lr_ch=8, w_ch=4, ref_ch=(8, 8, 8), dec_ch=(8, 8, 8), use_rir=False)), torch.Generator().manual_seed(0))
-    with torch.no_grad():
-        for dec in (net.refine.dec_t, net.refine.dec_r):
-            dec.out.weight.normal_(0.0, 10.0, generator=torch.Generator().manual_seed(4))
-            dec.out.bias.fill_(0.7)
-    net.eval()
+    net = _garbage_net()
     with torch.inference_mode():
         on = net(I[None], torch.tensor(g.phi_nominal[1:8])[None].float(), zeta_gt=Z[None], alpha=1.0)
         net_off = PolSpikeNet(dataclasses.replace(net.cfg, floor=False))
@@ -215,19 +210,25 @@ def test_network_with_garbage_refinement_gives_the_best_physics():
     """floor_anchor = "best": a PolSpikeNet whose refinement outputs garbage returns T and R within 1 dB of the
     best-physics anchor's PSNR on the same windows and zeta (reconstruct.physics.anchor.physics_anchor).
     """
-    from reconstruct.net.network import NetConfig, PolSpikeNet, init_weights
     from reconstruct.physics.anchor import physics_anchor
 
     g, I, Z, Tp, Rp = _window("integrate_fire", 3.0)
-    net = init_weights(PolSpikeNet(NetConfig(arch="v2", lr_ch=8, w_ch=4, ref_ch=(8, 8, 8), dec_ch=(8, 8, 8), use_rir=False, floor_anchor="best")), torch.Generator().manual_seed(0))
-    with torch.no_grad():
-        for dec in (net.refine.dec_t, net.refine.dec_r):
-            dec.out.weight.normal_(0.0, 10.0, generator=torch.Generator().manual_seed(4))
-            dec.out.bias.fill_(0.7)
-    net.eval()
+    net = _garbage_net(floor_anchor="best")
     with torch.inference_mode():
         on = net(I[None], torch.tensor(g.phi_nominal[1:8])[None].float(), zeta_gt=Z[None], alpha=1.0)
     a = physics_anchor(Z.double(), I.double())
     for key, ref, gt in (("T", a.T, g.T[4]), ("R", a.R, g.R[4])):
         assert psnr(getattr(on, key)[0].numpy(), gt) >= psnr(ref.float().numpy(), gt) - 1.0
     assert float(on.floor_keep.mean()) < 0.2
+
+
+def _garbage_net(**cfg):
+    """A small v2 network whose decoders output garbage (weights of sd 10, bias 0.7), in eval mode."""
+    from reconstruct.net.network import NetConfig, PolSpikeNet, init_weights
+
+    net = init_weights(PolSpikeNet(NetConfig(arch="v2", lr_ch=8, w_ch=4, ref_ch=(8, 8, 8), dec_ch=(8, 8, 8), use_rir=False, **cfg)), torch.Generator().manual_seed(0))
+    with torch.no_grad():
+        for dec in (net.refine.dec_t, net.refine.dec_r):
+            dec.out.weight.normal_(0.0, 10.0, generator=torch.Generator().manual_seed(4))
+            dec.out.bias.fill_(0.7)
+    return net.eval()

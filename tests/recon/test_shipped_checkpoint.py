@@ -28,7 +28,7 @@ EXPECTED_PARAMS = {"v1": 510_454, "v2": 395_230}
 #: Exact trainable-parameter count of each shipped default checkpoint (by file name).
 EXPECTED_SHIPPED = {"polspike_v1.pt": 510_454, "polspike_v2.pt": 395_230, "polspike_v2_mean.pt": 395_806, "polspike_v3.pt": 395_806, "polspike_v4.pt": 395_806, "polspike_v5.pt": 395_806, "polspike_v6.pt": 395_806, "polspike_v7.pt": 395_806}  # v2_mean: + 2 x 32 x 3 x 3 refinement inputs; v3-v7: same layers
 
-pytestmark = pytest.mark.skipif(not DEFAULT_WEIGHTS.is_file(), reason=f"shipped checkpoint {DEFAULT_WEIGHTS} not present")
+pytestmark = [pytest.mark.skipif(not DEFAULT_WEIGHTS.is_file(), reason=f"shipped checkpoint {DEFAULT_WEIGHTS} not present"), pytest.mark.usefixtures("one_thread")]
 
 
 def _scores() -> dict:
@@ -54,7 +54,6 @@ def test_reduced_evaluation_reproduces_the_stored_scores():
     fresh = evaluate_setting(DEFAULT_WEIGHTS, setting, threads=1)
     bad = compare_reduced(stored, fresh, REPRODUCE_TOL_DB)
     assert not bad, "the shipped checkpoint no longer reproduces its stored scores (rerun `" + doc["command"] + "` if the change is intended):\n" + "\n".join(bad)
-
 
 
 def test_stored_scores_match_psnr_computed_here_by_hand():
@@ -112,14 +111,6 @@ def test_default_architecture_and_shipped_checkpoint_parameter_counts():
     assert n == EXPECTED_SHIPPED[DEFAULT_WEIGHTS.name] == data["param_count"]
     assert sum(t.numel() for k, t in data["state_dict"].items() if t.dtype.is_floating_point and "running_" not in k) >= n
     assert f"{n:,}" in CARD.read_text(), f"the model card must state the exact count {n:,}"
-
-
-@pytest.fixture(autouse=True, scope="module")
-def _one_thread():
-    old = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(old)
 
 
 @pytest.mark.slow

@@ -23,6 +23,8 @@ POL_HZ = 30.0
 #: jumps from alpha 1.0 straight to 0.0 and the alpha = 0.5 stage would go untested.
 CFG = dataclasses.replace(TINY, curriculum_fracs=(0.25, 0.5))
 
+pytestmark = pytest.mark.usefixtures("one_thread")
+
 
 def _stream_item(seed: int, index: int, cfg: WindowConfig = TINY.window, static: bool = False, noise: bool = True):
     """A window item from a closed-form integrate-and-fire stream (no generator): smooth random layers,
@@ -50,15 +52,6 @@ def _stream_item(seed: int, index: int, cfg: WindowConfig = TINY.window, static:
     m = len(c) // 2
     ck = c[m - N // 2 : m + N // 2 + 1]
     return item_from_stream(spikes, ck, phi, phi, (T, R), {"R_perp": Rp, "R_par": Rs, "phi_perp": pp}, exposure, cfg)
-
-
-@pytest.fixture(scope="module", autouse=True)
-def one_thread():
-    """One torch thread: on a shared 2-core machine more threads oversubscribe and run ~20x slower."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
 
 
 @pytest.fixture(scope="module")

@@ -60,6 +60,8 @@ GAIN_BASE_DB = 5.5
 REFINE_DB = 0.3
 ABOVE_ORACLE_DB = 1.0
 
+pytestmark = pytest.mark.usefixtures("one_thread")
+
 
 def pane_item(seed: int, index: int, cfg=TINY.window) -> dict[str, torch.Tensor]:
     """One window of a closed-form stream: smooth layers (Gaussian sigma 4, wrapped, scaled to [0, T_max]),
@@ -91,15 +93,6 @@ def pane_item(seed: int, index: int, cfg=TINY.window) -> dict[str, torch.Tensor]
     c, _ = frame_centres(phi, agg, phi_start_rad=phase)
     m = len(c) // 2
     return item_from_stream(spikes, c[m - N // 2 : m + N // 2 + 1], phi, phi, (T, R), {"R_perp": Rp, "R_par": Rs, "phi_perp": pp}, exposure, cfg)
-
-
-@pytest.fixture(scope="module", autouse=True)
-def one_thread():
-    """One torch thread: deterministic sums, and no oversubscription of a shared 2-core machine."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
 
 
 def run_and_score(tmp_path, source=pane_item) -> dict[str, float]:
