@@ -48,6 +48,9 @@ __all__ = ["TrainConfig", "alpha_at", "lr_at", "collate", "evaluate_model", "tra
 
 log = logging.getLogger(__name__)
 
+MAX_SKIPPED = 20
+"""Updates with a non-finite gradient norm a run may skip before it stops."""
+
 ProgressFn = Callable[[int, int], None]
 
 
@@ -460,6 +463,7 @@ def train(
             _plot(run, rows)
 
     t0 = time.perf_counter()
+    skipped = 0
     model.train()
     end = total if stop_after is None else min(total, stop_after)
     batches = _BatchOrder(cfg, len(train_set), spe, step, end, ranks)
@@ -493,9 +497,16 @@ def train(
         loss.backward()
         for group in opt_.param_groups:
             group["lr"] = lr_at(step, total, cfg)
-        if cfg.grad_clip > 0:
-            torch.nn.utils.clip_grad_norm_([p for p in model.parameters() if p.requires_grad], cfg.grad_clip)
-        opt_.step()
+        trained = [p for p in model.parameters() if p.requires_grad]
+        gnorm = torch.nn.utils.clip_grad_norm_(trained, cfg.grad_clip if cfg.grad_clip > 0 else math.inf)
+        if not torch.isfinite(gnorm):  # a finite loss with a non-finite gradient: skip the update, never poison the weights
+            skipped += 1
+            log.warning("step %d: non-finite gradient norm; update skipped (%d so far)", step, skipped)
+            if skipped > MAX_SKIPPED:
+                raise FloatingPointError(f"non-finite gradients on {skipped} steps (last at step {step}); lower lr or check the data")
+            opt_.zero_grad(set_to_none=True)
+        else:
+            opt_.step()
         step += 1
         ranks.stepped()
         row: dict[str, Any] = {}
