@@ -133,6 +133,7 @@ def reconstruct_cmd(
     weights: Optional[Path] = typer.Option(None, "--weights", help="checkpoint [default: the shipped reconstruct/weights default, reconstruct.net.checkpoint.DEFAULT_WEIGHTS]"),
     rir: bool = typer.Option(True, "--rir/--no-rir", help="RIR alignment of each window before the solver and the network (also for a checkpoint trained without it)"),
     floor: bool = typer.Option(True, "--floor/--no-floor", help="the network's data-consistency floor: its (T, R) must predict the 7 aligned windows within the noise of the physics-only RWPS's fit, else the physics stands (reconstruct/physics/consistency.py)"),
+    floor_anchor: Optional[str] = typer.Option(None, "--floor-anchor", help="what the floor falls back to: rwps (the physics-only RWPS; the data check only) | best (per pixel the best physics the observations support: least squares, the spike mean or a blend, reconstruct/physics/anchor.py) [default: the checkpoint's]"),
     max_frames: int = typer.Option(0, "--max-frames", help="stop after this many output frames (0 = all)"),
     device: str = typer.Option("auto", "--device", help="auto | cpu | cuda"),
     quiet: bool = typer.Option(False, "--quiet", help="no progress bar"),
@@ -238,8 +239,12 @@ def reconstruct_cmd(
         src = group_source(input, cfg.chunk_steps)
     else:
         raise ConfigError(f"input {input} is neither a .dat file nor a spike group directory")
-    load = lambda: load_model(weights or DEFAULT_WEIGHTS, dev, use_rir=rir, floor=floor)[0]  # noqa: E731
+    if floor_anchor is not None and floor_anchor not in ("rwps", "best"):
+        raise ConfigError(f"--floor-anchor {floor_anchor!r}: use rwps or best")
+    fa = {} if floor_anchor is None else {"floor_anchor": floor_anchor}
+    load = lambda: load_model(weights or DEFAULT_WEIGHTS, dev, use_rir=rir, floor=floor, **fa)[0]  # noqa: E731
     net_model = load() if method == "net" else None  # a bad checkpoint is reported before the stream is read
+    anchor_used = net_model.cfg.floor_anchor if net_model is not None else None
     if net_model is not None and ensemble > 1:
         from reconstruct.net.network import SymmetryEnsemble
 
@@ -290,7 +295,7 @@ def reconstruct_cmd(
         model, info = build_physics_model(method, zeta or "self", src, group_dir=None if input.suffix.lower() == ".dat" else input, window_steps=window_steps,
                                           exposure=None if src.exposure is not None else cfg.exposure, rir=rir, load_learned=load, anchor=anchor,
                                           pane_n=pane_n, pane_model=pane_model, selfcal=selfcal)
-    meta = {**exposure_info, "method": method, "anchor": anchor, "ensemble": ensemble, "rir": rir, "floor": floor if method == "net" else None, "zeta": info["zeta"] if info is not None else "learned"}
+    meta = {**exposure_info, "method": method, "anchor": anchor, "ensemble": ensemble, "rir": rir, "floor": floor if method == "net" else None, "floor_anchor": anchor_used if floor else None, "zeta": info["zeta"] if info is not None else "learned"}
     live = is_dat and path != "stream" and method != "net" and getattr(model, "maps", None) is not None and anchor == "none" and dev == "cpu"
     if (follow or path == "live") and not live:
         raise ConfigError(f"{'--follow' if follow else '--path live'} needs pane maps (zeta {info['zeta'] if info else 'learned'} is not) on the CPU")

@@ -552,11 +552,11 @@ class PolSpikeNet(nn.Module):
                 T, R = span_blend(T, R, I_mean, I_harm, zs, phi, wsp, self.cfg.span_level_px, self.cfg.span_level_tol * light, tol_t)
         keep = None
         if self.cfg.floor and not self.training:
-            T, R, keep = self.data_floor(T, R, zeta_used, I, exposure, I_mean if self.cfg.use_mean else None, phi)
+            T, R, keep = self.data_floor(T, R, zeta_used, I, exposure, I_mean if self.cfg.use_mean else None, phi, external=zeta_gt is not None and alpha >= 1.0)
         return NetOutput(T=T, R=R, T_base=T0, R_base=R0, zeta_hat=zeta_hat, zeta_used=zeta_used, weights=w, conf=res.conf, res=resid, I=I, zeta_gt=zeta_gt, floor_keep=keep)
 
     @torch.no_grad()
-    def data_floor(self, T: torch.Tensor, R: torch.Tensor, zeta: torch.Tensor, I: torch.Tensor, exposure=None, I_mean=None, phi=None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    def data_floor(self, T: torch.Tensor, R: torch.Tensor, zeta: torch.Tensor, I: torch.Tensor, exposure=None, I_mean=None, phi=None, external: bool = True) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """The data-consistency floor (:mod:`reconstruct.physics.consistency`): (T, R) against the physics-only RWPS
         (Poisson reliability weights, :data:`reconstruct.physics.solvers.PHYSICS_SOLVER_CONFIG`, layers >= 0: what
         ``polspike reconstruct --method rwps`` returns on this zeta) on the same (aligned) windows -> (T, R, kept fraction).
@@ -565,6 +565,9 @@ class PolSpikeNet(nn.Module):
         residual does not widen the allowance.  ``floor_anchor = "best"`` falls back to the best physics
         per pixel instead (:func:`reconstruct.physics.anchor.anchored_floor`, with the long span's ``I_mean`` where the
         network reads it, at the polarizer-cycle mean zeta of the windows' angles ``phi``); the kept fraction returned is T's.
+        It does so on an ``external`` zeta only (self-calibrated or given): least squares on the network's learned zeta,
+        which nothing checks, can be far off (a 16 x 20 view the self-calibration calls ambiguous: the anchor's T erred
+        by 0.8-1.2 on a 0.3-0.7 layer), and the regularised RWPS is the safer fallback there.
         """
         from reconstruct.physics.anchor import AnchorFloorConfig, anchored_floor
         from reconstruct.physics.consistency import FloorConfig, consistency_floor
@@ -577,7 +580,7 @@ class PolSpikeNet(nn.Module):
             e = torch.as_tensor(exposure, dtype=torch.float32, device=Iw.device).reshape(-1, 1, 1) if torch.is_tensor(exposure) else float(exposure)
             mv = 4.0 * Iw.mean(1).clamp_min(0.0) / (e * 13.0) + 1e-12
         ph = solve("rwps", z, Iw, None, PHYSICS_SOLVER_CONFIG)
-        if self.cfg.floor_anchor == "best":
+        if self.cfg.floor_anchor == "best" and external:
             g = anchored_floor(T.float(), R.float(), z, Iw, None if I_mean is None else I_mean.detach().float(), None if I_mean is None else zbar_of(z, phi.float()),
                                AnchorFloorConfig(tol=self.cfg.floor_tol), mv, reference=(ph.T.clamp_min(0.0), ph.R.clamp_min(0.0)))
             return g.T.to(T.dtype), g.R.to(R.dtype), g.keep_T
