@@ -150,6 +150,7 @@ def reconstruct_cmd(
     follow: bool = typer.Option(False, "--follow", help=".dat: the file is still being written (a camera): output frames as their spikes arrive, the latency on stderr and in reconstruct.json; Ctrl-C stops with every output complete (physics methods on pane maps)"),
     follow_idle: float = typer.Option(5.0, "--follow-idle", help="--follow: stop when the file has not grown for this many seconds (0 = only Ctrl-C stops)"),
     path: str = typer.Option("auto", "--path", help="live (packed reads, fused solver, background encoding: the real-time path; physics methods on pane maps over a .dat) | stream (the general streaming path) | auto (live where it applies)"),
+    span: str = typer.Option("plain", "--span", help="the network's long span: plain (every spike of the 17.5 ms around the frame) | compensated (its 7 parts registered onto the centre part first: for a moving camera; reconstruct/stream/motion_span.py)"),
     video_quality: str = typer.Option("fast", "--video-quality", help="live path videos: fast (x264 CRF 23, less encoder CPU) | high (CRF 10, as the streaming path)"),
 ) -> None:
     """Turn a spike group or a .dat into reflection-free T and R video at the output cadence (~343 FPS)."""
@@ -209,7 +210,9 @@ def reconstruct_cmd(
             raise ConfigError(f"--pane gives zeta (the calibrated maps): drop --zeta {zeta}")
         if pane_n is not None or pane_model != "auto":
             raise ConfigError("--pane fixes the index and the pane model (they are in its maps): drop --pane-n / --pane-model")
-    cfg = ReconstructConfig(window_steps=window_steps, stride_deg=stride_deg, exposure=exposure or 1.0, frames=frames, max_frames=max_frames, precision=precision)
+    if span not in ("plain", "compensated"):
+        raise ConfigError(f"--span {span!r}: choose plain or compensated")
+    cfg = ReconstructConfig(window_steps=window_steps, stride_deg=stride_deg, exposure=exposure or 1.0, frames=frames, max_frames=max_frames, precision=precision, span=span)
     if path not in ("auto", "live", "stream"):
         raise ConfigError(f"--path {path!r}: choose auto, live or stream")
     if video_quality not in ("fast", "high"):
@@ -295,7 +298,7 @@ def reconstruct_cmd(
         model, info = build_physics_model(method, zeta or "self", src, group_dir=None if input.suffix.lower() == ".dat" else input, window_steps=window_steps,
                                           exposure=None if src.exposure is not None else cfg.exposure, rir=rir, load_learned=load, anchor=anchor,
                                           pane_n=pane_n, pane_model=pane_model, selfcal=selfcal)
-    meta = {**exposure_info, "method": method, "anchor": anchor, "ensemble": ensemble, "rir": rir, "floor": floor if method == "net" else None, "floor_anchor": anchor_used if floor else None, "zeta": info["zeta"] if info is not None else "learned"}
+    meta = {**exposure_info, "method": method, "anchor": anchor, "ensemble": ensemble, "rir": rir, "floor": floor if method == "net" else None, "floor_anchor": anchor_used if floor else None, "span": span if method == "net" else None, "zeta": info["zeta"] if info is not None else "learned"}
     live = is_dat and path != "stream" and method != "net" and getattr(model, "maps", None) is not None and anchor == "none" and dev == "cpu"
     if (follow or path == "live") and not live:
         raise ConfigError(f"{'--follow' if follow else '--path live'} needs pane maps (zeta {info['zeta'] if info else 'learned'} is not) on the CPU")

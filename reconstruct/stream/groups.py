@@ -149,6 +149,13 @@ def spike_mean_steps(rate_hz: float) -> int:
     return max(1, int(round(SPIKE_MEAN_MS * 1e-3 * rate_hz)))
 
 
+def span_part_edges(L: int, n_sub: int) -> list[tuple[int, int]]:
+    """[lo, hi) step ranges of ``n_sub`` consecutive parts of a span of ``L`` steps (sizes differ by at most one)."""
+    n = max(1, min(int(n_sub), int(L)))
+    edges = np.linspace(0, L, n + 1).round().astype(int)
+    return [(int(a), int(b)) for a, b in zip(edges[:-1], edges[1:])]
+
+
 def spike_mean_span(centre, steps: int, n_steps: int):
     """Steps [lo, hi) of the long spike mean of ``steps`` steps centred on step ``centre`` (scalar or array), clipped
     to a stream of ``n_steps``: the one span of the stream reconstructor, the stored groups and the training items.
@@ -169,9 +176,16 @@ class SpikeMeanSums:
     (:func:`span_harmonic`; :func:`reconstruct.physics.span.long_span_separation` reads it).
     """
 
-    def __init__(self, centres: np.ndarray, steps: int, n_steps: int, shape: tuple[int, int], phi_step: np.ndarray | None = None):
+    def __init__(self, centres: np.ndarray, steps: int, n_steps: int, shape: tuple[int, int], phi_step: np.ndarray | None = None, n_sub: int = 1):
         self.lo, self.hi = spike_mean_span(np.asarray(centres, np.int64), steps, n_steps)
-        self.want = sorted(set(self.lo.tolist()) | set(self.hi.tolist()))
+        self.n_sub = int(n_sub)
+        if self.n_sub > 1 and phi_step is None:
+            raise DataFormatError("SpikeMeanSums with parts (n_sub > 1) needs the per-step angles (phi_step)")
+        edges = set(self.lo.tolist()) | set(self.hi.tolist())
+        if self.n_sub > 1:  # each span's part boundaries too (reconstruct.stream.motion_span.span_parts)
+            for lo, hi in zip(self.lo.tolist(), self.hi.tolist()):
+                edges |= {lo + a for a, _ in span_part_edges(hi - lo, self.n_sub)}
+        self.want = sorted(edges)
         self.snap: dict[int, np.ndarray] = {}
         self.phi = None if phi_step is None else np.asarray(phi_step, np.float64)
         if self.phi is not None and self.phi.size < n_steps:
@@ -227,6 +241,18 @@ class SpikeMeanSums:
         m = (d if self.phi is None else d[0]) / np.float32(max(hi - lo, 1) * exposure)
         self._free(lo)
         return m.astype(np.float32)
+
+    def part_sums(self, j: int) -> tuple[np.ndarray, list[tuple[int, int]]]:
+        """The spike sums (weighted by 1, cos 2 phi, sin 2 phi) of the ``n_sub`` parts of frame j's span, (n, 3, H, W),
+        and the parts' absolute [lo, hi) steps; call before :meth:`mean` of the same frame.
+        """
+        lo, hi, _ = self._span(j)
+        parts = [(lo + a, lo + b) for a, b in span_part_edges(hi - lo, self.n_sub)]
+        return np.stack([self.snap[b] - self.snap[a] for a, b in parts]), parts
+
+    def release(self, j: int) -> None:
+        """Free the snapshots frame j and later frames no longer need (frames taken in order; :meth:`mean` does it too)."""
+        self._free(int(self.lo[j]))
 
     def harmonic(self, j: int, exposure: float = 1.0) -> np.ndarray:
         """(2, H, W) first-harmonic coefficients of the spikes around frame j (:func:`span_harmonic`); call before

@@ -21,9 +21,9 @@ import torch
 
 from polinfra.errors import ShapeError
 from reconstruct.physics.rir import RirConfig, estimate_shifts, warp
-from reconstruct.stream.groups import harmonic_design, span_harmonic
+from reconstruct.stream.groups import harmonic_design, span_harmonic, span_part_edges
 
-__all__ = ["SPAN_RIR", "span_parts", "compensated_span"]
+__all__ = ["SPAN_RIR", "span_parts", "compensated_span", "compensate_part_sums"]
 
 SPAN_RIR = RirConfig(dop_max=1.0, coarse_factor=1)
 """Registration of the span's parts: every well-exposed pixel (``dop_max`` 1) and whole-pixel search at full
@@ -33,14 +33,13 @@ moving texture itself is left out and the outer parts, 3 px away at 400 px/s, re
 synthetic pan of tests/recon/test_motion_span.py)."""
 
 
-def span_parts(L: int, n_sub: int) -> list[tuple[int, int]]:
-    """[lo, hi) step ranges of ``n_sub`` consecutive parts of a span of ``L`` steps (sizes differ by at most one)."""
-    n = max(1, min(int(n_sub), int(L)))
-    edges = np.linspace(0, L, n + 1).round().astype(int)
-    return [(int(a), int(b)) for a, b in zip(edges[:-1], edges[1:])]
+span_parts = span_part_edges
+
+SPAN_PARTS = 7
+"""Parts of the 350-step span: 50 steps each (about 27 deg of polarizer at 30 rev/s)."""
 
 
-def compensated_span(spikes: np.ndarray, phi: np.ndarray, exposure: float, n_sub: int = 7, harmonic: bool = True, min_shift_px: float = 0.3,
+def compensated_span(spikes: np.ndarray, phi: np.ndarray, exposure: float, n_sub: int = SPAN_PARTS, harmonic: bool = True, min_shift_px: float = 0.3,
                      rir: RirConfig = SPAN_RIR) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
     """The span's mean (and first harmonic) with its parts registered to the centre part.
 
@@ -63,11 +62,24 @@ def compensated_span(spikes: np.ndarray, phi: np.ndarray, exposure: float, n_sub
     L, H, W = sp.shape
     parts = span_parts(L, n_sub)
     sums = np.stack([np.tensordot(harmonic_design(ph[a:b]), sp[a:b].astype(np.float64), axes=(1, 0)) for a, b in parts])  # (n, 3, H, W)
+    return compensate_part_sums(sums, parts, ph, exposure, harmonic, min_shift_px, rir)
+
+
+def compensate_part_sums(sums: np.ndarray, parts: list[tuple[int, int]], phi: np.ndarray, exposure: float, harmonic: bool = True,
+                         min_shift_px: float = 0.3, rir: RirConfig = SPAN_RIR) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
+    """:func:`compensated_span` from the parts' spike sums ``sums`` (n, 3, H, W: weighted by 1, cos 2 phi, sin 2 phi) over
+    the consecutive step ranges ``parts`` ([lo, hi), indices into ``phi``, the per-step angles; the streaming
+    reconstructor keeps these sums, :meth:`reconstruct.stream.groups.SpikeMeanSums.part_sums`).
+    """
+    ph = np.asarray(phi, np.float64)
+    sums = np.array(sums, np.float64)
+    lo, hi = parts[0][0], parts[-1][1]
+    L = hi - lo
     shifts = np.zeros((len(parts), 2))
     if len(parts) >= 3:
         means = torch.from_numpy(sums[:, 0] / np.array([max(b - a, 1) for a, b in parts], np.float64)[:, None, None])
         angles = torch.tensor([ph[a:b].mean() for a, b in parts], dtype=torch.float64)
-        centre = next(i for i, (a, b) in enumerate(parts) if a <= L // 2 < b)
+        centre = next(i for i, (a, b) in enumerate(parts) if a <= lo + L // 2 < b)
         shifts = estimate_shifts(means, angles, center=centre, config=rir).cpu().numpy()
         shifts[np.hypot(shifts[:, 0], shifts[:, 1]) < min_shift_px] = 0.0
         moved = np.flatnonzero(np.abs(shifts).sum(1) > 0)
@@ -77,5 +89,5 @@ def compensated_span(spikes: np.ndarray, phi: np.ndarray, exposure: float, n_sub
             sums[moved] = warp(t, sh).numpy()
     total = sums.sum(0)
     I_mean = (total[0] / (L * float(exposure))).astype(np.float32)
-    I_harm = span_harmonic(total, ph, float(exposure)) if harmonic else None
+    I_harm = span_harmonic(total, ph[lo:hi], float(exposure)) if harmonic else None
     return I_mean, I_harm, shifts

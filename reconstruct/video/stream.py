@@ -43,6 +43,7 @@ from polinfra.config import opt
 from polinfra.errors import ConfigError
 from reconstruct.stream.display import DisplayHistogram, _to8, display_gain
 from reconstruct.stream.groups import SpikeMeanSums, spike_mean_steps, wide_window_steps, window_means
+from reconstruct.stream.motion_span import SPAN_PARTS, compensate_part_sums
 from reconstruct.stream.sources import SpikeSource
 from reconstruct.stream.window_inputs import WindowInputs, inputs_of
 from reconstruct.video.tiling import FeatureCache, auto_tile, run_model_on_windows
@@ -69,6 +70,7 @@ class ReconstructConfig:
     tile: int = opt(-1, "tile side for bounded memory (0 = whole frames, -1 = auto: whole frames for v2 networks and on CUDA, 128 for v1 on CPU)", lo=-1, hi=1 << 16)
     precision: str = opt("float32", "float32 | bfloat16 (autocast; the solver stays float32)", choices=("float32", "bfloat16"))
     cache: bool = opt(True, "reuse per-observation features across overlapping windows (v2 networks, RIR off, whole frames)")
+    span: str = opt("plain", "the long span a network reads: plain (every spike of its 17.5 ms summed) | compensated (cut into 7 parts registered onto the centre part before they are summed, reconstruct.stream.motion_span: a panning camera no longer smears it)", choices=("plain", "compensated"))
 
 
 
@@ -228,7 +230,9 @@ def reconstruct_stream(
     mean_steps = spike_mean_steps(source.rate_hz) if "I_mean" in need else 0
     use_harm = "I_harm" in need
     span_kw = {"exposure": exposure if "exposure" in need else None, "span_steps": mean_steps if "span_steps" in need else None}
-    prefix = SpikeMeanSums(centres, mean_steps, source.phi_step_rad.size, (source.height, source.width), source.phi_step_rad if use_harm else None) if mean_steps else None
+    comp = cfg.span == "compensated" and mean_steps > 0
+    prefix = SpikeMeanSums(centres, mean_steps, source.phi_step_rad.size, (source.height, source.width), source.phi_step_rad if (use_harm or comp) else None,
+                           n_sub=SPAN_PARTS if comp else 1) if mean_steps else None
     tile = auto_tile(model, device) if cfg.tile < 0 else cfg.tile
     cache = FeatureCache(model, device, cfg.precision) if (cfg.cache and tile == 0 and getattr(model, "cacheable", False)) else None
 
@@ -272,8 +276,13 @@ def reconstruct_stream(
                 next_c += 1
                 if len(frames_I) == N:
                     j = next_c - 1 - K
-                    hj = prefix.harmonic(j, exposure) if use_harm else None  # before mean(j), which frees older sums
-                    window = WindowInputs(np.stack(frames_I), phi_i[next_c - N : next_c], prefix.mean(j, exposure) if prefix is not None else None, hj, np.stack(frames_W) if wide else None)
+                    if comp:  # the span's parts registered onto its centre part, then summed
+                        mj, hj, _ = compensate_part_sums(*prefix.part_sums(j), source.phi_step_rad, exposure, use_harm)
+                        prefix.release(j)
+                    else:
+                        hj = prefix.harmonic(j, exposure) if use_harm else None  # before mean(j), which frees older sums
+                        mj = prefix.mean(j, exposure) if prefix is not None else None
+                    window = WindowInputs(np.stack(frames_I), phi_i[next_c - N : next_c], mj, hj, np.stack(frames_W) if wide else None)
                     pending.append(_Pending(window, np.arange(next_c - N, next_c)))
                     if len(pending) >= cfg.batch:
                         flush(writers)
