@@ -294,6 +294,8 @@ def _auto_tier(scene, tolerance: float | None, label: str):
     c = plan.choice
     if c.tier == "full":
         scene = dataclasses.replace(scene, render=dataclasses.replace(scene.render, spp=int(c.spp), spectral=bool(c.spectral)))
+    elif c.tier == "analytic" and c.supersample:
+        scene = dataclasses.replace(scene, render=dataclasses.replace(scene.render, supersample=int(c.supersample)))
     return scene, c.tier, plan.to_dict()
 
 
