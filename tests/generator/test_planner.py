@@ -125,6 +125,7 @@ def test_bk7_single_at_1e_3_needs_the_area_sampled_tier():
     assert q.choice.tier == "analytic" and q.choice.spectral and not q.choice.supersample and q.choice.predicted_p99 <= between
     a = plan_tier(sc, 1e-3, f)
     assert a.choice.tier == "analytic" and a.choice.spectral and a.choice.supersample >= 1 and a.choice.predicted_p99 <= 1e-3
+    assert f["area_step_p99"] < f["sampling_p99"] / 4  # the area-sampled tier is an order closer to the path tracer than the point sample
     with pytest.raises(ConfigError, match="best reachable p99 error is"):
         plan_tier(sc, 1e-6, f)
 
