@@ -33,7 +33,7 @@ import logging
 
 import numpy as np
 
-__all__ = ["area_frames", "SUPERSAMPLE_MAX", "FRAME_BATCH"]
+__all__ = ["area_frames", "area_terms", "SUPERSAMPLE_MAX", "FRAME_BATCH"]
 
 log = logging.getLogger(__name__)
 
@@ -104,3 +104,25 @@ def area_frames(scene, times, supersample: int, bands: list[tuple[float, float]]
                     T_acc[n] += w * L_T
                     R_acc[n] += w * L_R
     return [(S_acc[n], T_acc[n], R_acc[n]) for n in range(len(times))]
+
+
+def area_terms(scene, subpixels: int = 2) -> tuple[float, float]:
+    """(sampling term, area term), p99 of the worst case over the polarizer angles.
+
+    Sampling term: the analytic point sample against the path tracer's expected pixel
+    (:func:`generator.planner_footprint.footprint_stokes` on the ``subpixels`` finer grid).  Area term: the
+    area-sampled analytic tier with one ray per pixel (:func:`area_frames`, ``supersample`` 1) against
+    the same with 2 x 2 rays (the footprint computed on the 2 x 2 finer grid: the same estimate, so it is
+    reused when ``subpixels`` is 2), the distance between K and 2K rays per side that the planner turns
+    into the area-sampled tier's error at K.
+    """
+    from generator.planner_footprint import PHIS, footprint_stokes
+    from polphysics.stokes import polarizer_intensity
+
+    def p99(A, B):
+        return float(np.percentile(np.max([np.abs(polarizer_intensity(*A, p) - polarizer_intensity(*B, p)) for p in PHIS], axis=0), 99))
+
+    S_point, S_box = footprint_stokes(scene, 0.0, subpixels)
+    S_2 = S_box if int(subpixels) == 2 else area_frames(scene, [0.0], 2)[0][0]
+    S_1 = area_frames(scene, [0.0], 1)[0][0]
+    return p99(S_point, S_box), p99(S_1, S_2)

@@ -222,7 +222,8 @@ def scene_features(scene, pilot: bool = True) -> dict:
         f["dispersion_p99"] = float(np.percentile(_worst(Sd, Ss), 99))
         f["dispersion_size"] = [sd.camera.width, sd.camera.height]
         f["spectral_noise_factor"] = float(math.sqrt(len(w) * float(np.sum(np.asarray(w) ** 2))))
-    from generator.planner_footprint import SUBPIXELS, area_terms
+    from generator.analytic_area import area_terms
+    from generator.planner_footprint import SUBPIXELS
 
     ss = _small(scene, MAX_SAMPLING_WIDTH)
     k_sub = max(1, min(SUBPIXELS, int(math.sqrt(SAMPLING_RAYS / (ss.camera.width * ss.camera.height)))))

@@ -33,7 +33,7 @@ Layout (format ``polspike-manifest/1``)::
     [groups.layers.transmission]     # overlays the T layer (source, distance_m, brightness, motion, sprites, ...)
     [groups.layers.reflection]       # overlays the R layer
     [groups.polarizer]               # overlays PolarizerConfig (rate_hz, phase_deg, extinction_ratio, ...)
-    [groups.render]                  # overlays RenderSettings (spp, spectral: maps/full tiers)
+    [groups.render]                  # overlays RenderSettings (spp, spectral: maps/full tiers; supersample: analytic on the pixel area)
     [groups.objects]                 # SceneConfig.objects: 3-D shapes / lights (full tier; sampler profile objects3d)
     [groups.spike_sim]               # preset = "default" | "ideal" | "noisy" | "plain_if", plus any SpikeSimConfig field
                                      # (or spike_sim = "ideal": a bare preset name)
