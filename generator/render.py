@@ -156,6 +156,8 @@ def render(
 
         if tolerance is None:
             raise ConfigError("--tier auto needs --tolerance EPS (the largest acceptable p99 radiance error)")
+        if opts.supersample is not None:
+            raise ConfigError("--supersample is chosen by --tier auto (with the tier); drop it or name the tier")
         plan = plan_tier(scene, tolerance)
         opts = apply_plan(opts, plan)
     if opts.tier not in TIERS:

@@ -132,6 +132,9 @@ def test_supersample_on_another_tier_is_one_line_exit_2(polspike_main, tmp_path)
     assert not (tmp_path / "a").exists()
     r = polspike_main("render", "near_normal", "--out", tmp_path / "a", "--supersample", "65", "--quiet")
     polspike_main.one_line_exit_2(r, "--supersample 65")
+    r = polspike_main("render", "near_normal", "--out", tmp_path / "a", "--tier", "auto", "--tolerance", "1e-2", "--supersample", "2", "--quiet")
+    polspike_main.one_line_exit_2(r, "--supersample is chosen by --tier auto")
+    assert not (tmp_path / "a").exists()
 
 
 def test_cli_unreachable_tolerance_names_the_area_tier(polspike_cli, tmp_path):
