@@ -23,6 +23,10 @@ units (1.0 = brightest layer value).  The planner predicts it per tier from what
 
   The maps tier computes the same maps with Mitsuba and costs more: predicted like analytic, never
   cheaper, so it is chosen only when asked for by name.
+* **analytic on the pixel's area** (``--supersample K``, :mod:`generator.analytic_area`): the sampling term
+  is gone (the tier integrates the pixel's area as the path tracer does); what is left is the stratified
+  estimate's error, ``AREA_GAIN * d / K`` with ``d`` the measured p99 step between 1 and 2 rays per side
+  (first-order convergence: the step from K to 2K is half the error at K), and, mono, the dispersion term.
 * **full** (Mitsuba path tracing at ``spp``).  Monte Carlo noise: p99 = ``k / sqrt(spp)``.  For a layer
   scene ``k`` is predicted from the lobe choice at the pane: a camera path reflects with probability
   about R and transmits otherwise, so one sample's intensity is ``L_R`` or ``T L_T / (1 - R)`` and its
@@ -35,7 +39,8 @@ units (1.0 = brightest layer value).  The planner predicts it per tier from what
   the noise depends on lights and BSDFs no closed form covers.
 
 Cost (seconds per keyframe, for the choice only): per pixel, from the trade table's order of
-magnitude; the order analytic < maps < full(spp) is what matters.
+magnitude; the order analytic < analytic on the pixel's area (K^2 passes per band) < maps, and full by
+spp, is what matters.
 """
 
 from __future__ import annotations
@@ -354,7 +359,7 @@ def plan_tier(scene, tolerance: float, features: dict | None = None, analytic_sp
         raise ConfigError(
             f"--tolerance {tolerance:g} cannot be reached for scene {scene.name!r}: the best reachable p99 error is "
             f"{best.predicted_p99:.3g} (tier {best.tier}{f' at {best.spp} spp' if best.tier == 'full' else ''}"
-            f"{f' with --supersample {best.supersample}' if best.supersample else ''})"
+            f"{', --spectral' if best.tier == 'analytic' and best.spectral else ''}{f', --supersample {best.supersample}' if best.supersample else ''})"
         )
     choice = min(ok, key=lambda e: (e.cost_s_per_frame, e.predicted_p99))
     reasons = (f"cheapest tier with predicted p99 {choice.predicted_p99:.3g} <= tolerance {tolerance:g}",) + choice.reasons

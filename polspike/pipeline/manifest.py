@@ -294,7 +294,7 @@ def _auto_tier(scene, tolerance: float | None, label: str):
     c = plan.choice
     if c.tier == "full":
         scene = dataclasses.replace(scene, render=dataclasses.replace(scene.render, spp=int(c.spp), spectral=bool(c.spectral)))
-    elif c.tier == "analytic" and c.supersample:
+    elif c.tier == "analytic":  # the plan's pixel sampling (point or area), whatever the group's [render] said
         scene = dataclasses.replace(scene, render=dataclasses.replace(scene.render, supersample=int(c.supersample)))
     return scene, c.tier, plan.to_dict()
 

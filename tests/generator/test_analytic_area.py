@@ -151,3 +151,24 @@ def test_cli_unreachable_tolerance_names_the_area_tier(polspike_cli, tmp_path):
     best = float(line.split("best reachable p99 error is ")[1].split()[0])
     assert 1e-7 < best < 1e-3
     assert not (tmp_path / "b").exists()
+
+
+def test_manifest_auto_group_gets_the_area_tier_and_the_builder_renders_it():
+    """bk7_single at 80 x 50, tolerance 1e-3: the group resolves to the analytic tier with render.supersample
+    set (mono: the dataset builder's analytic source is mono), and the builder's keyframes are the area frames.
+    """
+    from generator.analytic_area import area_frames
+    from generator.scene import scene_from_dict
+    from polspike.pipeline.dataset import _AnalyticSource
+    from polspike.pipeline.manifest import parse_manifest
+
+    data = {"format": "polspike-manifest/1", "name": "m", "defaults": {"duration_s": 0.05, "camera": {"width": 80, "height": 50}},
+            "groups": [{"name": "a", "split": "test", "scene": "bk7_single", "tier": "auto", "tolerance": 1e-3}]}
+    g = parse_manifest(data).groups[0]
+    K = g.scene["render"].get("supersample", 0)
+    assert g.tier == "analytic" and K >= 1 and not g.tier_plan["choice"]["spectral"] and g.tier_plan["choice"]["supersample"] == K
+    sc = scene_from_dict(g.scene)
+    S, L_T, _ = _AnalyticSource(sc).frame(1, 0.01)
+    S_a, L_a, _ = area_frames(sc, [0.01], K)[0]
+    np.testing.assert_allclose(S, S_a, atol=1e-6)
+    np.testing.assert_allclose(L_T, L_a, atol=1e-6)
