@@ -74,11 +74,14 @@ COST_ANALYTIC_PX = 4e-7
 COST_MAPS_ONEOFF_PX = 4e-5
 COST_FULL_PX_SPP = 6e-7
 """Seconds per pixel (per spp for the full tier) on this 2-core machine (orders of magnitude from the trade table)."""
-COST_AREA_PX_PASS = 1e-5
-"""Seconds per pixel per ray position of the area-sampled analytic tier, mono (measured on bk7_single at
-400 x 250: about 1 s per pass on the shared 2-core machine)."""
-AREA_BAND_COST = 0.85
-"""Cost of each further band of a spectral area-sampled render relative to a mono pass (the ray's masks are shared)."""
+COST_AREA_PX_ONEOFF = 5e-6
+COST_AREA_PX_PASS = 2.7e-6
+"""Seconds of CPU per pixel of the area-sampled analytic tier: once per frame (textures, the T plane's size),
+and per ray position of a mono pass (`polspike bench area` on bk7_single at 400 x 250: 0.89 / 1.6 / 4.95 s
+at K = 1 / 2 / 4)."""
+AREA_BAND_COST = 0.78
+"""Cost of each band of a spectral pass relative to a mono pass (the ray's masks are shared; measured 2.05 /
+7.1 / 27.3 s at K = 1 / 2 / 4 with 8 bands)."""
 AREA_BANDS = 8
 AREA_SUPERSAMPLES = (1, 2, 4)
 """Rays per pixel side the planner offers for the area-sampled analytic tier."""
@@ -294,12 +297,13 @@ def _area_estimates(f: dict, px: int, analytic_spectral: bool) -> list[TierEstim
         e = area_error(f, K)
         why = (f"pixel area on {K} x {K} rays, each the box mean of the full tier's texels over its cell: area term "
                f"{AREA_GAIN:g} x {f.get('area_step_p99', 0.0):.3g} / {K} = {e:.3g} (the step from 1 to 2 rays per side, falling as 1 / K)")
-        cost = COST_AREA_PX_PASS * px * K * K
+        cost = COST_AREA_PX_ONEOFF * px + COST_AREA_PX_PASS * px * K * K
         if f["dispersive"]:
             out.append(TierEstimate("analytic", None, False, math.hypot(disp, e), cost, True, (
                 why, f"dispersive glass evaluated at 550 nm: dispersion term {disp:.3g}"), K))
             if analytic_spectral:
-                out.append(TierEstimate("analytic", None, True, e, cost * n_b * AREA_BAND_COST, True, (
+                cost_s = COST_AREA_PX_ONEOFF * px + COST_AREA_PX_PASS * px * K * K * n_b * AREA_BAND_COST
+                out.append(TierEstimate("analytic", None, True, e, cost_s, True, (
                     why, f"spectral: {n_b} bands, response-weighted: dispersion modelled"), K))
         else:
             out.append(TierEstimate("analytic", None, False, e, cost, True, (why,), K))
