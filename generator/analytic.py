@@ -86,11 +86,13 @@ def layer_planes(scene: SceneConfig) -> tuple[LayerPlane, LayerPlane]:
     return t_plane, r_plane
 
 
-def analytic_maps(scene: SceneConfig, wavelength_nm: float = 550.0) -> PaneMaps:
-    """Compute the analytic per-pixel pane maps of ``scene`` (pixel centres)."""
+def analytic_maps(scene: SceneConfig, wavelength_nm: float = 550.0, subpixel: tuple[float, float] = (0.5, 0.5)) -> PaneMaps:
+    """Compute the analytic per-pixel pane maps of ``scene`` at one position inside each pixel
+    (``subpixel``, fractions of a pixel from its top-left corner; the centre by default).
+    """
     cam = scene.camera_model()
     plane = scene.pane_plane()
-    geo = incidence_geometry(cam, plane)
+    geo = incidence_geometry(cam, plane, subpixel)
     n_idx = scene.pane.index(wavelength_nm)
     model = scene.pane.model
     co = pane_coefficients(geo["theta"], n_idx, model, scene.pane.thickness_m, scene.pane.absorption_per_m)

@@ -23,6 +23,10 @@ units (1.0 = brightest layer value).  The planner predicts it per tier from what
 
   The maps tier computes the same maps with Mitsuba and costs more: predicted like analytic, never
   cheaper, so it is chosen only when asked for by name.
+* **analytic on the pixel's area** (``--supersample K``, :mod:`generator.analytic_area`): the sampling term
+  is gone (the tier integrates the pixel's area as the path tracer does); what is left is the stratified
+  estimate's error, ``AREA_GAIN * d / K`` with ``d`` the measured p99 step between 1 and 2 rays per side
+  (first-order convergence: the step from K to 2K is half the error at K), and, mono, the dispersion term.
 * **full** (Mitsuba path tracing at ``spp``).  Monte Carlo noise: p99 = ``k / sqrt(spp)``.  For a layer
   scene ``k`` is predicted from the lobe choice at the pane: a camera path reflects with probability
   about R and transmits otherwise, so one sample's intensity is ``L_R`` or ``T L_T / (1 - R)`` and its
@@ -35,7 +39,8 @@ units (1.0 = brightest layer value).  The planner predicts it per tier from what
   the noise depends on lights and BSDFs no closed form covers.
 
 Cost (seconds per keyframe, for the choice only): per pixel, from the trade table's order of
-magnitude; the order analytic < maps < full(spp) is what matters.
+magnitude; the order analytic < analytic on the pixel's area (K^2 passes per band) < maps, and full by
+spp, is what matters.
 """
 
 from __future__ import annotations
@@ -69,6 +74,19 @@ COST_ANALYTIC_PX = 4e-7
 COST_MAPS_ONEOFF_PX = 4e-5
 COST_FULL_PX_SPP = 6e-7
 """Seconds per pixel (per spp for the full tier) on this 2-core machine (orders of magnitude from the trade table)."""
+COST_AREA_PX_ONEOFF = 5e-6
+COST_AREA_PX_PASS = 2.7e-6
+"""Seconds of CPU per pixel of the area-sampled analytic tier: once per frame (textures, the T plane's size),
+and per ray position of a mono pass (`polspike bench area` on bk7_single at 400 x 250: 0.89 / 1.6 / 4.95 s
+at K = 1 / 2 / 4)."""
+AREA_BAND_COST = 0.78
+"""Cost of each band of a spectral pass relative to a mono pass (the ray's masks are shared; measured 2.05 /
+7.1 / 27.3 s at K = 1 / 2 / 4 with 8 bands)."""
+AREA_BANDS = 8
+AREA_SUPERSAMPLES = (1, 2, 4)
+"""Rays per pixel side the planner offers for the area-sampled analytic tier."""
+AREA_GAIN = 2.0
+"""Error at K rays per side over the step from K to 2K (first-order convergence, 1 / K)."""
 MAX_SAMPLING_WIDTH = 400
 """The sampling term is computed at the scene's size up to this width (it shrinks with resolution as
 the content's edges get more texels; a wider scene gets the narrower, larger estimate), with
@@ -89,6 +107,14 @@ class TierEstimate:
     cost_s_per_frame: float
     feasible: bool
     reasons: tuple[str, ...]
+    supersample: int = 0
+    """Analytic tier: 0 = the pixel centre's point sample, K = the pixel's area on K x K rays (:mod:`generator.analytic_area`)."""
+
+    def label(self) -> str:
+        """Short name: ``analytic``, ``analytic spectral area 2x2``, ``full 256spp spectral``."""
+        if self.tier == "full":
+            return f"full {self.spp}spp" + (" spectral" if self.spectral else "")
+        return self.tier + (" spectral" if self.spectral else "") + (f" area {self.supersample}x{self.supersample}" if self.supersample else "")
 
     def to_dict(self) -> dict:
         d = dataclasses.asdict(self)
@@ -109,7 +135,8 @@ class TierPlan:
     def to_dict(self) -> dict:
         return {
             "tolerance": self.tolerance,
-            "choice": {"tier": self.choice.tier, "spp": self.choice.spp, "spectral": self.choice.spectral, "predicted_p99": self.choice.predicted_p99},
+            "choice": {"tier": self.choice.tier, "spp": self.choice.spp, "spectral": self.choice.spectral, "supersample": self.choice.supersample,
+                       "predicted_p99": self.choice.predicted_p99},
             "reasons": list(self.choice.reasons),
             "estimates": [e.to_dict() for e in self.estimates],
             "features": self.features,
@@ -203,11 +230,12 @@ def scene_features(scene, pilot: bool = True) -> dict:
         f["dispersion_p99"] = float(np.percentile(_worst(Sd, Ss), 99))
         f["dispersion_size"] = [sd.camera.width, sd.camera.height]
         f["spectral_noise_factor"] = float(math.sqrt(len(w) * float(np.sum(np.asarray(w) ** 2))))
-    from generator.planner_footprint import SUBPIXELS, sampling_term
+    from generator.analytic_area import area_terms
+    from generator.planner_footprint import SUBPIXELS
 
     ss = _small(scene, MAX_SAMPLING_WIDTH)
     k_sub = max(1, min(SUBPIXELS, int(math.sqrt(SAMPLING_RAYS / (ss.camera.width * ss.camera.height)))))
-    f["sampling_p99"] = sampling_term(ss, k_sub)
+    f["sampling_p99"], f["area_step_p99"] = area_terms(ss, k_sub)
     f["sampling_source"] = f"point sample vs box filter over nearest texels, {ss.camera.width} x {ss.camera.height}, {k_sub} x {k_sub} sub-pixel rays"
     f["absorption_p99"] = 0.0
     if scene.pane.absorption_per_mm > 0:
@@ -251,6 +279,37 @@ def _full_error(f: dict, spp: int, spectral: bool) -> tuple[float, list[str]]:
     return float(math.sqrt(sum(t * t for t in terms))), reasons
 
 
+def area_error(f: dict, supersample: int) -> float:
+    """Predicted p99 error of the area-sampled analytic tier at ``supersample`` rays per side (mono at 550 nm
+    without the dispersion term): ``AREA_GAIN * d / K``, with ``d`` the measured distance between 1 and 2 rays
+    per side (``features['area_step_p99']``): the stratified estimate's error falls as 1 / K, so the step from
+    K to 2K is half the error at K.
+    """
+    return AREA_GAIN * float(f.get("area_step_p99", 0.0)) / max(1, int(supersample))
+
+
+def _area_estimates(f: dict, px: int, analytic_spectral: bool) -> list[TierEstimate]:
+    """The area-sampled analytic tier at :data:`AREA_SUPERSAMPLES` rays per side, mono and (dispersive glass) spectral."""
+    out = []
+    disp = f.get("dispersion_p99", 0.0)
+    n_b = AREA_BANDS if f["dispersive"] else 1
+    for K in AREA_SUPERSAMPLES:
+        e = area_error(f, K)
+        why = (f"pixel area on {K} x {K} rays, each the box mean of the full tier's texels over its cell: area term "
+               f"{AREA_GAIN:g} x {f.get('area_step_p99', 0.0):.3g} / {K} = {e:.3g} (the step from 1 to 2 rays per side, falling as 1 / K)")
+        cost = COST_AREA_PX_ONEOFF * px + COST_AREA_PX_PASS * px * K * K
+        if f["dispersive"]:
+            out.append(TierEstimate("analytic", None, False, math.hypot(disp, e), cost, True, (
+                why, f"dispersive glass evaluated at 550 nm: dispersion term {disp:.3g}"), K))
+            if analytic_spectral:
+                cost_s = COST_AREA_PX_ONEOFF * px + COST_AREA_PX_PASS * px * K * K * n_b * AREA_BAND_COST
+                out.append(TierEstimate("analytic", None, True, e, cost_s, True, (
+                    why, f"spectral: {n_b} bands, response-weighted: dispersion modelled"), K))
+        else:
+            out.append(TierEstimate("analytic", None, False, e, cost, True, (why,), K))
+    return out
+
+
 def predict_tiers(scene, features: dict | None = None, spp_grid: tuple[int, ...] | None = None, analytic_spectral: bool = True) -> list[TierEstimate]:
     """Every tier's prediction for ``scene`` (full tier: one row per spp in ``spp_grid``, mono and, for a
     dispersive glass, spectral).
@@ -277,6 +336,7 @@ def predict_tiers(scene, features: dict | None = None, spp_grid: tuple[int, ...]
                 f"sampling term {samp:.3g}")))
         out.append(TierEstimate("maps", 1, False, model_err, COST_MAPS_ONEOFF_PX * px + COST_ANALYTIC_PX * px, True,
                                 tuple(reasons) + ("maps rendered by Mitsuba: same model as analytic, costs more",)))
+        out += _area_estimates(f, px, analytic_spectral)
     grid = spp_grid or tuple(2**i for i in range(0, int(math.log2(SPP_MAX)) + 1))
     mult = 3.0 if f["objects"] else 1.0  # object keyframes: the mixture plus T alone and R alone
     for spectral in ((False, True) if f["dispersive"] else (False,)):
@@ -302,20 +362,20 @@ def plan_tier(scene, tolerance: float, features: dict | None = None, analytic_sp
         best = min((e for e in ests if e.feasible), key=lambda e: e.predicted_p99)
         raise ConfigError(
             f"--tolerance {tolerance:g} cannot be reached for scene {scene.name!r}: the best reachable p99 error is "
-            f"{best.predicted_p99:.3g} (tier {best.tier}{f' at {best.spp} spp' if best.tier == 'full' else ''})"
+            f"{best.predicted_p99:.3g} (tier {best.tier}{f' at {best.spp} spp' if best.tier == 'full' else ''}"
+            f"{', --spectral' if best.tier == 'analytic' and best.spectral else ''}{f', --supersample {best.supersample}' if best.supersample else ''})"
         )
     choice = min(ok, key=lambda e: (e.cost_s_per_frame, e.predicted_p99))
     reasons = (f"cheapest tier with predicted p99 {choice.predicted_p99:.3g} <= tolerance {tolerance:g}",) + choice.reasons
     choice = dataclasses.replace(choice, reasons=reasons)
-    log.info("tier auto for %s at tolerance %g: %s%s (predicted p99 %.3g)", scene.name, tolerance, choice.tier,
-             f" {choice.spp} spp" if choice.tier == "full" else "", choice.predicted_p99)
+    log.info("tier auto for %s at tolerance %g: %s (predicted p99 %.3g)", scene.name, tolerance, choice.label(), choice.predicted_p99)
     return TierPlan(float(tolerance), choice, tuple(ests), {k: v for k, v in f.items()})
 
 
 def apply_plan(opts, plan: TierPlan):
     """``opts`` (a :class:`generator.render.RenderOptions` with ``tier='auto'``) with the plan's tier, spp and spectral."""
     c = plan.choice
-    kw: dict = {"tier": c.tier, "spectral": c.spectral}
+    kw: dict = {"tier": c.tier, "spectral": c.spectral, "supersample": c.supersample if c.tier == "analytic" else None}
     if c.tier == "full":
         kw["spp"] = c.spp
     return dataclasses.replace(opts, **kw)

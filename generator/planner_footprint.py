@@ -58,13 +58,13 @@ def _nearest(tex: np.ndarray, ext: float, X: np.ndarray, Y: np.ndarray) -> np.nd
     return out
 
 
-def _box_mean(tex: np.ndarray, ext: float, X: np.ndarray, Y: np.ndarray) -> np.ndarray:
+def _box_mean(tex: np.ndarray, ext: float, X: np.ndarray, Y: np.ndarray, cell: float = 1.0) -> np.ndarray:
     """Mean of the nearest-texel texture over each sub-pixel ray's footprint, exactly (summed-area table).
 
     ``X``, ``Y``: (h, w) view coordinates of a grid of rays.  A ray's footprint is the cell between its
-    neighbours (half a step each way, from the grid's gradients), taken as the axis-aligned rectangle
-    of the same area in texel space; a piecewise-constant texture integrates over it exactly with the
-    summed-area table interpolated bilinearly (0 off the plane).
+    neighbours (half a step each way, from the grid's gradients; ``cell`` times that on each side), taken
+    as the axis-aligned rectangle of the same area in texel space; a piecewise-constant texture integrates
+    over it exactly with the summed-area table interpolated bilinearly (0 off the plane).
     """
     th, tw = tex.shape
     c, r = _texel_coords(tex.shape, ext, X, Y)
@@ -75,7 +75,7 @@ def _box_mean(tex: np.ndarray, ext: float, X: np.ndarray, Y: np.ndarray) -> np.n
     wr = np.abs(dr_x) + np.abs(dr_y)
     area = np.abs(dc_x * dr_y - dc_y * dr_x)
     k = np.sqrt(area / np.maximum(wc * wr, 1e-300))
-    wc, wr = np.clip(wc * k, 1e-6, None), np.clip(wr * k, 1e-6, None)
+    wc, wr = np.clip(wc * k * cell, 1e-6, None), np.clip(wr * k * cell, 1e-6, None)
     sat = np.zeros((th + 1, tw + 1))
     sat[1:, 1:] = np.cumsum(np.cumsum(tex, axis=0), axis=1)
 
@@ -98,33 +98,42 @@ def _r_behind_pane(scene, r_plane, X: np.ndarray, Y: np.ndarray) -> np.ndarray:
         return ~(((P - np.asarray(pp.point, float)) @ nrm) > 0)
 
 
-def _t_plane_in_front(scene, t_plane) -> np.ndarray:
+def _t_plane_in_front(scene, t_plane, subpixel: tuple[float, float] = (0.5, 0.5)) -> np.ndarray:
     """Camera rays that cross the T layer's plane before the pane (a grazing pane crosses it): that part of
     the plane is clipped, and the transmitted ray, already past the plane, meets no T (black in the full tier).
+    ``subpixel``: the rays' position inside each pixel.
     """
     from polphysics.geometry import Plane, incidence_geometry, intersect_plane
 
     cam = scene.camera_model()
-    geo = incidence_geometry(cam, scene.pane_plane())
+    geo = incidence_geometry(cam, scene.pane_plane(), subpixel)
     t_t, _ = intersect_plane(cam.position + np.zeros_like(geo["d"]), geo["d"], Plane(t_plane.center, t_plane.normal))
     with np.errstate(invalid="ignore"):
         return np.isfinite(t_t) & (t_t > 0) & (t_t < geo["t"])
 
 
-def _r_plane_in_front(scene, r_plane, tex_r: np.ndarray, ext: float) -> tuple[np.ndarray, np.ndarray]:
-    """Camera rays that meet the R layer's plane before the pane (its part on the camera side of a
-    steeply tilted pane stands in the view): mask and the R radiance seen directly (unpolarized).
+def _r_plane_in_front_xy(scene, r_plane, ext: float, subpixel: tuple[float, float] = (0.5, 0.5)) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Camera rays (at ``subpixel`` inside each pixel) that meet the R layer's plane before the pane (its part
+    on the camera side of a steeply tilted pane stands in the view): mask and the rays' view coordinates on it.
     """
     from polphysics.geometry import Plane, incidence_geometry, intersect_plane
 
     cam = scene.camera_model()
-    geo = incidence_geometry(cam, scene.pane_plane())
+    geo = incidence_geometry(cam, scene.pane_plane(), subpixel)
     t_r, pts = intersect_plane(cam.position + np.zeros_like(geo["d"]), geo["d"], Plane(r_plane.center, r_plane.normal))
     rel = pts - r_plane.center
     X = rel @ r_plane.right / (2 * r_plane.view_half_w)
     Y = -(rel @ r_plane.up) / (2 * r_plane.view_half_h)
     with np.errstate(invalid="ignore"):
         on = np.isfinite(t_r) & (t_r > 0) & (t_r < geo["t"]) & (np.abs(X) <= 0.5 * ext) & (np.abs(Y) <= 0.5 * ext)
+    return on, X, Y
+
+
+def _r_plane_in_front(scene, r_plane, tex_r: np.ndarray, ext: float) -> tuple[np.ndarray, np.ndarray]:
+    """Mask of :func:`_r_plane_in_front_xy` and the R radiance seen directly there (unpolarized), each ray's
+    value the mean over its cell.
+    """
+    on, X, Y = _r_plane_in_front_xy(scene, r_plane, ext)
     return on, _box_mean(tex_r, ext, X, Y)
 
 
@@ -179,3 +188,4 @@ def sampling_term(scene, subpixels: int = SUBPIXELS) -> float:
     S_point, S_box = footprint_stokes(scene, 0.0, subpixels)
     worst = np.max([np.abs(polarizer_intensity(*S_point, p) - polarizer_intensity(*S_box, p)) for p in PHIS], axis=0)
     return float(np.percentile(worst, 99))
+

@@ -64,6 +64,16 @@ class RenderOptions:
     """Sensor spectral response of spectral renders: ``cie_y``, ``flat`` or a CSV path (``wavelength_nm,response``)."""
     n_bands: int = 8
     """Wavelength bands of the spectral quadrature (400-700 nm)."""
+    supersample: int | None = None
+    """Analytic tier: 0 = the pixel centre's point sample; K >= 1 = the pixel's area, K x K stratified rays each the box
+    mean of the full tier's texels over its cell (:mod:`generator.analytic_area`) [default: scene ``render.supersample``]."""
+
+
+def _supersample(scene: SceneConfig, opts: RenderOptions) -> int:
+    """The analytic tier's rays per pixel side (0: point sample; 0 for the other tiers)."""
+    if opts.tier != "analytic":
+        return 0
+    return int(opts.supersample if opts.supersample is not None else scene.render.supersample)
 
 
 def _resume_key(scene: SceneConfig, opts: RenderOptions) -> dict:
@@ -76,6 +86,8 @@ def _resume_key(scene: SceneConfig, opts: RenderOptions) -> dict:
         key["spectral"] = True  # the analytic tier integrates bands only when asked explicitly
         key["response"] = str(opts.response)
         key["n_bands"] = int(opts.n_bands)
+    if _supersample(scene, opts) > 0:
+        key["supersample"] = _supersample(scene, opts)
     if opts.tier != "analytic":
         key["spp"] = int(opts.spp or scene.render.spp)
         spectral = bool(scene.render.spectral if opts.spectral is None else opts.spectral)
@@ -144,10 +156,17 @@ def render(
 
         if tolerance is None:
             raise ConfigError("--tier auto needs --tolerance EPS (the largest acceptable p99 radiance error)")
+        if opts.supersample is not None:
+            raise ConfigError("--supersample is chosen by --tier auto (with the tier); drop it or name the tier")
         plan = plan_tier(scene, tolerance)
         opts = apply_plan(opts, plan)
     if opts.tier not in TIERS:
         raise ConfigError(f"unknown tier {opts.tier!r}; choose one of {list(TIERS) + ['auto']}")
+    if opts.supersample is not None and opts.tier != "analytic" and plan is None:
+        raise ConfigError(f"--supersample is for the analytic tier (tier is {opts.tier!r}); the full tier samples the pixel with --spp")
+    K = _supersample(scene, opts)
+    if not 0 <= K <= 64:
+        raise ConfigError(f"--supersample {K} must be from 0 (point sample) to 64 (rays per pixel side)")
     from generator.objects3d import object_sides, require_full_tier
 
     require_full_tier(scene, opts.tier)
@@ -229,13 +248,19 @@ def render(
     write_json(meta_path, meta)
     tc = LayerContent(scene.layers.transmission, (scene.camera.height, scene.camera.width))
     rc = LayerContent(scene.layers.reflection, (scene.camera.height, scene.camera.width))
-    bands = None
+    bands = area_bands = None
     if opts.tier == "analytic" and opts.spectral and scene.pane.glass is not None:  # dispersion: Eq. (1)-(2) per band, weighted
         from generator.tiers_mitsuba import spectral_bands
 
         wl, w = spectral_bands(opts.n_bands, opts.response)
-        bands = [(float(wi), analytic_maps(scene, float(x))) for x, wi in zip(wl, w)]
+        if K > 0:
+            area_bands = [(float(x), float(wi)) for x, wi in zip(wl, w)]
+        else:
+            bands = [(float(wi), analytic_maps(scene, float(x))) for x, wi in zip(wl, w)]
         info["modelled"]["spectral"] = f"{opts.n_bands} bands 400-700 nm, {scene.pane.glass} Sellmeier index, response {opts.response} (maps.exr at 550 nm)"
+        meta["modelled"] = info["modelled"]
+    if K > 0:
+        info["modelled"]["supersample"] = f"pixel area: {K}x{K} stratified rays per pixel, box filter, each the mean of the full tier's nearest-texel textures over its cell"
         meta["modelled"] = info["modelled"]
     full = None
     if opts.tier == "full":
@@ -251,9 +276,17 @@ def render(
     t1 = time.perf_counter()
     todo = [k for k in range(a, b) if not (out / names[k]).is_file()]
     done = (b - a) - len(todo)
-    for k in todo:
+    area: dict[int, tuple] = {}
+    for n, k in enumerate(todo):
         t = float(times[k])
-        if full is not None and full.objects:
+        if K > 0:
+            if k not in area:  # a batch of frames per pass over the ray positions
+                from generator.analytic_area import FRAME_BATCH, area_frames
+
+                batch = todo[n:n + FRAME_BATCH]
+                area = dict(zip(batch, area_frames(scene, [float(times[j]) for j in batch], K, area_bands)))
+            S, L_T, L_R = area.pop(k)
+        elif full is not None and full.objects:
             S = full.stokes(t, k)
             L_T, L_R = full.layers(t)
         elif bands is not None:

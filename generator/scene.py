@@ -160,6 +160,10 @@ class RenderSettings:
     spp: int = opt(16, "samples per pixel (maps: sub-pixel rays; full: path samples)", lo=1, hi=1 << 16)
     spectral: bool = opt(False, "integrate over wavelength with the sensor response (needed only for dispersive glass)")
     seed: int = opt(0, "render seed", lo=0, hi=2**31 - 1)
+    supersample: int = opt(
+        0, "analytic tier: 0 = the pixel centre's point sample; K >= 1 = the pixel's area, K x K stratified rays each the box mean of the full tier's texels over its cell",
+        lo=0, hi=64, omit_if_default=True,
+    )
 
 
 @dataclasses.dataclass(frozen=True)

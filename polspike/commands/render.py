@@ -40,6 +40,7 @@ def render_cmd(
     keyframe_hz: Optional[float] = typer.Option(None, "--keyframe-hz", help="full tier: path-traced keyframes per second (frames between are interpolated)"),
     response: str = typer.Option("cie_y", "--response", help="spectral renders: sensor response cie_y | flat | PATH.csv (columns wavelength_nm,response)"),
     bands: int = typer.Option(8, "--bands", help="spectral renders: wavelength bands over 400-700 nm", min=1, max=64),
+    supersample: Optional[int] = typer.Option(None, "--supersample", help="analytic tier: 0 = pixel-centre point sample; K = the pixel's area on K x K rays (what the path tracer's pixel integrates) [default: scene render.supersample]"),
     quiet: bool = typer.Option(False, "--quiet", help="no progress bar"),
 ) -> None:
     """Render a glass-pane scene to Stokes frames, layer ground truth and coefficient maps."""
@@ -52,14 +53,15 @@ def render_cmd(
     if tolerance is not None and tier != "auto":
         raise ConfigError("--tolerance is for --tier auto; drop it or use --tier auto")
     sc = load_scene(scene)
-    opts = RenderOptions(tier=tier, fps=fps, duration_s=duration, frames=_parse_frames(frames), spp=spp, variant=variant, spectral=spectral, seed=seed, keyframe_hz=keyframe_hz, response=response, n_bands=bands)
+    opts = RenderOptions(tier=tier, fps=fps, duration_s=duration, frames=_parse_frames(frames), spp=spp, variant=variant, spectral=spectral, seed=seed, keyframe_hz=keyframe_hz, response=response, n_bands=bands, supersample=supersample)
     with rich_progress(f"render {sc.name} [{tier}]", enabled=not quiet) as cb:
         meta = render(sc, out, opts, progress=cb, tolerance=tolerance)
     t = meta["timings"]
     plan = meta.get("tier_plan")
     if plan:
         c = plan["choice"]
-        Console().print(f"tier auto at tolerance {plan['tolerance']:g}: {c['tier']}" + (f" {c['spp']} spp" + (" spectral" if c["spectral"] else "") if c["tier"] == "full" else "") + f" (predicted p99 {c['predicted_p99']:.3g})")
+        what = f" {c['spp']} spp" + (" spectral" if c["spectral"] else "") if c["tier"] == "full" else (" spectral" if c["spectral"] else "") + (f" --supersample {c['supersample']}" if c.get("supersample") else "")
+        Console().print(f"tier auto at tolerance {plan['tolerance']:g}: {c['tier']}{what} (predicted p99 {c['predicted_p99']:.3g})")
     tier = meta["tier"]
     Console().print(f"wrote {len(meta['frames'])} frames to {out} (tier {tier}, maps {t.get('maps_s', 0):.2f} s, {t.get('per_frame_s', 0) * 1e3:.1f} ms/frame)")
 

@@ -130,8 +130,15 @@ class _AnalyticSource:
         if i not in self.cache:
             if len(self.cache) >= self.cache_frames:
                 self.cache.pop(min(self.cache))
-            L_T, L_R, L_G = sample_layers(self.maps, self.tc, self.rc, t_s)
-            S = frame_stokes(self.maps, L_T, L_R, L_G).astype(np.float32)
+            K = int(getattr(self.scene.render, "supersample", 0))
+            if K > 0:  # the pixel's area (generator.analytic_area)
+                from generator.analytic_area import area_frames
+
+                S, L_T, L_R = area_frames(self.scene, [t_s], K)[0]
+                S = S.astype(np.float32)
+            else:
+                L_T, L_R, L_G = sample_layers(self.maps, self.tc, self.rc, t_s)
+                S = frame_stokes(self.maps, L_T, L_R, L_G).astype(np.float32)
             self.cache[i] = (S, L_T.astype(np.float32), L_R.astype(np.float32))
         return self.cache[i]
 

@@ -33,7 +33,7 @@ Layout (format ``polspike-manifest/1``)::
     [groups.layers.transmission]     # overlays the T layer (source, distance_m, brightness, motion, sprites, ...)
     [groups.layers.reflection]       # overlays the R layer
     [groups.polarizer]               # overlays PolarizerConfig (rate_hz, phase_deg, extinction_ratio, ...)
-    [groups.render]                  # overlays RenderSettings (spp, spectral: maps/full tiers)
+    [groups.render]                  # overlays RenderSettings (spp, spectral: maps/full tiers; supersample: analytic on the pixel area)
     [groups.objects]                 # SceneConfig.objects: 3-D shapes / lights (full tier; sampler profile objects3d)
     [groups.spike_sim]               # preset = "default" | "ideal" | "noisy" | "plain_if", plus any SpikeSimConfig field
                                      # (or spike_sim = "ideal": a bare preset name)
@@ -294,6 +294,8 @@ def _auto_tier(scene, tolerance: float | None, label: str):
     c = plan.choice
     if c.tier == "full":
         scene = dataclasses.replace(scene, render=dataclasses.replace(scene.render, spp=int(c.spp), spectral=bool(c.spectral)))
+    elif c.tier == "analytic":  # the plan's pixel sampling (point or area), whatever the group's [render] said
+        scene = dataclasses.replace(scene, render=dataclasses.replace(scene.render, supersample=int(c.supersample)))
     return scene, c.tier, plan.to_dict()
 
 

@@ -10,7 +10,7 @@ prediction below it cannot be told from it).
 For every tolerance the planner's pick is rendered (unless a measured row already is that
 candidate) and measured: ``met`` when its corrected error is <= EPS; ``resolved`` when the
 measurement's resolution is <= EPS too (otherwise ``met`` only says the error is not visibly
-larger).  ``cheapest`` when no measured candidate of a lower cost rank (analytic < maps < full by
+larger).  ``cheapest`` when no measured candidate of a lower cost rank (analytic < area-sampled analytic < maps < full by
 spp) met EPS.
 """
 
@@ -28,9 +28,9 @@ log = logging.getLogger(__name__)
 DEFAULT_TOLERANCES = (5e-2, 2e-2, 1e-2, 1e-3)
 
 
-def _rank(tier: str, spp: int | None, spectral: bool = False) -> float:
+def _rank(tier: str, spp: int | None, spectral: bool = False, supersample: int = 0) -> float:
     if tier == "analytic":
-        return 0.0
+        return 0.5 if supersample else 0.0  # the area-sampled analytic tier: between the point sample and maps
     if tier == "maps":
         return 1.0
     return 2.0 + math.log2(max(1, int(spp or 1))) + (0.5 if spectral else 0.0)
@@ -50,7 +50,7 @@ def _match(e, row: dict, dispersive: bool) -> bool:
     if row.get("tier") != e.tier:
         return False
     if e.tier == "analytic":
-        return bool(e.spectral) == bool(row.get("spectral") and dispersive)
+        return bool(e.spectral) == bool(row.get("spectral") and dispersive) and int(row.get("supersample") or 0) == int(e.supersample)
     if e.tier == "maps":
         return True
     return int(row.get("spp") or 0) == int(e.spp) and _spectral(row, dispersive) == bool(e.spectral)
@@ -95,7 +95,7 @@ def check_planner(scenes: list, rows: list[dict], refs: dict, tolerances=DEFAULT
                 pred_rows.append({"scene": scene.name, "candidate": cand.label, "tier": "full", "spp": c.spp, "spectral": bool(c.spectral),
                                   "predicted_p99": c.predicted_p99, "measured_p99": row["err_corrected"], "resolution": res,
                                   "ratio": max(c.predicted_p99, res) / max(row["err_corrected"], res), "agree_x2": _agree(c.predicted_p99, row["err_corrected"], res)})
-            if row is None and c.tier == "analytic" and c.spectral:  # Eq. (1)-(2) per band, weighted
+            if row is None and c.tier == "analytic" and c.spectral and not c.supersample:  # Eq. (1)-(2) per band, weighted
                 from generator.analytic import analytic_maps, spectral_frame
                 from generator.layers import LayerContent
                 from generator.tiers_mitsuba import spectral_bands
@@ -109,13 +109,25 @@ def check_planner(scenes: list, rows: list[dict], refs: dict, tolerances=DEFAULT
                 pred_rows.append({"scene": scene.name, "candidate": row["candidate"], "tier": "analytic", "spp": None, "spectral": True,
                                   "predicted_p99": c.predicted_p99, "measured_p99": row["err_corrected"], "resolution": res,
                                   "ratio": max(c.predicted_p99, res) / max(row["err_corrected"], res), "agree_x2": _agree(c.predicted_p99, row["err_corrected"], res)})
-            label = c.tier + (" spectral" if c.tier == "analytic" and c.spectral else "") + (f" {c.spp}spp" + (" spectral" if c.spectral else "") if c.tier == "full" else "")
+            if row is None and c.tier == "analytic" and c.supersample:  # the pixel's area on K x K rays
+                from generator.analytic_area import area_frames
+                from generator.tiers_mitsuba import spectral_bands
+
+                bands = list(zip(*spectral_bands())) if c.spectral and disp else None
+                S = area_frames(scene, [0.0], c.supersample, bands)[0][0]
+                row = {"candidate": f"auto pick {c.label()}", **corrected_error(_radiance_error(S, S_ref), res)}
+                measured.append({**row, "scene": scene.name, "tier": "analytic", "spp": None, "spectral": bool(c.spectral and disp), "supersample": c.supersample})
+                pred_rows.append({"scene": scene.name, "candidate": row["candidate"], "tier": "analytic", "spp": None, "spectral": bool(c.spectral and disp),
+                                  "predicted_p99": c.predicted_p99, "measured_p99": row["err_corrected"], "resolution": res,
+                                  "ratio": max(c.predicted_p99, res) / max(row["err_corrected"], res), "agree_x2": _agree(c.predicted_p99, row["err_corrected"], res)})
+            label = c.label()
             if row is None:
                 picks.append({"scene": scene.name, "tolerance": eps, "pick": label, "predicted_p99": c.predicted_p99, "measured_p99": None,
                               "met": None, "resolved": None, "cheapest": None, "note": f"not rendered (spp > {max_pick_spp})"})
                 continue
             met = row["err_corrected"] <= eps
-            better = [r for r in measured if r["err_corrected"] <= eps and _rank(r["tier"], r.get("spp"), _spectral(r, disp)) < _rank(c.tier, c.spp, c.spectral)]
+            better = [r for r in measured if r["err_corrected"] <= eps
+                      and _rank(r["tier"], r.get("spp"), _spectral(r, disp), int(r.get("supersample") or 0)) < _rank(c.tier, c.spp, c.spectral, c.supersample)]
             picks.append({"scene": scene.name, "tolerance": eps, "pick": label, "predicted_p99": c.predicted_p99, "measured_p99": row["err_corrected"],
                           "resolution": row["resolution"], "met": met, "resolved": row["resolution"] <= eps, "cheapest": not better,
                           "cheaper_that_met": [r["candidate"] for r in better]})
