@@ -120,7 +120,7 @@ def train_cmd(
 @app_typer.command("reconstruct")
 def reconstruct_cmd(
     input: Path = typer.Argument(..., help="a spike group directory (polspike simulate) or a raw Vidar .dat file"),
-    out: Path = typer.Option(..., "--out", help="output directory: T.mp4, R.mp4, preview.mp4, reconstruct.json [, frames/]"),
+    out: Path = typer.Option(..., "--out", help="output directory: T.mp4, R.mp4 [, preview.mp4], reconstruct.json [, frames/]"),
     height: Optional[int] = typer.Option(None, "--height", help=".dat: frame height H"),
     width: Optional[int] = typer.Option(None, "--width", help=".dat: frame width W"),
     phi0_deg: Optional[float] = typer.Option(None, "--phi0-deg", help=".dat: polarizer angle at t = 0 (calibration), degrees"),
@@ -150,6 +150,7 @@ def reconstruct_cmd(
     follow_idle: float = typer.Option(5.0, "--follow-idle", help="--follow: stop when the file has not grown for this many seconds (0 = only Ctrl-C stops)"),
     path: str = typer.Option("auto", "--path", help="live (packed reads, fused solver, background encoding: the real-time path; physics methods on pane maps over a .dat) | stream (the general streaming path) | auto (live where it applies)"),
     video_quality: str = typer.Option("fast", "--video-quality", help="live path videos: fast (x264 CRF 23, less encoder CPU) | high (CRF 10, as the streaming path)"),
+    preview: Optional[bool] = typer.Option(None, "--preview/--no-preview", help="also write preview.mp4 (input | T | R side by side; more encoder CPU than T.mp4 and R.mp4 together) [default: the streaming path yes, the live path no: it keeps up with the camera]"),
 ) -> None:
     """Turn a spike group or a .dat into reflection-free T and R video at the output cadence (~343 FPS)."""
     import dataclasses
@@ -208,7 +209,8 @@ def reconstruct_cmd(
             raise ConfigError(f"--pane gives zeta (the calibrated maps): drop --zeta {zeta}")
         if pane_n is not None or pane_model != "auto":
             raise ConfigError("--pane fixes the index and the pane model (they are in its maps): drop --pane-n / --pane-model")
-    cfg = ReconstructConfig(window_steps=window_steps, stride_deg=stride_deg, exposure=exposure or 1.0, frames=frames, max_frames=max_frames, precision=precision)
+    cfg = ReconstructConfig(window_steps=window_steps, stride_deg=stride_deg, exposure=exposure or 1.0, frames=frames, max_frames=max_frames, precision=precision,
+                            preview=True if preview is None else preview)
     if path not in ("auto", "live", "stream"):
         raise ConfigError(f"--path {path!r}: choose auto, live or stream")
     if video_quality not in ("fast", "high"):
@@ -299,7 +301,8 @@ def reconstruct_cmd(
         from reconstruct.stream.packed import PackedDat
         from reconstruct.video.live import LiveConfig
 
-        lcfg = LiveConfig(window_steps=window_steps, stride_deg=stride_deg, frames=frames, max_frames=max_frames, idle_s=follow_idle, video_quality=video_quality)
+        lcfg = LiveConfig(window_steps=window_steps, stride_deg=stride_deg, frames=frames, max_frames=max_frames, idle_s=follow_idle, video_quality=video_quality,
+                          preview=bool(preview))
         reader = reader or PackedDat(input, height, width)
         s = run_live(reader, model, out, lcfg, phi0_rad=math.radians(phi0_deg), rev_per_s=rev_per_s, rate_hz=rate_hz,
                      exposure=src.exposure if src.exposure is not None else cfg.exposure, name=input.name, follow=follow, meta=meta, quiet=quiet)

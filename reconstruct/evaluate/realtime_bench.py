@@ -49,13 +49,15 @@ def _model(method: str, rir: bool, maps, span: float):
 
 
 LIVE_VARIANTS = {
-    "torch": {"solver": "torch", "video_quality": "high", "rir_finest": 1},
-    "high-video": {"video_quality": "high"},
+    "torch": {"solver": "torch", "video_quality": "high", "rir_finest": 1, "preview": True},
+    "high-video": {"video_quality": "high", "preview": True},
+    "preview": {"preview": True},
     "coarse-rir": {"rir_finest": 2},
 }
 """Live-path settings the bench can run beside the defaults: ``torch`` = the torch solvers, the torch RIR fit and the
-CRF-10 videos (the live path before its fused kernels), ``high-video`` = CRF-10 videos only, ``coarse-rir`` = the
-RIR fit stopping at 2 x 2 blocks."""
+CRF-10 videos with the preview (the live path before its fused kernels), ``high-video`` = CRF-10 videos with the
+preview, ``preview`` = the defaults plus preview.mp4 (the three videos of the path before), ``coarse-rir`` = the RIR
+fit stopping at 2 x 2 blocks."""
 
 
 def _run(path: str, dat: Path, cfg, model, out: Path, video: bool) -> dict[str, Any]:

@@ -16,8 +16,9 @@ linear T and R equal to float32 rounding, tested), by a path that keeps up with 
   docs/realtime.md); torch on one thread;
 * display gains from the running histogram of the first ``gain_frames`` frames (the whole video when it is
   shorter; a longer one keeps those gains: the display can be shown live), 8-bit conversion by a table and
-  H.264 encoding on a background thread (the five 8-bit images by one numba pass,
-  :func:`reconstruct.video.display8.to8_frames`; CRF by ``video_quality``).
+  H.264 encoding on a background thread (the 8-bit images by one numba pass,
+  :func:`reconstruct.video.display8.to8_frames`; CRF by ``video_quality``); T.mp4 and R.mp4, the side-by-side
+  preview.mp4 only with ``preview`` (it holds three times the pixels of T: more encoder CPU than T and R together).
 
 With ``follow`` the .dat may still be growing: frames are made as their last step arrives, and the latency (the
 time from the arrival of a window's last step to its output) is measured per frame.  ``stop`` (an event, set by
@@ -64,7 +65,8 @@ class LiveConfig:
     stride_deg: float = opt(31.5, "polarizer rotation between output frames, degrees", lo=0.01, hi=360.0)
     batch: int = opt(8, "windows per torch solver call (solvers other than plain ls, or RIR on)", lo=1, hi=1024)
     frames: str = opt("none", "also write frames: none | png | exr", choices=("none", "png", "exr"))
-    video: bool = opt(True, "write T.mp4, R.mp4 and preview.mp4")
+    video: bool = opt(True, "write T.mp4 and R.mp4 (and preview.mp4 with preview)")
+    preview: bool = opt(False, "also write preview.mp4 (input | T | R side by side: three times the pixels of T, more x264 CPU than T and R together)")
     max_frames: int = opt(0, "stop after this many output frames (0 = all)", lo=0, hi=10**9)
     gain_frames: int = opt(64, "display gains from the histogram of the first this many frames, then kept", lo=1, hi=10**9)
     solver: str = opt("fused", "fused numba kernels where one exists (ls, physics rwps; RIR shifts applied inside) or torch (the streaming path's solver)", choices=("fused", "torch"))
@@ -167,9 +169,11 @@ class _LiveWriters:
         even = lambda a: a[: a.shape[0] // 2 * 2, : a.shape[1] // 2 * 2]  # noqa: E731
         from reconstruct.video.display8 import to8_frames
 
-        t8, r8, prev = to8_frames(I2, T, R, g, _TO8)  # the table lookup of _to8_fast, in one pass
+        t8, r8, prev = to8_frames(I2, T, R, g, _TO8, preview=self.cfg.video and self.cfg.preview)  # the table lookup of _to8_fast, in one pass
         if self.cfg.video:
             for name, img in (("T", t8), ("R", r8), ("preview", prev)):
+                if img is None:
+                    continue
                 if name not in self.vw:
                     self.vw[name] = self._open(name)
                 self.vw[name].append_data(even(img))

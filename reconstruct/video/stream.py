@@ -9,7 +9,7 @@ returns the centre frame's T and R.  Output cadence 360 f / stride
 N frames: a long recording never needs to fit in memory.
 
 Outputs in ``out_dir``: ``T.mp4``, ``R.mp4`` (H.264 via imageio-ffmpeg, at the
-output cadence), ``preview.mp4`` (side by side: 2 x centre observation | T | R),
+output cadence), ``preview.mp4`` (side by side: 2 x centre observation | T | R; ``preview``),
 optional ``frames/T_NNNNNN.png`` or ``frames/NNNNNN.exr`` (linear T, R), and
 ``reconstruct.json`` (counts, fps, timing, NaN check, agreement with the plain
 TFP image).  All files are written atomically.
@@ -64,6 +64,7 @@ class ReconstructConfig:
     batch: int = opt(2, "output frames per forward pass", lo=1, hi=1024)
     frames: str = opt("none", "also write frames: none | png | exr", choices=("none", "png", "exr"))
     video: bool = opt(True, "write T.mp4, R.mp4 and preview.mp4")
+    preview: bool = opt(True, "with video: also preview.mp4 (input | T | R side by side)")
     chunk_steps: int = opt(2000, "spike steps read per chunk", lo=16, hi=10**8)
     max_frames: int = opt(0, "stop after this many output frames (0 = all)", lo=0, hi=10**9)
     tile: int = opt(-1, "tile side for bounded memory (0 = whole frames, -1 = auto: whole frames for v2 networks and on CUDA, 128 for v1 on CPU)", lo=-1, hi=1 << 16)
@@ -139,7 +140,10 @@ class _Writers:
         for i in range(self.n):
             I2, T, R = (np.asarray(self.spool[i, j], np.float32) for j in range(3))
             if self.cfg.video:
-                for name, img in (("T", _to8(T, gT)), ("R", _to8(R, gR)), ("preview", np.concatenate([_to8(I2, gP), _to8(T, gP), _to8(R, gP)], 1))):
+                prev = np.concatenate([_to8(I2, gP), _to8(T, gP), _to8(R, gP)], 1) if self.cfg.preview else None
+                for name, img in (("T", _to8(T, gT)), ("R", _to8(R, gR)), ("preview", prev)):
+                    if img is None:
+                        continue
                     if name not in self.vw:
                         self.vw[name] = self._open(name)
                     self.vw[name].append_data(even(img))

@@ -129,6 +129,8 @@ def test_display_frames_equal_the_table_lookup():
     t8, r8, p8 = to8_frames(I2, T, R, g, _TO8)
     assert np.array_equal(t8, _to8_fast(T, g["T"])) and np.array_equal(r8, _to8_fast(R, g["R"]))
     assert np.array_equal(p8, np.concatenate([_to8_fast(x, g["preview"]) for x in (I2, T, R)], 1))
+    a8, b8, none = to8_frames(I2, T, R, g, _TO8, preview=False)  # without the preview: T and R alone, the same values
+    assert none is None and np.array_equal(a8, t8) and np.array_equal(b8, r8)
 
 
 def test_live_flags_reject_bad_values_through_the_console_script(tmp_path, polspike_cli):
