@@ -72,6 +72,7 @@ class LiveConfig:
     solver: str = opt("fused", "fused numba kernels where one exists (ls, physics rwps; RIR shifts applied inside) or torch (the streaming path's solver)", choices=("fused", "torch"))
     preset: str = opt("ultrafast", "x264 preset of the videos", choices=("ultrafast", "superfast", "veryfast", "faster", "fast", "medium"))
     video_quality: str = opt("fast", "videos: fast (x264 CRF 23, one encoder thread per video) | high (CRF 10, the streaming path's level; more encoder CPU)", choices=tuple(VIDEO_CRF))
+    threads: int = opt(1, "numba threads of the fused RWPS passes (bands of rows in parallel; the same numbers; 0 = all cores)", lo=0, hi=256)
     rir_finest: int = opt(1, "RIR: finest level of the chained fit, 1 = full resolution, 2 = 2 x 2 blocks (cheaper; error measured in docs/realtime.md)", lo=1, hi=2)
     poll_s: float = opt(0.01, "follow: wait between looks at the growing file, seconds", lo=0.0, hi=10.0)
     idle_s: float = opt(5.0, "follow: stop when the file has not grown for this long, seconds (0 = only Ctrl-C stops)", lo=0.0, hi=1e6)
@@ -428,7 +429,7 @@ def reconstruct_live(
                             sh = np.empty_like(sw)
                             sh[order] = sw
                         with times("solve"):
-                            T, R = rwps_fused(ring_Z, ring_I, model.solver_cfg, sh)
+                            T, R = rwps_fused(ring_Z, ring_I, model.solver_cfg, sh, threads=cfg.threads)
                         emit(writers, ring_I[centre].copy(), T, R, arr)
                     else:
                         order = [(nxt - N + k) % N for k in range(N)]

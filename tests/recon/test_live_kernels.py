@@ -66,6 +66,29 @@ def test_fused_rwps_equals_the_torch_solver(seed, shifted):
         assert peak > 0 and float(d.max()) <= TOL_MAX * peak and float(d.mean()) <= TOL_MEAN * peak, (float(d.max()) / peak, float(d.mean()) / peak)
 
 
+def test_fused_rwps_on_bands_of_rows_in_parallel_equals_one_band():
+    """The passes split the rows (pixel pass, box means' row pass) and the columns (box means' column pass) into bands
+    on numba's threads: every pixel sums in the same order, so 2 and 3 bands give the one-band result bit for bit.
+    """
+    import reconstruct.physics.fused_rwps as F
+
+    def poisoned(threads):  # the work arrays persist between calls: NaN first, so a pixel a band leaves out shows
+        for sc in F._scratch.values():
+            for a in (sc.s, sc.work, sc.box, sc.cs):
+                a.fill(np.nan)
+        return F.rwps_fused(Z, I, PHYSICS_SOLVER_CONFIG, sh, threads=threads)
+
+    box_mean, rwps_fused = F.box_mean, F.rwps_fused
+    Z, I, _, _ = _window(4)
+    sh = np.random.default_rng(9).uniform(-1.7, 1.7, (N, 2))
+    one = rwps_fused(Z, I, PHYSICS_SOLVER_CONFIG, sh, threads=1)
+    x = np.random.default_rng(1).normal(size=(3, H, W))
+    for bands in (2, 3):
+        par = poisoned(bands)
+        assert np.array_equal(par[0], one[0]) and np.array_equal(par[1], one[1])
+        assert np.array_equal(box_mean(x, 7, threads=bands), box_mean(x, 7, threads=1))
+
+
 def test_fused_rwps_recovers_the_layers_of_a_noise_free_window():
     """Without noise the residual variance is 0, Conf -> 1 and lambda -> lambda_low = 0: the plain weighted least
     squares, which is exact on Eq. (1)-(2) data.
