@@ -150,6 +150,7 @@ def reconstruct_cmd(
     follow_idle: float = typer.Option(5.0, "--follow-idle", help="--follow: stop when the file has not grown for this many seconds (0 = only Ctrl-C stops)"),
     path: str = typer.Option("auto", "--path", help="live (packed reads, fused solver, background encoding: the real-time path; physics methods on pane maps over a .dat) | stream (the general streaming path) | auto (live where it applies)"),
     video_quality: str = typer.Option("fast", "--video-quality", help="live path videos: fast (x264 CRF 23, less encoder CPU) | high (CRF 10, as the streaming path)"),
+    threads: int = typer.Option(0, "--threads", help="torch threads of the streaming path on the CPU [default 0 = auto: the cores idle when the run starts (1-minute load average), at least 1; the live path runs its solver on one]"),
     preview: Optional[bool] = typer.Option(None, "--preview/--no-preview", help="also write preview.mp4 (input | T | R side by side; more encoder CPU than T.mp4 and R.mp4 together) [default: the streaming path yes, the live path no: it keeps up with the camera]"),
 ) -> None:
     """Turn a spike group or a .dat into reflection-free T and R video at the output cadence (~343 FPS)."""
@@ -209,8 +210,15 @@ def reconstruct_cmd(
             raise ConfigError(f"--pane gives zeta (the calibrated maps): drop --zeta {zeta}")
         if pane_n is not None or pane_model != "auto":
             raise ConfigError("--pane fixes the index and the pane model (they are in its maps): drop --pane-n / --pane-model")
+    if threads < 0:
+        raise ConfigError(f"--threads {threads}: a number of threads >= 1, or 0 for auto")
+    if dev == "cpu":  # the self-calibration and the stream alike: no more threads than idle cores (reconstruct.video.stream.cpu_threads)
+        from reconstruct.video.stream import cpu_threads
+
+        threads = cpu_threads(threads)
+        torch.set_num_threads(threads)
     cfg = ReconstructConfig(window_steps=window_steps, stride_deg=stride_deg, exposure=exposure or 1.0, frames=frames, max_frames=max_frames, precision=precision,
-                            preview=True if preview is None else preview)
+                            preview=True if preview is None else preview, threads=threads)
     if path not in ("auto", "live", "stream"):
         raise ConfigError(f"--path {path!r}: choose auto, live or stream")
     if video_quality not in ("fast", "high"):

@@ -47,7 +47,7 @@ from reconstruct.stream.sources import SpikeSource
 from reconstruct.stream.window_inputs import WindowInputs, inputs_of
 from reconstruct.video.tiling import FeatureCache, auto_tile, run_model_on_windows
 
-__all__ = ["ReconstructConfig", "reconstruct_stream"]
+__all__ = ["ReconstructConfig", "reconstruct_stream", "cpu_threads"]
 
 log = logging.getLogger(__name__)
 
@@ -69,6 +69,7 @@ class ReconstructConfig:
     max_frames: int = opt(0, "stop after this many output frames (0 = all)", lo=0, hi=10**9)
     tile: int = opt(-1, "tile side for bounded memory (0 = whole frames, -1 = auto: whole frames for v2 networks and on CUDA, 128 for v1 on CPU)", lo=-1, hi=1 << 16)
     precision: str = opt("float32", "float32 | bfloat16 (autocast; the solver stays float32)", choices=("float32", "bfloat16"))
+    threads: int = opt(0, "torch threads on the CPU (0 = auto: the cores idle when the run starts, by the 1-minute load average, at least 1)", lo=0, hi=4096)
     cache: bool = opt(True, "reuse per-observation features across overlapping windows (v2 networks, RIR off, whole frames)")
 
 
@@ -168,7 +169,47 @@ class _Writers:
                 self.spool_path.unlink()
 
 
+def cpu_threads(requested: int = 0) -> int:
+    """The torch threads of a CPU run: ``requested`` when > 0, else the cores idle now (core count minus the 1-minute load
+    average, rounded), at least 1.  On a busy machine more threads than idle cores wait on each other at every
+    parallel operation (the network path ran 3 x slower on 2 threads than on 1 at load average 7 on 2 cores;
+    docs/realtime.md).
+    """
+    if requested > 0:
+        return int(requested)
+    cores = os.cpu_count() or 1
+    try:
+        load = os.getloadavg()[0]
+    except OSError:  # no load average on this platform: all cores
+        load = 0.0
+    return max(1, min(cores, int(round(cores - load))))
+
+
 def reconstruct_stream(
+    source: SpikeSource,
+    model,
+    out_dir: str | os.PathLike,
+    cfg: ReconstructConfig = ReconstructConfig(),
+    *,
+    device: str | torch.device = "cpu",
+    progress: ProgressFn | None = None,
+    meta: dict[str, Any] | None = None,
+) -> dict[str, Any]:
+    """:func:`_reconstruct_stream` (its docstring) with ``cfg.threads`` torch threads on the CPU (:func:`cpu_threads`;
+    the number used is in the summary, ``torch_threads``).
+    """
+    if torch.device(device).type != "cpu":
+        return _reconstruct_stream(source, model, out_dir, cfg, device=device, progress=progress, meta=meta)
+    before = torch.get_num_threads()
+    n = cpu_threads(cfg.threads)
+    torch.set_num_threads(n)
+    try:
+        return _reconstruct_stream(source, model, out_dir, cfg, device=device, progress=progress, meta={**(meta or {}), "torch_threads": n})
+    finally:
+        torch.set_num_threads(before)
+
+
+def _reconstruct_stream(
     source: SpikeSource,
     model,
     out_dir: str | os.PathLike,

@@ -163,6 +163,22 @@ def test_live_flags_reject_bad_values_through_the_console_script(tmp_path, polsp
     r = polspike_cli("reconstruct", f, *geo, "--method", "ls", "--video-quality", "best", "--out", tmp_path / "o")
     polspike_cli.one_line_exit_2(r, "--video-quality", "fast", "high")
     assert not (tmp_path / "o").exists()
+    r = polspike_cli("reconstruct", f, *geo, "--threads", -1, "--out", tmp_path / "o")
+    polspike_cli.one_line_exit_2(r, "--threads", "0 for auto")
+    assert not (tmp_path / "o").exists()
     r = polspike_cli("bench", "realtime", "--live-variants", "torch,turbo", "--out", tmp_path / "b")
     polspike_cli.one_line_exit_2(r, "--live-variants", "coarse-rir")
     assert not (tmp_path / "b").exists()
+
+
+def test_cpu_threads_takes_the_idle_cores(monkeypatch):
+    """Asked for n: n.  Auto: the core count minus the 1-minute load average, rounded, within 1 .. cores."""
+    import os
+
+    from reconstruct.video.stream import cpu_threads
+
+    monkeypatch.setattr(os, "cpu_count", lambda: 8)
+    for load, want in ((0.0, 8), (0.4, 8), (2.6, 5), (7.9, 1), (30.0, 1)):
+        monkeypatch.setattr(os, "getloadavg", lambda load=load: (load, 0.0, 0.0))
+        assert cpu_threads(0) == want, (load, cpu_threads(0))
+        assert cpu_threads(3) == 3
