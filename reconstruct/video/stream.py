@@ -69,7 +69,7 @@ class ReconstructConfig:
     max_frames: int = opt(0, "stop after this many output frames (0 = all)", lo=0, hi=10**9)
     tile: int = opt(-1, "tile side for bounded memory (0 = whole frames, -1 = auto: whole frames for v2 networks and on CUDA, 128 for v1 on CPU)", lo=-1, hi=1 << 16)
     precision: str = opt("float32", "float32 | bfloat16 (autocast; the solver stays float32)", choices=("float32", "bfloat16"))
-    threads: int = opt(0, "torch threads on the CPU (0 = auto: the cores idle when the run starts, by the 1-minute load average, at least 1)", lo=0, hi=4096)
+    threads: int = opt(0, "torch threads on the CPU (0 = torch's setting as it is; cpu_threads() gives the idle cores)", lo=0, hi=4096)
     cache: bool = opt(True, "reuse per-observation features across overlapping windows (v2 networks, RIR off, whole frames)")
 
 
@@ -172,8 +172,7 @@ class _Writers:
 def cpu_threads(requested: int = 0) -> int:
     """The torch threads of a CPU run: ``requested`` when > 0, else the cores idle now (core count minus the 1-minute load
     average, rounded), at least 1.  On a busy machine more threads than idle cores wait on each other at every
-    parallel operation (the network path ran 3 x slower on 2 threads than on 1 at load average 7 on 2 cores;
-    docs/realtime.md).
+    parallel operation (measured in docs/realtime.md).
     """
     if requested > 0:
         return int(requested)
@@ -186,30 +185,6 @@ def cpu_threads(requested: int = 0) -> int:
 
 
 def reconstruct_stream(
-    source: SpikeSource,
-    model,
-    out_dir: str | os.PathLike,
-    cfg: ReconstructConfig = ReconstructConfig(),
-    *,
-    device: str | torch.device = "cpu",
-    progress: ProgressFn | None = None,
-    meta: dict[str, Any] | None = None,
-) -> dict[str, Any]:
-    """:func:`_reconstruct_stream` (its docstring) with ``cfg.threads`` torch threads on the CPU (:func:`cpu_threads`;
-    the number used is in the summary, ``torch_threads``).
-    """
-    if torch.device(device).type != "cpu":
-        return _reconstruct_stream(source, model, out_dir, cfg, device=device, progress=progress, meta=meta)
-    before = torch.get_num_threads()
-    n = cpu_threads(cfg.threads)
-    torch.set_num_threads(n)
-    try:
-        return _reconstruct_stream(source, model, out_dir, cfg, device=device, progress=progress, meta={**(meta or {}), "torch_threads": n})
-    finally:
-        torch.set_num_threads(before)
-
-
-def _reconstruct_stream(
     source: SpikeSource,
     model,
     out_dir: str | os.PathLike,
@@ -235,9 +210,34 @@ def _reconstruct_stream(
         progress: optional (done, total) callback over output frames.
         meta: extra entries for the summary (e.g. how the exposure was found).
 
+    On the CPU the stream runs on ``cfg.threads`` torch threads when > 0 (e.g. :func:`cpu_threads`), restored after;
+    the number used is the summary's ``torch_threads``.
+
     Returns:
         the summary written to ``reconstruct.json``.
     """
+    if torch.device(device).type != "cpu":
+        return _reconstruct_stream(source, model, out_dir, cfg, device=device, progress=progress, meta=meta)
+    before = torch.get_num_threads()
+    n = cfg.threads if cfg.threads > 0 else before
+    torch.set_num_threads(n)
+    try:
+        return _reconstruct_stream(source, model, out_dir, cfg, device=device, progress=progress, meta={**(meta or {}), "torch_threads": n})
+    finally:
+        torch.set_num_threads(before)
+
+
+def _reconstruct_stream(
+    source: SpikeSource,
+    model,
+    out_dir: str | os.PathLike,
+    cfg: ReconstructConfig = ReconstructConfig(),
+    *,
+    device: str | torch.device = "cpu",
+    progress: ProgressFn | None = None,
+    meta: dict[str, Any] | None = None,
+) -> dict[str, Any]:
+    """:func:`reconstruct_stream` on the threads it set."""
     from spike_sim.aggregate import AggregateConfig, frame_centres, output_fps
 
     out = ensure_dir(out_dir)
