@@ -96,8 +96,8 @@ def test_live_fused_rwps_with_rir_equals_the_torch_solver_on_a_moving_stream(tmp
     _assert_frames_match(tmp_path / "torch", tmp_path / "fused", out["torch"]["frames"])
 
 
-def test_live_path_writes_the_preview_only_with_the_flag(dat, tmp_path, polspike_cli):
-    """Through the console script on pane maps (``--pane``): T.mp4 and R.mp4 by default, preview.mp4 (input | T | R, three
+def test_live_path_writes_the_preview_only_with_the_flag(dat, tmp_path, polspike_main):
+    """Through the console-script entry point on pane maps (``--pane``): T.mp4 and R.mp4 by default, preview.mp4 (input | T | R, three
     panels of W columns) with ``--preview``, every video one frame per output frame.
     """
     import imageio.v3 as iio
@@ -110,7 +110,7 @@ def test_live_path_writes_the_preview_only_with_the_flag(dat, tmp_path, polspike
             "--exposure", CFG.exposure, "--method", "ls", "--no-rir", "--pane", tmp_path / "maps.exr", "--quiet")
     for flag, want in (((), ["R.mp4", "T.mp4"]), (("--preview",), ["R.mp4", "T.mp4", "preview.mp4"])):
         out = tmp_path / f"o{len(flag)}"
-        r = polspike_cli(*args, *flag, "--out", out)
+        r = polspike_main(*args, *flag, "--out", out)
         assert r.returncode == 0, r.stderr[-2000:]
         s = json.loads((out / "reconstruct.json").read_text())
         assert s["path"] == "live" and s["outputs"] == want and s["frames"] >= 10
