@@ -120,7 +120,7 @@ def train_cmd(
 @app_typer.command("reconstruct")
 def reconstruct_cmd(
     input: Path = typer.Argument(..., help="a spike group directory (polspike simulate) or a raw Vidar .dat file"),
-    out: Path = typer.Option(..., "--out", help="output directory: T.mp4, R.mp4, preview.mp4, reconstruct.json [, frames/]"),
+    out: Path = typer.Option(..., "--out", help="output directory: T.mp4, R.mp4 [, preview.mp4], reconstruct.json [, frames/]"),
     height: Optional[int] = typer.Option(None, "--height", help=".dat: frame height H"),
     width: Optional[int] = typer.Option(None, "--width", help=".dat: frame width W"),
     phi0_deg: Optional[float] = typer.Option(None, "--phi0-deg", help=".dat: polarizer angle at t = 0 (calibration), degrees"),
@@ -152,6 +152,8 @@ def reconstruct_cmd(
     path: str = typer.Option("auto", "--path", help="live (packed reads, fused solver, background encoding: the real-time path; physics methods on pane maps over a .dat) | stream (the general streaming path) | auto (live where it applies)"),
     span: str = typer.Option("plain", "--span", help="the network's long span: plain (every spike of the 17.5 ms around the frame) | compensated (its 7 parts registered onto the centre part first: for a moving camera; reconstruct/stream/motion_span.py)"),
     video_quality: str = typer.Option("fast", "--video-quality", help="live path videos: fast (x264 CRF 23, less encoder CPU) | high (CRF 10, as the streaming path)"),
+    threads: int = typer.Option(0, "--threads", help="torch threads of the streaming path on the CPU [default 0 = auto: the cores idle when the run starts (1-minute load average), at least 1; the live path runs its solver on one]"),
+    preview: Optional[bool] = typer.Option(None, "--preview/--no-preview", help="also write preview.mp4 (input | T | R side by side; more encoder CPU than T.mp4 and R.mp4 together) [default: the streaming path yes, the live path no: it keeps up with the camera]"),
 ) -> None:
     """Turn a spike group or a .dat into reflection-free T and R video at the output cadence (~343 FPS)."""
     import dataclasses
@@ -212,7 +214,15 @@ def reconstruct_cmd(
             raise ConfigError("--pane fixes the index and the pane model (they are in its maps): drop --pane-n / --pane-model")
     if span not in ("plain", "compensated"):
         raise ConfigError(f"--span {span!r}: choose plain or compensated")
-    cfg = ReconstructConfig(window_steps=window_steps, stride_deg=stride_deg, exposure=exposure or 1.0, frames=frames, max_frames=max_frames, precision=precision, span=span)
+    if threads < 0:
+        raise ConfigError(f"--threads {threads}: a number of threads >= 1, or 0 for auto")
+    if dev == "cpu":  # the self-calibration and the stream alike: no more threads than idle cores (reconstruct.video.stream.cpu_threads)
+        from reconstruct.video.stream import cpu_threads
+
+        threads = cpu_threads(threads)
+        torch.set_num_threads(threads)
+    cfg = ReconstructConfig(window_steps=window_steps, stride_deg=stride_deg, exposure=exposure or 1.0, frames=frames, max_frames=max_frames, precision=precision,
+                            preview=True if preview is None else preview, threads=threads, span=span)
     if path not in ("auto", "live", "stream"):
         raise ConfigError(f"--path {path!r}: choose auto, live or stream")
     if video_quality not in ("fast", "high"):
@@ -307,7 +317,8 @@ def reconstruct_cmd(
         from reconstruct.stream.packed import PackedDat
         from reconstruct.video.live import LiveConfig
 
-        lcfg = LiveConfig(window_steps=window_steps, stride_deg=stride_deg, frames=frames, max_frames=max_frames, idle_s=follow_idle, video_quality=video_quality)
+        lcfg = LiveConfig(window_steps=window_steps, stride_deg=stride_deg, frames=frames, max_frames=max_frames, idle_s=follow_idle, video_quality=video_quality,
+                          preview=bool(preview))
         reader = reader or PackedDat(input, height, width)
         s = run_live(reader, model, out, lcfg, phi0_rad=math.radians(phi0_deg), rev_per_s=rev_per_s, rate_hz=rate_hz,
                      exposure=src.exposure if src.exposure is not None else cfg.exposure, name=input.name, follow=follow, meta=meta, quiet=quiet)

@@ -49,13 +49,16 @@ def _model(method: str, rir: bool, maps, span: float):
 
 
 LIVE_VARIANTS = {
-    "torch": {"solver": "torch", "video_quality": "high", "rir_finest": 1},
-    "high-video": {"video_quality": "high"},
+    "torch": {"solver": "torch", "video_quality": "high", "rir_finest": 1, "preview": True},
+    "high-video": {"video_quality": "high", "preview": True},
+    "preview": {"preview": True},
     "coarse-rir": {"rir_finest": 2},
+    "threads2": {"threads": 2},
 }
 """Live-path settings the bench can run beside the defaults: ``torch`` = the torch solvers, the torch RIR fit and the
-CRF-10 videos (the live path before its fused kernels), ``high-video`` = CRF-10 videos only, ``coarse-rir`` = the
-RIR fit stopping at 2 x 2 blocks."""
+CRF-10 videos with the preview (the live path before its fused kernels), ``high-video`` = CRF-10 videos with the
+preview, ``preview`` = the defaults plus preview.mp4 (the three videos of the path before), ``coarse-rir`` = the RIR
+fit stopping at 2 x 2 blocks, ``threads2`` = the fused RWPS passes on two numba threads."""
 
 
 def _run(path: str, dat: Path, cfg, model, out: Path, video: bool) -> dict[str, Any]:
@@ -194,7 +197,7 @@ def bench_realtime(width: int = 400, height: int = 250, short_s: float = 0.25, l
         for m in methods:
             method, rir = m.split("+")[0], m.endswith("+rir")
             row: dict[str, Any] = {}
-            paths = ("live", *(f"live:{v}" for v in variants if not (v == "coarse-rir" and not rir)), *(("stream",) if reference else ()))
+            paths = ("live", *(f"live:{v}" for v in variants if not (v == "coarse-rir" and not rir) and not (v == "threads2" and method != "rwps")), *(("stream",) if reference else ()))
             for path in paths:
                 if path.startswith("live"):  # warm-up: the numba kernels load (or compile) on their first call
                     _run(path, dats["short"], cfg, _model(method, rir, maps, span), d / f"w_{m}_{path.replace(':', '_')}", video)

@@ -23,6 +23,8 @@ torch path computes in float32, so the two agree to float32 rounding amplified b
 
 from __future__ import annotations
 
+import contextlib
+
 import numpy as np
 
 from reconstruct.physics.solvers import SolverConfig
@@ -61,15 +63,27 @@ def _load_row(img, k, y, oy, ox, fy, fx, warp, scale, dst):  # pragma: no cover 
         dst[x] = scale * ((1.0 - fy) * top + fy * bot)
 
 
-def _pass_pixels(z, I, oy, ox, fy, fx, warp, lam1, out, a, b, w, acc):  # pragma: no cover - compiled
-    """Pass 1 (module docstring), one image row at a time, the observation loop outside the pixel loop (so the
-    pixel loops vectorise): out (9, H, W) = S_rr, S_rt, S_tt, sum w, A^T W b (R, T), det M, sigma^2, D.
-    Scratch: a, b, w (N, W); acc (16, W).
+def _pass_pixels(z, I, oy, ox, fy, fx, warp, lam1, out, chunks):  # pragma: no cover - compiled
+    """Pass 1 (module docstring) on ``chunks`` bands of rows (``prange``: in parallel when compiled so), each with its
+    own scratch rows: out (9, H, W) = S_rr, S_rt, S_tt, sum w, A^T W b (R, T), det M, sigma^2, D.
+    """
+    N, H, W = z.shape
+    for c in prange(chunks):
+        a = np.empty((N, W))
+        b = np.empty((N, W))
+        w = np.empty((N, W))
+        acc = np.empty((16, W))
+        _pixel_rows_c(z, I, oy, ox, fy, fx, warp, lam1, out, a, b, w, acc, c * H // chunks, (c + 1) * H // chunks)
+
+
+def _pixel_rows(z, I, oy, ox, fy, fx, warp, lam1, out, a, b, w, acc, y_lo, y_hi):  # pragma: no cover - compiled
+    """Pass 1 on rows y_lo..y_hi - 1, one image row at a time, the observation loop outside the pixel loop (so the
+    pixel loops vectorise).  Scratch: a, b, w (N, W); acc (16, W).
     """
     N, H, W = z.shape
     srr, srt, stt, rr, rt, sw, sww = acc[0], acc[1], acc[2], acc[3], acc[4], acc[5], acc[6]
     R1, T1, pmin, psum = acc[7], acc[8], acc[9], acc[10]
-    for y in range(H):
+    for y in range(y_lo, y_hi):
         for k in range(N):
             _load_row_c(z, k, y, oy[k], ox[k], fy[k], fx[k], warp, 1.0, a[k])
             _load_row_c(I, k, y, oy[k], ox[k], fy[k], fx[k], warp, 2.0, b[k])
@@ -160,43 +174,51 @@ def _pass_pixels(z, I, oy, ox, fy, fx, warp, lam1, out, a, b, w, acc):  # pragma
             o8[x] = R1[x] - T1[x]
 
 
-def _box_mean(x, k, out, cs):  # pragma: no cover - compiled
-    """Edge-aware k x k box mean of each (H, W) map of x (M, H, W) into out: rows, then columns; cs scratch
-    (H + 1, W).  The box of output i covers i - k // 2 .. i - k // 2 + k - 1 (avg_pool2d, padding k // 2,
-    count_include_pad=False, cropped).
+def _box_mean(x, k, out, cs, chunks):  # pragma: no cover - compiled
+    """Edge-aware k x k box mean of each (H, W) map of x (M, H, W) into out: rows, then columns, each on ``chunks``
+    bands (``prange``); cs scratch (H + 1, W + 1).  The box of output i covers i - k // 2 .. i - k // 2 + k - 1
+    (avg_pool2d, padding k // 2, count_include_pad=False, cropped).  Per element the same sums in the same order
+    whatever ``chunks``.
     """
     M, H, W = x.shape
     h = k // 2
     for m in range(M):
-        for j in range(W):
-            cs[0, j] = 0.0
-        for i in range(H):
-            for j in range(W):
-                cs[i + 1, j] = cs[i, j] + x[m, i, j]
-        for i in range(H):
-            lo = max(i - h, 0)
-            hi = min(i - h + k, H)
-            inv = 1.0 / (hi - lo)
-            for j in range(W):
-                out[m, i, j] = (cs[hi, j] - cs[lo, j]) * inv
-        for i in range(H):
-            c = cs[0]
-            c[0] = 0.0
-            for j in range(W):
-                c[j + 1] = c[j] + out[m, i, j]
-            for j in range(W):
-                lo = max(j - h, 0)
-                hi = min(j - h + k, W)
-                out[m, i, j] = (c[hi] - c[lo]) / (hi - lo)
+        for c in prange(chunks):  # vertical prefix sums and differences, a band of columns each
+            j_lo, j_hi = c * W // chunks, (c + 1) * W // chunks
+            for j in range(j_lo, j_hi):
+                cs[0, j] = 0.0
+            for i in range(H):
+                for j in range(j_lo, j_hi):
+                    cs[i + 1, j] = cs[i, j] + x[m, i, j]
+            for i in range(H):
+                lo = max(i - h, 0)
+                hi = min(i - h + k, H)
+                inv = 1.0 / (hi - lo)
+                for j in range(j_lo, j_hi):
+                    out[m, i, j] = (cs[hi, j] - cs[lo, j]) * inv
+        for c in prange(chunks):  # horizontal, a band of rows each, its own prefix row
+            row = np.empty(W + 1)
+            for i in range(c * H // chunks, (c + 1) * H // chunks):
+                row[0] = 0.0
+                for j in range(W):
+                    row[j + 1] = row[j] + out[m, i, j]
+                for j in range(W):
+                    lo = max(j - h, 0)
+                    hi = min(j - h + k, W)
+                    out[m, i, j] = (row[hi] - row[lo]) / (hi - lo)
 
 
-def _pass_maps(s, noise_pool, pool, kappa0, snr_kappa, lam_lo, lam_hi, T, R, work, box, cs):  # pragma: no cover - compiled
-    """Passes 2 and 3 (module docstring) on the pixel sums s (9, H, W); T, R (H, W) float32 out, clamped at 0."""
+def _pass_maps(s, noise_pool, pool, kappa0, snr_kappa, lam_lo, lam_hi, T, R, work, box, cs, chunks):  # pragma: no cover - compiled
+    """Passes 2 and 3 (module docstring) on the pixel sums s (9, H, W); T, R (H, W) float32 out, clamped at 0; rows in
+    parallel (``prange``) when compiled so.
+    """
     _, H, W = s.shape
     # sigma^2 pooled over noise_pool
-    work[0] = s[7]
-    _box_mean_c(work[0:1], noise_pool, box[0:1], cs)
-    for y in range(H):
+    for y in prange(H):
+        for x in range(W):
+            work[0, y, x] = s[7, y, x]
+    _box_mean_c(work[0:1], noise_pool, box[0:1], cs, chunks)
+    for y in prange(H):
         for x in range(W):
             sw = s[3, y, x]
             detm = s[6, y, x]
@@ -208,15 +230,15 @@ def _pass_maps(s, noise_pool, pool, kappa0, snr_kappa, lam_lo, lam_hi, T, R, wor
             work[2, y, x] = u * s[8, y, x]
             work[3, y, x] = u * v
             work[4, y, x] = 4.0 * detm / (sw * sw + _TINY2)
-    _box_mean_c(work[1:5], pool, box[1:5], cs)
-    for y in range(H):
+    _box_mean_c(work[1:5], pool, box[1:5], cs, chunks)
+    for y in prange(H):
         for x in range(W):
             d0 = box[2, y, x] / (box[1, y, x] + _TINY2)
             e = s[8, y, x] - d0
             work[2, y, x] = d0
             work[3, y, x] = work[1, y, x] * e * e
-    _box_mean_c(work[3:4], pool, box[0:1], cs)  # box[0] <- <u (D - D0)^2>
-    for y in range(H):
+    _box_mean_c(work[3:4], pool, box[0:1], cs, chunks)  # box[0] <- <u (D - D0)^2>
+    for y in prange(H):
         for x in range(W):
             bu = box[1, y, x] + _TINY2
             s2 = (box[0, y, x] - box[3, y, x]) / bu
@@ -241,21 +263,27 @@ def _pass_maps(s, noise_pool, pool, kappa0, snr_kappa, lam_lo, lam_hi, T, R, wor
             T[y, x] = t if t > 0.0 else 0.0
 
 
+prange = range  # numba.prange once the kernels compile (numba is imported only then)
 _load_row_c = None
+_pixel_rows_c = None
 _box_mean_c = None
 _k: dict = {}
 
 
 def _get():
-    global _load_row_c, _box_mean_c
+    """The compiled kernels (``parallel=True``: the ``prange`` loops on numba's threads; one thread runs them in turn)."""
+    global _load_row_c, _pixel_rows_c, _box_mean_c, prange
     if not _k:
         import numba
 
+        prange = numba.prange
         jit = numba.njit(cache=True, nogil=True, fastmath=True)
+        par = numba.njit(cache=True, nogil=True, fastmath=True, parallel=True)
         _load_row_c = jit(_load_row)
-        _box_mean_c = jit(_box_mean)
-        _k["pixels"] = jit(_pass_pixels)
-        _k["maps"] = jit(_pass_maps)
+        _pixel_rows_c = jit(_pixel_rows)
+        _box_mean_c = par(_box_mean)
+        _k["pixels"] = par(_pass_pixels)
+        _k["maps"] = par(_pass_maps)
         _k["box"] = _box_mean_c
     return _k
 
@@ -268,7 +296,6 @@ class _Scratch:
         self.work = np.empty((5, H, W))
         self.box = np.empty((5, H, W))
         self.cs = np.empty((H + 1, W + 1))
-        self.rows = (np.empty((N, W)), np.empty((N, W)), np.empty((N, W)), np.empty((16, W)))
 
 
 _scratch: dict[tuple[int, int, int], _Scratch] = {}
@@ -286,7 +313,7 @@ def _shift_parts(shifts: np.ndarray | None, N: int):
     return oy.astype(np.int64), ox.astype(np.int64), py - oy, px - ox, bool(np.any(s != 0.0))
 
 
-def rwps_fused(zeta: np.ndarray, I: np.ndarray, config: SolverConfig, shifts: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+def rwps_fused(zeta: np.ndarray, I: np.ndarray, config: SolverConfig, shifts: np.ndarray | None = None, threads: int = 1) -> tuple[np.ndarray, np.ndarray]:
     """RWPS T, R (H, W) float32, clamped at 0, of one window (module docstring).
 
     Args:
@@ -294,6 +321,8 @@ def rwps_fused(zeta: np.ndarray, I: np.ndarray, config: SolverConfig, shifts: np
         config: solver parameters; :func:`rwps_fused_supports` must hold.
         shifts: optional (N, 2) (dy, dx) registration shifts (:func:`reconstruct.physics.rir.warp`'s convention),
             applied to zeta and I alike.
+        threads: numba threads of the passes (bands of rows in parallel; 0 = numba's setting, all cores by default);
+            the result does not depend on it (every pixel sums in the same order).
 
     Returns:
         (T, R), each (H, W) float32.
@@ -312,18 +341,36 @@ def rwps_fused(zeta: np.ndarray, I: np.ndarray, config: SolverConfig, shifts: np
     oy, ox, fy, fx, warp = _shift_parts(shifts, N)
     z = np.ascontiguousarray(zeta, np.float32)
     i = np.ascontiguousarray(I, np.float32)
-    k["pixels"](z, i, oy, ox, fy, fx, warp, float(config.lambda_high), sc.s, *sc.rows)
     T = np.empty((H, W), np.float32)
     R = np.empty((H, W), np.float32)
-    k["maps"](sc.s, int(config.noise_pool), int(config.prior_pool), float(config.prior_kappa), float(config.snr_kappa), float(config.lambda_low), float(config.lambda_high),
-              T, R, sc.work, sc.box, sc.cs)
+    with _threads(threads) as n:
+        k["pixels"](z, i, oy, ox, fy, fx, warp, float(config.lambda_high), sc.s, n)
+        k["maps"](sc.s, int(config.noise_pool), int(config.prior_pool), float(config.prior_kappa), float(config.snr_kappa), float(config.lambda_low),
+                  float(config.lambda_high), T, R, sc.work, sc.box, sc.cs, n)
     return T, R
 
 
-def box_mean(x: np.ndarray, k: int) -> np.ndarray:
+@contextlib.contextmanager
+def _threads(threads: int):
+    """The numba threads of the kernels' parallel loops: ``threads`` bands of rows (0 = one per thread of numba's
+    setting) on at most as many threads as numba's pool holds; yields the number of bands.
+    """
+    import numba
+
+    before = numba.get_num_threads()
+    bands = before if threads <= 0 else int(threads)
+    numba.set_num_threads(min(bands, numba.config.NUMBA_NUM_THREADS))
+    try:
+        yield bands
+    finally:
+        numba.set_num_threads(before)
+
+
+def box_mean(x: np.ndarray, k: int, threads: int = 1) -> np.ndarray:
     """Edge-aware k x k box mean of (H, W) or (M, H, W) maps (the kernel's; float64)."""
     x = np.asarray(x, np.float64)
     x3 = np.ascontiguousarray(x.reshape((-1,) + x.shape[-2:]))
     out = np.empty_like(x3)
-    _get()["box"](x3, int(k), out, np.empty((x3.shape[-2] + 1, x3.shape[-1] + 1)))
+    with _threads(threads) as n:
+        _get()["box"](x3, int(k), out, np.empty((x3.shape[-2] + 1, x3.shape[-1] + 1)), n)
     return out.reshape(x.shape)

@@ -16,8 +16,9 @@ linear T and R equal to float32 rounding, tested), by a path that keeps up with 
   docs/realtime.md); torch on one thread;
 * display gains from the running histogram of the first ``gain_frames`` frames (the whole video when it is
   shorter; a longer one keeps those gains: the display can be shown live), 8-bit conversion by a table and
-  H.264 encoding on a background thread (the five 8-bit images by one numba pass,
-  :func:`reconstruct.video.display8.to8_frames`; CRF by ``video_quality``).
+  H.264 encoding on a background thread (the 8-bit images by one numba pass,
+  :func:`reconstruct.video.display8.to8_frames`; CRF by ``video_quality``); T.mp4 and R.mp4, the side-by-side
+  preview.mp4 only with ``preview`` (it holds three times the pixels of T: more encoder CPU than T and R together).
 
 With ``follow`` the .dat may still be growing: frames are made as their last step arrives, and the latency (the
 time from the arrival of a window's last step to its output) is measured per frame.  ``stop`` (an event, set by
@@ -64,12 +65,14 @@ class LiveConfig:
     stride_deg: float = opt(31.5, "polarizer rotation between output frames, degrees", lo=0.01, hi=360.0)
     batch: int = opt(8, "windows per torch solver call (solvers other than plain ls, or RIR on)", lo=1, hi=1024)
     frames: str = opt("none", "also write frames: none | png | exr", choices=("none", "png", "exr"))
-    video: bool = opt(True, "write T.mp4, R.mp4 and preview.mp4")
+    video: bool = opt(True, "write T.mp4 and R.mp4 (and preview.mp4 with preview)")
+    preview: bool = opt(False, "also write preview.mp4 (input | T | R side by side: three times the pixels of T, more x264 CPU than T and R together)")
     max_frames: int = opt(0, "stop after this many output frames (0 = all)", lo=0, hi=10**9)
     gain_frames: int = opt(64, "display gains from the histogram of the first this many frames, then kept", lo=1, hi=10**9)
     solver: str = opt("fused", "fused numba kernels where one exists (ls, physics rwps; RIR shifts applied inside) or torch (the streaming path's solver)", choices=("fused", "torch"))
     preset: str = opt("ultrafast", "x264 preset of the videos", choices=("ultrafast", "superfast", "veryfast", "faster", "fast", "medium"))
     video_quality: str = opt("fast", "videos: fast (x264 CRF 23, one encoder thread per video) | high (CRF 10, the streaming path's level; more encoder CPU)", choices=tuple(VIDEO_CRF))
+    threads: int = opt(1, "numba threads of the fused RWPS passes (bands of rows in parallel; the same numbers; 0 = all cores)", lo=0, hi=256)
     rir_finest: int = opt(1, "RIR: finest level of the chained fit, 1 = full resolution, 2 = 2 x 2 blocks (cheaper; error measured in docs/realtime.md)", lo=1, hi=2)
     poll_s: float = opt(0.01, "follow: wait between looks at the growing file, seconds", lo=0.0, hi=10.0)
     idle_s: float = opt(5.0, "follow: stop when the file has not grown for this long, seconds (0 = only Ctrl-C stops)", lo=0.0, hi=1e6)
@@ -167,9 +170,11 @@ class _LiveWriters:
         even = lambda a: a[: a.shape[0] // 2 * 2, : a.shape[1] // 2 * 2]  # noqa: E731
         from reconstruct.video.display8 import to8_frames
 
-        t8, r8, prev = to8_frames(I2, T, R, g, _TO8)  # the table lookup of _to8_fast, in one pass
+        t8, r8, prev = to8_frames(I2, T, R, g, _TO8, preview=self.cfg.video and self.cfg.preview)  # the table lookup of _to8_fast, in one pass
         if self.cfg.video:
             for name, img in (("T", t8), ("R", r8), ("preview", prev)):
+                if img is None:
+                    continue
                 if name not in self.vw:
                     self.vw[name] = self._open(name)
                 self.vw[name].append_data(even(img))
@@ -424,7 +429,7 @@ def reconstruct_live(
                             sh = np.empty_like(sw)
                             sh[order] = sw
                         with times("solve"):
-                            T, R = rwps_fused(ring_Z, ring_I, model.solver_cfg, sh)
+                            T, R = rwps_fused(ring_Z, ring_I, model.solver_cfg, sh, threads=cfg.threads)
                         emit(writers, ring_I[centre].copy(), T, R, arr)
                     else:
                         order = [(nxt - N + k) % N for k in range(N)]

@@ -9,7 +9,7 @@ returns the centre frame's T and R.  Output cadence 360 f / stride
 N frames: a long recording never needs to fit in memory.
 
 Outputs in ``out_dir``: ``T.mp4``, ``R.mp4`` (H.264 via imageio-ffmpeg, at the
-output cadence), ``preview.mp4`` (side by side: 2 x centre observation | T | R),
+output cadence), ``preview.mp4`` (side by side: 2 x centre observation | T | R; ``preview``),
 optional ``frames/T_NNNNNN.png`` or ``frames/NNNNNN.exr`` (linear T, R), and
 ``reconstruct.json`` (counts, fps, timing, NaN check, agreement with the plain
 TFP image).  All files are written atomically.
@@ -48,7 +48,7 @@ from reconstruct.stream.sources import SpikeSource
 from reconstruct.stream.window_inputs import WindowInputs, inputs_of
 from reconstruct.video.tiling import FeatureCache, auto_tile, run_model_on_windows
 
-__all__ = ["ReconstructConfig", "reconstruct_stream"]
+__all__ = ["ReconstructConfig", "reconstruct_stream", "cpu_threads"]
 
 log = logging.getLogger(__name__)
 
@@ -65,10 +65,12 @@ class ReconstructConfig:
     batch: int = opt(2, "output frames per forward pass", lo=1, hi=1024)
     frames: str = opt("none", "also write frames: none | png | exr", choices=("none", "png", "exr"))
     video: bool = opt(True, "write T.mp4, R.mp4 and preview.mp4")
+    preview: bool = opt(True, "with video: also preview.mp4 (input | T | R side by side)")
     chunk_steps: int = opt(2000, "spike steps read per chunk", lo=16, hi=10**8)
     max_frames: int = opt(0, "stop after this many output frames (0 = all)", lo=0, hi=10**9)
     tile: int = opt(-1, "tile side for bounded memory (0 = whole frames, -1 = auto: whole frames for v2 networks and on CUDA, 128 for v1 on CPU)", lo=-1, hi=1 << 16)
     precision: str = opt("float32", "float32 | bfloat16 (autocast; the solver stays float32)", choices=("float32", "bfloat16"))
+    threads: int = opt(0, "torch threads on the CPU (0 = torch's setting as it is; cpu_threads() gives the idle cores)", lo=0, hi=4096)
     cache: bool = opt(True, "reuse per-observation features across overlapping windows (v2 networks, RIR off, whole frames)")
     span: str = opt("plain", "the long span a network reads: plain (every spike of its 17.5 ms summed) | compensated (cut into 7 parts registered onto the centre part before they are summed, reconstruct.stream.motion_span: a panning camera no longer smears it)", choices=("plain", "compensated"))
 
@@ -141,7 +143,10 @@ class _Writers:
         for i in range(self.n):
             I2, T, R = (np.asarray(self.spool[i, j], np.float32) for j in range(3))
             if self.cfg.video:
-                for name, img in (("T", _to8(T, gT)), ("R", _to8(R, gR)), ("preview", np.concatenate([_to8(I2, gP), _to8(T, gP), _to8(R, gP)], 1))):
+                prev = np.concatenate([_to8(I2, gP), _to8(T, gP), _to8(R, gP)], 1) if self.cfg.preview else None
+                for name, img in (("T", _to8(T, gT)), ("R", _to8(R, gR)), ("preview", prev)):
+                    if img is None:
+                        continue
                     if name not in self.vw:
                         self.vw[name] = self._open(name)
                     self.vw[name].append_data(even(img))
@@ -164,6 +169,21 @@ class _Writers:
                 self.spool = None
             with contextlib.suppress(FileNotFoundError):
                 self.spool_path.unlink()
+
+
+def cpu_threads(requested: int = 0) -> int:
+    """The torch threads of a CPU run: ``requested`` when > 0, else the cores idle now (core count minus the 1-minute load
+    average, rounded), at least 1.  On a busy machine more threads than idle cores wait on each other at every
+    parallel operation (measured in docs/realtime.md).
+    """
+    if requested > 0:
+        return int(requested)
+    cores = os.cpu_count() or 1
+    try:
+        load = os.getloadavg()[0]
+    except OSError:  # no load average on this platform: all cores
+        load = 0.0
+    return max(1, min(cores, int(round(cores - load))))
 
 
 def reconstruct_stream(
@@ -192,9 +212,34 @@ def reconstruct_stream(
         progress: optional (done, total) callback over output frames.
         meta: extra entries for the summary (e.g. how the exposure was found).
 
+    On the CPU the stream runs on ``cfg.threads`` torch threads when > 0 (e.g. :func:`cpu_threads`), restored after;
+    the number used is the summary's ``torch_threads``.
+
     Returns:
         the summary written to ``reconstruct.json``.
     """
+    if torch.device(device).type != "cpu":
+        return _reconstruct_stream(source, model, out_dir, cfg, device=device, progress=progress, meta=meta)
+    before = torch.get_num_threads()
+    n = cfg.threads if cfg.threads > 0 else before
+    torch.set_num_threads(n)
+    try:
+        return _reconstruct_stream(source, model, out_dir, cfg, device=device, progress=progress, meta={**(meta or {}), "torch_threads": n})
+    finally:
+        torch.set_num_threads(before)
+
+
+def _reconstruct_stream(
+    source: SpikeSource,
+    model,
+    out_dir: str | os.PathLike,
+    cfg: ReconstructConfig = ReconstructConfig(),
+    *,
+    device: str | torch.device = "cpu",
+    progress: ProgressFn | None = None,
+    meta: dict[str, Any] | None = None,
+) -> dict[str, Any]:
+    """:func:`reconstruct_stream` on the threads it set."""
     from spike_sim.aggregate import AggregateConfig, frame_centres, output_fps
 
     out = ensure_dir(out_dir)

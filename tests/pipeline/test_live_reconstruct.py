@@ -96,6 +96,29 @@ def test_live_fused_rwps_with_rir_equals_the_torch_solver_on_a_moving_stream(tmp
     _assert_frames_match(tmp_path / "torch", tmp_path / "fused", out["torch"]["frames"])
 
 
+def test_live_path_writes_the_preview_only_with_the_flag(dat, tmp_path, polspike_main):
+    """Through the console-script entry point on pane maps (``--pane``): T.mp4 and R.mp4 by default, preview.mp4 (input | T | R, three
+    panels of W columns) with ``--preview``, every video one frame per output frame.
+    """
+    import imageio.v3 as iio
+
+    from polinfra.exr import write_exr
+
+    mp = pane_stream_maps(CFG)
+    write_exr(tmp_path / "maps.exr", {k: np.asarray(mp[k], np.float32) for k in ("R_perp", "R_par", "phi_perp")}, {})
+    args = ("reconstruct", dat, "--height", H, "--width", W, "--phi0-deg", math.degrees(CFG.phi0_rad), "--rev-per-s", CFG.rev_per_s,
+            "--exposure", CFG.exposure, "--method", "ls", "--no-rir", "--pane", tmp_path / "maps.exr", "--quiet")
+    for flag, want in (((), ["R.mp4", "T.mp4"]), (("--preview",), ["R.mp4", "T.mp4", "preview.mp4"])):
+        out = tmp_path / f"o{len(flag)}"
+        r = polspike_main(*args, *flag, "--out", out)
+        assert r.returncode == 0, r.stderr[-2000:]
+        s = json.loads((out / "reconstruct.json").read_text())
+        assert s["path"] == "live" and s["outputs"] == want and s["frames"] >= 10
+        for name in want:
+            v = iio.imread(out / name, index=None)
+            assert v.shape[:3] == (s["frames"], H, (3 if name == "preview.mp4" else 1) * W), (name, v.shape)
+
+
 def test_display_table_is_within_one_level_of_the_exact_mapping():
     from reconstruct.stream.display import _to8
     from reconstruct.video.live import _to8_fast
@@ -157,9 +180,10 @@ def test_follow_reads_a_growing_dat_and_stops_on_sigint_with_complete_outputs(tm
     assert "latency" in se and "median" in se
     n_png = len(list((out / "frames").glob("T_*.png")))
     assert n_png == s["frames"]
-    for name in ("T", "R", "preview"):
+    for name in ("T", "R"):
         frames = sum(1 for _ in iio.imiter(out / f"{name}.mp4"))
         assert frames == s["frames"], (name, frames)
+    assert not (out / "preview.mp4").exists()  # the live path writes the side-by-side preview only with --preview
     assert not list(out.glob("*.tmp*")) and not list(out.glob(".*"))  # no partial file left
 
 

@@ -66,6 +66,29 @@ def test_fused_rwps_equals_the_torch_solver(seed, shifted):
         assert peak > 0 and float(d.max()) <= TOL_MAX * peak and float(d.mean()) <= TOL_MEAN * peak, (float(d.max()) / peak, float(d.mean()) / peak)
 
 
+def test_fused_rwps_on_bands_of_rows_in_parallel_equals_one_band():
+    """The passes split the rows (pixel pass, box means' row pass) and the columns (box means' column pass) into bands
+    on numba's threads: every pixel sums in the same order, so 2 and 3 bands give the one-band result bit for bit.
+    """
+    import reconstruct.physics.fused_rwps as F
+
+    def poisoned(threads):  # the work arrays persist between calls: NaN first, so a pixel a band leaves out shows
+        for sc in F._scratch.values():
+            for a in (sc.s, sc.work, sc.box, sc.cs):
+                a.fill(np.nan)
+        return F.rwps_fused(Z, I, PHYSICS_SOLVER_CONFIG, sh, threads=threads)
+
+    box_mean, rwps_fused = F.box_mean, F.rwps_fused
+    Z, I, _, _ = _window(4)
+    sh = np.random.default_rng(9).uniform(-1.7, 1.7, (N, 2))
+    one = rwps_fused(Z, I, PHYSICS_SOLVER_CONFIG, sh, threads=1)
+    x = np.random.default_rng(1).normal(size=(3, H, W))
+    for bands in (2, 3):
+        par = poisoned(bands)
+        assert np.array_equal(par[0], one[0]) and np.array_equal(par[1], one[1])
+        assert np.array_equal(box_mean(x, 7, threads=bands), box_mean(x, 7, threads=1))
+
+
 def test_fused_rwps_recovers_the_layers_of_a_noise_free_window():
     """Without noise the residual variance is 0, Conf -> 1 and lambda -> lambda_low = 0: the plain weighted least
     squares, which is exact on Eq. (1)-(2) data.
@@ -129,6 +152,8 @@ def test_display_frames_equal_the_table_lookup():
     t8, r8, p8 = to8_frames(I2, T, R, g, _TO8)
     assert np.array_equal(t8, _to8_fast(T, g["T"])) and np.array_equal(r8, _to8_fast(R, g["R"]))
     assert np.array_equal(p8, np.concatenate([_to8_fast(x, g["preview"]) for x in (I2, T, R)], 1))
+    a8, b8, none = to8_frames(I2, T, R, g, _TO8, preview=False)  # without the preview: T and R alone, the same values
+    assert none is None and np.array_equal(a8, t8) and np.array_equal(b8, r8)
 
 
 def test_live_flags_reject_bad_values_through_the_console_script(tmp_path, polspike_cli):
@@ -138,6 +163,22 @@ def test_live_flags_reject_bad_values_through_the_console_script(tmp_path, polsp
     r = polspike_cli("reconstruct", f, *geo, "--method", "ls", "--video-quality", "best", "--out", tmp_path / "o")
     polspike_cli.one_line_exit_2(r, "--video-quality", "fast", "high")
     assert not (tmp_path / "o").exists()
+    r = polspike_cli("reconstruct", f, *geo, "--threads", -1, "--out", tmp_path / "o")
+    polspike_cli.one_line_exit_2(r, "--threads", "0 for auto")
+    assert not (tmp_path / "o").exists()
     r = polspike_cli("bench", "realtime", "--live-variants", "torch,turbo", "--out", tmp_path / "b")
     polspike_cli.one_line_exit_2(r, "--live-variants", "coarse-rir")
     assert not (tmp_path / "b").exists()
+
+
+def test_cpu_threads_takes_the_idle_cores(monkeypatch):
+    """Asked for n: n.  Auto: the core count minus the 1-minute load average, rounded, within 1 .. cores."""
+    import os
+
+    from reconstruct.video.stream import cpu_threads
+
+    monkeypatch.setattr(os, "cpu_count", lambda: 8)
+    for load, want in ((0.0, 8), (0.4, 8), (2.6, 5), (7.9, 1), (30.0, 1)):
+        monkeypatch.setattr(os, "getloadavg", lambda load=load: (load, 0.0, 0.0))
+        assert cpu_threads(0) == want, (load, cpu_threads(0))
+        assert cpu_threads(3) == 3
