@@ -229,16 +229,7 @@ def reconstruct_stream(
         torch.set_num_threads(before)
 
 
-def _reconstruct_stream(
-    source: SpikeSource,
-    model,
-    out_dir: str | os.PathLike,
-    cfg: ReconstructConfig = ReconstructConfig(),
-    *,
-    device: str | torch.device = "cpu",
-    progress: ProgressFn | None = None,
-    meta: dict[str, Any] | None = None,
-) -> dict[str, Any]:
+def _reconstruct_stream(source: SpikeSource, model, out_dir, cfg: ReconstructConfig, *, device, progress: ProgressFn | None, meta: dict[str, Any] | None) -> dict[str, Any]:
     """:func:`reconstruct_stream` on the threads it set."""
     from spike_sim.aggregate import AggregateConfig, frame_centres, output_fps
 
