@@ -274,11 +274,12 @@ def _pilot_pair(scene) -> tuple[np.ndarray, np.ndarray, tuple[int, int]]:
         cam, pane = specs_from_scene(s, n=float(s.pane.index(550.0)))
         S1, S2 = (render_stokes_image(mi, objects_scene_dict(mi, s, cam, pane, spp=PILOT_SPP, seed=sd), PILOT_SPP, sd) for sd in (11, 12))
         return np.asarray(S1, np.float64), np.asarray(S2, np.float64), size
-    from generator.render import RenderOptions
     from generator.tiers_mitsuba import FullRenderer
 
-    S1, S2 = (np.asarray(FullRenderer(s, RenderOptions(tier="full", spp=PILOT_SPP, spectral=False, variant="auto", seed=sd), {}).stokes(0.0, 0), np.float64)
-              for sd in (11, 12))
+    def opts(seed: int):  # the render options FullRenderer reads (generator.render imports this module)
+        return SimpleNamespace(tier="full", spp=PILOT_SPP, spectral=False, variant="auto", seed=seed, fps=None, keyframe_hz=None, response=None, n_bands=None)
+
+    S1, S2 = (np.asarray(FullRenderer(s, opts(sd), {}).stokes(0.0, 0), np.float64) for sd in (11, 12))
     return S1, S2, size
 
 

@@ -10,7 +10,7 @@ import math
 
 import numpy as np
 import pytest
-from _mitsuba_common import require_mitsuba, small_scene
+from _mitsuba_common import require_mitsuba
 
 from polinfra.errors import BackendUnavailableError
 
