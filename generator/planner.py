@@ -32,11 +32,16 @@ units (1.0 = brightest layer value).  The planner predicts it per tier from what
   about R and transmits otherwise, so one sample's intensity is ``L_R`` or ``T L_T / (1 - R)`` and its
   variance per pixel is ``R L_R^2 + T^2 L_T^2 / (1 - R) - (R L_R + T L_T)^2``; with the polarizer's
   worst-angle factor ``(1 + DoP) / 2`` and a normal tail the p99 over pixels follows, times
-  :data:`NOISE_GAIN` fitted on the measured trade table (the proxy alone is within a factor 1.1-1.65
-  of every layer scene's measured ``k``).  A spectral render of a dispersive glass spreads spp over
+  :data:`NOISE_GAIN` fitted on the measured trade table.  The proxy is a guide, not a bound (on
+  sampled scenes the measured ``k`` is 0.49-2.0 times it), so whenever the full tier could be the
+  pick (no cheaper tier meets the tolerance, :func:`pilot_needed`) ``k`` is measured by a pilot
+  render instead and the proxy stands only where Mitsuba is missing.  A 3-D object scene's ``k`` is
+  always the pilot's: its noise depends on lights and BSDFs no closed form covers.  The pilot
+  (:func:`with_noise_pilot`) renders the full tier twice (two seeds, :data:`PILOT_SPP` spp, at most
+  :data:`PILOT_WIDTH` px wide) and takes the upper 95 % confidence bound of the p99 of their
+  difference (:func:`pilot_noise_k`).  A spectral render of a dispersive glass spreads spp over
   the bands: ``k`` grows by ``sqrt(n_bands * sum w_b^2)``; a mono render of it adds the dispersion
-  term.  For a 3-D object scene ``k`` is measured by a small pilot render (two seeds, few spp) since
-  the noise depends on lights and BSDFs no closed form covers.
+  term.
 
 Cost (seconds per keyframe, for the choice only): per pixel, from the trade table's order of
 magnitude; the order analytic < analytic on the pixel's area (K^2 passes per band) < maps, and full by
@@ -48,12 +53,13 @@ from __future__ import annotations
 import dataclasses
 import logging
 import math
+import time
 
 import numpy as np
 
 from polinfra.errors import ConfigError
 
-__all__ = ["TierEstimate", "TierPlan", "plan_tier", "scene_features", "predict_tiers", "apply_plan", "NOISE_GAIN", "SPP_MAX", "PHIS"]
+__all__ = ["TierEstimate", "TierPlan", "plan_tier", "scene_features", "predict_tiers", "apply_plan", "with_noise_pilot", "pilot_noise_k", "pilot_needed", "NOISE_GAIN", "SPP_MAX", "PHIS"]
 
 log = logging.getLogger(__name__)
 
@@ -94,6 +100,9 @@ the content's edges get more texels; a wider scene gets the narrower, larger est
 SAMPLING_RAYS = 400_000
 PILOT_SPP = 16
 PILOT_WIDTH = 100
+"""The full tier's noise pilot: two seeds at this spp, at most this wide (same aspect); about 4 s on this machine."""
+PILOT_CONFIDENCE_Z = 1.645
+"""One-sided 95 % normal point of the pilot's upper confidence bound on k (:func:`pilot_noise_k`)."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -181,7 +190,8 @@ def scene_features(scene, pilot: bool = True) -> dict:
     """What the planner needs to know of a scene (computed on the first keyframe).
 
     Layer scenes: the lobe-choice noise proxy, the dispersion and absorption terms (closed forms,
-    numpy only).  Object scenes: the pilot-measured noise coefficient (Mitsuba, ``pilot``).
+    numpy only); ``pilot`` allows :func:`plan_tier` to replace the proxy by a pilot render where the
+    full tier could be picked.  Object scenes: the pilot-measured noise coefficient (Mitsuba, ``pilot``).
     """
     f: dict = {"pane_model": scene.pane.model, "dispersive": scene.pane.glass is not None, "objects": scene.objects is not None,
                "absorption_per_mm": float(scene.pane.absorption_per_mm)}
@@ -190,9 +200,8 @@ def scene_features(scene, pilot: bool = True) -> dict:
         f["materials"] = sorted({s.material for s in ob.shapes})
         f["lights"] = len(ob.lights)
         f["environment"] = float(ob.environment)
-        f["noise_k"] = _object_noise_pilot(scene) if pilot else None
-        f["noise_source"] = f"pilot: full tier {PILOT_SPP} spp, two seeds, {PILOT_WIDTH} px wide" if pilot else "not measured"
-        return f
+        f["noise_k"], f["noise_source"] = None, "not measured"
+        return with_noise_pilot(scene, f) if pilot else f
     from generator.analytic import analytic_maps, frame_stokes, sample_layers
     from generator.layers import LayerContent
 
@@ -213,6 +222,7 @@ def scene_features(scene, pilot: bool = True) -> dict:
     f["noise_proxy"] = proxy
     f["noise_k"] = NOISE_GAIN * proxy
     f["noise_source"] = f"lobe-choice proxy {proxy:.3g} x NOISE_GAIN {NOISE_GAIN}"
+    f["pilot_allowed"] = bool(pilot)
     f["feature_size"] = [W, H]
     f["dispersion_p99"] = 0.0
     f["spectral_noise_factor"] = 1.0
@@ -244,21 +254,93 @@ def scene_features(scene, pilot: bool = True) -> dict:
     return f
 
 
-def _object_noise_pilot(scene) -> float:
-    """Noise coefficient k (p99 = k / sqrt(spp)) of a 3-D object scene's mixture, from two small renders."""
+def _pilot_pair(scene) -> tuple[np.ndarray, np.ndarray, tuple[int, int]]:
+    """Two full-tier renders of ``scene`` (mono, :data:`PILOT_SPP` spp, seeds 11 and 12, at most
+    :data:`PILOT_WIDTH` px wide): Stokes (3, h, w) each, and (w, h).  A 3-D object scene renders its mixture
+    only; a layer scene its first keyframe, as :class:`generator.tiers_mitsuba.FullRenderer` renders it.
+    """
     from types import SimpleNamespace
-
-    from generator.mitsuba_scene import render_stokes_image, specs_from_scene
-    from generator.objects3d import objects_scene_dict
-    from generator.tiers_mitsuba import _resolve
 
     W, H = scene.camera.width, scene.camera.height
     w = min(W, PILOT_WIDTH)
     s = dataclasses.replace(scene, camera=dataclasses.replace(scene.camera, width=w, height=max(2, int(round(H * w / W)))))
-    _, mi = _resolve(SimpleNamespace(variant="auto"), need_jit=False)  # the render options' backend choice
-    cam, pane = specs_from_scene(s, n=float(s.pane.index(550.0)))
-    S1, S2 = (render_stokes_image(mi, objects_scene_dict(mi, s, cam, pane, spp=PILOT_SPP, seed=sd), PILOT_SPP, sd) for sd in (11, 12))
-    return float(np.percentile(_worst(S1, S2), 99)) / math.sqrt(2.0) * math.sqrt(PILOT_SPP)
+    size = (s.camera.width, s.camera.height)
+    if scene.objects is not None:
+        from generator.mitsuba_scene import render_stokes_image, specs_from_scene
+        from generator.objects3d import objects_scene_dict
+        from generator.tiers_mitsuba import _resolve
+
+        _, mi = _resolve(SimpleNamespace(variant="auto"), need_jit=False)  # the render options' backend choice
+        cam, pane = specs_from_scene(s, n=float(s.pane.index(550.0)))
+        S1, S2 = (render_stokes_image(mi, objects_scene_dict(mi, s, cam, pane, spp=PILOT_SPP, seed=sd), PILOT_SPP, sd) for sd in (11, 12))
+        return np.asarray(S1, np.float64), np.asarray(S2, np.float64), size
+    from generator.tiers_mitsuba import FullRenderer
+
+    def opts(seed: int):  # the render options FullRenderer reads (generator.render imports this module)
+        return SimpleNamespace(tier="full", spp=PILOT_SPP, spectral=False, variant="auto", seed=seed, fps=None, keyframe_hz=None, response=None, n_bands=None)
+
+    S1, S2 = (np.asarray(FullRenderer(s, opts(sd), {}).stokes(0.0, 0), np.float64) for sd in (11, 12))
+    return S1, S2, size
+
+
+def pilot_noise_k(S1: np.ndarray, S2: np.ndarray, spp: int = PILOT_SPP) -> tuple[float, float]:
+    """Noise coefficient k (p99 = k / sqrt(spp)) from two independent renders at ``spp``: (estimate, upper bound).
+
+    Each pixel's worst-angle difference of the two, over sqrt 2, is one draw of a render's error there; the
+    estimate is their p99 over pixels, the upper bound the distribution-free one-sided 95 % confidence bound
+    of that p99 (the order statistic of rank ``0.99 n + 1.645 sqrt(0.0099 n)`` of ``n`` pixels), both times
+    ``sqrt(spp)``.
+    """
+    d = np.sort(_worst(S1, S2).ravel())
+    n = d.size
+    scale = math.sqrt(spp / 2.0)
+    k = float(np.percentile(d, 99)) * scale
+    r = min(n - 1, int(math.ceil(0.99 * n + PILOT_CONFIDENCE_Z * math.sqrt(n * 0.99 * 0.01))))
+    return k, max(k, float(d[r]) * scale)
+
+
+def with_noise_pilot(scene, f: dict) -> dict:
+    """``f`` with the full tier's noise coefficient measured by a pilot render (:func:`_pilot_pair`).
+
+    ``noise_k`` becomes the pilot's upper confidence bound (:func:`pilot_noise_k`), so a pick errs on the
+    safe side; the estimate, the bound, the pilot's size and seconds are kept (``noise_pilot``).  Without
+    Mitsuba a layer scene keeps its lobe-choice proxy (the reason says why); an object scene has no other
+    estimate and the error propagates.  Already measured: ``f`` unchanged.
+    """
+    from polinfra.errors import BackendUnavailableError
+
+    if "noise_pilot" in f:
+        return f
+    t0 = time.perf_counter()
+    try:
+        S1, S2, (w, h) = _pilot_pair(scene)
+    except BackendUnavailableError as exc:
+        if f.get("objects"):
+            raise
+        log.warning("noise pilot not possible for %s (%s): the lobe-choice proxy stands", scene.name, exc)
+        return {**f, "noise_pilot": {"error": str(exc).splitlines()[0]}, "noise_source": f"{f['noise_source']} (pilot not possible: {str(exc).splitlines()[0]})"}
+    k, k_hi = pilot_noise_k(S1, S2)
+    secs = time.perf_counter() - t0
+    src = (f"pilot: full tier {PILOT_SPP} spp, two seeds, {w} x {h} px, {secs:.1f} s: k {k_hi:.3g} = 95 % upper bound "
+           f"(estimate {k:.3g})")
+    if "noise_proxy" in f:
+        src += f"; the lobe-choice proxy gives {NOISE_GAIN * f['noise_proxy']:.3g}"
+    log.info("noise pilot for %s: k %.3g (upper bound %.3g), %.1f s", scene.name, k, k_hi, secs)
+    return {**f, "noise_k": k_hi, "noise_source": src,
+            "noise_pilot": {"k": k, "k_upper": k_hi, "spp": PILOT_SPP, "size": [w, h], "seconds": secs,
+                            "proxy_k": NOISE_GAIN * f["noise_proxy"] if "noise_proxy" in f else None}}
+
+
+def pilot_needed(scene, f: dict, tolerance: float, analytic_spectral: bool = True) -> bool:
+    """Whether the full tier's noise must be measured for ``tolerance``: a layer scene whose proxy stands
+    (and the pilot is allowed) and no other tier meets the tolerance at a cost below the full tier at 1 spp
+    (otherwise no full-tier row can be the cheapest, whatever its noise).
+    """
+    if f.get("objects") or "noise_pilot" in f or not f.get("pilot_allowed", False):
+        return False
+    ests = predict_tiers(scene, f, spp_grid=(1,), analytic_spectral=analytic_spectral)
+    full1 = min(e.cost_s_per_frame for e in ests if e.tier == "full")
+    return not any(e.tier != "full" and e.feasible and e.predicted_p99 <= tolerance and e.cost_s_per_frame < full1 for e in ests)
 
 
 def _full_error(f: dict, spp: int, spectral: bool) -> tuple[float, list[str]]:
@@ -356,6 +438,8 @@ def plan_tier(scene, tolerance: float, features: dict | None = None, analytic_sp
     if not (isinstance(tolerance, (int, float)) and math.isfinite(tolerance) and tolerance > 0):
         raise ConfigError(f"--tolerance {tolerance!r} must be a positive p99 radiance error (e.g. 1e-2)")
     f = features if features is not None else scene_features(scene)
+    if pilot_needed(scene, f, tolerance, analytic_spectral):
+        f = with_noise_pilot(scene, f)
     ests = predict_tiers(scene, f, analytic_spectral=analytic_spectral)
     ok = [e for e in ests if e.feasible and e.predicted_p99 <= tolerance]
     if not ok:
@@ -367,6 +451,8 @@ def plan_tier(scene, tolerance: float, features: dict | None = None, analytic_sp
         )
     choice = min(ok, key=lambda e: (e.cost_s_per_frame, e.predicted_p99))
     reasons = (f"cheapest tier with predicted p99 {choice.predicted_p99:.3g} <= tolerance {tolerance:g}",) + choice.reasons
+    if choice.tier != "full" and "noise_pilot" in f:
+        reasons += (f"full tier's noise coefficient: {f['noise_source']}",)
     choice = dataclasses.replace(choice, reasons=reasons)
     log.info("tier auto for %s at tolerance %g: %s (predicted p99 %.3g)", scene.name, tolerance, choice.label(), choice.predicted_p99)
     return TierPlan(float(tolerance), choice, tuple(ests), {k: v for k, v in f.items()})

@@ -21,6 +21,7 @@ def tradeoff_cmd(
     quick: bool = typer.Option(False, "--quick", help="reduced candidate grid (for tests)"),
     planner: bool = typer.Option(False, "--planner", help="check --tier auto: the planner's grid (analytic, maps, full 4/16/64 spp), predictions vs measurements and the picks at --tolerances (planner.md)"),
     tolerances: str = typer.Option("5e-2,2e-2,1e-2,1e-3", "--tolerances", help="--planner: comma-separated EPS values whose auto picks are rendered and measured"),
+    max_pick_spp: int = typer.Option(256, "--max-pick-spp", help="--planner: render and measure full-tier picks up to this spp", min=1),
     sampled: int = typer.Option(0, "--sampled", help="also measure N scenes drawn by the dataset sampler (--sampled-profile, --sampled-seed)", min=0),
     sampled_seed: int = typer.Option(1, "--sampled-seed", help="sampler seed of --sampled"),
     sampled_profile: str = typer.Option("paper", "--sampled-profile", help="sampler profile of --sampled: paper | v1 | objects3d"),
@@ -69,7 +70,7 @@ def tradeoff_cmd(
 
         np.savez_compressed(out / "references.npz", **{f"{k}__S": v[0] for k, v in refs.items()}, **{f"{k}__resolution": np.float64(v[1]) for k, v in refs.items()})
 
-        chk = check_planner(scs, res["rows"], refs, tols)
+        chk = check_planner(scs, res["rows"], refs, tols, max_pick_spp=max_pick_spp)
         write_json(out / "planner.json", chk)
         write_text(out / "planner.md", planner_markdown(chk))
         res["planner"] = chk

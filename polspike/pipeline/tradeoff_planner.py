@@ -58,18 +58,19 @@ def _match(e, row: dict, dispersive: bool) -> bool:
 
 def check_planner(scenes: list, rows: list[dict], refs: dict, tolerances=DEFAULT_TOLERANCES, max_pick_spp: int = 256) -> dict:
     """Predictions vs measurements and the auto picks, per scene (see the module docstring)."""
-    from generator.planner import plan_tier, predict_tiers, scene_features
+    from generator.planner import plan_tier, predict_tiers, scene_features, with_noise_pilot
     from polspike.pipeline.tradeoff import Candidate, _radiance_error, _render_first, corrected_error
 
-    pred_rows, picks = [], []
+    pred_rows, picks, noise = [], [], []
     for scene in scenes:
         if scene.name not in refs:
             continue
         S_ref, res = refs[scene.name]
-        feats = scene_features(scene)
+        feats = with_noise_pilot(scene, scene_features(scene))  # every scene's k measured, to set beside the rows
         ests = predict_tiers(scene, feats)
         disp = scene.pane.glass is not None
         measured = [r for r in rows if r["scene"] == scene.name and "err_corrected" in r and r.get("tier") in ("analytic", "maps", "full")]
+        noise.append(_noise_row(scene.name, feats, measured, disp))
         for r in measured:
             e = next((e for e in ests if _match(e, r, disp)), None)
             if e is None:
@@ -140,7 +141,23 @@ def check_planner(scenes: list, rows: list[dict], refs: dict, tolerances=DEFAULT
         "picks_met": sum(bool(p["met"]) for p in judged), "picks_cheapest": sum(bool(p["cheapest"]) for p in judged),
         "picks_unresolved": sum(not p["resolved"] for p in judged),
     }
-    return {"predictions": pred_rows, "picks": picks, "summary": summary, "features": {}}
+    return {"predictions": pred_rows, "picks": picks, "summary": summary, "noise_k": noise, "features": {}}
+
+
+def _noise_row(name: str, feats: dict, measured: list[dict], dispersive: bool) -> dict:
+    """The full tier's noise coefficient: the lobe-choice proxy's, the pilot's (estimate and the upper bound the
+    planner uses) and the measured one (geometric mean over the mono full-tier rows of ``err_corrected * sqrt(spp)``).
+    """
+    from generator.planner import NOISE_GAIN
+
+    p = feats.get("noise_pilot") or {}
+    ks = [r["err_corrected"] * math.sqrt(int(r["spp"])) for r in measured
+          if r.get("tier") == "full" and not _spectral(r, dispersive) and r.get("spp") and r["err_corrected"] > 0]
+    k_meas = math.exp(sum(math.log(k) for k in ks) / len(ks)) if ks else None
+    k_used = feats.get("noise_k")
+    return {"scene": name, "proxy_k": p.get("proxy_k", (feats["noise_proxy"] * NOISE_GAIN) if "noise_proxy" in feats else None),
+            "pilot_k": p.get("k"), "pilot_k_upper": p.get("k_upper"), "pilot_s": p.get("seconds"), "k_used": k_used,
+            "measured_k": k_meas, "used_over_measured": (k_used / k_meas) if (k_used and k_meas) else None}
 
 
 def planner_markdown(res: dict) -> str:
@@ -156,6 +173,10 @@ def planner_markdown(res: dict) -> str:
             out.append(f"| {p['scene']} | {p['tolerance']:g} | unreachable: {p['message'].split(': ', 1)[-1]} | | | | | |")
             continue
         out.append(f"| {p['scene']} | {p['tolerance']:g} | {p['pick']} | {f(p['predicted_p99'])} | {f(p['measured_p99'])} | {yn(p['met'])} | {yn(p['resolved'])} | {yn(p['cheapest'])} |")
+    if res.get("noise_k"):
+        out += ["", "| scene | proxy k | pilot k | pilot k, 95 % upper (used) | pilot s | measured k | used / measured |", "|---|---|---|---|---|---|---|"]
+        for r in res["noise_k"]:
+            out.append(f"| {r['scene']} | {f(r['proxy_k'])} | {f(r['pilot_k'])} | {f(r['pilot_k_upper'])} | {f(r['pilot_s'])} | {f(r['measured_k'])} | {f(r['used_over_measured'])} |")
     s = res["summary"]
     out += ["", f"Within a factor of 2: {s['agree_x2']} / {s['prediction_rows']} rows. Picks measured: {s['picks_measured']} / {s['picks']}; "
             f"met EPS {s['picks_met']}, cheapest {s['picks_cheapest']}, measurement resolution above EPS on {s['picks_unresolved']}.", ""]
