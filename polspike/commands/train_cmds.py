@@ -150,7 +150,7 @@ def reconstruct_cmd(
     follow: bool = typer.Option(False, "--follow", help=".dat: the file is still being written (a camera): output frames as their spikes arrive, the latency on stderr and in reconstruct.json; Ctrl-C stops with every output complete (physics methods on pane maps)"),
     follow_idle: float = typer.Option(5.0, "--follow-idle", help="--follow: stop when the file has not grown for this many seconds (0 = only Ctrl-C stops)"),
     path: str = typer.Option("auto", "--path", help="live (packed reads, fused solver, background encoding: the real-time path; physics methods on pane maps over a .dat) | stream (the general streaming path) | auto (live where it applies)"),
-    span: str = typer.Option("plain", "--span", help="the network's long span: plain (every spike of the 17.5 ms around the frame) | compensated (its 7 parts registered onto the centre part first: for a moving camera; reconstruct/stream/motion_span.py)"),
+    span: str = typer.Option("plain", "--span", help="the network's long span: plain (every spike of the 17.5 ms around the frame) | compensated (its 7 parts registered onto the centre part first: for a moving camera; reconstruct/stream/motion_span.py) | rir (the parts moved by the windows' RIR shifts interpolated in time: no registration of its own)"),
     video_quality: str = typer.Option("fast", "--video-quality", help="live path videos: fast (x264 CRF 23, less encoder CPU) | high (CRF 10, as the streaming path)"),
     threads: int = typer.Option(0, "--threads", help="torch threads of the streaming path on the CPU [default 0 = auto: the cores idle when the run starts (1-minute load average), at least 1; the live path runs its solver on one]"),
     preview: Optional[bool] = typer.Option(None, "--preview/--no-preview", help="also write preview.mp4 (input | T | R side by side; more encoder CPU than T.mp4 and R.mp4 together) [default: the streaming path yes, the live path no: it keeps up with the camera]"),
@@ -212,8 +212,8 @@ def reconstruct_cmd(
             raise ConfigError(f"--pane gives zeta (the calibrated maps): drop --zeta {zeta}")
         if pane_n is not None or pane_model != "auto":
             raise ConfigError("--pane fixes the index and the pane model (they are in its maps): drop --pane-n / --pane-model")
-    if span not in ("plain", "compensated"):
-        raise ConfigError(f"--span {span!r}: choose plain or compensated")
+    if span not in ("plain", "compensated", "rir"):
+        raise ConfigError(f"--span {span!r}: choose plain, compensated or rir")
     if threads < 0:
         raise ConfigError(f"--threads {threads}: a number of threads >= 1, or 0 for auto")
     if dev == "cpu":  # the self-calibration and the stream alike: no more threads than idle cores (reconstruct.video.stream.cpu_threads)

@@ -23,7 +23,7 @@ from polinfra.errors import ShapeError
 from reconstruct.physics.rir import RirConfig, estimate_shifts, warp
 from reconstruct.stream.groups import harmonic_design, span_harmonic, span_part_edges
 
-__all__ = ["SPAN_RIR", "span_parts", "compensated_span", "compensate_part_sums"]
+__all__ = ["SPAN_RIR", "SPAN_PARTS", "span_parts", "compensated_span", "compensate_part_sums", "part_shifts_from_windows"]
 
 SPAN_RIR = RirConfig(dop_max=1.0, coarse_factor=1)
 """Registration of the span's parts: every well-exposed pixel (``dop_max`` 1) and whole-pixel search at full
@@ -65,8 +65,28 @@ def compensated_span(spikes: np.ndarray, phi: np.ndarray, exposure: float, n_sub
     return compensate_part_sums(sums, parts, ph, exposure, harmonic, min_shift_px, rir)
 
 
+def part_shifts_from_windows(window_shifts: np.ndarray, window_centres: np.ndarray, parts: list[tuple[int, int]], inlier_px: float = 0.5) -> np.ndarray:
+    """Each part's shift onto the span's centre from the N windows' RIR shifts onto their centre window
+    (``window_shifts`` (N, 2) as (dy, dx), at steps ``window_centres`` (N,)), as one constant velocity over the span:
+    the median of the windows' slopes, refitted by least squares on the windows within ``inlier_px`` of it (a window
+    whose registration failed, e.g. the outer ones of a fast pan where the low-DoP mask leaves the moving texture out,
+    does not pull it).  The 7 windows cover +-171 steps and the 7 parts +-150: no registration of the span's own.
+    """
+    ws = np.asarray(window_shifts, np.float64)
+    t = np.asarray(window_centres, np.float64)
+    lo, hi = parts[0][0], parts[-1][1]
+    t = t - (lo + (hi - lo) // 2)
+    mid = np.array([0.5 * (a + b - 1) for a, b in parts]) - (lo + (hi - lo) // 2)
+    far = np.abs(t) > 0.5
+    vel = np.median(ws[far] / t[far, None], axis=0) if far.any() else np.zeros(2)
+    ok = far & (np.hypot(*(ws - t[:, None] * vel).T) <= inlier_px)
+    if ok.any():
+        vel = (t[ok, None] * ws[ok]).sum(0) / (t[ok] ** 2).sum()
+    return mid[:, None] * vel[None, :]
+
+
 def compensate_part_sums(sums: np.ndarray, parts: list[tuple[int, int]], phi: np.ndarray, exposure: float, harmonic: bool = True,
-                         min_shift_px: float = 0.3, rir: RirConfig = SPAN_RIR) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
+                         min_shift_px: float = 0.3, rir: RirConfig = SPAN_RIR, shifts: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
     """:func:`compensated_span` from the parts' spike sums ``sums`` (n, 3, H, W: weighted by 1, cos 2 phi, sin 2 phi) over
     the consecutive step ranges ``parts`` ([lo, hi), indices into ``phi``, the per-step angles; the streaming
     reconstructor keeps these sums, :meth:`reconstruct.stream.groups.SpikeMeanSums.part_sums`).
@@ -75,12 +95,14 @@ def compensate_part_sums(sums: np.ndarray, parts: list[tuple[int, int]], phi: np
     sums = np.array(sums, np.float64)
     lo, hi = parts[0][0], parts[-1][1]
     L = hi - lo
-    shifts = np.zeros((len(parts), 2))
+    given = shifts is not None
+    shifts = np.array(shifts, np.float64) if given else np.zeros((len(parts), 2))
     if len(parts) >= 3:
-        means = torch.from_numpy(sums[:, 0] / np.array([max(b - a, 1) for a, b in parts], np.float64)[:, None, None])
-        angles = torch.tensor([ph[a:b].mean() for a, b in parts], dtype=torch.float64)
-        centre = next(i for i, (a, b) in enumerate(parts) if a <= lo + L // 2 < b)
-        shifts = estimate_shifts(means, angles, center=centre, config=rir).cpu().numpy()
+        if not given:
+            means = torch.from_numpy(sums[:, 0] / np.array([max(b - a, 1) for a, b in parts], np.float64)[:, None, None])
+            angles = torch.tensor([ph[a:b].mean() for a, b in parts], dtype=torch.float64)
+            centre = next(i for i, (a, b) in enumerate(parts) if a <= lo + L // 2 < b)
+            shifts = estimate_shifts(means, angles, center=centre, config=rir).cpu().numpy()
         shifts[np.hypot(shifts[:, 0], shifts[:, 1]) < min_shift_px] = 0.0
         moved = np.flatnonzero(np.abs(shifts).sum(1) > 0)
         if moved.size:

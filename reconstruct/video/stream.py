@@ -41,9 +41,10 @@ import torch
 from polinfra.atomic import atomic_path, ensure_dir, write_json
 from polinfra.config import opt
 from polinfra.errors import ConfigError
+from reconstruct.physics.rir import estimate_shifts
 from reconstruct.stream.display import DisplayHistogram, _to8, display_gain
 from reconstruct.stream.groups import SpikeMeanSums, spike_mean_steps, wide_window_steps, window_means
-from reconstruct.stream.motion_span import SPAN_PARTS, compensate_part_sums
+from reconstruct.stream.motion_span import SPAN_PARTS, compensate_part_sums, part_shifts_from_windows
 from reconstruct.stream.sources import SpikeSource
 from reconstruct.stream.window_inputs import WindowInputs, inputs_of
 from reconstruct.video.tiling import FeatureCache, auto_tile, run_model_on_windows
@@ -72,7 +73,7 @@ class ReconstructConfig:
     precision: str = opt("float32", "float32 | bfloat16 (autocast; the solver stays float32)", choices=("float32", "bfloat16"))
     threads: int = opt(0, "torch threads on the CPU (0 = torch's setting as it is; cpu_threads() gives the idle cores)", lo=0, hi=4096)
     cache: bool = opt(True, "reuse per-observation features across overlapping windows (v2 networks, RIR off, whole frames)")
-    span: str = opt("plain", "the long span a network reads: plain (every spike of its 17.5 ms summed) | compensated (cut into 7 parts registered onto the centre part before they are summed, reconstruct.stream.motion_span: a panning camera no longer smears it)", choices=("plain", "compensated"))
+    span: str = opt("plain", "the long span a network reads: plain (every spike of its 17.5 ms summed) | compensated (cut into 7 parts registered onto the centre part before they are summed, reconstruct.stream.motion_span: a panning camera no longer smears it) | rir (the same parts moved by the 7 windows' RIR shifts interpolated in time: no registration of its own)", choices=("plain", "compensated", "rir"))
 
 
 
@@ -266,7 +267,7 @@ def _reconstruct_stream(source: SpikeSource, model, out_dir, cfg: ReconstructCon
     mean_steps = spike_mean_steps(source.rate_hz) if "I_mean" in need else 0
     use_harm = "I_harm" in need
     span_kw = {"exposure": exposure if "exposure" in need else None, "span_steps": mean_steps if "span_steps" in need else None}
-    comp = cfg.span == "compensated" and mean_steps > 0
+    comp = cfg.span in ("compensated", "rir") and mean_steps > 0
     prefix = SpikeMeanSums(centres, mean_steps, source.phi_step_rad.size, (source.height, source.width), source.phi_step_rad if (use_harm or comp) else None,
                            n_sub=SPAN_PARTS if comp else 1) if mean_steps else None
     tile = auto_tile(model, device) if cfg.tile < 0 else cfg.tile
@@ -313,7 +314,12 @@ def _reconstruct_stream(source: SpikeSource, model, out_dir, cfg: ReconstructCon
                 if len(frames_I) == N:
                     j = next_c - 1 - K
                     if comp:  # the span's parts registered onto its centre part, then summed
-                        mj, hj, _ = compensate_part_sums(*prefix.part_sums(j), source.phi_step_rad, exposure, use_harm)
+                        sums, parts = prefix.part_sums(j)
+                        sh = None
+                        if cfg.span == "rir":  # the windows' own registration, interpolated to the parts' times
+                            wsh = estimate_shifts(torch.from_numpy(np.stack(frames_I)).double(), torch.from_numpy(np.asarray(phi_i[next_c - N : next_c], np.float64))).numpy()
+                            sh = part_shifts_from_windows(wsh, centres[next_c - N : next_c], parts)
+                        mj, hj, _ = compensate_part_sums(sums, parts, source.phi_step_rad, exposure, use_harm, shifts=sh)
                         prefix.release(j)
                     else:
                         hj = prefix.harmonic(j, exposure) if use_harm else None  # before mean(j), which frees older sums

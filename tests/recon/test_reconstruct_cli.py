@@ -146,12 +146,13 @@ def test_cli_group_store_end_to_end(tmp_path):
     assert sb["floor_anchor"] == "best" and sb["frames"] == s["frames"]
     err_b = [np.abs(read_exr(tmp_path / "b" / "frames" / f"{i:06d}.exr", ["T"])["T"] - T).mean() for i in range(sb["frames"])]
     assert "learned" in s["zeta"] and err_b == err
-    # the motion-compensated span on a still scene: recorded, T as near the layer
-    r = CliRunner().invoke(get_app(), ["reconstruct", str(tmp_path / "g"), "--out", str(tmp_path / "c"), "--frames", "exr", "--quiet", "--span", "compensated"])
-    assert r.exit_code == 0, r.output
-    sc = json.loads((tmp_path / "c" / "reconstruct.json").read_text())
-    assert sc["span"] == "compensated" and s["span"] == "plain" and sc["frames"] == s["frames"]
-    assert max(np.abs(read_exr(tmp_path / "c" / "frames" / f"{i:06d}.exr", ["T"])["T"] - T).mean() for i in range(sc["frames"])) < 0.1
+    # the motion-compensated spans on a still scene: recorded, T as near the layer
+    for span in ("compensated", "rir"):
+        r = CliRunner().invoke(get_app(), ["reconstruct", str(tmp_path / "g"), "--out", str(tmp_path / span), "--frames", "exr", "--quiet", "--span", span])
+        assert r.exit_code == 0, r.output
+        sc = json.loads((tmp_path / span / "reconstruct.json").read_text())
+        assert sc["span"] == span and s["span"] == "plain" and sc["frames"] == s["frames"]
+        assert max(np.abs(read_exr(tmp_path / span / "frames" / f"{i:06d}.exr", ["T"])["T"] - T).mean() for i in range(sc["frames"])) < 0.1
 
 
 def _v2_model(seed=0):
@@ -227,7 +228,7 @@ def test_cli_zeta_fallback_and_zeta_none_errors(tmp_path, polspike_cli, polspike
     r = polspike_cli("reconstruct", f, *geo, "--floor-anchor", "mean", "--out", tmp_path / "o")
     polspike_cli.one_line_exit_2(r, "--floor-anchor", "rwps", "best")
     r = polspike_cli("reconstruct", f, *geo, "--span", "moving", "--out", tmp_path / "o")
-    polspike_cli.one_line_exit_2(r, "--span", "plain", "compensated")
+    polspike_cli.one_line_exit_2(r, "--span", "plain", "compensated", "rir")
     assert not (tmp_path / "o").exists()
     r = polspike_main("evaluate", tmp_path, "--method", "full", "--net-fallback", "zero", "--out", tmp_path / "e")
     polspike_main.one_line_exit_2(r, "net_fallback")
