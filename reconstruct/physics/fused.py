@@ -26,12 +26,7 @@ def _kernel_py(z, I, T, R, acc):  # pragma: no cover - compiled by numba below; 
     srr, srt, stt, rr, rt = acc[0], acc[1], acc[2], acc[3], acc[4]
     for p0 in range(0, P, B):
         n = min(B, P - p0)
-        for q in range(n):
-            srr[q] = 0.0
-            srt[q] = 0.0
-            stt[q] = 0.0
-            rr[q] = 0.0
-            rt[q] = 0.0
+        acc[:5, :n] = 0.0  # the five moments of this block
         for k in range(N):
             zk = z[k, p0 : p0 + n]
             ik = I[k, p0 : p0 + n]

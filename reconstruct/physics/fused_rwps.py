@@ -88,12 +88,7 @@ def _pixel_rows(z, I, oy, ox, fy, fx, warp, lam1, out, a, b, w, acc, y_lo, y_hi)
             _load_row_c(z, k, y, oy[k], ox[k], fy[k], fx[k], warp, 1.0, a[k])
             _load_row_c(I, k, y, oy[k], ox[k], fy[k], fx[k], warp, 2.0, b[k])
         # first pass of the reliability weights: unweighted ridge, lambda_high (poisson_reliability)
-        for x in range(W):
-            srr[x] = 0.0
-            srt[x] = 0.0
-            stt[x] = 0.0
-            rr[x] = 0.0
-            rt[x] = 0.0
+        acc[:5] = 0.0  # srr, srt, stt, rr, rt of this row
         for k in range(N):
             ak, bk = a[k], b[k]
             for x in range(W):

@@ -182,7 +182,7 @@ class SpikeMeanSums:
         if self.n_sub > 1 and phi_step is None:
             raise DataFormatError("SpikeMeanSums with parts (n_sub > 1) needs the per-step angles (phi_step)")
         edges = set(self.lo.tolist()) | set(self.hi.tolist())
-        if self.n_sub > 1:  # each span's part boundaries too (reconstruct.stream.motion_span.span_parts)
+        if self.n_sub > 1:  # each span's part boundaries too (span_part_edges)
             for lo, hi in zip(self.lo.tolist(), self.hi.tolist()):
                 edges |= {lo + a for a, _ in span_part_edges(hi - lo, self.n_sub)}
         self.want = sorted(edges)

@@ -23,7 +23,7 @@ from polinfra.errors import ShapeError
 from reconstruct.physics.rir import RirConfig, estimate_shifts, warp
 from reconstruct.stream.groups import harmonic_design, span_harmonic, span_part_edges
 
-__all__ = ["SPAN_RIR", "SPAN_PARTS", "span_parts", "compensated_span", "compensate_part_sums", "part_shifts_from_windows"]
+__all__ = ["SPAN_RIR", "SPAN_PARTS", "compensated_span", "compensate_part_sums", "part_shifts_from_windows"]
 
 SPAN_RIR = RirConfig(dop_max=1.0, coarse_factor=1)
 """Registration of the span's parts: every well-exposed pixel (``dop_max`` 1) and whole-pixel search at full
@@ -32,8 +32,6 @@ harmonic fit behind RIR's low-DoP mask reads that change as polarization: with t
 moving texture itself is left out and the outer parts, 3 px away at 400 px/s, register wrongly (measured on the
 synthetic pan of tests/recon/test_motion_span.py)."""
 
-
-span_parts = span_part_edges
 
 SPAN_PARTS = 7
 """Parts of the 350-step span: 50 steps each (about 27 deg of polarizer at 30 rev/s)."""
@@ -60,7 +58,7 @@ def compensated_span(spikes: np.ndarray, phi: np.ndarray, exposure: float, n_sub
     if sp.ndim != 3 or ph.shape != sp.shape[:1]:
         raise ShapeError(f"spikes must be (L, H, W) with phi (L,); got {sp.shape} and {ph.shape}", actual_shape=ph.shape, expected_shape=sp.shape[:1])
     L, H, W = sp.shape
-    parts = span_parts(L, n_sub)
+    parts = span_part_edges(L, n_sub)
     sums = np.stack([np.tensordot(harmonic_design(ph[a:b]), sp[a:b].astype(np.float64), axes=(1, 0)) for a, b in parts])  # (n, 3, H, W)
     return compensate_part_sums(sums, parts, ph, exposure, harmonic, min_shift_px, rir)
 

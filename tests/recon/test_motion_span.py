@@ -9,7 +9,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from reconstruct.stream.motion_span import compensated_span, span_parts
+from reconstruct.stream.groups import span_part_edges
+from reconstruct.stream.motion_span import compensated_span
 
 RATE = 20000.0
 
@@ -53,7 +54,7 @@ def _edge_width(img: np.ndarray) -> float:
 
 
 def test_span_parts_cover_the_span():
-    parts = span_parts(350, 7)
+    parts = span_part_edges(350, 7)
     assert parts[0][0] == 0 and parts[-1][1] == 350 and all(b == c for (_, b), (c, _) in zip(parts[:-1], parts[1:]))
     assert max(b - a for a, b in parts) - min(b - a for a, b in parts) <= 1
 
@@ -69,7 +70,7 @@ def test_compensated_span_is_sharp_where_the_plain_span_is_blurred(v):
     assert w_plain == pytest.approx(np.hypot(0.8 * box, w_true), rel=0.25)  # closed form of the box blur
     assert w_comp < max(0.35 * w_plain, w_true + 0.2 * box)
     # the parts' shifts follow the pan: part j's centre lies (j - 3) L / 7 steps from the span's centre
-    want = -v * (np.array([(a + b) / 2 for a, b in span_parts(L, 7)]) - L / 2) / RATE
+    want = -v * (np.array([(a + b) / 2 for a, b in span_part_edges(L, 7)]) - L / 2) / RATE
     np.testing.assert_allclose(shifts[:, 1], want, atol=0.35)
     assert harm is not None and harm.shape == (2, *comp.shape)
 
@@ -128,7 +129,7 @@ def test_part_shifts_from_the_windows_rir_match_the_registered_parts():
     good = np.abs(wsh[:, 1] - v * (c - wc) / RATE) < 0.3  # the windows that follow the pan (the closed form)
     assert good.sum() >= 4 and not good.all()  # the outer windows' registration fails here (the mask leaves the texture out)
     lo, hi = c - L // 2, c + L // 2 + 1
-    parts = [(lo + a, lo + b) for a, b in span_parts(hi - lo, 7)]
+    parts = [(lo + a, lo + b) for a, b in span_part_edges(hi - lo, 7)]
     sh = part_shifts_from_windows(wsh, wc, parts)
     _, _, reg = compensated_span(spikes[lo:hi], phi[lo:hi], 2.0)
     np.testing.assert_allclose(sh, reg, atol=0.3)
