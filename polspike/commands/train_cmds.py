@@ -117,6 +117,24 @@ def train_cmd(
     c.print(f"run directory: {out}")
 
 
+def _write_selfcal_maps(out: Path, model, info: dict | None) -> str | None:
+    """OUT/maps.exr: the pane maps the self-calibration fitted (R_perp, R_par, phi_perp, as calibrate-pane writes them),
+    so that ``--pane OUT`` runs another reconstruction of the setup on the same zeta without calibrating again.
+    Returns the file's name, or None when nothing was self-calibrated.
+    """
+    maps = getattr(model, "maps", None)
+    if maps is None or info is None or not (info.get("selfcal") or {}).get("ok"):
+        return None
+    import numpy as np
+
+    from polinfra.atomic import ensure_dir
+    from polinfra.exr import write_exr
+
+    ch = {k: np.asarray(getattr(maps, k), np.float32) for k in ("R_perp", "R_par", "phi_perp")}
+    write_exr(ensure_dir(out) / "maps.exr", ch, attrs={"source": "polspike reconstruct --zeta self", "tier": "self-calibrated pane maps"})
+    return "maps.exr"
+
+
 @app_typer.command("reconstruct")
 def reconstruct_cmd(
     input: Path = typer.Argument(..., help="a spike group directory (polspike simulate) or a raw Vidar .dat file"),
@@ -145,7 +163,7 @@ def reconstruct_cmd(
     pane_n: Optional[float] = typer.Option(None, "--pane-n", help="the pane's refractive index where known (e.g. from polspike calibrate-pane) [default: --zeta self fits it where the spikes constrain it, else 1.5; --zeta physics: 1.5]"),
     pane_model: str = typer.Option("auto", "--pane-model", help="the pane model where known: single, thin_slab or thick_slab [default auto: --zeta self fits it where the spikes constrain it, else thin_slab; --zeta physics: single]"),
     fov_deg: Optional[float] = typer.Option(None, "--fov-deg", help="--zeta self: the camera's horizontal field of view in degrees where the lens is known [default: a group's scene fov; a .dat: fitted from the spikes, which on narrow views trades against the pane's tilt (docs/selfcal.md)]"),
-    pane: Optional[Path] = typer.Option(None, "--pane", help="zeta from the maps of polspike calibrate-pane (its output directory or maps.exr) of this camera and pane, instead of --zeta: e.g. fitted once on a long static recording, then used for every recording of the setup"),
+    pane: Optional[Path] = typer.Option(None, "--pane", help="zeta from pane maps instead of --zeta: the output directory (or maps.exr) of polspike calibrate-pane, e.g. fitted once on a long static recording and used for every recording of the setup, or of an earlier polspike reconstruct whose --zeta self calibrated (its maps.exr: the same pane without calibrating again)"),
     ensemble: int = typer.Option(1, "--ensemble", help="the network averaged over 1, 2, 4 or 8 mirror / transpose symmetries of each window (test-time self-ensemble: that many forward passes, no feature cache; measured by polspike bench ensemble)"),
     follow: bool = typer.Option(False, "--follow", help=".dat: the file is still being written (a camera): output frames as their spikes arrive, the latency on stderr and in reconstruct.json; Ctrl-C stops with every output complete (physics methods on pane maps)"),
     follow_idle: float = typer.Option(5.0, "--follow-idle", help="--follow: stop when the file has not grown for this many seconds (0 = only Ctrl-C stops)"),
@@ -308,6 +326,7 @@ def reconstruct_cmd(
         model, info = build_physics_model(method, zeta or "self", src, group_dir=None if input.suffix.lower() == ".dat" else input, window_steps=window_steps,
                                           exposure=None if src.exposure is not None else cfg.exposure, rir=rir, load_learned=load, anchor=anchor,
                                           pane_n=pane_n, pane_model=pane_model, selfcal=selfcal)
+    maps_out = _write_selfcal_maps(out, model, info)
     meta = {**exposure_info, "method": method, "anchor": anchor, "ensemble": ensemble, "rir": rir, "floor": floor if method == "net" else None, "floor_anchor": anchor_used if floor else None, "span": span if method == "net" else None, "zeta": info["zeta"] if info is not None else "learned"}
     live = is_dat and path != "stream" and method != "net" and getattr(model, "maps", None) is not None and anchor == "none" and dev == "cpu"
     if (follow or path == "live") and not live:
@@ -330,7 +349,7 @@ def reconstruct_cmd(
     if info is not None:
         from polinfra.atomic import write_json
 
-        write_json(out / ("zeta.json" if method == "net" else "physics.json"), {"method": method, **info})
+        write_json(out / ("zeta.json" if method == "net" else "physics.json"), {"method": method, **info, "pane_maps": maps_out})
         sc = info["selfcal"]
         if sc and sc["ok"]:
             c.print(f"{method} on self-calibrated zeta: pane tilt {sc['tilt_deg']:.1f} deg, azimuth {sc['azimuth_deg']:.1f} deg, fov {sc['fov_deg']:.1f} deg{' (fitted: give --fov-deg if the lens is known)' if sc['fov_fitted'] else ''}, {sc['model']} n {sc['n']:g}")

@@ -160,8 +160,8 @@ def group_pane_maps(group_dir, zeta: str, n: float = 1.5, model: str = "single")
 
 
 def calibrated_pane_maps(path, height: int, width: int) -> PaneMaps:
-    """The pane maps of ``polspike calibrate-pane`` (its output directory, or that directory's maps.exr) for a stream
-    of ``height`` x ``width``: R_perp, R_par and phi_perp as fitted (geometry, index and model are in them).
+    """The pane maps of ``polspike calibrate-pane`` or of a self-calibrating ``polspike reconstruct`` (its output
+    directory, or that directory's maps.exr) for a stream of ``height`` x ``width``: R_perp, R_par and phi_perp as fitted (geometry, index and model are in them).
 
     Raises:
         ConfigError: no maps there (calibrate-pane refused that recording: its report.json says why), channels
@@ -172,11 +172,12 @@ def calibrated_pane_maps(path, height: int, width: int) -> PaneMaps:
 
     p = Path(path)
     if not p.exists():
-        raise ConfigError(f"--pane {path}: no such directory or file; give a calibrate-pane output directory or its maps.exr")
+        raise ConfigError(f"--pane {path}: no such directory or file; give a calibrate-pane (or self-calibrated reconstruct) output directory or its maps.exr")
     f = p / "maps.exr" if p.is_dir() else p
     if not f.is_file():
-        why = " (calibrate-pane wrote no maps: its report.json says why it did not calibrate)" if (f.parent / "report.json").is_file() else ""
-        raise ConfigError(f"--pane {path}: no {f.name} there{why}; give a calibrate-pane output directory or its maps.exr")
+        why = (" (calibrate-pane wrote no maps: its report.json says why it did not calibrate)" if (f.parent / "report.json").is_file()
+               else " (that reconstruction did not self-calibrate: its zeta.json or physics.json says why)" if (f.parent / "reconstruct.json").is_file() else "")
+        raise ConfigError(f"--pane {path}: no {f.name} there{why}; give a calibrate-pane (or self-calibrated reconstruct) output directory or its maps.exr")
     try:
         mp = read_exr(f, ["R_perp", "R_par", "phi_perp"])
     except DataFormatError as e:

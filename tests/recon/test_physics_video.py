@@ -81,6 +81,20 @@ def test_dat_form_with_method_and_self_zeta(stream, polspike_cli, tmp_path):
     assert abs(sc["tilt_deg"] - TILT) < 3.0
     assert json.loads((out / "reconstruct.json").read_text())["frames"] == 2
     assert sorted(p.name for p in (out / "frames").iterdir()) == ["R_000000.png", "R_000001.png", "T_000000.png", "T_000001.png"]
+    # the fitted pane is kept: --pane OUT reconstructs on the same zeta without calibrating again (the same frames)
+    assert info["pane_maps"] == "maps.exr" and (out / "maps.exr").is_file()
+    again = tmp_path / "again"
+    r = polspike_cli("reconstruct", stream["dat"], "--height", H, "--width", W, "--phi0-deg", math.degrees(PHI0), "--rev-per-s", REV,
+                     "--frames", "png", "--out", again, "--method", "ls", "--pane", out, "--no-rir", "--max-frames", 2, "--quiet", "--device", "cpu")
+    assert r.returncode == 0, r.stderr[-2000:]
+    info2 = json.loads((again / "physics.json").read_text())
+    assert info2["zeta"] == f"pane ({out})" and info2["selfcal"] is None and info2["pane_maps"] is None and not (again / "maps.exr").exists()
+    for f in ("T_000000.png", "R_000001.png"):
+        assert (again / "frames" / f).read_bytes() == (out / "frames" / f).read_bytes(), f
+    # a reconstruction that did not self-calibrate wrote no maps: --pane says so in one line
+    r = polspike_cli("reconstruct", stream["dat"], "--height", H, "--width", W, "--phi0-deg", math.degrees(PHI0), "--rev-per-s", REV,
+                     "--out", tmp_path / "third", "--method", "ls", "--pane", again, "--no-rir", "--max-frames", 1, "--quiet")
+    polspike_cli.one_line_exit_2(r, "that reconstruction did not self-calibrate")
 
 
 def test_fov_deg_is_the_self_calibrations_field_of_view(stream, polspike_cli, tmp_path):
