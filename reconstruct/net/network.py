@@ -562,7 +562,9 @@ class PolSpikeNet(nn.Module):
         ``polspike reconstruct --method rwps`` returns on this zeta) on the same (aligned) windows -> (T, R, kept fraction).
         Given the stream's ``exposure``, the noise is capped at the windows' Poisson noise, var(2 I) = 4 I / (exposure L)
         with L = 13 steps (0.65 ms at 20 kHz: the windows this network reads), so misalignment or a wrong zeta in the
-        residual does not widen the allowance.  ``floor_anchor = "best"`` falls back to the best physics
+        residual does not widen the allowance; and bounded from below by the noise of counts under one spike per window
+        (:func:`reconstruct.physics.consistency.count_quantum_variance` at the brighter of the windows' and the span's
+        mean), which a dark pool's all-zero windows cannot show.  ``floor_anchor = "best"`` falls back to the best physics
         per pixel instead (:func:`reconstruct.physics.anchor.anchored_floor`, with the long span's ``I_mean`` where the
         network reads it, at the polarizer-cycle mean zeta of the windows' angles ``phi``); the kept fraction returned is T's.
         It does so on an ``external`` zeta only (self-calibrated or given): least squares on the network's learned zeta,
@@ -570,21 +572,23 @@ class PolSpikeNet(nn.Module):
         by 0.8-1.2 on a 0.3-0.7 layer), and the regularised RWPS is the safer fallback there.
         """
         from reconstruct.physics.anchor import AnchorFloorConfig, anchored_floor
-        from reconstruct.physics.consistency import FloorConfig, consistency_floor
+        from reconstruct.physics.consistency import FloorConfig, box_mean, consistency_floor, count_quantum_variance
         from reconstruct.physics.solvers import PHYSICS_SOLVER_CONFIG
 
         z = zeta.detach().float()
         Iw = I.detach().float()
-        mv = None
+        mv = qf = None
         if exposure is not None:
             e = torch.as_tensor(exposure, dtype=torch.float32, device=Iw.device).reshape(-1, 1, 1) if torch.is_tensor(exposure) else float(exposure)
             mv = 4.0 * Iw.mean(1).clamp_min(0.0) / (e * 13.0) + 1e-12
+            lev = Iw.mean(1) if I_mean is None else torch.maximum(Iw.mean(1), I_mean.detach().float())  # the span's mean sees light the windows' zeros do not
+            qf = box_mean(count_quantum_variance(lev.clamp_min(0.0), e, 13), 5)
         ph = solve("rwps", z, Iw, None, PHYSICS_SOLVER_CONFIG)
         if self.cfg.floor_anchor == "best" and external:
             g = anchored_floor(T.float(), R.float(), z, Iw, None if I_mean is None else I_mean.detach().float(), None if I_mean is None else zbar_of(z, phi.float()),
-                               AnchorFloorConfig(tol=self.cfg.floor_tol), mv, reference=(ph.T.clamp_min(0.0), ph.R.clamp_min(0.0)))
+                               AnchorFloorConfig(tol=self.cfg.floor_tol), mv, reference=(ph.T.clamp_min(0.0), ph.R.clamp_min(0.0)), noise_floor=qf)
             return g.T.to(T.dtype), g.R.to(R.dtype), g.keep_T
-        f = consistency_floor(T.float(), R.float(), ph.T.clamp_min(0.0), ph.R.clamp_min(0.0), z, Iw, FloorConfig(tol=self.cfg.floor_tol, mode=self.cfg.floor_mode), mv, "min")
+        f = consistency_floor(T.float(), R.float(), ph.T.clamp_min(0.0), ph.R.clamp_min(0.0), z, Iw, FloorConfig(tol=self.cfg.floor_tol, mode=self.cfg.floor_mode), mv, "min", noise_floor=qf)
         return f.T.to(T.dtype), f.R.to(R.dtype), f.keep
 
 

@@ -165,7 +165,8 @@ class AnchoredFloorResult:
 
 def anchored_floor(T: torch.Tensor, R: torch.Tensor, zeta: torch.Tensor, I: torch.Tensor, I_mean: torch.Tensor | None = None,
                    zbar_span: torch.Tensor | None = None, cfg: AnchorFloorConfig = AnchorFloorConfig(), model_var: torch.Tensor | None = None,
-                   span_ratio: float = SPAN_RATIO, reference: tuple[torch.Tensor, torch.Tensor] | None = None) -> AnchoredFloorResult:
+                   span_ratio: float = SPAN_RATIO, reference: tuple[torch.Tensor, torch.Tensor] | None = None,
+                   noise_floor: torch.Tensor | float | None = None) -> AnchoredFloorResult:
     """Floor a candidate (T, R) (..., H, W) at the best physics (:func:`physics_anchor`) by the windows ``I`` on ``zeta``.
 
     Two checks, each a kept fraction of the candidate's move from the anchor (x = x_a + s (x_n - x_a)):
@@ -179,7 +180,8 @@ def anchored_floor(T: torch.Tensor, R: torch.Tensor, zeta: torch.Tensor, I: torc
       passes, a worse one ends at the physics' error.
 
     T keeps min(s_d, s_T), R keeps min(s_d, s_R).  ``model_var`` caps sigma^2 at the spikes' own noise (the floor's
-    ``combine = "min"``).
+    ``combine = "min"``); ``noise_floor`` bounds it from below whatever the cap (the noise of counts below one spike,
+    :func:`reconstruct.physics.consistency.count_quantum_variance`).
     """
     _check(zeta, I)
     dt = T.dtype
@@ -187,6 +189,8 @@ def anchored_floor(T: torch.Tensor, R: torch.Tensor, zeta: torch.Tensor, I: torc
     s2 = observation_noise(z, Iw, cfg.pool)
     if model_var is not None:
         s2 = torch.minimum(s2, box_mean(torch.broadcast_to(model_var.to(s2.dtype), s2.shape), cfg.pool))
+    if noise_floor is not None:
+        s2 = torch.maximum(s2, torch.as_tensor(noise_floor, dtype=s2.dtype, device=s2.device))
     s2 = s2.clamp_min(1e-30)
     a = physics_anchor(z, Iw, None if I_mean is None else I_mean.to(torch.float64), None if zbar_span is None else zbar_span.to(torch.float64),
                        span_ratio, cfg.pool, s2)

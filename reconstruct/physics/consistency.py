@@ -19,7 +19,9 @@ adaptive RWPS's, :mod:`reconstruct.physics.solvers`), so it holds the spikes' Po
 whatever the model leaves (an imperfect self-calibrated zeta, residual misalignment) alike.  Where the spike model's
 noise is known (exposure and window length, :func:`reconstruct.physics.identifiability.window_mean_variance`),
 ``model_var`` either bounds sigma^2 from below (``combine = "max"``) or caps it (``"min"``: the residual then counts
-only as far as the spikes' noise explains it, so misalignment or a wrong zeta does not widen the allowance).
+only as far as the spikes' noise explains it, so misalignment or a wrong zeta does not widen the allowance).  Under
+either, ``noise_floor`` holds: the noise of counts below one spike per window (:func:`count_quantum_variance`), which a
+dim pool's residual (its counts all 0, fitted exactly) cannot show.
 
 **The floor** (:func:`consistency_floor`) keeps the fraction
 
@@ -53,7 +55,7 @@ import torch
 from polinfra.config import opt
 from polinfra.errors import ShapeError
 
-__all__ = ["FloorConfig", "FloorResult", "observation_residual", "observation_noise", "consistency_floor", "box_mean"]
+__all__ = ["FloorConfig", "FloorResult", "observation_residual", "observation_noise", "count_quantum_variance", "consistency_floor", "box_mean"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -99,6 +101,21 @@ def box_mean(x: torch.Tensor, k: int) -> torch.Tensor:
     return y.reshape(shp)
 
 
+def count_quantum_variance(level, exposure, steps: int):
+    """sigma^2 of one observation b = 2 I that a window of ``steps`` steps shows as no residual, for the light ``level``
+    (radiance units, e.g. the long span's spike mean; a number or a tensor) at ``exposure`` thresholds per step per unit
+    radiance: where the expected count m = level x steps x exposure is below one spike, a window counts 0 or 1 and errs
+    by m (1 - m) spike^2 (an integrate-and-fire pixel from a residue spread over one threshold; a Poisson one by m), one
+    spike being 2 / (steps exposure) in b.  A dim pool of windows whose counts are all 0 is fitted exactly, so its
+    residual says there is no noise at all; this is the noise that is there all the same.  From one spike per window
+    up the counts vary and the residual shows their noise: 0 there.
+    """
+    q = 2.0 / (float(steps) * exposure)
+    m = level * float(steps) * exposure
+    m = m.clamp(0.0, 1.0) if hasattr(m, "clamp") else min(max(float(m), 0.0), 1.0)
+    return q * q * m * (1.0 - m)
+
+
 def observation_noise(zeta: torch.Tensor, I: torch.Tensor, pool: int = 5) -> torch.Tensor:
     """sigma^2 of one observation b_k = 2 I_k, (..., H, W): the unweighted least-squares residual RSS / (N - 2),
     box-averaged over ``pool`` pixels (zeta that does not modulate: the residual about the window mean, N - 1 dof).
@@ -118,7 +135,8 @@ def observation_noise(zeta: torch.Tensor, I: torch.Tensor, pool: int = 5) -> tor
 
 
 def consistency_floor(T: torch.Tensor, R: torch.Tensor, T_p: torch.Tensor, R_p: torch.Tensor, zeta: torch.Tensor, I: torch.Tensor,
-                      cfg: FloorConfig = FloorConfig(), model_var: torch.Tensor | None = None, combine: str = "max") -> FloorResult:
+                      cfg: FloorConfig = FloorConfig(), model_var: torch.Tensor | None = None, combine: str = "max",
+                      noise_floor: torch.Tensor | float | None = None) -> FloorResult:
     """Floor a candidate (T, R) at the physics (T_p, R_p) by the N observations ``I`` (..., N, H, W) on ``zeta``.
 
     Args:
@@ -129,6 +147,9 @@ def consistency_floor(T: torch.Tensor, R: torch.Tensor, T_p: torch.Tensor, R_p: 
         cfg: :class:`FloorConfig`.
         model_var: optional (..., H, W) or broadcastable sigma^2 of b = 2 I from the spike model.
         combine: "max" (``model_var`` a lower bound on sigma^2) or "min" (a cap).
+        noise_floor: optional sigma^2 that holds whatever the residual and ``model_var`` say (broadcastable to
+            (..., H, W)): the noise of counts below one spike (:func:`count_quantum_variance`), which no residual of
+            windows that all count 0 can show.
 
     Returns:
         :class:`FloorResult` (module docstring).
@@ -141,6 +162,8 @@ def consistency_floor(T: torch.Tensor, R: torch.Tensor, T_p: torch.Tensor, R_p: 
             raise ValueError(f"combine {combine!r}: max or min")
         mv = box_mean(torch.broadcast_to(model_var.to(sigma2.dtype), sigma2.shape), cfg.pool)
         sigma2 = torch.maximum(sigma2, mv) if combine == "max" else torch.minimum(sigma2, mv)
+    if noise_floor is not None:
+        sigma2 = torch.maximum(sigma2, torch.as_tensor(noise_floor, dtype=sigma2.dtype, device=sigma2.device))
     sigma2 = sigma2.clamp_min(torch.finfo(T.dtype).tiny ** 0.5)
     r_p = observation_residual(T_p, R_p, zeta, I)
     dT, dR = T - T_p, R - R_p

@@ -232,3 +232,51 @@ def _garbage_net(**cfg):
             dec.out.weight.normal_(0.0, 10.0, generator=torch.Generator().manual_seed(4))
             dec.out.bias.fill_(0.7)
     return net.eval()
+
+
+def test_count_quantum_variance_is_the_noise_of_counts_under_one_spike():
+    """An integrate-and-fire count over L steps at m thresholds per window (m < 1), from a residue spread uniformly over
+    one threshold, is 1 with probability m, else 0: its error about m has variance m (1 - m) spike^2.  Simulated here
+    pixel by pixel; count_quantum_variance gives it in units of b = 2 I (one spike = 2 / (L exposure)), and 0 from one
+    spike per window up (the residual shows that noise).
+    """
+    from reconstruct.physics.consistency import count_quantum_variance
+
+    rng = np.random.default_rng(11)
+    L, e = 13, 0.4
+    for m in (0.05, 0.3, 0.6):
+        level = m / (L * e)  # radiance giving m thresholds per window
+        count = np.floor(rng.uniform(0.0, 1.0, 100_000) + m)
+        b_err = 2.0 * (count - m) / (L * e)
+        assert float(np.var(b_err)) == pytest.approx(count_quantum_variance(level, e, L), rel=0.03)
+        assert float(count_quantum_variance(torch.tensor([level]), e, L)[0]) == pytest.approx(count_quantum_variance(level, e, L))
+    assert count_quantum_variance(1.5 / (L * e), e, L) == 0.0
+
+
+def test_the_count_quantum_keeps_a_sub_spike_move_in_the_dark():
+    """Dark windows (every count 0, but for a few single spikes) are fitted exactly by the physics: the pools' residual
+    is 0 and, without a floor on the noise, any move is 'inconsistent' and pulled back.  A move of a tenth of one
+    spike cannot be judged by 13-step windows at a light of 0.1 spike per window (what the long span's mean says):
+    with the noise of such counts as the floor it is kept; where the windows are bright (12 spikes each) the floor is 0
+    and nothing changes.
+    """
+    from reconstruct.physics.consistency import count_quantum_variance
+
+    rng = np.random.default_rng(12)
+    N, H, W, L, e = 7, 32, 64, 13, 0.4
+    z = torch.tensor(np.linspace(0.05, 0.35, N)[:, None, None] * np.ones((N, H, W)))
+    counts = np.zeros((N, H, W))
+    counts[:, :, :32] = (rng.uniform(size=(N, H, 32)) < 0.02)  # dark half: a spike in 2 % of the windows
+    counts[:, :, 32:] = rng.poisson(12.0, size=(N, H, 32))  # bright half
+    I = torch.tensor(counts / (L * e))
+    level = torch.where(torch.arange(W) < 32, 0.1, 12.0).expand(H, W) / (L * e)  # the span's mean: 0.1 and 12 spikes per window
+    ph = solve("rwps", z.float(), I.float(), None, PHYSICS_SOLVER_CONFIG)
+    Tp, Rp = ph.T.clamp_min(0.0), ph.R.clamp_min(0.0)
+    tenth = 0.1 * 2.0 / (L * e)  # a tenth of one spike, in the layers' units (b = 2 I)
+    Tn, Rn = Tp + tenth, Rp + tenth
+    f0 = consistency_floor(Tn, Rn, Tp, Rp, z.float(), I.float())
+    f1 = consistency_floor(Tn, Rn, Tp, Rp, z.float(), I.float(), noise_floor=count_quantum_variance(level, e, L))
+    dark = (slice(None), slice(2, 28))
+    assert float((f0.keep[dark] < 0.5).float().mean()) > 0.05 and float(f0.keep[dark].min()) < 0.01  # without the floor: pools with no spike pulled back
+    assert float(f1.keep[dark].min()) == 1.0  # kept with it
+    torch.testing.assert_close(f1.keep[:, 32:], f0.keep[:, 32:])  # the bright half: no floor, the same check
