@@ -72,6 +72,7 @@ class LiveConfig:
     solver: str = opt("fused", "fused numba kernels where one exists (ls, physics rwps; RIR shifts applied inside) or torch (the streaming path's solver)", choices=("fused", "torch"))
     preset: str = opt("ultrafast", "x264 preset of the videos", choices=("ultrafast", "superfast", "veryfast", "faster", "fast", "medium"))
     video_quality: str = opt("fast", "videos: fast (x264 CRF 23, one encoder thread per video) | high (CRF 10, the streaming path's level; more encoder CPU)", choices=tuple(VIDEO_CRF))
+    video_codec: str = opt("h264", "videos: h264 (T.mp4, R.mp4: yuv420p, plays everywhere) | h264-gray (4:0:0 .mp4: less encoder CPU, not for browsers) | y4m (raw 8-bit .y4m: no encoder, 100 kB per 400 x 250 frame)", choices=("h264", "h264-gray", "y4m"))
     threads: int = opt(1, "numba threads of the fused RWPS passes (bands of rows in parallel; the same numbers; 0 = all cores)", lo=0, hi=256)
     rir_finest: int = opt(1, "RIR: finest level of the chained fit, 1 = full resolution, 2 = 2 x 2 blocks (cheaper; error measured in docs/realtime.md)", lo=1, hi=2)
     poll_s: float = opt(0.01, "follow: wait between looks at the growing file, seconds", lo=0.0, hi=10.0)
@@ -113,6 +114,21 @@ def to8_table() -> np.ndarray:
 _TO8 = to8_table()
 
 
+_TO8_LIMITED = None
+
+
+def _to8_table(limited: bool) -> np.ndarray:
+    """The display table, or with ``limited`` its studio-range luma (``LIMITED[_TO8]``, what the encoder takes)."""
+    global _TO8_LIMITED
+    if not limited:
+        return _TO8
+    if _TO8_LIMITED is None:
+        from reconstruct.video.live_video import LIMITED
+
+        _TO8_LIMITED = LIMITED[_TO8]
+    return _TO8_LIMITED
+
+
 def _to8_fast(x: np.ndarray, gain: float) -> np.ndarray:
     idx = np.clip(x * np.float32(gain * (_TABLE_N - 1)) + np.float32(0.5), 0, _TABLE_N - 1).astype(np.uint16)
     return _TO8[idx]
@@ -136,13 +152,12 @@ class _LiveWriters:
         self.thread: threading.Thread | None = None
         self.n = 0
 
-    def _open(self, name: str):
-        import imageio.v2 as iio
+    def _open(self, name: str, shape: tuple[int, int]):
+        from reconstruct.video.live_video import VIDEO_CODECS, open_video
 
-        tmp = self.stack.enter_context(atomic_path(self.out / f"{name}.mp4"))
+        tmp = self.stack.enter_context(atomic_path(self.out / f"{name}{VIDEO_CODECS[self.cfg.video_codec]}"))
         extra = ["-threads", "1"] if self.cfg.video_quality == "fast" else []  # one x264 thread per video: less sync work
-        w = iio.get_writer(str(tmp), format="FFMPEG", mode="I", fps=self.fps, codec="libx264", quality=None, macro_block_size=1, pixelformat="yuv420p",
-                           ffmpeg_log_level="error", output_params=["-preset", self.cfg.preset, "-crf", str(VIDEO_CRF[self.cfg.video_quality]), *extra])
+        w = open_video(tmp, self.cfg.video_codec, shape[0], shape[1], self.fps, ["-preset", self.cfg.preset, "-crf", str(VIDEO_CRF[self.cfg.video_quality]), *extra])
         self.stack.callback(w.close)
         return w
 
@@ -167,17 +182,18 @@ class _LiveWriters:
 
     def _encode(self, i: int, I2: np.ndarray, T: np.ndarray, R: np.ndarray) -> None:
         g = self.gain
-        even = lambda a: a[: a.shape[0] // 2 * 2, : a.shape[1] // 2 * 2]  # noqa: E731
         from reconstruct.video.display8 import to8_frames
 
-        t8, r8, prev = to8_frames(I2, T, R, g, _TO8, preview=self.cfg.video and self.cfg.preview)  # the table lookup of _to8_fast, in one pass
+        # yuv420p H.264 without PNG frames: the table gives the studio-range luma the encoder takes, in the same pass
+        limited = self.cfg.video and self.cfg.video_codec == "h264" and self.cfg.frames != "png"
+        t8, r8, prev = to8_frames(I2, T, R, g, _to8_table(limited), preview=self.cfg.video and self.cfg.preview)  # the table lookup of _to8_fast, in one pass
         if self.cfg.video:
             for name, img in (("T", t8), ("R", r8), ("preview", prev)):
                 if img is None:
                     continue
                 if name not in self.vw:
-                    self.vw[name] = self._open(name)
-                self.vw[name].append_data(even(img))
+                    self.vw[name] = self._open(name, img.shape)
+                self.vw[name].append(img, limited)
         if self.cfg.frames == "png":
             import imageio.v3 as iio3
 
@@ -402,13 +418,13 @@ def reconstruct_live(
                 if stop is not None and stop.is_set():
                     break
                 c = int(cen.c[nxt])
-                with times("aggregate"):
-                    I_j = reader.counts(c - agg.half, c + agg.half + 1).astype(np.float32) / scale  # Eq. (3), radiance units
                 slot = nxt % N
-                ring_I[slot] = I_j
+                with times("aggregate"):
+                    _radiance(reader, c - agg.half, c + agg.half + 1, scale, ring_I[slot])  # Eq. (3), radiance units
                 ring_phi[slot] = np.float32(cen.phi[nxt])
-                with times("zeta"):
-                    zeta_of(float(ring_phi[slot]), ring_Z[slot])  # paper Eq. (2)
+                if not fused:  # the fused LS pass takes zeta's closed form, not the frames of zeta
+                    with times("zeta"):
+                        zeta_of(float(ring_phi[slot]), ring_Z[slot])  # paper Eq. (2)
                 nxt += 1
                 progressed = True
                 if nxt >= N:
@@ -418,7 +434,7 @@ def reconstruct_live(
                     centre = (nxt - 1 - K) % N
                     if fused:  # the least-squares sums do not depend on the order of the frames: the ring as it is
                         with times("solve"):
-                            T, R = _ls(ring_Z, ring_I)
+                            T, R = zeta_of.ls(ring_I, ring_phi)
                         emit(writers, ring_I[centre].copy(), T, R, arr)
                     elif fused_rwps:  # nor do RWPS's (per-pixel sums, min and mean over the window); shifts follow the ring
                         sh = None
@@ -471,7 +487,7 @@ def reconstruct_live(
         "nan_frames": stats["nan_frames"],
         "seconds": secs,
         "frames_per_second_processed": done / secs if secs > 0 else None,
-        "outputs": sorted(p.name for p in out.iterdir() if p.is_file() and p.suffix == ".mp4"),
+        "outputs": sorted(p.name for p in out.iterdir() if p.is_file() and p.suffix in (".mp4", ".y4m")),
         "display_gain": writers.gain,
         "display_gain_frames": min(cfg.gain_frames, done),
         "path": "live",
@@ -499,6 +515,7 @@ class _ZetaFrames:
         self.mean = (0.5 * (rp + rl)).astype(np.float32)
         self.ac = (a * np.cos(2 * pp)).astype(np.float32)
         self.as_ = (a * np.sin(2 * pp)).astype(np.float32)
+        self.m64 = self.ac64 = self.as64 = None
 
     def __call__(self, phi: float, out: np.ndarray) -> np.ndarray:
         np.multiply(self.ac, np.float32(math.cos(2 * phi)), out=out)
@@ -507,7 +524,23 @@ class _ZetaFrames:
         return out
 
 
-def _ls(Z: np.ndarray, I: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    from reconstruct.physics.fused import ls_fused
+    def ls(self, I: np.ndarray, phi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Least-squares T, R of the window I (N, H, W) at angles phi (N,) on this zeta, without its frames
+        (:func:`reconstruct.physics.fused.ls_fused_harmonic`).
+        """
+        from reconstruct.physics.fused import ls_fused_harmonic
 
-    return ls_fused(Z, I)
+        if self.m64 is None:
+            self.m64, self.ac64, self.as64 = (a.astype(np.float64) for a in (self.mean, self.ac, self.as_))
+        ph = 2 * np.asarray(phi, np.float64)
+        return ls_fused_harmonic(I, np.cos(ph), np.sin(ph), self.m64, self.ac64, self.as64)
+
+
+def _radiance(reader, a: int, b: int, scale: np.float32, out: np.ndarray) -> None:
+    """Eq. (3) frame of steps a..b-1 in radiance units into ``out``: ``counts(a, b).astype(float32) / scale``, by the
+    reader's one-pass kernel where it has one (the same values).
+    """
+    if hasattr(reader, "radiance"):
+        reader.radiance(a, b, scale, out)
+    else:
+        out[...] = reader.counts(a, b).astype(np.float32) / scale
