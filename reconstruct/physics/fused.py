@@ -103,7 +103,7 @@ def _harmonic_py(I, c, s, m, ac, as_, T, R, acc):  # pragma: no cover - compiled
         Tq = T[p0 : p0 + n]
         Rq = R[p0 : p0 + n]
         for q in range(n):
-            mm, a, b = mq[q], aq[q], bq[q]
+            mm, a, b = np.float64(mq[q]), np.float64(aq[q]), np.float64(bq[q])
             lin = a * C1 + b * S1
             sz = n_obs * mm + lin  # sum zeta
             srr = mm * (sz + lin) + a * a * C2 + 2.0 * a * b * CS + b * b * S2  # sum zeta^2
@@ -151,13 +151,15 @@ def ls_fused(zeta: np.ndarray, I: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 def ls_fused_harmonic(I: np.ndarray, cos2: np.ndarray, sin2: np.ndarray, mean: np.ndarray, ac: np.ndarray, as_: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """:func:`ls_fused` of the window whose zeta is paper Eq. (2) in angle-sum form, zeta_k = mean + ac cos2_k + as_ sin2_k,
     without making zeta: I (N, H, W) float32; cos2, sin2 (N,) the cos and sin of 2 phi_k (with the span factor in ac, as_);
-    mean, ac, as_ (H, W) maps.  The zeta moments are closed forms in float64 (no float32 rounding of zeta), so the result
-    agrees with :func:`ls_fused` on the float32 zeta to float32 rounding, not bit for bit (tested).
+    mean, ac, as_ (H, W) maps, float32 (half the memory traffic of float64; read as float64) or float64.  The zeta moments
+    are closed forms in float64 (no float32 rounding of zeta), so the result agrees with :func:`ls_fused` on the float32
+    zeta to float32 rounding, not bit for bit (tested).
     """
     N, H, W = I.shape
     i = np.ascontiguousarray(I, np.float32).reshape(N, H * W)
-    f64 = lambda a: np.ascontiguousarray(a, np.float64).reshape(-1)  # noqa: E731
+    dt = np.float32 if all(a.dtype == np.float32 for a in (mean, ac, as_)) else np.float64
+    f = lambda a, t: np.ascontiguousarray(a, t).reshape(-1)  # noqa: E731
     T = np.empty(H * W, np.float32)
     R = np.empty(H * W, np.float32)
-    _get(_harmonic_py)(i, f64(cos2), f64(sin2), f64(mean), f64(ac), f64(as_), T, R, np.empty((3, min(_BLOCK_HARMONIC, H * W))))
+    _get(_harmonic_py)(i, f(cos2, np.float64), f(sin2, np.float64), f(mean, dt), f(ac, dt), f(as_, dt), T, R, np.empty((3, min(_BLOCK_HARMONIC, H * W))))
     return T.reshape(H, W), R.reshape(H, W)

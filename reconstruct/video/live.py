@@ -515,7 +515,6 @@ class _ZetaFrames:
         self.mean = (0.5 * (rp + rl)).astype(np.float32)
         self.ac = (a * np.cos(2 * pp)).astype(np.float32)
         self.as_ = (a * np.sin(2 * pp)).astype(np.float32)
-        self.m64 = self.ac64 = self.as64 = None
 
     def __call__(self, phi: float, out: np.ndarray) -> np.ndarray:
         np.multiply(self.ac, np.float32(math.cos(2 * phi)), out=out)
@@ -530,10 +529,8 @@ class _ZetaFrames:
         """
         from reconstruct.physics.fused import ls_fused_harmonic
 
-        if self.m64 is None:
-            self.m64, self.ac64, self.as64 = (a.astype(np.float64) for a in (self.mean, self.ac, self.as_))
         ph = 2 * np.asarray(phi, np.float64)
-        return ls_fused_harmonic(I, np.cos(ph), np.sin(ph), self.m64, self.ac64, self.as64)
+        return ls_fused_harmonic(I, np.cos(ph), np.sin(ph), self.mean, self.ac, self.as_)
 
 
 def _radiance(reader, a: int, b: int, scale: np.float32, out: np.ndarray) -> None:
