@@ -135,8 +135,9 @@ def _to8_fast(x: np.ndarray, gain: float) -> np.ndarray:
 
 
 class _LiveWriters:
-    """Outputs of a live stream: EXR frames at once, display outputs (MP4s, PNG frames) on a background thread
-    once the gains are known (after ``gain_frames`` frames or at the end).
+    """Outputs of a live stream: EXR frames at once, display outputs (videos, PNG frames) on a background thread: it
+    also keeps the display histogram of the first ``gain_frames`` frames (held until the gains are known, then encoded;
+    or at the end), so the stream's thread never waits for it.
     """
 
     def __init__(self, out: Path, fps: float, cfg: LiveConfig, times: StageTimes):
@@ -151,6 +152,9 @@ class _LiveWriters:
         self.err: BaseException | None = None
         self.thread: threading.Thread | None = None
         self.n = 0
+        if self.display:
+            self.thread = threading.Thread(target=self._encode_loop, name="polspike-encode", daemon=True)
+            self.thread.start()
 
     def _open(self, name: str, shape: tuple[int, int]):
         from reconstruct.video.live_video import VIDEO_CODECS, open_video
@@ -162,20 +166,34 @@ class _LiveWriters:
         return w
 
     def _encode_loop(self) -> None:
+        """Frames from the queue until None (the end: frames still held are encoded on the gains of their histogram) or
+        False (a failed run: nothing more is encoded).
+        """
         cpu = 0.0
         wall = 0.0
         try:
             while True:
                 item = self.q.get()
-                if item is None:
-                    break
                 w0, c0 = time.perf_counter(), time.thread_time()
-                self._encode(*item)
+                if item is None or item is False:
+                    if item is None and self.gain is None and self.held:
+                        self._release()
+                    break
+                if self.gain is None:
+                    _, I2, T, R = item
+                    self.hist["input"].add(I2)
+                    self.hist["T"].add(T)
+                    self.hist["R"].add(R)
+                    self.held.append(item)
+                    if len(self.held) >= self.cfg.gain_frames:
+                        self._release()
+                else:
+                    self._encode(*item)
                 wall += time.perf_counter() - w0
                 cpu += time.thread_time() - c0
         except BaseException as e:  # noqa: BLE001 - handed to the main thread in close()
             self.err = e
-            while self.q.get() is not None:  # drain so the producer never blocks
+            while self.q.get() not in (None, False):  # drain so the producer never blocks
                 pass
         finally:
             self.times.add("encode", wall, cpu)
@@ -202,13 +220,12 @@ class _LiveWriters:
                 with atomic_path(d / f"{name}_{i:06d}.png") as tmp:
                     iio3.imwrite(tmp, img, extension=".png")
 
-    def _start(self) -> None:
+    def _release(self) -> None:
+        """The gains from the histogram so far; the held frames encoded on them."""
         gT, gR, gI = (display_gain(self.hist[k]) for k in ("T", "R", "input"))
         self.gain = {"T": gT, "R": gR, "preview": min(gT, gR, gI)}
-        self.thread = threading.Thread(target=self._encode_loop, name="polspike-encode", daemon=True)
-        self.thread.start()
         for item in self.held:
-            self.q.put(item)
+            self._encode(*item)
         self.held.clear()
 
     def write(self, Ic: np.ndarray, T: np.ndarray, R: np.ndarray) -> None:
@@ -218,26 +235,15 @@ class _LiveWriters:
             d = ensure_dir(self.out / "frames")
             write_exr(d / f"{self.n:06d}.exr", {"T": T.astype(np.float32), "R": R.astype(np.float32)}, {"units": "linear radiance, 1.0 = brightest layer"})
         if self.display:
-            I2 = 2 * Ic
-            if self.gain is None:
-                self.hist["input"].add(I2)
-                self.hist["T"].add(T)
-                self.hist["R"].add(R)
-                self.held.append((self.n, I2, T, R))
-                if len(self.held) >= self.cfg.gain_frames:
-                    self._start()
-            else:
-                self.q.put((self.n, I2, T, R))
-                if self.err is not None:
-                    raise self.err
+            self.q.put((self.n, 2 * Ic, T, R))
+            if self.err is not None:
+                raise self.err
         self.n += 1
 
     def close(self, ok: bool) -> None:
         try:
-            if self.display and self.gain is None and self.n > 0 and ok:
-                self._start()
             if self.thread is not None:
-                self.q.put(None)
+                self.q.put(None if ok else False)
                 self.thread.join()
             if self.err is not None and ok:
                 raise self.err
