@@ -204,7 +204,7 @@ class _LiveWriters:
 
         # yuv420p H.264 without PNG frames: the table gives the studio-range luma the encoder takes, in the same pass
         limited = self.cfg.video and self.cfg.video_codec == "h264" and self.cfg.frames != "png"
-        t8, r8, prev = to8_frames(I2, T, R, g, _to8_table(limited), preview=self.cfg.video and self.cfg.preview)  # the table lookup of _to8_fast, in one pass
+        t8, r8, prev = to8_frames(T if I2 is None else I2, T, R, g, _to8_table(limited), preview=self.cfg.video and self.cfg.preview)  # the table lookup of _to8_fast, in one pass
         if self.cfg.video:
             for name, img in (("T", t8), ("R", r8), ("preview", prev)):
                 if img is None:
@@ -235,7 +235,9 @@ class _LiveWriters:
             d = ensure_dir(self.out / "frames")
             write_exr(d / f"{self.n:06d}.exr", {"T": T.astype(np.float32), "R": R.astype(np.float32)}, {"units": "linear radiance, 1.0 = brightest layer"})
         if self.display:
-            self.q.put((self.n, 2 * Ic, T, R))
+            # the input (x 2) only for its histogram (the first gain_frames) and the preview; it is copied here
+            keep_input = self.n < self.cfg.gain_frames or (self.cfg.video and self.cfg.preview)
+            self.q.put((self.n, 2 * Ic if keep_input else None, T, R))
             if self.err is not None:
                 raise self.err
         self.n += 1
@@ -441,7 +443,7 @@ def reconstruct_live(
                     if fused:  # the least-squares sums do not depend on the order of the frames: the ring as it is
                         with times("solve"):
                             T, R = zeta_of.ls(ring_I, ring_phi)
-                        emit(writers, ring_I[centre].copy(), T, R, arr)
+                        emit(writers, ring_I[centre], T, R, arr)  # the writers copy what they keep of the input
                     elif fused_rwps:  # nor do RWPS's (per-pixel sums, min and mean over the window); shifts follow the ring
                         sh = None
                         if model.rir and N > 1:
