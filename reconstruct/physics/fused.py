@@ -4,7 +4,8 @@
 with lambda = 0 and unit weights: the 2 x 2 normal equations per pixel, the same diagonal floor), clamped at 0
 as the stream clamps, but reads each observation once and keeps the moments of a block of pixels in a small
 scratch: no (N, H, W) temporaries.  Sums run in float64 (the torch path sums float32), so the two agree to float32 rounding of the
-moments (tested: relative 1e-4 of the frame's peak).
+moments (tested: relative 1e-4 of the frame's peak).  :func:`ls_fused_harmonic` solves the same equations when zeta is
+paper Eq. (2) in angle-sum form: the zeta moments in closed form, no zeta frames (the live path's pass).
 """
 
 from __future__ import annotations

@@ -4,10 +4,11 @@
 :class:`reconstruct.video.physics.PhysicsModel` on pane maps (the same Eq. (3) frames, centres, zeta and solver;
 linear T and R equal to float32 rounding, tested), by a path that keeps up with the camera:
 
-* Eq. (3) counts summed on the packed bits (:mod:`reconstruct.stream.packed`), reading only the steps inside
-  windows;
+* Eq. (3) counts summed on the packed bits straight into radiance units (:mod:`reconstruct.stream.packed`), reading
+  only the steps inside windows;
 * zeta (paper Eq. (2)) once per Eq. (3) frame, not once per window it appears in;
-* ``ls`` without RIR as one fused pass per pixel (:func:`reconstruct.physics.fused.ls_fused`); ``rwps`` with the
+* ``ls`` without RIR as one fused pass per pixel on zeta's closed form, no zeta frames
+  (:func:`reconstruct.physics.fused.ls_fused_harmonic`); ``rwps`` with the
   physics constants as fused passes with the RIR shifts applied while reading
   (:func:`reconstruct.physics.fused_rwps.rwps_fused`); other solvers (or ``solver = "torch"``) through the torch
   solver on batches of windows; RIR by the chained whole-frame alignment
@@ -16,7 +17,7 @@ linear T and R equal to float32 rounding, tested), by a path that keeps up with 
   docs/realtime.md); torch on one thread;
 * display gains from the running histogram of the first ``gain_frames`` frames (the whole video when it is
   shorter; a longer one keeps those gains: the display can be shown live), 8-bit conversion by a table and
-  H.264 encoding on a background thread (the 8-bit images by one numba pass,
+  encoding on a background thread (H.264 by default, ``video_codec``; the 8-bit images by one numba pass,
   :func:`reconstruct.video.display8.to8_frames`; CRF by ``video_quality``); T.mp4 and R.mp4, the side-by-side
   preview.mp4 only with ``preview`` (it holds three times the pixels of T: more encoder CPU than T and R together).
 
