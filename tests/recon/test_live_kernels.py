@@ -212,8 +212,6 @@ def test_live_flags_reject_bad_values_through_the_console_script(tmp_path, polsp
     assert not (tmp_path / "o").exists()
     r = polspike_cli("reconstruct", f, *geo, "--method", "ls", "--video-codec", "av1", "--out", tmp_path / "o")
     polspike_cli.one_line_exit_2(r, "--video-codec", "h264-gray", "y4m")
-    r = polspike_cli("reconstruct", f, *geo, "--method", "ls", "--video-codec", "y4m", "--path", "stream", "--out", tmp_path / "o")
-    polspike_cli.one_line_exit_2(r, "--video-codec", "live path")
     assert not (tmp_path / "o").exists()
     r = polspike_cli("reconstruct", f, *geo, "--threads", -1, "--out", tmp_path / "o")
     polspike_cli.one_line_exit_2(r, "--threads", "0 for auto")
@@ -221,6 +219,18 @@ def test_live_flags_reject_bad_values_through_the_console_script(tmp_path, polsp
     r = polspike_cli("bench", "realtime", "--live-variants", "torch,turbo", "--out", tmp_path / "b")
     polspike_cli.one_line_exit_2(r, "--live-variants", "coarse-rir")
     assert not (tmp_path / "b").exists()
+
+
+def test_video_codec_on_the_streaming_path_exits_2(tmp_path, polspike_main):
+    """``--video-codec`` other than h264 is an option of the live path: on the streaming path one line, exit 2 (the
+    entry point in this process; bad values through the console script above).
+    """
+    f = tmp_path / "x.dat"
+    f.write_bytes(bytes(8 * 16 * 20))
+    r = polspike_main("reconstruct", f, "--height", 16, "--width", 20, "--phi0-deg", 0, "--rev-per-s", 30, "--method", "ls", "--video-codec", "y4m",
+                      "--path", "stream", "--out", tmp_path / "o")
+    polspike_main.one_line_exit_2(r, "--video-codec", "live path")
+    assert not (tmp_path / "o").exists()
 
 
 def test_cpu_threads_takes_the_idle_cores(monkeypatch):
