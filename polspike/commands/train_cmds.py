@@ -170,6 +170,7 @@ def reconstruct_cmd(
     path: str = typer.Option("auto", "--path", help="live (packed reads, fused solver, background encoding: the real-time path; physics methods on pane maps over a .dat) | stream (the general streaming path) | auto (live where it applies)"),
     span: str = typer.Option("plain", "--span", help="the network's long span: plain (every spike of the 17.5 ms around the frame) | compensated (its 7 parts registered onto the centre part first: for a moving camera; reconstruct/stream/motion_span.py) | rir (the parts moved by the windows' RIR shifts interpolated in time: no registration of its own)"),
     video_quality: str = typer.Option("fast", "--video-quality", help="live path videos: fast (x264 CRF 23, less encoder CPU) | high (CRF 10, as the streaming path)"),
+    video_codec: str = typer.Option("h264", "--video-codec", help="live path videos: h264 (T.mp4, R.mp4, plays everywhere) | h264-gray (4:0:0 .mp4: less encoder CPU; ffmpeg, mpv, VLC, not browsers) | y4m (raw 8-bit T.y4m, R.y4m: no encoder CPU, 100 kB per 400 x 250 frame)"),
     threads: int = typer.Option(0, "--threads", help="torch threads of the streaming path on the CPU [default 0 = auto: the cores idle when the run starts (1-minute load average), at least 1; the live path runs its solver on one]"),
     preview: Optional[bool] = typer.Option(None, "--preview/--no-preview", help="also write preview.mp4 (input | T | R side by side; more encoder CPU than T.mp4 and R.mp4 together) [default: the streaming path yes, the live path no: it keeps up with the camera]"),
 ) -> None:
@@ -245,9 +246,13 @@ def reconstruct_cmd(
         raise ConfigError(f"--path {path!r}: choose auto, live or stream")
     if video_quality not in ("fast", "high"):
         raise ConfigError(f"--video-quality {video_quality!r}: choose fast or high")
+    if video_codec not in ("h264", "h264-gray", "y4m"):
+        raise ConfigError(f"--video-codec {video_codec!r}: choose h264, h264-gray or y4m")
     is_dat = input.suffix.lower() == ".dat"
     if (follow or path == "live") and (not is_dat or method == "net" or anchor != "none"):
         raise ConfigError(f"{'--follow' if follow else '--path live'} runs a physics solver (--method ls, ridge, irls, rwps) on pane maps over a .dat, without --anchor mean")
+    if video_codec != "h264" and (not is_dat or method == "net" or anchor != "none" or path == "stream"):
+        raise ConfigError(f"--video-codec {video_codec} is an option of the live path (physics methods on pane maps over a .dat); the streaming path writes H.264")
     if follow and path == "stream":
         raise ConfigError("--follow runs on the live path: drop --path stream")
     if follow_idle < 0:
@@ -329,6 +334,8 @@ def reconstruct_cmd(
     maps_out = _write_selfcal_maps(out, model, info)
     meta = {**exposure_info, "method": method, "anchor": anchor, "ensemble": ensemble, "rir": rir, "floor": floor if method == "net" else None, "floor_anchor": anchor_used if floor else None, "span": span if method == "net" else None, "zeta": info["zeta"] if info is not None else "learned"}
     live = is_dat and path != "stream" and method != "net" and getattr(model, "maps", None) is not None and anchor == "none" and dev == "cpu"
+    if video_codec != "h264" and not live:
+        raise ConfigError(f"--video-codec {video_codec} is an option of the live path (physics methods on pane maps over a .dat); the streaming path writes H.264")
     if (follow or path == "live") and not live:
         raise ConfigError(f"{'--follow' if follow else '--path live'} needs pane maps (zeta {info['zeta'] if info else 'learned'} is not) on the CPU")
     if live:
@@ -337,7 +344,7 @@ def reconstruct_cmd(
         from reconstruct.video.live import LiveConfig
 
         lcfg = LiveConfig(window_steps=window_steps, stride_deg=stride_deg, frames=frames, max_frames=max_frames, idle_s=follow_idle, video_quality=video_quality,
-                          preview=bool(preview))
+                          video_codec=video_codec, preview=bool(preview))
         reader = reader or PackedDat(input, height, width)
         s = run_live(reader, model, out, lcfg, phi0_rad=math.radians(phi0_deg), rev_per_s=rev_per_s, rate_hz=rate_hz,
                      exposure=src.exposure if src.exposure is not None else cfg.exposure, name=input.name, follow=follow, meta=meta, quiet=quiet)

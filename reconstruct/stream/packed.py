@@ -24,7 +24,7 @@ import numpy as np
 
 from polinfra.errors import DataFormatError, ShapeError
 
-__all__ = ["LANES", "window_counts", "PackedDat", "PackedArray", "PackedChunks"]
+__all__ = ["LANES", "window_counts", "window_radiance", "PackedDat", "PackedArray", "PackedChunks"]
 
 log = logging.getLogger(__name__)
 
@@ -65,6 +65,43 @@ def window_counts(packed: np.ndarray, height: int, stored_w: int, width: int, fl
     return c[:, :width]
 
 
+def _radiance_py(packed, lanes, words, height, stored_w, width, flip, scale, out):  # pragma: no cover - compiled by numba
+    n, nb = packed.shape
+    for j in range(nb):
+        words[j] = lanes[packed[0, j]]
+    for k in range(1, n):
+        for j in range(nb):
+            words[j] += lanes[packed[k, j]]
+    c = words.view(np.uint8)  # the pixels' counts in pixel order (little-endian byte lanes)
+    for y in range(height):
+        row = (height - 1 - y if flip else y) * stored_w
+        for x in range(width):
+            out[y, x] = np.float32(c[row + x]) / scale
+
+
+_radiance = None
+
+
+def window_radiance(packed: np.ndarray, height: int, stored_w: int, width: int, flip: bool, scale: np.float32, out: np.ndarray) -> np.ndarray:
+    """``window_counts(...).astype(np.float32) / scale`` written into ``out`` (height, width) float32 in one numba pass
+    (the same float32 values, bit for bit; no byte-lane words or counts kept), the GIL released.
+    """
+    global _radiance
+    n = packed.shape[0]
+    if n > 255:
+        raise ShapeError(f"a packed window sums at most 255 steps per byte lane; got {n}", packed.shape, "(<= 255, bytes)")
+    if packed.shape[1] * 8 != height * stored_w:
+        raise ShapeError(f"packed frames of {packed.shape[1]} bytes are not {height} x {stored_w} bits", packed.shape, f"(n, {height * stored_w // 8})")
+    if out.shape != (height, width) or out.dtype != np.float32 or not out.flags.c_contiguous:
+        raise ShapeError(f"out must be a contiguous ({height}, {width}) float32 array; got {out.shape} {out.dtype}", out.shape, f"({height}, {width})")
+    if _radiance is None:
+        import numba
+
+        _radiance = numba.njit(cache=True, nogil=True)(_radiance_py)
+    _radiance(np.ascontiguousarray(packed), LANES, np.empty(packed.shape[1], np.uint64), int(height), int(stored_w), int(width), bool(flip), np.float32(scale), out)
+    return out
+
+
 class PackedArray:
     """Packed upright frames (T, H W / 8) in memory, with the reading interface of :class:`PackedDat`."""
 
@@ -84,6 +121,10 @@ class PackedArray:
 
     def counts(self, a: int, b: int) -> np.ndarray:
         return window_counts(self.read(a, b), self.height, self.stored_w, self.width, self.flip)
+
+    def radiance(self, a: int, b: int, scale: np.float32, out: np.ndarray) -> np.ndarray:
+        """``counts(a, b).astype(np.float32) / scale`` into ``out`` (:func:`window_radiance`)."""
+        return window_radiance(self.read(a, b), self.height, self.stored_w, self.width, self.flip, scale, out)
 
     def close(self) -> None:
         pass
@@ -166,6 +207,10 @@ class PackedDat:
     def counts(self, a: int, b: int) -> np.ndarray:
         """Upright (H, W) spike counts over steps a..b-1."""
         return window_counts(self.read(a, b), self.height, self.stored_w, self.width, self.flip)
+
+    def radiance(self, a: int, b: int, scale: np.float32, out: np.ndarray) -> np.ndarray:
+        """``counts(a, b).astype(np.float32) / scale`` into ``out`` (:func:`window_radiance`)."""
+        return window_radiance(self.read(a, b), self.height, self.stored_w, self.width, self.flip, scale, out)
 
     def close(self) -> None:
         if self._fd is not None:

@@ -4,10 +4,11 @@
 :class:`reconstruct.video.physics.PhysicsModel` on pane maps (the same Eq. (3) frames, centres, zeta and solver;
 linear T and R equal to float32 rounding, tested), by a path that keeps up with the camera:
 
-* Eq. (3) counts summed on the packed bits (:mod:`reconstruct.stream.packed`), reading only the steps inside
-  windows;
+* Eq. (3) counts summed on the packed bits straight into radiance units (:mod:`reconstruct.stream.packed`), reading
+  only the steps inside windows;
 * zeta (paper Eq. (2)) once per Eq. (3) frame, not once per window it appears in;
-* ``ls`` without RIR as one fused pass per pixel (:func:`reconstruct.physics.fused.ls_fused`); ``rwps`` with the
+* ``ls`` without RIR as one fused pass per pixel on zeta's closed form, no zeta frames
+  (:func:`reconstruct.physics.fused.ls_fused_harmonic`); ``rwps`` with the
   physics constants as fused passes with the RIR shifts applied while reading
   (:func:`reconstruct.physics.fused_rwps.rwps_fused`); other solvers (or ``solver = "torch"``) through the torch
   solver on batches of windows; RIR by the chained whole-frame alignment
@@ -16,7 +17,7 @@ linear T and R equal to float32 rounding, tested), by a path that keeps up with 
   docs/realtime.md); torch on one thread;
 * display gains from the running histogram of the first ``gain_frames`` frames (the whole video when it is
   shorter; a longer one keeps those gains: the display can be shown live), 8-bit conversion by a table and
-  H.264 encoding on a background thread (the 8-bit images by one numba pass,
+  encoding on a background thread (H.264 by default, ``video_codec``; the 8-bit images by one numba pass,
   :func:`reconstruct.video.display8.to8_frames`; CRF by ``video_quality``); T.mp4 and R.mp4, the side-by-side
   preview.mp4 only with ``preview`` (it holds three times the pixels of T: more encoder CPU than T and R together).
 
@@ -72,6 +73,7 @@ class LiveConfig:
     solver: str = opt("fused", "fused numba kernels where one exists (ls, physics rwps; RIR shifts applied inside) or torch (the streaming path's solver)", choices=("fused", "torch"))
     preset: str = opt("ultrafast", "x264 preset of the videos", choices=("ultrafast", "superfast", "veryfast", "faster", "fast", "medium"))
     video_quality: str = opt("fast", "videos: fast (x264 CRF 23, one encoder thread per video) | high (CRF 10, the streaming path's level; more encoder CPU)", choices=tuple(VIDEO_CRF))
+    video_codec: str = opt("h264", "videos: h264 (T.mp4, R.mp4: yuv420p, plays everywhere) | h264-gray (4:0:0 .mp4: less encoder CPU, not for browsers) | y4m (raw 8-bit .y4m: no encoder, 100 kB per 400 x 250 frame)", choices=("h264", "h264-gray", "y4m"))
     threads: int = opt(1, "numba threads of the fused RWPS passes (bands of rows in parallel; the same numbers; 0 = all cores)", lo=0, hi=256)
     rir_finest: int = opt(1, "RIR: finest level of the chained fit, 1 = full resolution, 2 = 2 x 2 blocks (cheaper; error measured in docs/realtime.md)", lo=1, hi=2)
     poll_s: float = opt(0.01, "follow: wait between looks at the growing file, seconds", lo=0.0, hi=10.0)
@@ -113,14 +115,30 @@ def to8_table() -> np.ndarray:
 _TO8 = to8_table()
 
 
+_TO8_LIMITED = None
+
+
+def _to8_table(limited: bool) -> np.ndarray:
+    """The display table, or with ``limited`` its studio-range luma (``LIMITED[_TO8]``, what the encoder takes)."""
+    global _TO8_LIMITED
+    if not limited:
+        return _TO8
+    if _TO8_LIMITED is None:
+        from reconstruct.video.live_video import LIMITED
+
+        _TO8_LIMITED = LIMITED[_TO8]
+    return _TO8_LIMITED
+
+
 def _to8_fast(x: np.ndarray, gain: float) -> np.ndarray:
     idx = np.clip(x * np.float32(gain * (_TABLE_N - 1)) + np.float32(0.5), 0, _TABLE_N - 1).astype(np.uint16)
     return _TO8[idx]
 
 
 class _LiveWriters:
-    """Outputs of a live stream: EXR frames at once, display outputs (MP4s, PNG frames) on a background thread
-    once the gains are known (after ``gain_frames`` frames or at the end).
+    """Outputs of a live stream: EXR frames at once, display outputs (videos, PNG frames) on a background thread: it
+    also keeps the display histogram of the first ``gain_frames`` frames (held until the gains are known, then encoded;
+    or at the end), so the stream's thread never waits for it.
     """
 
     def __init__(self, out: Path, fps: float, cfg: LiveConfig, times: StageTimes):
@@ -135,49 +153,66 @@ class _LiveWriters:
         self.err: BaseException | None = None
         self.thread: threading.Thread | None = None
         self.n = 0
+        if self.display:
+            self.thread = threading.Thread(target=self._encode_loop, name="polspike-encode", daemon=True)
+            self.thread.start()
 
-    def _open(self, name: str):
-        import imageio.v2 as iio
+    def _open(self, name: str, shape: tuple[int, int]):
+        from reconstruct.video.live_video import VIDEO_CODECS, open_video
 
-        tmp = self.stack.enter_context(atomic_path(self.out / f"{name}.mp4"))
+        tmp = self.stack.enter_context(atomic_path(self.out / f"{name}{VIDEO_CODECS[self.cfg.video_codec]}"))
         extra = ["-threads", "1"] if self.cfg.video_quality == "fast" else []  # one x264 thread per video: less sync work
-        w = iio.get_writer(str(tmp), format="FFMPEG", mode="I", fps=self.fps, codec="libx264", quality=None, macro_block_size=1, pixelformat="yuv420p",
-                           ffmpeg_log_level="error", output_params=["-preset", self.cfg.preset, "-crf", str(VIDEO_CRF[self.cfg.video_quality]), *extra])
+        w = open_video(tmp, self.cfg.video_codec, shape[0], shape[1], self.fps, ["-preset", self.cfg.preset, "-crf", str(VIDEO_CRF[self.cfg.video_quality]), *extra])
         self.stack.callback(w.close)
         return w
 
     def _encode_loop(self) -> None:
+        """Frames from the queue until None (the end: frames still held are encoded on the gains of their histogram) or
+        False (a failed run: nothing more is encoded).
+        """
         cpu = 0.0
         wall = 0.0
         try:
             while True:
                 item = self.q.get()
-                if item is None:
-                    break
                 w0, c0 = time.perf_counter(), time.thread_time()
-                self._encode(*item)
+                if item is None or item is False:
+                    if item is None and self.gain is None and self.held:
+                        self._release()
+                    break
+                if self.gain is None:
+                    _, I2, T, R = item
+                    self.hist["input"].add(I2)
+                    self.hist["T"].add(T)
+                    self.hist["R"].add(R)
+                    self.held.append(item)
+                    if len(self.held) >= self.cfg.gain_frames:
+                        self._release()
+                else:
+                    self._encode(*item)
                 wall += time.perf_counter() - w0
                 cpu += time.thread_time() - c0
         except BaseException as e:  # noqa: BLE001 - handed to the main thread in close()
             self.err = e
-            while self.q.get() is not None:  # drain so the producer never blocks
+            while self.q.get() not in (None, False):  # drain so the producer never blocks
                 pass
         finally:
             self.times.add("encode", wall, cpu)
 
     def _encode(self, i: int, I2: np.ndarray, T: np.ndarray, R: np.ndarray) -> None:
         g = self.gain
-        even = lambda a: a[: a.shape[0] // 2 * 2, : a.shape[1] // 2 * 2]  # noqa: E731
         from reconstruct.video.display8 import to8_frames
 
-        t8, r8, prev = to8_frames(I2, T, R, g, _TO8, preview=self.cfg.video and self.cfg.preview)  # the table lookup of _to8_fast, in one pass
+        # yuv420p H.264 without PNG frames: the table gives the studio-range luma the encoder takes, in the same pass
+        limited = self.cfg.video and self.cfg.video_codec == "h264" and self.cfg.frames != "png"
+        t8, r8, prev = to8_frames(T if I2 is None else I2, T, R, g, _to8_table(limited), preview=self.cfg.video and self.cfg.preview)  # the table lookup of _to8_fast, in one pass
         if self.cfg.video:
             for name, img in (("T", t8), ("R", r8), ("preview", prev)):
                 if img is None:
                     continue
                 if name not in self.vw:
-                    self.vw[name] = self._open(name)
-                self.vw[name].append_data(even(img))
+                    self.vw[name] = self._open(name, img.shape)
+                self.vw[name].append(img, limited)
         if self.cfg.frames == "png":
             import imageio.v3 as iio3
 
@@ -186,13 +221,12 @@ class _LiveWriters:
                 with atomic_path(d / f"{name}_{i:06d}.png") as tmp:
                     iio3.imwrite(tmp, img, extension=".png")
 
-    def _start(self) -> None:
+    def _release(self) -> None:
+        """The gains from the histogram so far; the held frames encoded on them."""
         gT, gR, gI = (display_gain(self.hist[k]) for k in ("T", "R", "input"))
         self.gain = {"T": gT, "R": gR, "preview": min(gT, gR, gI)}
-        self.thread = threading.Thread(target=self._encode_loop, name="polspike-encode", daemon=True)
-        self.thread.start()
         for item in self.held:
-            self.q.put(item)
+            self._encode(*item)
         self.held.clear()
 
     def write(self, Ic: np.ndarray, T: np.ndarray, R: np.ndarray) -> None:
@@ -202,26 +236,17 @@ class _LiveWriters:
             d = ensure_dir(self.out / "frames")
             write_exr(d / f"{self.n:06d}.exr", {"T": T.astype(np.float32), "R": R.astype(np.float32)}, {"units": "linear radiance, 1.0 = brightest layer"})
         if self.display:
-            I2 = 2 * Ic
-            if self.gain is None:
-                self.hist["input"].add(I2)
-                self.hist["T"].add(T)
-                self.hist["R"].add(R)
-                self.held.append((self.n, I2, T, R))
-                if len(self.held) >= self.cfg.gain_frames:
-                    self._start()
-            else:
-                self.q.put((self.n, I2, T, R))
-                if self.err is not None:
-                    raise self.err
+            # the input (x 2) only for its histogram (the first gain_frames) and the preview; it is copied here
+            keep_input = self.n < self.cfg.gain_frames or (self.cfg.video and self.cfg.preview)
+            self.q.put((self.n, 2 * Ic if keep_input else None, T, R))
+            if self.err is not None:
+                raise self.err
         self.n += 1
 
     def close(self, ok: bool) -> None:
         try:
-            if self.display and self.gain is None and self.n > 0 and ok:
-                self._start()
             if self.thread is not None:
-                self.q.put(None)
+                self.q.put(None if ok else False)
                 self.thread.join()
             if self.err is not None and ok:
                 raise self.err
@@ -402,13 +427,13 @@ def reconstruct_live(
                 if stop is not None and stop.is_set():
                     break
                 c = int(cen.c[nxt])
-                with times("aggregate"):
-                    I_j = reader.counts(c - agg.half, c + agg.half + 1).astype(np.float32) / scale  # Eq. (3), radiance units
                 slot = nxt % N
-                ring_I[slot] = I_j
+                with times("aggregate"):
+                    _radiance(reader, c - agg.half, c + agg.half + 1, scale, ring_I[slot])  # Eq. (3), radiance units
                 ring_phi[slot] = np.float32(cen.phi[nxt])
-                with times("zeta"):
-                    zeta_of(float(ring_phi[slot]), ring_Z[slot])  # paper Eq. (2)
+                if not fused:  # the fused LS pass takes zeta's closed form, not the frames of zeta
+                    with times("zeta"):
+                        zeta_of(float(ring_phi[slot]), ring_Z[slot])  # paper Eq. (2)
                 nxt += 1
                 progressed = True
                 if nxt >= N:
@@ -418,8 +443,8 @@ def reconstruct_live(
                     centre = (nxt - 1 - K) % N
                     if fused:  # the least-squares sums do not depend on the order of the frames: the ring as it is
                         with times("solve"):
-                            T, R = _ls(ring_Z, ring_I)
-                        emit(writers, ring_I[centre].copy(), T, R, arr)
+                            T, R = zeta_of.ls(ring_I, ring_phi)
+                        emit(writers, ring_I[centre], T, R, arr)  # the writers copy what they keep of the input
                     elif fused_rwps:  # nor do RWPS's (per-pixel sums, min and mean over the window); shifts follow the ring
                         sh = None
                         if model.rir and N > 1:
@@ -471,7 +496,7 @@ def reconstruct_live(
         "nan_frames": stats["nan_frames"],
         "seconds": secs,
         "frames_per_second_processed": done / secs if secs > 0 else None,
-        "outputs": sorted(p.name for p in out.iterdir() if p.is_file() and p.suffix == ".mp4"),
+        "outputs": sorted(p.name for p in out.iterdir() if p.is_file() and p.suffix in (".mp4", ".y4m")),
         "display_gain": writers.gain,
         "display_gain_frames": min(cfg.gain_frames, done),
         "path": "live",
@@ -507,7 +532,21 @@ class _ZetaFrames:
         return out
 
 
-def _ls(Z: np.ndarray, I: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    from reconstruct.physics.fused import ls_fused
+    def ls(self, I: np.ndarray, phi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Least-squares T, R of the window I (N, H, W) at angles phi (N,) on this zeta, without its frames
+        (:func:`reconstruct.physics.fused.ls_fused_harmonic`).
+        """
+        from reconstruct.physics.fused import ls_fused_harmonic
 
-    return ls_fused(Z, I)
+        ph = 2 * np.asarray(phi, np.float64)
+        return ls_fused_harmonic(I, np.cos(ph), np.sin(ph), self.mean, self.ac, self.as_)
+
+
+def _radiance(reader, a: int, b: int, scale: np.float32, out: np.ndarray) -> None:
+    """Eq. (3) frame of steps a..b-1 in radiance units into ``out``: ``counts(a, b).astype(float32) / scale``, by the
+    reader's one-pass kernel where it has one (the same values).
+    """
+    if hasattr(reader, "radiance"):
+        reader.radiance(a, b, scale, out)
+    else:
+        out[...] = reader.counts(a, b).astype(np.float32) / scale

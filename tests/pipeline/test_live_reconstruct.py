@@ -49,6 +49,30 @@ def test_packed_window_counts_equal_unpacked_sums(dat):
     rd.close()
 
 
+def test_window_radiance_equals_the_counts_in_radiance_units_bit_for_bit(dat):
+    """The one-pass kernel of the live path against ``counts(...).astype(float32) / scale`` (upright, header columns
+    dropped); also on a stored width with header columns and a row length that is not a whole number of bytes.
+    """
+    from reconstruct.stream.packed import PackedArray, PackedDat, window_counts, window_radiance
+
+    rd = PackedDat(dat, H, W)
+    rd.refresh()
+    scale = np.float32(13 * CFG.exposure)
+    out = np.full((H, W), np.nan, np.float32)
+    for a, n in ((0, 13), (777, 1), (1600 - 255, 255)):
+        want = rd.counts(a, a + n).astype(np.float32) / scale
+        assert np.array_equal(rd.radiance(a, a + n, scale, out).view(np.uint32), want.view(np.uint32))
+    rd.close()
+    rng = np.random.default_rng(5)
+    pk = rng.integers(0, 256, (9, 6 * 36 // 8), dtype=np.uint8)  # 6 rows of 36 stored columns (4.5 bytes a row), 20 kept
+    for flip in (False, True):
+        want = window_counts(pk, 6, 36, 20, flip).astype(np.float32) / np.float32(3.7)
+        got = window_radiance(pk, 6, 36, 20, flip, np.float32(3.7), np.empty((6, 20), np.float32))
+        assert np.array_equal(got.view(np.uint32), want.view(np.uint32))
+    arr = PackedArray(pk[:, : 6 * 32 // 8], 6, 32)
+    assert np.array_equal(arr.radiance(0, 9, np.float32(2.0), np.empty((6, 32), np.float32)), arr.counts(0, 9) / np.float32(2.0))
+
+
 def _model(method, rir=False):
     from reconstruct.physics.zeta import PaneMaps
     from reconstruct.video.physics import PhysicsModel
@@ -117,6 +141,63 @@ def test_live_path_writes_the_preview_only_with_the_flag(dat, tmp_path, polspike
         for name in want:
             v = iio.imread(out / name, index=None)
             assert v.shape[:3] == (s["frames"], H, (3 if name == "preview.mp4" else 1) * W), (name, v.shape)
+
+
+def _decode(path, h, w):
+    import imageio_ffmpeg
+
+    g = imageio_ffmpeg.read_frames(str(path), pix_fmt="gray", bits_per_pixel=8)
+    next(g)
+    return np.stack([np.frombuffer(b, np.uint8).reshape(h, w) for b in g])
+
+
+def test_video_codecs_write_the_display_frames(tmp_path):
+    """``h264``: the same file as imageio's writer converting gray to yuv420p inside ffmpeg (the path before, byte for
+    byte), ``y4m``: the 8-bit frames exactly, ``h264-gray``: 4:0:0 H.264 decoding to the frames within CRF 23's loss.
+    """
+    import imageio.v2 as iio
+
+    from reconstruct.video.live_video import open_video
+
+    rng = np.random.default_rng(2)
+    yy, xx = np.mgrid[:50, :64]
+    frames = [np.clip(128 + 90 * np.sin(xx / 7 + k / 3) * np.cos(yy / 9) + rng.normal(0, 4, (50, 64)), 0, 255).astype(np.uint8) for k in range(12)]
+    params = ["-preset", "ultrafast", "-crf", "23", "-threads", "1"]
+    w = iio.get_writer(str(tmp_path / "ref.mp4"), format="FFMPEG", mode="I", fps=342.86, codec="libx264", quality=None, macro_block_size=1,
+                       pixelformat="yuv420p", ffmpeg_log_level="error", output_params=list(params))
+    for f in frames:
+        w.append_data(f)
+    w.close()
+    for codec, name in (("h264", "a.mp4"), ("y4m", "a.y4m"), ("h264-gray", "g.mp4")):
+        v = open_video(tmp_path / name, codec, 50, 64, 342.86, list(params))
+        for f in frames:
+            v.append(f, False)
+        v.close()
+    assert (tmp_path / "a.mp4").read_bytes() == (tmp_path / "ref.mp4").read_bytes()
+    assert np.array_equal(_decode(tmp_path / "a.y4m", 50, 64), np.stack(frames))
+    g = _decode(tmp_path / "g.mp4", 50, 64).astype(int)
+    assert g.shape == (12, 50, 64) and np.abs(g - np.stack(frames)).mean() < 4
+
+
+def test_live_video_codec_y4m_through_the_entry_point(dat, tmp_path, polspike_main):
+    """``--video-codec y4m`` writes T.y4m and R.y4m: one frame per output frame, the same 8-bit frames as the PNG
+    frames of the run (bad values: tests/recon/test_live_kernels.py, through the console script).
+    """
+    import imageio.v3 as iio3
+
+    from polinfra.exr import write_exr
+
+    mp = pane_stream_maps(CFG)
+    write_exr(tmp_path / "maps.exr", {k: np.asarray(mp[k], np.float32) for k in ("R_perp", "R_par", "phi_perp")}, {})
+    r = polspike_main("reconstruct", dat, "--height", H, "--width", W, "--phi0-deg", math.degrees(CFG.phi0_rad), "--rev-per-s", CFG.rev_per_s,
+                      "--exposure", CFG.exposure, "--method", "ls", "--no-rir", "--pane", tmp_path / "maps.exr", "--quiet", "--max-frames", 12,
+                      "--video-codec", "y4m", "--frames", "png", "--out", tmp_path / "y")
+    assert r.returncode == 0, r.stderr[-2000:]
+    s = json.loads((tmp_path / "y" / "reconstruct.json").read_text())
+    assert s["outputs"] == ["R.y4m", "T.y4m"] and s["frames"] == 12
+    for k in ("T", "R"):
+        png = np.stack([iio3.imread(tmp_path / "y" / "frames" / f"{k}_{i:06d}.png") for i in range(12)])
+        assert png.std() > 1 and np.array_equal(_decode(tmp_path / "y" / f"{k}.y4m", H, W), png)
 
 
 def test_display_table_is_within_one_level_of_the_exact_mapping():

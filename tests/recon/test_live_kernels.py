@@ -142,6 +142,53 @@ def test_fused_gauss_newton_equals_the_torch_fit():
         assert np.abs(a - b).max() < 1e-9 and np.abs(a - [-0.6, 1.2]).max() < 0.05, (a, b)
 
 
+def _harmonic_window(seed: int, noise: bool = True):
+    """A window whose zeta is Eq. (2) in angle-sum form (the live path's zeta): the coefficient maps, cos and sin of
+    2 phi, the float32 zeta frames made from them as the live path made them, I by Eq. (1), and the true layers.
+    """
+    rng = np.random.default_rng(seed)
+    phi = (np.arange(N) * math.radians(31.5) + rng.uniform(0, math.pi)).astype(np.float32).astype(np.float64)
+    rp = rng.uniform(0.05, 0.4, (H, W))
+    rl = rp * rng.uniform(0.0, 0.5, (H, W))
+    pp = rng.uniform(0, math.pi, (H, W))
+    a = 0.5 * (rp - rl) * 0.98
+    m, ac, as_ = (x.astype(np.float32) for x in (0.5 * (rp + rl), a * np.cos(2 * pp), a * np.sin(2 * pp)))
+    c, s = np.cos(2 * phi), np.sin(2 * phi)
+    Z = np.stack([ac * np.float32(c[k]) + np.float32(s[k]) * as_ + m for k in range(N)])
+    T, R = rng.uniform(0.0, 1.0, (H, W)), rng.uniform(0.0, 1.0, (H, W))
+    I = 0.5 * (Z * R + (1 - Z) * T)  # Eq. (1)
+    if noise:
+        I = rng.poisson(I * 26.0) / 26.0
+    return I.astype(np.float32), c, s, (m, ac, as_), Z, T, R
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_fused_ls_on_zetas_closed_form_equals_the_torch_solver(seed):
+    """The LS pass that takes zeta's coefficient maps (no zeta frames) against ``solve("ls")`` on the float32 zeta
+    frames (torch sums in float32: within the fused RWPS kernel's bounds; measured 3.7e-6 and 1.6e-7) and against the
+    fused LS pass on the same frames (both sum in float64; only zeta's float32 rounding parts them: 1e-6 and 5e-8,
+    measured 1.6e-7 and 7e-9).
+    """
+    from reconstruct.physics.fused import ls_fused, ls_fused_harmonic
+    from reconstruct.physics.solvers import solve
+
+    I, c, s, maps, Z, _, _ = _harmonic_window(seed)
+    T, R = ls_fused_harmonic(I, c, s, *(x.astype(np.float64) for x in maps))
+    r = solve("ls", torch.from_numpy(Z), torch.from_numpy(I))
+    T1, R1 = ls_fused(Z, I)
+    for (got, want), (tol_max, tol_mean) in zip(((T, r.T.clamp_min(0).numpy()), (R, r.R.clamp_min(0).numpy()), (T, T1), (R, R1)), [(TOL_MAX, TOL_MEAN)] * 2 + [(1e-6, 5e-8)] * 2):
+        d = np.abs(got - want) / want.max()
+        assert d.max() < tol_max and d.mean() < tol_mean, (d.max(), d.mean())
+
+
+def test_fused_ls_on_zetas_closed_form_recovers_the_layers_of_a_noise_free_window():
+    from reconstruct.physics.fused import ls_fused_harmonic
+
+    I, c, s, maps, _, T, R = _harmonic_window(3, noise=False)
+    Tg, Rg = ls_fused_harmonic(I, c, s, *maps)
+    assert np.abs(Tg - T).max() < 2e-4 and np.abs(Rg - R).max() < 3e-3, (np.abs(Tg - T).max(), np.abs(Rg - R).max())
+
+
 def test_display_frames_equal_the_table_lookup():
     from reconstruct.video.display8 import to8_frames
     from reconstruct.video.live import _TO8, _to8_fast
@@ -163,12 +210,27 @@ def test_live_flags_reject_bad_values_through_the_console_script(tmp_path, polsp
     r = polspike_cli("reconstruct", f, *geo, "--method", "ls", "--video-quality", "best", "--out", tmp_path / "o")
     polspike_cli.one_line_exit_2(r, "--video-quality", "fast", "high")
     assert not (tmp_path / "o").exists()
+    r = polspike_cli("reconstruct", f, *geo, "--method", "ls", "--video-codec", "av1", "--out", tmp_path / "o")
+    polspike_cli.one_line_exit_2(r, "--video-codec", "h264-gray", "y4m")
+    assert not (tmp_path / "o").exists()
     r = polspike_cli("reconstruct", f, *geo, "--threads", -1, "--out", tmp_path / "o")
     polspike_cli.one_line_exit_2(r, "--threads", "0 for auto")
     assert not (tmp_path / "o").exists()
     r = polspike_cli("bench", "realtime", "--live-variants", "torch,turbo", "--out", tmp_path / "b")
     polspike_cli.one_line_exit_2(r, "--live-variants", "coarse-rir")
     assert not (tmp_path / "b").exists()
+
+
+def test_video_codec_on_the_streaming_path_exits_2(tmp_path, polspike_main):
+    """``--video-codec`` other than h264 is an option of the live path: on the streaming path one line, exit 2 (the
+    entry point in this process; bad values through the console script above).
+    """
+    f = tmp_path / "x.dat"
+    f.write_bytes(bytes(8 * 16 * 20))
+    r = polspike_main("reconstruct", f, "--height", 16, "--width", 20, "--phi0-deg", 0, "--rev-per-s", 30, "--method", "ls", "--video-codec", "y4m",
+                      "--path", "stream", "--out", tmp_path / "o")
+    polspike_main.one_line_exit_2(r, "--video-codec", "live path")
+    assert not (tmp_path / "o").exists()
 
 
 def test_cpu_threads_takes_the_idle_cores(monkeypatch):
