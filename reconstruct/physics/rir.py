@@ -317,20 +317,25 @@ class ChainedRir:
 
     def _mask(self, I: torch.Tensor, phi: torch.Tensor) -> None:
         f = self.factor
-        co = torch.from_numpy(np.stack([_block_mean(x, f) for x in I.detach().cpu().double().numpy()]))
+        bm = _block_sum_mean if self.fused else _block_mean  # the same means up to the order of the additions
+        co = torch.from_numpy(np.stack([bm(x, f) for x in I.detach().cpu().double().numpy()]))
         cfg = dataclasses.replace(self.config, mask_sigma_px=self.config.mask_sigma_px / f)
-        m = registration_mask(co, phi, cfg).numpy().astype(np.float64)
-        up = np.repeat(np.repeat(m, f, 0), f, 1)
+        m = registration_mask(co, phi, cfg).numpy()
         full = np.zeros(I.shape[-2:], bool)
-        full[: up.shape[0], : up.shape[1]] = up > 0.5
+        full[: m.shape[0] * f, : m.shape[1] * f] = np.repeat(np.repeat(m, f, 0), f, 1)
         self.pts = {}
         for lv in self.levels:
-            m = _block_mean(full.astype(np.float64), lv) > 0.99 if lv > 1 else full
+            m = bm(full.astype(np.float64), lv) > 0.99 if lv > 1 else full
             m = _erode(m, max(1, self.config.erode_px // lv))
             self.pts[lv] = _mask_points(torch.from_numpy(m), self.points).double()
+        self.pts_np = {lv: (p.numpy(), p[:, 0].long().numpy(), p[:, 1].long().numpy()) for lv, p in self.pts.items()}
 
     def _pyramid(self, frame: np.ndarray) -> dict:
         f0 = self.finest
+        if self.fused:
+            from reconstruct.physics.fused_rir import pyramid_fused
+
+            return pyramid_fused(frame, self.config.smooth_sigma_px / f0, f0, self.levels)
         if f0 > 1:
             sm = _smooth(_block_sum_mean(frame, f0), self.config.smooth_sigma_px / f0)
             return {lv: _gradient_stack(_block_sum_mean(sm, lv // f0) if lv > f0 else sm) for lv in self.levels}
@@ -338,20 +343,31 @@ class ChainedRir:
         return {lv: _gradient_stack(_block_sum_mean(sm, lv) if lv > 1 else sm) for lv in self.levels}
 
     def _pair(self, ref: dict, mov: dict) -> torch.Tensor:
+        if self.fused:
+            return torch.from_numpy(self._pair_np(ref, mov))
         s = torch.zeros(2, dtype=torch.float64)
         for lv in self.levels:
             pts = self.pts[lv]
             if pts.shape[0] < 16:
                 continue
             r = ref[lv][0][pts[:, 0].long(), pts[:, 1].long()]
-            if self.fused:
-                from reconstruct.physics.fused_rir import gauss_newton_fused
-
-                s = lv * torch.from_numpy(gauss_newton_fused(r.numpy(), mov[lv].numpy(), pts.numpy(), (s / lv).numpy(), max(self.config.refine_iters, 1)))
-            else:
-                s = lv * _gauss_newton(r, mov[lv], pts, s / lv, max(self.config.refine_iters, 1))
+            s = lv * _gauss_newton(r, mov[lv], pts, s / lv, max(self.config.refine_iters, 1))
         if not torch.isfinite(s).all() or float(s.abs().max()) > self.config.max_shift_px:
             return torch.zeros(2, dtype=torch.float64)
+        return s
+
+    def _pair_np(self, ref: dict, mov: dict) -> np.ndarray:
+        """:meth:`_pair` on numpy levels (:func:`reconstruct.physics.fused_rir.pyramid_fused`), the numba fit."""
+        from reconstruct.physics.fused_rir import gauss_newton_fused
+
+        s = np.zeros(2)
+        for lv in self.levels:
+            pts, py, px = self.pts_np[lv]
+            if pts.shape[0] < 16:
+                continue
+            s = lv * gauss_newton_fused(ref[lv][0][py, px], mov[lv], pts, s / lv, max(self.config.refine_iters, 1))
+        if not np.isfinite(s).all() or float(np.abs(s).max()) > self.config.max_shift_px:
+            return np.zeros(2)
         return s
 
     def window_shifts(self, I: torch.Tensor, phi: torch.Tensor, index: np.ndarray) -> torch.Tensor:
@@ -366,7 +382,7 @@ class ChainedRir:
             j = int(index[k])
             if j in self.q:
                 continue
-            sm = self._pyramid(I[k].detach().cpu().double().numpy())
+            sm = self._pyramid(I[k].detach().cpu().numpy() if self.fused else I[k].detach().cpu().double().numpy())
             if self.prev is None or self.prev[0] != j - 1:
                 self.q[j] = torch.zeros(2, dtype=torch.float64)
             else:
