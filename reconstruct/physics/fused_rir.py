@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["gauss_newton_fused", "pyramid_fused"]
+__all__ = ["gauss_newton_fused", "pyramid_fused", "erode_fused", "block_mean_fused", "smooth_fused"]
 
 
 def _gn(r_ref, stack, pts, s, iters, J):  # pragma: no cover - compiled
@@ -225,6 +225,59 @@ def pyramid_fused(frame: np.ndarray, sigma: float, base: int, levels: tuple[int,
     return out
 
 
+def _erode(m, iters, out):  # pragma: no cover - compiled
+    """``iters`` binary erosions by the 4-neighbour cross, outside the image 0 (scipy's ``binary_erosion`` with
+    ``border_value=0``); m, out (H, W) uint8 0 / 1, m overwritten.
+    """
+    H, W = m.shape
+    for _ in range(iters):
+        for j in range(W):
+            out[0, j] = 0
+            out[H - 1, j] = 0
+        for i in range(1, H - 1):
+            o, up, mid, dn = out[i], m[i - 1], m[i], m[i + 1]
+            o[0] = 0
+            o[W - 1] = 0
+            for j in range(1, W - 1):
+                o[j] = mid[j] & up[j] & dn[j] & mid[j - 1] & mid[j + 1]
+        m[:, :] = out
+
+
+def erode_fused(mask: np.ndarray, px: int) -> np.ndarray:
+    """``scipy.ndimage.binary_erosion(mask, iterations=px, border_value=0)`` (the cross structure; tested equal)."""
+    m = np.array(mask, dtype=np.uint8)
+    if px <= 0 or m.size == 0:
+        return m.astype(bool)
+    out = np.empty_like(m)
+    _get()["erode"](m, int(px), out)
+    return out.astype(bool)
+
+
+def block_mean_fused(img: np.ndarray, f: int) -> np.ndarray:
+    """Means of f x f blocks of (..., H, W) images, float64 (``rir._block_sum_mean``'s order of additions)."""
+    x = np.ascontiguousarray(img)
+    lead = x.shape[:-2]
+    x3 = x.reshape((-1,) + x.shape[-2:])
+    out = np.empty((x3.shape[0], x3.shape[1] // f, x3.shape[2] // f))
+    for i in range(x3.shape[0]):
+        _get()["block"](x3[i], int(f), out[i])
+    return out.reshape(lead + out.shape[-2:])
+
+
+def smooth_fused(img: np.ndarray, sigma: float) -> np.ndarray:
+    """The Gaussian smoothing of scipy's ``gaussian_filter(img, sigma)`` (reflect mode, truncate 4) of (..., H, W) images, float64."""
+    x = np.ascontiguousarray(img)
+    x3 = x.reshape((-1,) + x.shape[-2:])
+    out = np.empty(x3.shape)
+    if sigma <= 0:
+        out[:] = x3
+        return out.reshape(x.shape)
+    w, tmp = _kernel1d(sigma), np.empty(x3.shape[-2:])
+    for i in range(x3.shape[0]):
+        _get()["smooth"](x3[i], w, out[i], tmp)
+    return out.reshape(x.shape)
+
+
 _reflect_c = None
 _kernels: dict = {}
 
@@ -239,6 +292,7 @@ def _get() -> dict:
         _kernels["smooth"] = jit(_smooth)
         _kernels["block"] = jit(_block)
         _kernels["gradient"] = jit(_gradient)
+        _kernels["erode"] = jit(_erode)
     return _kernels
 
 
