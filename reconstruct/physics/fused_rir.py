@@ -110,32 +110,44 @@ def _smooth(img, w, out, tmp):  # pragma: no cover - compiled
     """
     H, W = img.shape
     r = w.shape[0] // 2
-    for i in range(H):
+    for i in range(H):  # taps t and 2 r - t share a weight: one multiply per pair
         o = tmp[i]
+        c = img[i]
+        wr = w[r]
         for j in range(W):
-            o[j] = 0.0
-        for t in range(2 * r + 1):
-            src = img[_reflect_c(i + t - r, H)]
+            o[j] = wr * np.float64(c[j])
+        for t in range(r):
+            s0 = img[_reflect_c(i + t - r, H)]
+            s1 = img[_reflect_c(i + r - t, H)]
             wt = w[t]
             for j in range(W):
-                o[j] += wt * np.float64(src[j])
+                o[j] += wt * (np.float64(s0[j]) + np.float64(s1[j]))
     for i in range(H):
         src = tmp[i]
         o = out[i]
-        for j in range(W):
-            o[j] = 0.0
-        for t in range(2 * r + 1):
-            wt = w[t]
-            for j in range(min(r, W)):
-                o[j] += wt * src[_reflect_c(j + t - r, W)]
-            n = W - 2 * r
-            if n > 0:
-                ss = src[t : t + n]
-                oo = out[i, r : r + n]
+        for j in range(min(r, W)):
+            acc = 0.0
+            for t in range(2 * r + 1):
+                acc += w[t] * src[_reflect_c(j + t - r, W)]
+            o[j] = acc
+        n = W - 2 * r
+        if n > 0:
+            oo = out[i, r : r + n]
+            sc = src[r : r + n]
+            wr = w[r]
+            for j in range(n):
+                oo[j] = wr * sc[j]
+            for t in range(r):
+                sa = src[t : t + n]
+                sb = src[2 * r - t : 2 * r - t + n]
+                wt = w[t]
                 for j in range(n):
-                    oo[j] += wt * ss[j]
-            for j in range(max(W - r, r), W):
-                o[j] += wt * src[_reflect_c(j + t - r, W)]
+                    oo[j] += wt * (sa[j] + sb[j])
+        for j in range(max(W - r, r), W):
+            acc = 0.0
+            for t in range(2 * r + 1):
+                acc += w[t] * src[_reflect_c(j + t - r, W)]
+            o[j] = acc
 
 
 def _block(img, f, out):  # pragma: no cover - compiled
