@@ -344,11 +344,13 @@ class ChainedRir:
         full = np.zeros(I.shape[-2:], bool)
         full[: m.shape[0] * f, : m.shape[1] * f] = np.repeat(np.repeat(m, f, 0), f, 1)
         self.pts = {}
+        lv_w = {}
         for lv in self.levels:
             m = bm(full.astype(np.float64), lv) > 0.99 if lv > 1 else full
+            lv_w[lv] = m.shape[1]
             m = er(m, max(1, self.config.erode_px // lv))
             self.pts[lv] = _mask_points(torch.from_numpy(m), self.points).double()
-        self.pts_np = {lv: (p.numpy(), p[:, 0].long().numpy(), p[:, 1].long().numpy()) for lv, p in self.pts.items()}
+        self.pts_np = {lv: (p.numpy(), (p[:, 0] * lv_w[lv] + p[:, 1]).long().numpy()) for lv, p in self.pts.items()}  # flat indices
 
     def _pyramid(self, frame: np.ndarray) -> dict:
         f0 = self.finest
@@ -380,10 +382,10 @@ class ChainedRir:
 
         s = np.zeros(2)
         for lv in self.levels:
-            pts, py, px = self.pts_np[lv]
+            pts, flat = self.pts_np[lv]
             if pts.shape[0] < 16:
                 continue
-            s = lv * gauss_newton_fused(ref[lv][0][py, px], mov[lv], pts, s / lv, max(self.config.refine_iters, 1))
+            s = lv * gauss_newton_fused(np.take(ref[lv][0], flat), mov[lv], pts, s / lv, max(self.config.refine_iters, 1))
         if not np.isfinite(s).all() or float(np.abs(s).max()) > self.config.max_shift_px:
             return np.zeros(2)
         return s
