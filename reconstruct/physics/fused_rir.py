@@ -299,7 +299,7 @@ def _get() -> dict:
     if not _kernels:
         import numba
 
-        jit = numba.njit(cache=True, nogil=True)
+        jit = numba.njit(cache=True, nogil=True, error_model="numpy")  # IEEE division: no zero-division branch in the loops
         _reflect_c = jit(_reflect)
         _kernels["smooth"] = jit(_smooth)
         _kernels["block"] = jit(_block)

@@ -127,17 +127,19 @@ def _pixel_rows(z, I, oy, ox, fy, fx, warp, lam1, out, a, b, w, acc, y_lo, y_hi)
             T1[x] = (m11 * rt[x] - srt[x] * rr[x]) * inv
         a0, w0 = a[0], w[0]
         for x in range(W):
-            p = max(a0[x] * R1[x] + (1.0 - a0[x]) * T1[x], 0.0)
+            p = a0[x] * R1[x] + (1.0 - a0[x]) * T1[x]
+            p = p if p > 0.0 else 0.0
             w0[x] = p
             psum[x] = p
             pmin[x] = p
         for k in range(1, N):
             ak, wk = a[k], w[k]
             for x in range(W):
-                p = max(ak[x] * R1[x] + (1.0 - ak[x]) * T1[x], 0.0)
+                p = ak[x] * R1[x] + (1.0 - ak[x]) * T1[x]
+                p = p if p > 0.0 else 0.0
                 wk[x] = p
                 psum[x] += p
-                pmin[x] = min(pmin[x], p)
+                pmin[x] = p if p < pmin[x] else pmin[x]
         for x in range(W):
             c = _POISSON_FLOOR * psum[x] / N + _TINY2
             psum[x] = c
@@ -180,14 +182,16 @@ def _pixel_rows(z, I, oy, ox, fy, fx, warp, lam1, out, a, b, w, acc, y_lo, y_hi)
         o0, o1, o2, o3, o4, o5, o6, o7, o8 = out[0, y], out[1, y], out[2, y], out[3, y], out[4, y], out[5, y], out[6, y], out[7, y], out[8, y]
         for x in range(W):
             n_eff = sw[x] * sw[x] / (sww[x] + _TINY2)
-            dof = max(n_eff - 2.0, 0.5)
+            dof = n_eff - 2.0
+            dof = dof if dof > 0.5 else 0.5
             o0[x] = srr[x]
             o1[x] = srt[x]
             o2[x] = stt[x]
             o3[x] = sw[x]
             o4[x] = rr[x]
             o5[x] = rt[x]
-            o6[x] = max(srr[x] * stt[x] - srt[x] * srt[x], 0.0)
+            dm = srr[x] * stt[x] - srt[x] * srt[x]
+            o6[x] = dm if dm > 0.0 else 0.0
             o7[x] = psum[x] / (sw[x] + _TINY2) * n_eff / dof
             o8[x] = R1[x] - T1[x]
 
@@ -275,7 +279,7 @@ def _pass_maps(s, noise_pool, pool, kappa0, snr_kappa, lam_lo, lam_hi, T, R, wor
             sw = sw_[x]
             detm = dt_[x]
             v = b0[x] * sw / (detm + _EPS * sw * sw + _TINY2)
-            v = min(v, 1e12)
+            v = v if v < 1e12 else 1e12
             u = detm / (sw + _TINY2)
             w0[x] = v  # v_D (kept: box holds the pooled ones below)
             w1[x] = u
@@ -298,7 +302,7 @@ def _pass_maps(s, noise_pool, pool, kappa0, snr_kappa, lam_lo, lam_hi, T, R, wor
         for x in range(W):
             bu = b1[x] + _TINY2
             s2 = (b0[x] - b3[x]) / bu
-            s2 = max(s2, 0.0)
+            s2 = s2 if s2 > 0.0 else 0.0
             bd = b4[x]
             d0 = w2[x] * bd / (bd + kappa0 + _TINY2)
             q = s2 / (w0[x] + _TINY2)
@@ -315,8 +319,8 @@ def _pass_maps(s, noise_pool, pool, kappa0, snr_kappa, lam_lo, lam_hi, T, R, wor
             det = m11 * m22 - m12 * m12
             r = (m22 * rR - m12 * rT) / det  # supp. Eq. (9), 2x2 adjugate
             t = (m11 * rT - m12 * rR) / det
-            Ry[x] = max(r, 0.0)
-            Ty[x] = max(t, 0.0)
+            Ry[x] = r if r > 0.0 else 0.0
+            Ty[x] = t if t > 0.0 else 0.0
 
 
 prange = range  # numba.prange once the kernels compile (numba is imported only then)
@@ -334,8 +338,9 @@ def _get():
         import numba
 
         prange = numba.prange
-        jit = numba.njit(cache=True, nogil=True, fastmath=True)
-        par = numba.njit(cache=True, nogil=True, fastmath=True, parallel=True)
+        # error_model="numpy": IEEE division, no zero-division branch (which stops the pixel loops vectorising)
+        jit = numba.njit(cache=True, nogil=True, fastmath=True, error_model="numpy")
+        par = numba.njit(cache=True, nogil=True, fastmath=True, parallel=True, error_model="numpy")
         _load_row_c = jit(_load_row)
         _pixel_rows_c = jit(_pixel_rows)
         _box_row_c = jit(_box_row)
