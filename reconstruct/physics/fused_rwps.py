@@ -332,7 +332,7 @@ _k: dict = {}
 
 
 def _get():
-    """The compiled kernels (``parallel=True``: the ``prange`` loops on numba's threads; one thread runs them in turn)."""
+    """The compiled kernels (``parallel=True``: the ``prange`` loops on numba's threads; with one band the plain builds)."""
     global _load_row_c, _pixel_rows_c, _box_mean_c, _box_row_c, prange
     if not _k:
         import numba
@@ -347,6 +347,8 @@ def _get():
         _box_mean_c = par(_box_mean)
         _k["pixels"] = par(_pass_pixels)
         _k["maps"] = par(_pass_maps)
+        _k["pixels1"] = jit(_pass_pixels)  # one band: the loops compiled plainly (the parallel form's outlined loop
+        _k["maps1"] = jit(_pass_maps)  # bodies vectorise less: the maps pass 4.0 -> 2.8 ms at 400 x 250)
         _k["box"] = _box_mean_c
     return _k
 
@@ -407,8 +409,9 @@ def rwps_fused(zeta: np.ndarray, I: np.ndarray, config: SolverConfig, shifts: np
     T = np.empty((H, W), np.float32)
     R = np.empty((H, W), np.float32)
     with _threads(threads) as n:
-        k["pixels"](z, i, oy, ox, fy, fx, warp, float(config.lambda_high), sc.s, n)
-        k["maps"](sc.s, int(config.noise_pool), int(config.prior_pool), float(config.prior_kappa), float(config.snr_kappa), float(config.lambda_low),
+        one = "1" if n == 1 else ""
+        k["pixels" + one](z, i, oy, ox, fy, fx, warp, float(config.lambda_high), sc.s, n)
+        k["maps" + one](sc.s, int(config.noise_pool), int(config.prior_pool), float(config.prior_kappa), float(config.snr_kappa), float(config.lambda_low),
                   float(config.lambda_high), T, R, sc.work, sc.box, sc.cs, n)
     return T, R
 
