@@ -358,8 +358,8 @@ class _Scratch:
 
     def __init__(self, N: int, H: int, W: int):
         self.s = np.empty((9, H, W))
-        self.work = np.empty((5, H, W))
-        self.box = np.empty((5, H, W))
+        self.work = np.empty((5, H, W), np.float32)  # pooled statistics: float32 halves their memory traffic
+        self.box = np.empty((5, H, W), np.float32)
         self.cs = np.empty((H + 1, W + 1))
 
 
