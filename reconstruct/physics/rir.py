@@ -328,7 +328,8 @@ class ChainedRir:
         self.pts: dict[int, torch.Tensor] | None = None  # mask points per level
         self.windows = 0
 
-    def _mask(self, I: torch.Tensor, phi: torch.Tensor) -> None:
+    def _mask(self, I, phi: torch.Tensor) -> None:
+        I = I.detach().cpu() if torch.is_tensor(I) else torch.from_numpy(np.stack([np.asarray(x) for x in I]))
         f = self.factor
         cfg = dataclasses.replace(self.config, mask_sigma_px=self.config.mask_sigma_px / f)
         if self.fused:  # the same steps by the compiled kernels (block means, smoothing, erosion)
@@ -390,11 +391,13 @@ class ChainedRir:
             return np.zeros(2)
         return s
 
-    def window_shifts(self, I: torch.Tensor, phi: torch.Tensor, index: np.ndarray) -> torch.Tensor:
+    def window_shifts(self, I, phi: torch.Tensor, index: np.ndarray) -> torch.Tensor:
         """Shifts (N, 2) registering each frame of the window onto its centre; ``index`` (N,) the frames' indices in
-        the stream, consecutive.
+        the stream, consecutive.  ``I``: the frames, (N, H, W) tensor or a sequence of N (H, W) arrays (views of a
+        ring of frames, not copied: only the frame new to the chain is read, and the mask's window every
+        ``mask_every`` windows).
         """
-        N = I.shape[0]
+        N = len(I)
         if self.pts is None or self.windows % self.mask_every == 0:
             self._mask(I, phi)
         self.windows += 1
@@ -402,7 +405,8 @@ class ChainedRir:
             j = int(index[k])
             if j in self.q:
                 continue
-            sm = self._pyramid(I[k].detach().cpu().numpy() if self.fused else I[k].detach().cpu().double().numpy())
+            fr = I[k].detach().cpu().numpy() if torch.is_tensor(I[k]) else np.asarray(I[k])
+            sm = self._pyramid(fr if self.fused else fr.astype(np.float64))
             if self.prev is None or self.prev[0] != j - 1:
                 self.q[j] = np.zeros(2)
             else:
@@ -413,4 +417,5 @@ class ChainedRir:
             del self.q[j]
         c = N // 2
         qc = self.q[int(index[c])]
-        return torch.from_numpy(np.stack([self.q[int(j)] - qc for j in index])).to(I.device)
+        out = torch.from_numpy(np.stack([self.q[int(j)] - qc for j in index]))
+        return out.to(I.device) if torch.is_tensor(I) else out

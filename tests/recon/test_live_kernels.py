@@ -250,7 +250,8 @@ def test_quantile_by_selection_equals_torch_quantile():
 
 def test_chained_rir_on_the_compiled_kernels_equals_the_torch_and_scipy_steps():
     """The fused chained RIR (compiled mask, levels and fit) against ``ChainedRir(fused=False)`` (scipy, numpy and the
-    torch Gauss-Newton) on a moving synthetic group: the same shifts to 1e-9 px.
+    torch Gauss-Newton) on a moving synthetic group: the same shifts to 1e-9 px (the fused one given the frames as a
+    list of arrays, as the live path passes its ring's views).
     """
     import reconstruct.stream.synthetic as S
     from reconstruct.physics.rir import ChainedRir
@@ -260,6 +261,6 @@ def test_chained_rir_on_the_compiled_kernels_equals_the_torch_and_scipy_steps():
     phi = torch.from_numpy(np.asarray(g.phi_nominal))
     a, b = ChainedRir(mask_every=2), ChainedRir(mask_every=2, fused=False)
     for i in range(3, 8):
-        sa = a.window_shifts(I[i - 3 : i + 4], phi[i - 3 : i + 4], np.arange(i - 3, i + 4)).numpy()
+        sa = a.window_shifts([x.numpy() for x in I[i - 3 : i + 4]], phi[i - 3 : i + 4], np.arange(i - 3, i + 4)).numpy()  # as the ring's views
         sb = b.window_shifts(I[i - 3 : i + 4], phi[i - 3 : i + 4], np.arange(i - 3, i + 4)).numpy()
         assert np.abs(sa).max() > 0.3 and np.abs(sa - sb).max() < 1e-9, (i, sa, sb)
