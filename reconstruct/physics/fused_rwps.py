@@ -5,7 +5,8 @@ for the adaptive, pooled-prior configuration without Huber passes (:data:`recons
 PHYSICS_SOLVER_CONFIG`: ``lambda_map = "adaptive"``, ``rwps_prior = "pooled"``, no IRLS), clamped at 0 as the
 stream clamps, in three passes instead of some sixty (N, H, W) tensor operations:
 
-1. per pixel, over the N observations held in registers: the first ridge solve (``lambda_high``), the Poisson
+1. per pixel, one image row at a time with the observation loop outside the pixel loop (the pixel loops vectorise;
+   numba's ``error_model="numpy"`` keeps Python's zero-division branch out of them): the first ridge solve (``lambda_high``), the Poisson
    reliability weights (:func:`reconstruct.physics.solvers.poisson_reliability`), the weighted moments, the
    weighted least-squares solve and its residual variance (``_ls_noise``);
 2. on (H, W) maps: the box means of the noise and of the pooled prior
@@ -14,9 +15,11 @@ stream clamps, in three passes instead of some sixty (N, H, W) tensor operations
 3. per pixel: the final weighted ridge solve with the prior lambda (R - T - D0)^2 (supp. Eq. (9)).
 
 With ``shifts`` (N, 2) the observations are read through the bilinear, border-replicated translation of
-:func:`reconstruct.physics.rir.warp` (frames and zeta alike), so the warped window is never materialised.
+:func:`reconstruct.physics.rir.warp` (frames and zeta alike), so the warped window is never materialised: one shift
+per frame, so a row is two source rows blended and read at one integer offset plus one fraction.
 
-Sums and solves run in float64 with the float32 constants of the torch solver (eps 1e-7, its tiny floors); the
+Sums and solves run in float64 with the float32 constants of the torch solver (eps 1e-7, its tiny floors; the pooled
+statistics of pass 2 and their box means are stored in float32, their prefix sums in float64); the
 torch path computes in float32, so the two agree to float32 rounding amplified by the conditioning of the pixel
 (tested against the torch solver as the oracle: docs/realtime.md gives the tolerance).
 """
