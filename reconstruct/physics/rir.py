@@ -75,7 +75,7 @@ def registration_mask(I: torch.Tensor, phi: torch.Tensor, config: RirConfig = Ri
             phi = phi.detach().cpu().double()
         a0, ac, as_ = harmonic_fit(I, phi)
         p = dop(a0, ac, as_, eps=1e-6 * float(a0.abs().max().clamp_min(1e-30)))
-        ref = torch.quantile(a0.flatten().float(), 0.99).to(a0.dtype)
+        ref = _quantile(a0.flatten().float(), 0.99).to(a0.dtype)
         well = (a0 >= config.exposure_lo * ref) & (a0 <= config.exposure_hi * a0.max())
         mask = well & (p <= config.dop_max)
         need = int(config.min_fraction * mask.numel())
@@ -85,6 +85,19 @@ def registration_mask(I: torch.Tensor, phi: torch.Tensor, config: RirConfig = Ri
             thr = torch.kthvalue(pw.flatten(), k).values
             mask = well & (pw <= thr)
     return mask
+
+
+def _quantile(x: torch.Tensor, q: float) -> torch.Tensor:
+    """``torch.quantile(x, q)`` of a 1-D tensor without NaN (linear interpolation between the two order statistics
+    around rank q (n - 1), by ``torch.lerp`` as torch does) from two selections instead of a sort.
+    """
+    n = x.numel()
+    pos = q * (n - 1)
+    lo = int(np.floor(pos))
+    hi = min(lo + 1, n - 1)
+    a = torch.kthvalue(x, lo + 1).values
+    b = torch.kthvalue(x, hi + 1).values if hi != lo else a
+    return torch.lerp(a, b, torch.tensor(pos - lo, dtype=x.dtype))
 
 
 def warp(x: torch.Tensor, shifts: torch.Tensor) -> torch.Tensor:
@@ -310,27 +323,42 @@ class ChainedRir:
             raise ConfigError(f"finest level must be 1 or the block factor {self.factor}; got {finest}")
         self.finest = int(finest)
         self.levels = tuple(lv for lv in (4 * self.factor, self.factor, 1) if lv >= self.finest)
-        self.q: dict[int, torch.Tensor] = {}
+        self.q: dict[int, np.ndarray] = {}  # running sum of the frame-to-frame shifts
         self.prev: tuple[int, dict] | None = None  # (frame index, its pyramid)
         self.pts: dict[int, torch.Tensor] | None = None  # mask points per level
         self.windows = 0
 
-    def _mask(self, I: torch.Tensor, phi: torch.Tensor) -> None:
+    def _mask(self, I, phi: torch.Tensor) -> None:
+        I = I.detach().cpu() if torch.is_tensor(I) else torch.from_numpy(np.stack([np.asarray(x) for x in I]))
         f = self.factor
-        co = torch.from_numpy(np.stack([_block_mean(x, f) for x in I.detach().cpu().double().numpy()]))
         cfg = dataclasses.replace(self.config, mask_sigma_px=self.config.mask_sigma_px / f)
-        m = registration_mask(co, phi, cfg).numpy().astype(np.float64)
-        up = np.repeat(np.repeat(m, f, 0), f, 1)
+        if self.fused:  # the same steps by the compiled kernels (block means, smoothing, erosion)
+            from reconstruct.physics.fused_rir import block_mean_fused, erode_fused, smooth_fused
+
+            co = torch.from_numpy(smooth_fused(block_mean_fused(I.detach().cpu().numpy(), f), cfg.mask_sigma_px))
+            m = registration_mask(co, phi.detach().cpu().double(), dataclasses.replace(cfg, mask_sigma_px=0.0)).numpy()
+            bm, er = block_mean_fused, erode_fused
+        else:
+            co = torch.from_numpy(np.stack([_block_mean(x, f) for x in I.detach().cpu().double().numpy()]))
+            m = registration_mask(co, phi, cfg).numpy()
+            bm, er = _block_mean, _erode
         full = np.zeros(I.shape[-2:], bool)
-        full[: up.shape[0], : up.shape[1]] = up > 0.5
+        full[: m.shape[0] * f, : m.shape[1] * f] = np.repeat(np.repeat(m, f, 0), f, 1)
         self.pts = {}
+        lv_w = {}
         for lv in self.levels:
-            m = _block_mean(full.astype(np.float64), lv) > 0.99 if lv > 1 else full
-            m = _erode(m, max(1, self.config.erode_px // lv))
+            m = bm(full.astype(np.float64), lv) > 0.99 if lv > 1 else full
+            lv_w[lv] = m.shape[1]
+            m = er(m, max(1, self.config.erode_px // lv))
             self.pts[lv] = _mask_points(torch.from_numpy(m), self.points).double()
+        self.pts_np = {lv: (p.numpy(), (p[:, 0] * lv_w[lv] + p[:, 1]).long().numpy()) for lv, p in self.pts.items()}  # flat indices
 
     def _pyramid(self, frame: np.ndarray) -> dict:
         f0 = self.finest
+        if self.fused:
+            from reconstruct.physics.fused_rir import pyramid_fused
+
+            return pyramid_fused(frame, self.config.smooth_sigma_px / f0, f0, self.levels)
         if f0 > 1:
             sm = _smooth(_block_sum_mean(frame, f0), self.config.smooth_sigma_px / f0)
             return {lv: _gradient_stack(_block_sum_mean(sm, lv // f0) if lv > f0 else sm) for lv in self.levels}
@@ -344,21 +372,32 @@ class ChainedRir:
             if pts.shape[0] < 16:
                 continue
             r = ref[lv][0][pts[:, 0].long(), pts[:, 1].long()]
-            if self.fused:
-                from reconstruct.physics.fused_rir import gauss_newton_fused
-
-                s = lv * torch.from_numpy(gauss_newton_fused(r.numpy(), mov[lv].numpy(), pts.numpy(), (s / lv).numpy(), max(self.config.refine_iters, 1)))
-            else:
-                s = lv * _gauss_newton(r, mov[lv], pts, s / lv, max(self.config.refine_iters, 1))
+            s = lv * _gauss_newton(r, mov[lv], pts, s / lv, max(self.config.refine_iters, 1))
         if not torch.isfinite(s).all() or float(s.abs().max()) > self.config.max_shift_px:
             return torch.zeros(2, dtype=torch.float64)
         return s
 
-    def window_shifts(self, I: torch.Tensor, phi: torch.Tensor, index: np.ndarray) -> torch.Tensor:
+    def _pair_np(self, ref: dict, mov: dict) -> np.ndarray:
+        """:meth:`_pair` on numpy levels (:func:`reconstruct.physics.fused_rir.pyramid_fused`), the numba fit."""
+        from reconstruct.physics.fused_rir import gauss_newton_fused
+
+        s = np.zeros(2)
+        for lv in self.levels:
+            pts, flat = self.pts_np[lv]
+            if pts.shape[0] < 16:
+                continue
+            s = lv * gauss_newton_fused(np.take(ref[lv][0], flat), mov[lv], pts, s / lv, max(self.config.refine_iters, 1))
+        if not np.isfinite(s).all() or float(np.abs(s).max()) > self.config.max_shift_px:
+            return np.zeros(2)
+        return s
+
+    def window_shifts(self, I, phi: torch.Tensor, index: np.ndarray) -> torch.Tensor:
         """Shifts (N, 2) registering each frame of the window onto its centre; ``index`` (N,) the frames' indices in
-        the stream, consecutive.
+        the stream, consecutive.  ``I``: the frames, (N, H, W) tensor or a sequence of N (H, W) arrays (views of a
+        ring of frames, not copied: only the frame new to the chain is read, and the mask's window every
+        ``mask_every`` windows).
         """
-        N = I.shape[0]
+        N = len(I)
         if self.pts is None or self.windows % self.mask_every == 0:
             self._mask(I, phi)
         self.windows += 1
@@ -366,15 +405,17 @@ class ChainedRir:
             j = int(index[k])
             if j in self.q:
                 continue
-            sm = self._pyramid(I[k].detach().cpu().double().numpy())
+            fr = I[k].detach().cpu().numpy() if torch.is_tensor(I[k]) else np.asarray(I[k])
+            sm = self._pyramid(fr if self.fused else fr.astype(np.float64))
             if self.prev is None or self.prev[0] != j - 1:
-                self.q[j] = torch.zeros(2, dtype=torch.float64)
+                self.q[j] = np.zeros(2)
             else:
-                self.q[j] = self.q[j - 1] + self._pair(self.prev[1], sm)
+                self.q[j] = self.q[j - 1] + (self._pair_np(self.prev[1], sm) if self.fused else self._pair(self.prev[1], sm).numpy())
             self.prev = (j, sm)
         lo = int(index[0])
         for j in [j for j in self.q if j < lo]:
             del self.q[j]
         c = N // 2
         qc = self.q[int(index[c])]
-        return torch.stack([self.q[int(j)] - qc for j in index]).to(I.device)
+        out = torch.from_numpy(np.stack([self.q[int(j)] - qc for j in index]))
+        return out.to(I.device) if torch.is_tensor(I) else out

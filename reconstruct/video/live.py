@@ -450,7 +450,7 @@ def reconstruct_live(
                         if model.rir and N > 1:
                             order = [(nxt - N + k) % N for k in range(N)]
                             with times("rir"):
-                                sw = chained.window_shifts(torch.from_numpy(ring_I[order]), torch.from_numpy(ring_phi[order]), np.arange(nxt - N, nxt)).numpy()
+                                sw = chained.window_shifts([ring_I[o] for o in order], torch.from_numpy(ring_phi[order]), np.arange(nxt - N, nxt)).numpy()  # views
                             sh = np.empty_like(sw)
                             sh[order] = sw
                         with times("solve"):

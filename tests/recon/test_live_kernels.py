@@ -66,6 +66,24 @@ def test_fused_rwps_equals_the_torch_solver(seed, shifted):
         assert peak > 0 and float(d.max()) <= TOL_MAX * peak and float(d.mean()) <= TOL_MEAN * peak, (float(d.max()) / peak, float(d.mean()) / peak)
 
 
+@pytest.mark.parametrize("span", [6.0, 90.0])
+def test_fused_rwps_equals_the_torch_solver_under_large_shifts(span):
+    """Shifts of several pixels and beyond the frame's width (64): the reads of each frame are clamped at the borders
+    (the whole row for the largest), the rest through the unclamped interior columns; the oracle warps with torch.
+    """
+    from reconstruct.physics.fused_rwps import rwps_fused
+
+    Z, I, _, _ = _window(6)
+    sh = np.random.default_rng(7).uniform(-span, span, (N, 2))
+    sh[N // 2] = 0.0
+    T0, R0 = _torch(Z, I, sh)
+    T1, R1 = rwps_fused(Z, I, PHYSICS_SOLVER_CONFIG, sh)
+    for a, b in ((T0, T1), (R0, R1)):
+        peak = float(a.max())
+        d = np.abs(a - b)
+        assert peak > 0 and float(d.max()) <= TOL_MAX * peak and float(d.mean()) <= TOL_MEAN * peak, (float(d.max()) / peak, float(d.mean()) / peak)
+
+
 def test_fused_rwps_on_bands_of_rows_in_parallel_equals_one_band():
     """The passes split the rows (pixel pass, box means' row pass) and the columns (box means' column pass) into bands
     on numba's threads: every pixel sums in the same order, so 2 and 3 bands give the one-band result bit for bit.
@@ -244,3 +262,67 @@ def test_cpu_threads_takes_the_idle_cores(monkeypatch):
         monkeypatch.setattr(os, "getloadavg", lambda load=load: (load, 0.0, 0.0))
         assert cpu_threads(0) == want, (load, cpu_threads(0))
         assert cpu_threads(3) == 3
+
+
+@pytest.mark.parametrize("finest", [1, 2])
+def test_fused_rir_levels_equal_the_scipy_levels(finest):
+    """Oracle: the frame smoothed by scipy's gaussian_filter (reflect mode), block-averaged by the numpy block mean and
+    differentiated by np.gradient, as the chained fit built its levels before.
+    """
+    from scipy.ndimage import gaussian_filter
+
+    from reconstruct.physics.fused_rir import pyramid_fused, smooth_fused
+    from reconstruct.physics.rir import _block_sum_mean
+
+    rng = np.random.default_rng(11)
+    frame = rng.uniform(0.0, 2.0, (H + 2, W + 3)).astype(np.float32)  # not a multiple of the blocks
+    base = frame.astype(np.float64) if finest == 1 else _block_sum_mean(frame.astype(np.float64), finest)
+    sm = gaussian_filter(base, 1.0 / finest)
+    got = pyramid_fused(frame, 1.0 / finest, finest, (8, 2, 1)[: 3 - finest // 2])
+    for lv, st in got.items():
+        img = _block_sum_mean(sm, lv // finest) if lv > finest else sm
+        want = np.stack([img, *np.gradient(img)])
+        assert st.shape == want.shape and float(np.abs(st - want).max()) < 1e-12, lv
+    for sigma, shape in ((0.5, (5, 7)), (3.0, (4, 30)), (1.0, (1, 9))):  # kernels wider than the image: reflected again
+        x = rng.normal(size=shape)
+        assert float(np.abs(smooth_fused(x, sigma) - gaussian_filter(x, sigma)).max()) < 1e-12, (sigma, shape)
+
+
+def test_fused_erosion_equals_scipy():
+    from scipy.ndimage import binary_erosion
+
+    from reconstruct.physics.fused_rir import erode_fused
+
+    rng = np.random.default_rng(12)
+    for shape in ((23, 31), (3, 3), (1, 5)):
+        m = rng.uniform(size=shape) < 0.85
+        for it in (1, 2, 4):
+            assert np.array_equal(erode_fused(m, it), binary_erosion(m, iterations=it, border_value=0)), (shape, it)
+
+
+def test_quantile_by_selection_equals_torch_quantile():
+    from reconstruct.physics.rir import _quantile
+
+    g = torch.Generator().manual_seed(13)
+    for n in (1, 2, 7, 1000, 25001):
+        x = torch.rand(n, generator=g)
+        for q in (0.0, 0.37, 0.99, 1.0):
+            assert torch.equal(_quantile(x, q), torch.quantile(x, q)), (n, q)
+
+
+def test_chained_rir_on_the_compiled_kernels_equals_the_torch_and_scipy_steps():
+    """The fused chained RIR (compiled mask, levels and fit) against ``ChainedRir(fused=False)`` (scipy, numpy and the
+    torch Gauss-Newton) on a moving synthetic group: the same shifts to 1e-9 px (the fused one given the frames as a
+    list of arrays, as the live path passes its ring's views).
+    """
+    import reconstruct.stream.synthetic as S
+    from reconstruct.physics.rir import ChainedRir
+
+    g = S.make_group(S.SyntheticConfig(width=96, height=64, n_frames=11, motion_px_per_frame=0.4, noise="integrate_fire", exposure=3.0, seed=2), 0)
+    I = torch.from_numpy(np.asarray(g.I, np.float32))
+    phi = torch.from_numpy(np.asarray(g.phi_nominal))
+    a, b = ChainedRir(mask_every=2), ChainedRir(mask_every=2, fused=False)
+    for i in range(3, 8):
+        sa = a.window_shifts([x.numpy() for x in I[i - 3 : i + 4]], phi[i - 3 : i + 4], np.arange(i - 3, i + 4)).numpy()  # as the ring's views
+        sb = b.window_shifts(I[i - 3 : i + 4], phi[i - 3 : i + 4], np.arange(i - 3, i + 4)).numpy()
+        assert np.abs(sa).max() > 0.3 and np.abs(sa - sb).max() < 1e-9, (i, sa, sb)
