@@ -23,7 +23,7 @@ from polinfra.errors import ShapeError
 from reconstruct.physics.rir import RirConfig, estimate_shifts, warp
 from reconstruct.stream.groups import harmonic_design, span_harmonic, span_part_edges
 
-__all__ = ["SPAN_RIR", "SPAN_PARTS", "compensated_span", "compensate_part_sums", "part_shifts_from_windows"]
+__all__ = ["SPAN_RIR", "SPAN_PARTS", "SPAN_AUTO_PX", "compensated_span", "compensate_part_sums", "part_shifts_from_windows", "window_velocity", "auto_part_shifts"]
 
 SPAN_RIR = RirConfig(dop_max=1.0, coarse_factor=1)
 """Registration of the span's parts: every well-exposed pixel (``dop_max`` 1) and whole-pixel search at full
@@ -35,6 +35,10 @@ synthetic pan of tests/recon/test_motion_span.py)."""
 
 SPAN_PARTS = 7
 """Parts of the 350-step span: 50 steps each (about 27 deg of polarizer at 30 rev/s)."""
+
+SPAN_AUTO_PX = 1.0
+"""``--span auto``: the plain span's smear (pixels over the whole span, at the windows' fitted velocity) from which the
+span's parts are moved (:func:`auto_part_shifts`)."""
 
 
 def compensated_span(spikes: np.ndarray, phi: np.ndarray, exposure: float, n_sub: int = SPAN_PARTS, harmonic: bool = True, min_shift_px: float = 0.3,
@@ -70,17 +74,37 @@ def part_shifts_from_windows(window_shifts: np.ndarray, window_centres: np.ndarr
     whose registration failed, e.g. the outer ones of a fast pan where the low-DoP mask leaves the moving texture out,
     does not pull it).  The 7 windows cover +-171 steps and the 7 parts +-150: no registration of the span's own.
     """
-    ws = np.asarray(window_shifts, np.float64)
-    t = np.asarray(window_centres, np.float64)
     lo, hi = parts[0][0], parts[-1][1]
-    t = t - (lo + (hi - lo) // 2)
     mid = np.array([0.5 * (a + b - 1) for a, b in parts]) - (lo + (hi - lo) // 2)
+    return mid[:, None] * window_velocity(window_shifts, np.asarray(window_centres, np.float64) - (lo + (hi - lo) // 2), inlier_px)[None, :]
+
+
+def window_velocity(window_shifts: np.ndarray, t: np.ndarray, inlier_px: float = 0.5) -> np.ndarray:
+    """The image velocity (dy, dx) in pixels per step that the N windows' RIR shifts onto their centre (``window_shifts``
+    (N, 2)) give, the windows at steps ``t`` (N,) from the centre: the median of the windows' slopes, refitted by least
+    squares on the windows within ``inlier_px`` of it (:func:`part_shifts_from_windows`).
+    """
+    ws = np.asarray(window_shifts, np.float64)
+    t = np.asarray(t, np.float64)
     far = np.abs(t) > 0.5
     vel = np.median(ws[far] / t[far, None], axis=0) if far.any() else np.zeros(2)
     ok = far & (np.hypot(*(ws - t[:, None] * vel).T) <= inlier_px)
     if ok.any():
         vel = (t[ok, None] * ws[ok]).sum(0) / (t[ok] ** 2).sum()
-    return mid[:, None] * vel[None, :]
+    return vel
+
+
+def auto_part_shifts(window_shifts: np.ndarray, window_centres: np.ndarray, parts: list[tuple[int, int]], smear_px: float = SPAN_AUTO_PX) -> np.ndarray | None:
+    """``--span auto`` for one window: the parts' shifts of :func:`part_shifts_from_windows` where the fitted velocity
+    would smear the plain span by at least ``smear_px`` pixels (|v| times the span's steps: a fast pan, whose windows
+    register), else None: the plain span (a slow or still scene keeps every spike without resampling, which in dim light
+    matters more than a smear below a pixel).
+    """
+    lo, hi = parts[0][0], parts[-1][1]
+    vel = window_velocity(window_shifts, np.asarray(window_centres, np.float64) - (lo + (hi - lo) // 2))
+    if float(np.hypot(*vel)) * (hi - lo) < smear_px:
+        return None
+    return part_shifts_from_windows(window_shifts, window_centres, parts)
 
 
 def compensate_part_sums(sums: np.ndarray, parts: list[tuple[int, int]], phi: np.ndarray, exposure: float, harmonic: bool = True,
