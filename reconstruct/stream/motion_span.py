@@ -40,9 +40,14 @@ SPAN_AUTO_PX = 1.0
 """``--span auto``: the plain span's smear (pixels over the whole span, at the windows' fitted velocity) from which the
 span's parts are moved (:func:`auto_part_shifts`)."""
 
+SPAN_AUTO_INLIERS = 4
+"""``--span auto``: windows besides the centre (of 6) whose shifts must lie within 0.5 px of the fitted velocity for the
+span's parts to be moved: in dim light (0.02 spikes/px/step at 96 x 64) the per-window registration of a still scene
+scatters by up to 2 px, and a velocity fitted to that moved the span and cost the network 2 dB."""
+
 
 def compensated_span(spikes: np.ndarray, phi: np.ndarray, exposure: float, n_sub: int = SPAN_PARTS, harmonic: bool = True, min_shift_px: float = 0.3,
-                     rir: RirConfig = SPAN_RIR) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
+                     rir: RirConfig = SPAN_RIR, shifts: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
     """The span's mean (and first harmonic) with its parts registered to the centre part.
 
     Args:
@@ -53,6 +58,7 @@ def compensated_span(spikes: np.ndarray, phi: np.ndarray, exposure: float, n_sub
         harmonic: also the first harmonic (b, c) of the moved spikes.
         min_shift_px: shifts of smaller magnitude are set to 0.
         rir: registration parameters (:data:`SPAN_RIR`).
+        shifts: (n_sub, 2) the parts' shifts where known (e.g. :func:`part_shifts_from_windows`): no registration of the parts.
 
     Returns:
         (I_mean (H, W) float32, I_harm (2, H, W) float32 or None, shifts (n_sub, 2) as (dy, dx) applied to each part).
@@ -64,7 +70,7 @@ def compensated_span(spikes: np.ndarray, phi: np.ndarray, exposure: float, n_sub
     L, H, W = sp.shape
     parts = span_part_edges(L, n_sub)
     sums = np.stack([np.tensordot(harmonic_design(ph[a:b]), sp[a:b].astype(np.float64), axes=(1, 0)) for a, b in parts])  # (n, 3, H, W)
-    return compensate_part_sums(sums, parts, ph, exposure, harmonic, min_shift_px, rir)
+    return compensate_part_sums(sums, parts, ph, exposure, harmonic, min_shift_px, rir, shifts)
 
 
 def part_shifts_from_windows(window_shifts: np.ndarray, window_centres: np.ndarray, parts: list[tuple[int, int]], inlier_px: float = 0.5) -> np.ndarray:
@@ -76,13 +82,13 @@ def part_shifts_from_windows(window_shifts: np.ndarray, window_centres: np.ndarr
     """
     lo, hi = parts[0][0], parts[-1][1]
     mid = np.array([0.5 * (a + b - 1) for a, b in parts]) - (lo + (hi - lo) // 2)
-    return mid[:, None] * window_velocity(window_shifts, np.asarray(window_centres, np.float64) - (lo + (hi - lo) // 2), inlier_px)[None, :]
+    return mid[:, None] * window_velocity(window_shifts, np.asarray(window_centres, np.float64) - (lo + (hi - lo) // 2), inlier_px)[0][None, :]
 
 
-def window_velocity(window_shifts: np.ndarray, t: np.ndarray, inlier_px: float = 0.5) -> np.ndarray:
+def window_velocity(window_shifts: np.ndarray, t: np.ndarray, inlier_px: float = 0.5) -> tuple[np.ndarray, int]:
     """The image velocity (dy, dx) in pixels per step that the N windows' RIR shifts onto their centre (``window_shifts``
     (N, 2)) give, the windows at steps ``t`` (N,) from the centre: the median of the windows' slopes, refitted by least
-    squares on the windows within ``inlier_px`` of it (:func:`part_shifts_from_windows`).
+    squares on the windows within ``inlier_px`` of it (:func:`part_shifts_from_windows`); and the number of those windows.
     """
     ws = np.asarray(window_shifts, np.float64)
     t = np.asarray(t, np.float64)
@@ -91,18 +97,19 @@ def window_velocity(window_shifts: np.ndarray, t: np.ndarray, inlier_px: float =
     ok = far & (np.hypot(*(ws - t[:, None] * vel).T) <= inlier_px)
     if ok.any():
         vel = (t[ok, None] * ws[ok]).sum(0) / (t[ok] ** 2).sum()
-    return vel
+    return vel, int(ok.sum())
 
 
-def auto_part_shifts(window_shifts: np.ndarray, window_centres: np.ndarray, parts: list[tuple[int, int]], smear_px: float = SPAN_AUTO_PX) -> np.ndarray | None:
+def auto_part_shifts(window_shifts: np.ndarray, window_centres: np.ndarray, parts: list[tuple[int, int]], smear_px: float = SPAN_AUTO_PX,
+                     min_inliers: int = SPAN_AUTO_INLIERS) -> np.ndarray | None:
     """``--span auto`` for one window: the parts' shifts of :func:`part_shifts_from_windows` where the fitted velocity
     would smear the plain span by at least ``smear_px`` pixels (|v| times the span's steps: a fast pan, whose windows
-    register), else None: the plain span (a slow or still scene keeps every spike without resampling, which in dim light
-    matters more than a smear below a pixel).
+    register) and at least ``min_inliers`` windows besides the centre follow it, else None: the plain span (a slow or
+    still scene keeps every spike without resampling; noise-limited windows, whose shifts scatter, do not move it).
     """
     lo, hi = parts[0][0], parts[-1][1]
-    vel = window_velocity(window_shifts, np.asarray(window_centres, np.float64) - (lo + (hi - lo) // 2))
-    if float(np.hypot(*vel)) * (hi - lo) < smear_px:
+    vel, n_in = window_velocity(window_shifts, np.asarray(window_centres, np.float64) - (lo + (hi - lo) // 2))
+    if float(np.hypot(*vel)) * (hi - lo) < smear_px or n_in < min_inliers:
         return None
     return part_shifts_from_windows(window_shifts, window_centres, parts)
 

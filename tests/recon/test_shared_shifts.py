@@ -125,3 +125,8 @@ def test_auto_span_is_plain_below_a_pixel_of_smear_and_the_rir_span_above():
             want = part_shifts_from_windows(ws, t, parts)
             np.testing.assert_allclose(got, want)
             np.testing.assert_allclose(want[:, 1], ((np.arange(7) - 3) * 50 - 0.5) * v, atol=1e-9)  # closed form: v times each part's mid-step
+    # windows whose registration scatters (noise-limited: a still dim scene's shifts of up to 2 px, no line through them)
+    # leave the span plain however fast a velocity fitted to them would be
+    scattered = np.array([[1.92, 1.05], [2.3, 1.59], [-0.11, -0.17], [0, 0], [-0.05, -0.35], [1.88, -0.7], [2.08, 1.83]])
+    assert auto_part_shifts(scattered, t, parts, smear_px=1.0) is None
+    assert auto_part_shifts(scattered, t, parts, smear_px=1.0, min_inliers=1) is not None  # the inlier test is what keeps it plain
