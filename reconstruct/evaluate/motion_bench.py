@@ -159,7 +159,7 @@ def run_cell(cell: dict, *, width: int = 96, height: int = 64, frames: int = 1, 
     from reconstruct.physics.zeta import zeta_from_maps
     from reconstruct.stream.groups import span_part_edges
     from reconstruct.stream.motion_scenes import MotionSceneConfig, make_motion_stream
-    from reconstruct.stream.motion_span import SPAN_PARTS, auto_part_shifts, compensated_span, part_shifts_from_windows
+    from reconstruct.stream.motion_span import SPAN_PARTS, auto_span_shifts, compensate_part_sums, compensated_span, part_shifts_from_windows, span_part_sums
     from reconstruct.stream.window_inputs import WindowInputs, inputs_of
     from reconstruct.video.tiling import run_model_on_windows
 
@@ -183,7 +183,7 @@ def run_cell(cell: dict, *, width: int = 96, height: int = 64, frames: int = 1, 
     chained = ChainedRir() if rir == "chained" else None
     nets = {m: MapsZetaNet(_net(weights, m != "net", m not in ("net", "net+rir"), "best" if m == "net+bestfloor" else "rwps"), maps, span_rad) for m in methods if m in NETS}
     acc: dict[str, dict[str, list]] = {m: {"T_psnr": [], "T_ssim": [], "R_psnr": [], "R_ssim": []} for m in methods}
-    moved: dict[str, list] = {}  # per span method, per frame: whether the span's parts were moved
+    moved: dict[str, list] = {}  # per span method, per frame: what moved the span's parts (rir, parts or plain)
     for f in range(frames):
         c = reach + int(round(f * stride))
         I, phi, I_wide, I_mean, I_harm, cents, (lo, hi) = _frame_inputs(st, c, rate_hz, rev)
@@ -221,12 +221,12 @@ def run_cell(cell: dict, *, width: int = 96, height: int = 64, frames: int = 1, 
                 if mspan is None:
                     mspan = compensated_span(st.spikes[lo:hi], st.phi[lo:hi], st.exposure)
                 kw["I_mean"], kw["I_harm"] = mspan[0][None], mspan[1][None]
-            psh = part_shifts_from_windows(sh.numpy(), tc, parts) if m == "net+floor+rspan" else (auto_part_shifts(sh.numpy(), tc, parts) if m == "net+floor+aspan" else None)
-            if psh is not None:  # the span's parts moved by the windows' velocity (aspan: only where it smears the span by a pixel)
-                sp = compensated_span(st.spikes[lo:hi], st.phi[lo:hi], st.exposure, shifts=psh)
+            if m in ("net+floor+rspan", "net+floor+aspan"):  # the span's parts moved by the windows' velocity (aspan: auto_span_shifts)
+                sums, _ = span_part_sums(st.spikes[lo:hi], st.phi[lo:hi])
+                psh, how = (part_shifts_from_windows(sh.numpy(), tc, parts), "rir") if m == "net+floor+rspan" else auto_span_shifts(sh.numpy(), tc, sums, parts, st.phi[lo:hi])
+                sp = compensate_part_sums(sums, parts, st.phi[lo:hi], st.exposure, shifts=psh)
                 kw["I_mean"], kw["I_harm"] = sp[0][None], sp[1][None]
-            if m in ("net+floor+rspan", "net+floor+aspan"):
-                moved.setdefault(m, []).append(psh is not None)
+                moved.setdefault(m, []).append(how)
             x = WindowInputs(I[None], phi[None].astype(np.float32), **kw, shifts=sh.numpy()[None] if model.accepts_shifts else None).only(inputs_of(model))
             o = run_model_on_windows(model, x, "cpu", 0)
             out[m] = (o["T"][0], o["R"][0])
@@ -239,7 +239,7 @@ def run_cell(cell: dict, *, width: int = 96, height: int = 64, frames: int = 1, 
                 acc[m][f"{key}_ssim"].append(s)
     scores = {m: {k: (float(np.mean(v)) if v else None) for k, v in d.items()} for m, d in acc.items()}
     return {**cell, "zeta": zsrc, "scores": scores, "seconds": time.perf_counter() - t0, "exposure": st.exposure, "rir": rir,
-            "span_moved": {m: float(np.mean(v)) for m, v in moved.items()}}
+            "span_moved": {m: ",".join(v) for m, v in moved.items()}}
 
 
 def holds(row: dict) -> dict[str, Any]:

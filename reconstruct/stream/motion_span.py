@@ -23,7 +23,8 @@ from polinfra.errors import ShapeError
 from reconstruct.physics.rir import RirConfig, estimate_shifts, warp
 from reconstruct.stream.groups import harmonic_design, span_harmonic, span_part_edges
 
-__all__ = ["SPAN_RIR", "SPAN_PARTS", "SPAN_AUTO_PX", "compensated_span", "compensate_part_sums", "part_shifts_from_windows", "window_velocity", "auto_part_shifts"]
+__all__ = ["SPAN_RIR", "SPAN_PARTS", "SPAN_AUTO_PX", "compensated_span", "compensate_part_sums", "part_shifts_from_windows", "window_velocity", "auto_part_shifts",
+           "span_part_sums", "register_parts", "auto_span_shifts"]
 
 SPAN_RIR = RirConfig(dop_max=1.0, coarse_factor=1)
 """Registration of the span's parts: every well-exposed pixel (``dop_max`` 1) and whole-pixel search at full
@@ -67,10 +68,55 @@ def compensated_span(spikes: np.ndarray, phi: np.ndarray, exposure: float, n_sub
     ph = np.asarray(phi, np.float64)
     if sp.ndim != 3 or ph.shape != sp.shape[:1]:
         raise ShapeError(f"spikes must be (L, H, W) with phi (L,); got {sp.shape} and {ph.shape}", actual_shape=ph.shape, expected_shape=sp.shape[:1])
-    L, H, W = sp.shape
-    parts = span_part_edges(L, n_sub)
-    sums = np.stack([np.tensordot(harmonic_design(ph[a:b]), sp[a:b].astype(np.float64), axes=(1, 0)) for a, b in parts])  # (n, 3, H, W)
+    sums, parts = span_part_sums(sp, ph, n_sub)
     return compensate_part_sums(sums, parts, ph, exposure, harmonic, min_shift_px, rir, shifts)
+
+
+def span_part_sums(spikes: np.ndarray, phi: np.ndarray, n_sub: int = SPAN_PARTS) -> tuple[np.ndarray, list[tuple[int, int]]]:
+    """The spike sums (n_sub, 3, H, W: weighted by 1, cos 2 phi, sin 2 phi) of the span's ``n_sub`` parts, and the parts."""
+    sp = np.asarray(spikes)
+    ph = np.asarray(phi, np.float64)
+    parts = span_part_edges(sp.shape[0], n_sub)
+    return np.stack([np.tensordot(harmonic_design(ph[a:b]), sp[a:b].astype(np.float64), axes=(1, 0)) for a, b in parts]), parts
+
+
+def register_parts(sums: np.ndarray, parts: list[tuple[int, int]], phi: np.ndarray, rir: RirConfig = SPAN_RIR) -> np.ndarray:
+    """Each part's shift (n, 2) onto the part holding the span's centre step, by registering the parts' means
+    (:func:`reconstruct.physics.rir.estimate_shifts` with ``rir``); ``phi`` the per-step angles ``parts`` index.
+    """
+    ph = np.asarray(phi, np.float64)
+    lo, hi = parts[0][0], parts[-1][1]
+    means = torch.from_numpy(np.asarray(sums, np.float64)[:, 0] / np.array([max(b - a, 1) for a, b in parts], np.float64)[:, None, None])
+    angles = torch.tensor([ph[a:b].mean() for a, b in parts], dtype=torch.float64)
+    centre = next(i for i, (a, b) in enumerate(parts) if a <= lo + (hi - lo) // 2 < b)
+    return estimate_shifts(means, angles, center=centre, config=rir).cpu().numpy()
+
+
+def auto_span_shifts(window_shifts: np.ndarray, window_centres: np.ndarray, sums: np.ndarray, parts: list[tuple[int, int]], phi: np.ndarray,
+                     smear_px: float = SPAN_AUTO_PX, min_inliers: int = SPAN_AUTO_INLIERS) -> tuple[np.ndarray, str]:
+    """``--span auto`` for one window -> (the parts' shifts (n, 2), which source: ``rir``, ``parts`` or ``plain``).
+
+    1. The windows register (at least ``min_inliers`` of them follow one velocity) and it smears the span by
+       ``smear_px`` or more: the parts move by it (``rir``, :func:`auto_part_shifts`; no registration of their own).
+    2. They register and it smears less: the plain span (a still or slow scene keeps every spike, no resampling).
+    3. They do not register (noise-limited windows, e.g. dim light, where 13 steps hold a fraction of a spike per
+       pixel): the parts' own registration (:func:`register_parts`, 50 steps each), as one velocity fitted to the parts
+       the same way, where at least ``min_inliers`` parts follow it and it smears the span by ``smear_px`` (``parts``);
+       else the plain span.
+    """
+    n = len(parts)
+    sh = auto_part_shifts(window_shifts, window_centres, parts, smear_px, min_inliers)
+    if sh is not None:
+        return sh, "rir"
+    lo, hi = parts[0][0], parts[-1][1]
+    _, n_in = window_velocity(window_shifts, np.asarray(window_centres, np.float64) - (lo + (hi - lo) // 2))
+    if n_in >= min_inliers or n < 3:
+        return np.zeros((n, 2)), "plain"
+    mid = np.array([0.5 * (a + b - 1) for a, b in parts]) - (lo + (hi - lo) // 2)
+    vel, p_in = window_velocity(register_parts(sums, parts, phi), mid)
+    if p_in >= min_inliers and float(np.hypot(*vel)) * (hi - lo) >= smear_px:
+        return mid[:, None] * vel[None, :], "parts"
+    return np.zeros((n, 2)), "plain"
 
 
 def part_shifts_from_windows(window_shifts: np.ndarray, window_centres: np.ndarray, parts: list[tuple[int, int]], inlier_px: float = 0.5) -> np.ndarray:
@@ -128,10 +174,7 @@ def compensate_part_sums(sums: np.ndarray, parts: list[tuple[int, int]], phi: np
     shifts = np.array(shifts, np.float64) if given else np.zeros((len(parts), 2))
     if len(parts) >= 3:
         if not given:
-            means = torch.from_numpy(sums[:, 0] / np.array([max(b - a, 1) for a, b in parts], np.float64)[:, None, None])
-            angles = torch.tensor([ph[a:b].mean() for a, b in parts], dtype=torch.float64)
-            centre = next(i for i, (a, b) in enumerate(parts) if a <= lo + L // 2 < b)
-            shifts = estimate_shifts(means, angles, center=centre, config=rir).cpu().numpy()
+            shifts = register_parts(sums, parts, ph, rir)
         shifts[np.hypot(shifts[:, 0], shifts[:, 1]) < min_shift_px] = 0.0
         moved = np.flatnonzero(np.abs(shifts).sum(1) > 0)
         if moved.size:

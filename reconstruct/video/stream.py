@@ -44,7 +44,7 @@ from polinfra.errors import ConfigError
 from reconstruct.physics.rir import ChainedRir
 from reconstruct.stream.display import DisplayHistogram, _to8, display_gain
 from reconstruct.stream.groups import SpikeMeanSums, spike_mean_steps, wide_window_steps, window_means
-from reconstruct.stream.motion_span import SPAN_PARTS, auto_part_shifts, compensate_part_sums, part_shifts_from_windows
+from reconstruct.stream.motion_span import SPAN_PARTS, auto_span_shifts, compensate_part_sums, part_shifts_from_windows
 from reconstruct.stream.sources import SpikeSource
 from reconstruct.stream.window_inputs import WindowInputs, inputs_of
 from reconstruct.video.tiling import FeatureCache, auto_tile, run_model_on_windows, window_shifts
@@ -73,7 +73,7 @@ class ReconstructConfig:
     precision: str = opt("float32", "float32 | bfloat16 (autocast; the solver stays float32)", choices=("float32", "bfloat16"))
     threads: int = opt(0, "torch threads on the CPU (0 = torch's setting as it is; cpu_threads() gives the idle cores)", lo=0, hi=4096)
     cache: bool = opt(True, "reuse per-observation features across overlapping windows (v2 networks, RIR off, whole frames)")
-    span: str = opt("plain", "the long span a network reads: plain (every spike of its 17.5 ms summed) | compensated (cut into 7 parts registered onto the centre part before they are summed, reconstruct.stream.motion_span: a panning camera no longer smears it) | rir (the same parts moved by the 7 windows' RIR shifts interpolated in time: no registration of its own) | auto (per window: plain where the windows' fitted velocity smears the span by less than span_auto_px, else rir)", choices=("plain", "compensated", "rir", "auto"))
+    span: str = opt("plain", "the long span a network reads: plain (every spike of its 17.5 ms summed) | compensated (cut into 7 parts registered onto the centre part before they are summed, reconstruct.stream.motion_span: a panning camera no longer smears it) | rir (the same parts moved by the 7 windows' RIR shifts interpolated in time: no registration of its own) | auto (per window, reconstruct.stream.motion_span.auto_span_shifts: rir where the windows register and their velocity smears the span by span_auto_px or more, plain where they register and it smears less, the parts' own registration where the windows do not register and it shows a smear)", choices=("plain", "compensated", "rir", "auto"))
     span_auto_px: float = opt(1.0, "span auto: the plain span's smear in pixels (the windows' fitted speed times the span's steps) from which the rir span is used", lo=0.0, hi=1e6)
     rir: str = opt("window", "how the windows' RIR shifts are estimated, once per window for the model and the span: window (reconstruct.physics.rir.estimate_shifts on each window: 6 masked phase correlations and a Gauss-Newton refinement, what the network does itself) | chained (reconstruct.physics.rir.ChainedRir: each frame registered once onto the previous one, the window's shifts their running sums)", choices=("window", "chained"))
 
@@ -277,7 +277,7 @@ def _reconstruct_stream(source: SpikeSource, model, out_dir, cfg: ReconstructCon
     want_shifts = aligns or (comp and cfg.span in ("rir", "auto"))
     chained = ChainedRir() if cfg.rir == "chained" else None
     cpu = {"rir": 0.0, "span": 0.0, "model": 0.0}  # process CPU seconds per stage
-    n_auto = {"plain": 0, "rir": 0}
+    n_auto = {"plain": 0, "rir": 0, "parts": 0}
     prefix = SpikeMeanSums(centres, mean_steps, source.phi_step_rad.size, (source.height, source.width), source.phi_step_rad if (use_harm or comp) else None,
                            n_sub=SPAN_PARTS if comp else 1) if mean_steps else None
     tile = auto_tile(model, device) if cfg.tile < 0 else cfg.tile
@@ -337,10 +337,9 @@ def _reconstruct_stream(source: SpikeSource, model, out_dir, cfg: ReconstructCon
                         sh = None
                         if cfg.span == "rir":  # the windows' own registration, interpolated to the parts' times
                             sh = part_shifts_from_windows(wsh, centres[next_c - N : next_c], parts)
-                        elif cfg.span == "auto":  # plain (zero shifts) where the windows' velocity barely smears the span
-                            sh = auto_part_shifts(wsh, centres[next_c - N : next_c], parts, cfg.span_auto_px)
-                            n_auto["plain" if sh is None else "rir"] += 1
-                            sh = np.zeros((len(parts), 2)) if sh is None else sh
+                        elif cfg.span == "auto":  # the windows' velocity, the parts' own where the windows do not register, or plain
+                            sh, how = auto_span_shifts(wsh, centres[next_c - N : next_c], sums, parts, source.phi_step_rad, cfg.span_auto_px)
+                            n_auto[how] += 1
                         mj, hj, _ = compensate_part_sums(sums, parts, source.phi_step_rad, exposure, use_harm, shifts=sh)
                         prefix.release(j)
                         cpu["span"] += time.process_time() - c0
