@@ -223,7 +223,7 @@ def run_cell(cell: dict, *, width: int = 96, height: int = 64, frames: int = 1, 
                 kw["I_mean"], kw["I_harm"] = mspan[0][None], mspan[1][None]
             if m in ("net+floor+rspan", "net+floor+aspan"):  # the span's parts moved by the windows' velocity (aspan: auto_span_shifts)
                 sums, _ = span_part_sums(st.spikes[lo:hi], st.phi[lo:hi])
-                psh, how = (part_shifts_from_windows(sh.numpy(), tc, parts), "rir") if m == "net+floor+rspan" else auto_span_shifts(sh.numpy(), tc, sums, parts, st.phi[lo:hi])
+                psh, how = (part_shifts_from_windows(sh.numpy(), tc, parts), "rir") if m == "net+floor+rspan" else auto_span_shifts(sh.numpy(), tc, sums, parts, st.phi[lo:hi], float(st.exposure * I.mean() * WINDOW))
                 sp = compensate_part_sums(sums, parts, st.phi[lo:hi], st.exposure, shifts=psh)
                 kw["I_mean"], kw["I_harm"] = sp[0][None], sp[1][None]
                 moved.setdefault(m, []).append(how)

@@ -41,6 +41,11 @@ SPAN_AUTO_PX = 1.0
 """``--span auto``: the plain span's smear (pixels over the whole span, at the windows' fitted velocity) from which the
 span's parts are moved (:func:`auto_part_shifts`)."""
 
+SPAN_AUTO_SPIKES = 1.0
+"""``--span auto``: windows with fewer spikes per pixel than this on average are noise-limited (a 13-step window in
+0.02 spikes/px/step holds 0.26; at 0.3, 3.9): their registration fails (no shift) and the span's parts are registered
+instead (:func:`auto_span_shifts`)."""
+
 SPAN_AUTO_INLIERS = 4
 """``--span auto``: windows besides the centre (of 6) whose shifts must lie within 0.5 px of the fitted velocity for the
 span's parts to be moved: in dim light (0.02 spikes/px/step at 96 x 64) the per-window registration of a still scene
@@ -93,24 +98,25 @@ def register_parts(sums: np.ndarray, parts: list[tuple[int, int]], phi: np.ndarr
 
 
 def auto_span_shifts(window_shifts: np.ndarray, window_centres: np.ndarray, sums: np.ndarray, parts: list[tuple[int, int]], phi: np.ndarray,
-                     smear_px: float = SPAN_AUTO_PX, min_inliers: int = SPAN_AUTO_INLIERS) -> tuple[np.ndarray, str]:
+                     spikes_per_window: float, smear_px: float = SPAN_AUTO_PX, min_inliers: int = SPAN_AUTO_INLIERS,
+                     min_spikes: float = SPAN_AUTO_SPIKES) -> tuple[np.ndarray, str]:
     """``--span auto`` for one window -> (the parts' shifts (n, 2), which source: ``rir``, ``parts`` or ``plain``).
 
-    1. The windows register (at least ``min_inliers`` of them follow one velocity) and it smears the span by
-       ``smear_px`` or more: the parts move by it (``rir``, :func:`auto_part_shifts`; no registration of their own).
-    2. They register and it smears less: the plain span (a still or slow scene keeps every spike, no resampling).
-    3. They do not register (noise-limited windows, e.g. dim light, where 13 steps hold a fraction of a spike per
-       pixel): the parts' own registration (:func:`register_parts`, 50 steps each), as one velocity fitted to the parts
-       the same way, where at least ``min_inliers`` parts follow it and it smears the span by ``smear_px`` (``parts``);
-       else the plain span.
+    1. At least ``min_inliers`` windows follow one velocity and it smears the span by ``smear_px`` or more: the parts
+       move by it (``rir``, :func:`auto_part_shifts`; no registration of their own).
+    2. Else, where the windows hold ``min_spikes`` or more spikes per pixel on average (``spikes_per_window``): the
+       plain span (their registration is trusted, and says still or slow: every spike kept, no resampling).
+    3. Else the windows are noise-limited (dim light: a failed registration returns no shift, which reads as still):
+       the parts' own registration (:func:`register_parts`, 50 steps each, ~4x the spikes), as one velocity fitted to
+       the parts the same way, where at least ``min_inliers`` parts follow it and it smears the span by ``smear_px``
+       (``parts``); else the plain span.
     """
     n = len(parts)
     sh = auto_part_shifts(window_shifts, window_centres, parts, smear_px, min_inliers)
     if sh is not None:
         return sh, "rir"
     lo, hi = parts[0][0], parts[-1][1]
-    _, n_in = window_velocity(window_shifts, np.asarray(window_centres, np.float64) - (lo + (hi - lo) // 2))
-    if n_in >= min_inliers or n < 3:
+    if spikes_per_window >= min_spikes or n < 3:
         return np.zeros((n, 2)), "plain"
     mid = np.array([0.5 * (a + b - 1) for a, b in parts]) - (lo + (hi - lo) // 2)
     vel, p_in = window_velocity(register_parts(sums, parts, phi), mid)

@@ -338,7 +338,8 @@ def _reconstruct_stream(source: SpikeSource, model, out_dir, cfg: ReconstructCon
                         if cfg.span == "rir":  # the windows' own registration, interpolated to the parts' times
                             sh = part_shifts_from_windows(wsh, centres[next_c - N : next_c], parts)
                         elif cfg.span == "auto":  # the windows' velocity, the parts' own where the windows do not register, or plain
-                            sh, how = auto_span_shifts(wsh, centres[next_c - N : next_c], sums, parts, source.phi_step_rad, cfg.span_auto_px)
+                            spw = float(exposure * Iw.mean() * cfg.window_steps)  # spikes per pixel per window
+                            sh, how = auto_span_shifts(wsh, centres[next_c - N : next_c], sums, parts, source.phi_step_rad, spw, cfg.span_auto_px)
                             n_auto[how] += 1
                         mj, hj, _ = compensate_part_sums(sums, parts, source.phi_step_rad, exposure, use_harm, shifts=sh)
                         prefix.release(j)

@@ -141,9 +141,10 @@ def test_part_shifts_from_the_windows_rir_match_the_registered_parts():
 
 
 def test_auto_span_takes_the_windows_velocity_the_parts_own_or_the_plain_span():
-    """``--span auto``: windows that follow one velocity move the parts by it (``rir``); windows whose shifts scatter
-    (noise-limited) leave it to the parts' own registration, which on a 400 px/s pan gives the closed form's shifts
-    within 0.3 px (``parts``) and on a still scene leaves the span plain.
+    """``--span auto``: windows that follow one velocity move the parts by it (``rir``); noise-limited windows (below
+    one spike per pixel) whose shifts scatter, or fail to zero, leave it to the parts' own registration, which on a
+    400 px/s pan gives the closed form's shifts within 0.3 px (``parts``) and on a still scene leaves the span plain;
+    windows with spikes enough that find no motion keep it plain.
     """
     from reconstruct.stream.motion_span import auto_span_shifts, span_part_sums
 
@@ -155,13 +156,16 @@ def test_auto_span_takes_the_windows_velocity_the_parts_own_or_the_plain_span():
         sums, parts = span_part_sums(spikes, phi)
         mids = np.array([0.5 * (a + b - 1) for a, b in parts]) - L // 2
         truth = np.stack([np.zeros(7), -v * mids / RATE], 1)  # the part at step t moved back by v t
-        sh, how = auto_span_shifts(scattered, wc, sums, parts, phi)
-        if v:
-            assert how == "parts"
-            np.testing.assert_allclose(sh, truth, atol=0.3)
-        else:
+        for ws in (scattered, np.zeros((7, 2))):
+            sh, how = auto_span_shifts(ws, wc, sums, parts, phi, spikes_per_window=0.3)
+            if v:
+                assert how == "parts"
+                np.testing.assert_allclose(sh, truth, atol=0.3)
+            else:
+                assert how == "plain" and not sh.any()
+            sh, how = auto_span_shifts(ws, wc, sums, parts, phi, spikes_per_window=3.0)
             assert how == "plain" and not sh.any()
         lin = np.stack([np.zeros(7), -v * (wc - L // 2) / RATE], 1)  # windows that register, at the same pan
-        sh, how = auto_span_shifts(lin, wc, sums, parts, phi)
+        sh, how = auto_span_shifts(lin, wc, sums, parts, phi, spikes_per_window=3.0)
         assert how == ("rir" if v else "plain")
         np.testing.assert_allclose(sh, truth, atol=1e-6)
