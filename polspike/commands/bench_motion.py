@@ -28,6 +28,7 @@ def motion_cmd(
     seed: int = typer.Option(0, "--seed", help="scene seed (pictures, pane azimuth, shake, initial charges)"),
     calibrate: str = typer.Option("still", "--calibrate", help="where the self-calibrated zeta comes from: still (the same rig's still stream, once per scene and light) | cell (each cell's own moving stream)"),
     weights: Optional[Path] = typer.Option(None, "--weights", help="checkpoint [default: the shipped default, reconstruct.net.checkpoint.DEFAULT_WEIGHTS]"),
+    rir: str = typer.Option("window", "--rir", help="the windows' RIR shifts, estimated once per frame and shared by every method: window (per window) | chained (each frame onto the previous, reconstruct.physics.rir.ChainedRir)"),
     json_out: bool = typer.Option(False, "--json", help="print the JSON result"),
 ) -> None:
     """T and R PSNR / SSIM of TFP, the spike means, every physics solver and the network under motion."""
@@ -56,6 +57,8 @@ def motion_cmd(
         raise ConfigError(f"--methods {','.join(bad)}: choose from {', '.join(METHODS)}")
     if calibrate not in ("still", "cell"):
         raise ConfigError(f"--calibrate {calibrate!r}: choose still or cell")
+    if rir not in ("window", "chained"):
+        raise ConfigError(f"--rir {rir!r}: choose window or chained")
     if width < 32 or height < 32 or width % 4 or height % 4:
         raise ConfigError(f"--width {width} --height {height}: at least 32 and multiples of 4")
     if frames < 1:
@@ -63,7 +66,7 @@ def motion_cmd(
     cells = default_cells(mo, sp, re_, li)
     ensure_dir(out)
     with rich_progress("bench motion", enabled=not json_out) as cb:
-        res = run_motion_bench(cells, progress=cb, width=width, height=height, frames=frames, seed=seed, methods=tuple(me), weights=weights, calibrate=calibrate)
+        res = run_motion_bench(cells, progress=cb, width=width, height=height, frames=frames, seed=seed, methods=tuple(me), weights=weights, calibrate=calibrate, rir=rir)
     write_json(out / "motion.json", res)
     table = motion_table(res)
     write_text(out / "motion.md", table)

@@ -149,7 +149,8 @@ def reconstruct_cmd(
     stride_deg: float = typer.Option(31.5, "--stride-deg", help="polarizer rotation between output frames (31.5 deg -> 342.9 FPS at 30 rev/s)"),
     frames: str = typer.Option("none", "--frames", help="also write frames: none | png | exr"),
     weights: Optional[Path] = typer.Option(None, "--weights", help="checkpoint [default: the shipped reconstruct/weights default, reconstruct.net.checkpoint.DEFAULT_WEIGHTS]"),
-    rir: bool = typer.Option(True, "--rir/--no-rir", help="RIR alignment of each window before the solver and the network (also for a checkpoint trained without it)"),
+    rir_shifts: str = typer.Option("window", "--rir", help="how each window's RIR shifts are estimated (once, for the network and the span): window (6 masked phase correlations and a Gauss-Newton refinement per window, as the network was trained) | chained (each frame registered once onto the previous one, reconstruct.physics.rir.ChainedRir: ~15x cheaper; docs/motion.md)"),
+    no_rir: bool = typer.Option(False, "--no-rir", help="no RIR alignment of the windows (a checkpoint trained without it, run as trained) [default: RIR before the solver and the network, also for a checkpoint trained without it]"),
     floor: bool = typer.Option(True, "--floor/--no-floor", help="the network's data-consistency floor: its (T, R) must predict the 7 aligned windows within the noise of the physics-only RWPS's fit, else the physics stands (reconstruct/physics/consistency.py)"),
     floor_anchor: Optional[str] = typer.Option(None, "--floor-anchor", help="what the floor falls back to: rwps (the physics-only RWPS; the data check only) | best (per pixel the best physics the observations support: least squares, the spike mean or a blend, reconstruct/physics/anchor.py) [default: the checkpoint's]"),
     max_frames: int = typer.Option(0, "--max-frames", help="stop after this many output frames (0 = all)"),
@@ -168,7 +169,7 @@ def reconstruct_cmd(
     follow: bool = typer.Option(False, "--follow", help=".dat: the file is still being written (a camera): output frames as their spikes arrive, the latency on stderr and in reconstruct.json; Ctrl-C stops with every output complete (physics methods on pane maps)"),
     follow_idle: float = typer.Option(5.0, "--follow-idle", help="--follow: stop when the file has not grown for this many seconds (0 = only Ctrl-C stops)"),
     path: str = typer.Option("auto", "--path", help="live (packed reads, fused solver, background encoding: the real-time path; physics methods on pane maps over a .dat) | stream (the general streaming path) | auto (live where it applies)"),
-    span: str = typer.Option("plain", "--span", help="the network's long span: plain (every spike of the 17.5 ms around the frame) | compensated (its 7 parts registered onto the centre part first: for a moving camera; reconstruct/stream/motion_span.py) | rir (the parts moved by the windows' RIR shifts interpolated in time: no registration of its own)"),
+    span: str = typer.Option("auto", "--span", help="the network's long span: plain (every spike of the 17.5 ms around the frame) | compensated (its 7 parts registered onto the centre part first: for a moving camera; reconstruct/stream/motion_span.py) | rir (the parts moved by the windows' RIR shifts interpolated in time: no registration of its own) | auto (per window: rir where the windows follow one velocity that smears the span by 1 px or more, the parts' own registration where the windows are noise-limited, else plain; docs/motion.md)"),
     video_quality: str = typer.Option("fast", "--video-quality", help="live path videos: fast (x264 CRF 23, less encoder CPU) | high (CRF 10, as the streaming path)"),
     video_codec: str = typer.Option("h264", "--video-codec", help="live path videos: h264 (T.mp4, R.mp4, plays everywhere) | h264-gray (4:0:0 .mp4: less encoder CPU; ffmpeg, mpv, VLC, not browsers) | y4m (raw 8-bit T.y4m, R.y4m: no encoder CPU, 100 kB per 400 x 250 frame)"),
     threads: int = typer.Option(0, "--threads", help="torch threads of the streaming path on the CPU [default 0 = auto: the cores idle when the run starts (1-minute load average), at least 1; the live path runs its solver on one]"),
@@ -231,8 +232,11 @@ def reconstruct_cmd(
             raise ConfigError(f"--pane gives zeta (the calibrated maps): drop --zeta {zeta}")
         if pane_n is not None or pane_model != "auto":
             raise ConfigError("--pane fixes the index and the pane model (they are in its maps): drop --pane-n / --pane-model")
-    if span not in ("plain", "compensated", "rir"):
-        raise ConfigError(f"--span {span!r}: choose plain, compensated or rir")
+    if span not in ("plain", "compensated", "rir", "auto"):
+        raise ConfigError(f"--span {span!r}: choose plain, compensated, rir or auto")
+    if rir_shifts not in ("window", "chained"):
+        raise ConfigError(f"--rir {rir_shifts!r}: choose window or chained (--no-rir turns RIR off)")
+    rir = not no_rir
     if threads < 0:
         raise ConfigError(f"--threads {threads}: a number of threads >= 1, or 0 for auto")
     if dev == "cpu":  # the self-calibration and the stream alike: no more threads than idle cores (reconstruct.video.stream.cpu_threads)
@@ -241,7 +245,7 @@ def reconstruct_cmd(
         threads = cpu_threads(threads)
         torch.set_num_threads(threads)
     cfg = ReconstructConfig(window_steps=window_steps, stride_deg=stride_deg, exposure=exposure or 1.0, frames=frames, max_frames=max_frames, precision=precision,
-                            preview=True if preview is None else preview, threads=threads, span=span)
+                            preview=True if preview is None else preview, threads=threads, span=span, rir=rir_shifts)
     if path not in ("auto", "live", "stream"):
         raise ConfigError(f"--path {path!r}: choose auto, live or stream")
     if video_quality not in ("fast", "high"):

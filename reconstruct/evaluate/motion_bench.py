@@ -22,7 +22,14 @@ Methods (:data:`METHODS`), all on the same Eq. (3) windows (13 steps, N = 7, 31.
 * ``net``: the shipped checkpoint as trained (RIR off, no floor); ``net+rir``: RIR on; ``net+floor``: RIR on and the
   data-consistency floor (:mod:`reconstruct.physics.consistency`, the network's default); ``net+floor+mspan``: that,
   with the long span motion-compensated (:mod:`reconstruct.stream.motion_span`); ``net+bestfloor``: RIR on and the
-  floor at the best physics (``NetConfig.floor_anchor = "best"``, :mod:`reconstruct.physics.anchor`).
+  floor at the best physics (``NetConfig.floor_anchor = "best"``, :mod:`reconstruct.physics.anchor`); ``net+floor+rspan``:
+  ``net+floor`` with the span's parts moved by the windows' RIR velocity (``polspike reconstruct --span rir``,
+  :func:`reconstruct.stream.motion_span.part_shifts_from_windows`); ``net+floor+aspan``: the plain span where that
+  velocity smears it by less than a pixel, else the rir span (``--span auto``, :func:`reconstruct.stream.motion_span.auto_part_shifts`).
+
+The windows' RIR shifts are estimated once per frame (``rir``: ``window``, :func:`reconstruct.physics.rir.estimate_shifts`,
+or ``chained``, :class:`reconstruct.physics.rir.ChainedRir` over the cell's consecutive frames) and shared by the physics,
+the motion-adapted mean, the networks and the spans, as ``polspike reconstruct --rir`` shares them.
 
 Scores: PSNR and SSIM of T and R at each output frame's centre step against the true layers there, with a gain
 fitted (least squares) and the data range of the true layer, over the frame less a ``crop``-pixel border.
@@ -55,7 +62,7 @@ LIGHTS = {"dim": 0.02, "bright": 0.3}
 """Light levels, mean spikes per pixel per step."""
 
 PHYSICS = ("ls", "ridge", "irls", "rwps")
-NETS = ("net", "net+rir", "net+floor", "net+floor+mspan", "net+bestfloor")
+NETS = ("net", "net+rir", "net+floor", "net+floor+mspan", "net+bestfloor", "net+floor+rspan", "net+floor+aspan")
 METHODS = ("tfp", "mean17", "mean", *PHYSICS, "anchor", *NETS)
 """Methods of the bench (module docstring)."""
 
@@ -144,19 +151,22 @@ def _pane(st, cfg, calibrate: str, steps: int, rate_hz: float, rev: float):
 
 
 def run_cell(cell: dict, *, width: int = 96, height: int = 64, frames: int = 1, seed: int = 0, crop: int = 6, methods=METHODS, weights=None,
-             calibrate: str = "still") -> dict[str, Any]:
+             calibrate: str = "still", rir: str = "window") -> dict[str, Any]:
     """Every method of ``methods`` on one cell -> {cell..., "zeta": source, "scores": {method: {T_psnr, ...}}, ...}."""
     from reconstruct.net.net_zeta import MapsZetaNet
-    from reconstruct.physics.rir import estimate_shifts, warp
+    from reconstruct.physics.rir import ChainedRir, estimate_shifts, warp
     from reconstruct.physics.solvers import PHYSICS_SOLVER_CONFIG, solve
     from reconstruct.physics.zeta import zeta_from_maps
+    from reconstruct.stream.groups import span_part_edges
     from reconstruct.stream.motion_scenes import MotionSceneConfig, make_motion_stream
-    from reconstruct.stream.motion_span import compensated_span
+    from reconstruct.stream.motion_span import SPAN_PARTS, auto_span_shifts, compensate_part_sums, compensated_span, part_shifts_from_windows, span_part_sums
     from reconstruct.stream.window_inputs import WindowInputs, inputs_of
     from reconstruct.video.tiling import run_model_on_windows
 
     if calibrate not in ("still", "cell"):
         raise ConfigError(f"calibrate {calibrate!r}: choose still or cell")
+    if rir not in ("window", "chained"):
+        raise ConfigError(f"rir {rir!r}: choose window or chained")
     bad = [m for m in methods if m not in METHODS]
     if bad:
         raise ConfigError(f"unknown method(s) {', '.join(bad)}; choose from {', '.join(METHODS)}")
@@ -170,14 +180,16 @@ def run_cell(cell: dict, *, width: int = 96, height: int = 64, frames: int = 1, 
     st = make_motion_stream(cfg)
     span_rad = 2 * math.pi * rev * WINDOW / rate_hz
     maps, zsrc = _pane(st, cfg, calibrate, steps, rate_hz, rev)
+    chained = ChainedRir() if rir == "chained" else None
     nets = {m: MapsZetaNet(_net(weights, m != "net", m not in ("net", "net+rir"), "best" if m == "net+bestfloor" else "rwps"), maps, span_rad) for m in methods if m in NETS}
     acc: dict[str, dict[str, list]] = {m: {"T_psnr": [], "T_ssim": [], "R_psnr": [], "R_ssim": []} for m in methods}
+    moved: dict[str, list] = {}  # per span method, per frame: what moved the span's parts (rir, parts or plain)
     for f in range(frames):
         c = reach + int(round(f * stride))
         I, phi, I_wide, I_mean, I_harm, cents, (lo, hi) = _frame_inputs(st, c, rate_hz, rev)
         Tg, Rg = (x[0] for x in st.layers_at([c]))
         It, pt = torch.from_numpy(I).double(), torch.from_numpy(phi)
-        sh = estimate_shifts(It, pt)
+        sh = estimate_shifts(It, pt) if chained is None else chained.window_shifts(It, pt, np.arange(f, f + N_OBS))  # consecutive frames, one Eq. (3) frame apart
         Z = zeta_from_maps(maps, phi, span_rad, dtype=torch.float64)
         Iw, Zw = warp(It, sh), warp(Z, sh)
         out: dict[str, tuple] = {}
@@ -201,13 +213,21 @@ def run_cell(cell: dict, *, width: int = 96, height: int = 64, frames: int = 1, 
             a = physics_anchor(Zw, Iw, torch.from_numpy(I_mean).double(), zbar_of(Zw, pt.double()))
             out["anchor"] = (a.T.numpy(), a.R.numpy())
         mspan = None
+        parts = span_part_edges(hi - lo, SPAN_PARTS)
+        tc = np.asarray(cents, np.float64) - lo  # the windows' centres in the span's steps
         for m, model in nets.items():
             kw = {"I_mean": I_mean[None], "I_harm": I_harm[None], "I_wide": I_wide[None], "exposure": st.exposure, "span_steps": hi - lo}
             if m == "net+floor+mspan":
                 if mspan is None:
                     mspan = compensated_span(st.spikes[lo:hi], st.phi[lo:hi], st.exposure)
                 kw["I_mean"], kw["I_harm"] = mspan[0][None], mspan[1][None]
-            x = WindowInputs(I[None], phi[None].astype(np.float32), **kw).only(inputs_of(model))  # what this network reads of the span
+            if m in ("net+floor+rspan", "net+floor+aspan"):  # the span's parts moved by the windows' velocity (aspan: auto_span_shifts)
+                sums, _ = span_part_sums(st.spikes[lo:hi], st.phi[lo:hi])
+                psh, how = (part_shifts_from_windows(sh.numpy(), tc, parts), "rir") if m == "net+floor+rspan" else auto_span_shifts(sh.numpy(), tc, sums, parts, st.phi[lo:hi], float(st.exposure * I.mean() * WINDOW))
+                sp = compensate_part_sums(sums, parts, st.phi[lo:hi], st.exposure, shifts=psh)
+                kw["I_mean"], kw["I_harm"] = sp[0][None], sp[1][None]
+                moved.setdefault(m, []).append(how)
+            x = WindowInputs(I[None], phi[None].astype(np.float32), **kw, shifts=sh.numpy()[None] if model.accepts_shifts else None).only(inputs_of(model))
             o = run_model_on_windows(model, x, "cpu", 0)
             out[m] = (o["T"][0], o["R"][0])
         for m, (T, R) in out.items():
@@ -218,7 +238,8 @@ def run_cell(cell: dict, *, width: int = 96, height: int = 64, frames: int = 1, 
                 acc[m][f"{key}_psnr"].append(p)
                 acc[m][f"{key}_ssim"].append(s)
     scores = {m: {k: (float(np.mean(v)) if v else None) for k, v in d.items()} for m, d in acc.items()}
-    return {**cell, "zeta": zsrc, "scores": scores, "seconds": time.perf_counter() - t0, "exposure": st.exposure}
+    return {**cell, "zeta": zsrc, "scores": scores, "seconds": time.perf_counter() - t0, "exposure": st.exposure, "rir": rir,
+            "span_moved": {m: ",".join(v) for m, v in moved.items()}}
 
 
 def holds(row: dict) -> dict[str, Any]:

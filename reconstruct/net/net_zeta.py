@@ -90,6 +90,11 @@ class _ExternalZetaNet:
     def cacheable(self) -> bool:
         return bool(getattr(self.net, "cacheable", False))
 
+    @property
+    def accepts_shifts(self) -> bool:
+        """The network aligns its windows and takes their RIR ``shifts`` estimated once by the stream."""
+        return bool(getattr(self.net, "accepts_shifts", False))
+
     def encode_obs(self, I, scale):
         return self.net.encode_obs(I, scale)
 

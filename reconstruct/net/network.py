@@ -402,9 +402,15 @@ class PolSpikeNet(nn.Module):
             raise ConfigError("encode_obs needs a v2 network with RIR off")
         return self.param.encode_obs(I, scale)
 
-    def align(self, I: torch.Tensor, phi: torch.Tensor, zeta_gt: torch.Tensor | None, *more: torch.Tensor | None) -> tuple[torch.Tensor | None, ...]:
+    @property
+    def accepts_shifts(self) -> bool:
+        """The network aligns its windows (RIR on), so :meth:`forward` takes their ``shifts`` estimated once by the caller."""
+        return bool(self.cfg.use_rir)
+
+    def align(self, I: torch.Tensor, phi: torch.Tensor, zeta_gt: torch.Tensor | None, *more: torch.Tensor | None, shifts: torch.Tensor | None = None) -> tuple[torch.Tensor | None, ...]:
         """RIR per batch item (shift estimates are not differentiated; the warp is): (I, zeta_gt, *more) aligned, each
-        of ``more`` a (B, N, H, W) stack on the windows' centres (e.g. the wide windows) moved with the same shifts.
+        of ``more`` a (B, N, H, W) stack on the windows' centres (e.g. the wide windows) moved with the same shifts;
+        ``shifts`` (B, N, 2): the windows' shifts estimated by the caller, used instead of estimating them here.
         """
         from reconstruct.physics.rir import estimate_shifts, warp
 
@@ -412,7 +418,8 @@ class PolSpikeNet(nn.Module):
         outI, outM = [], [[] for _ in maps]
         for b in range(I.shape[0]):
             with torch.no_grad():
-                sh = estimate_shifts(I[b].detach().double().cpu(), phi[b].detach().double().cpu()).to(I.device, I.dtype)
+                est = estimate_shifts(I[b].detach().double().cpu(), phi[b].detach().double().cpu()) if shifts is None else torch.as_tensor(shifts[b])
+                sh = est.to(I.device, I.dtype)
             moved = bool((sh != 0).any())
             outI.append(warp(I[b], sh) if moved else I[b])
             for o, m in zip(outM, maps):
@@ -435,6 +442,7 @@ class PolSpikeNet(nn.Module):
         I_wide: torch.Tensor | None = None,
         exposure: float | torch.Tensor | None = None,
         span_steps: int | torch.Tensor | None = None,
+        shifts: torch.Tensor | None = None,
     ) -> NetOutput:
         """Reconstruct the centre frame of each window.
 
@@ -468,11 +476,12 @@ class PolSpikeNet(nn.Module):
             exposure, span_steps: the stream's exposure (spikes per step per unit radiance) and the number of steps of
                 I_mean's span, numbers or (B,) tensors; required by a ``span_level`` network (the span's noise and
                 saturation).
+            shifts: optional (B, N, 2) RIR shifts of the windows estimated once by the caller (the stream); with RIR on they replace :meth:`align`'s estimate.
 
         Returns:
             :class:`NetOutput`.
         """
-        WindowInputs(I, phi, I_mean, I_harm, I_wide, exposure, span_steps).check(self.cfg)  # what this configuration reads, of the windows' shapes
+        WindowInputs(I, phi, I_mean, I_harm, I_wide, exposure, span_steps, shifts).check(self.cfg)  # what this configuration reads, of the windows' shapes
         H, W = I.shape[-2:]
         m = self.pad_multiple
         if H % m or W % m:
@@ -482,7 +491,7 @@ class PolSpikeNet(nn.Module):
         if alpha > 0 and zeta_gt is None:
             raise ShapeError("teacher forcing alpha > 0 needs zeta_gt", actual_shape=None, expected_shape="(B, N, H, W)")
         if self.cfg.use_rir:
-            I, zeta_gt, zeta_feed, I_wide = self.align(I, phi, zeta_gt, zeta_feed, I_wide)
+            I, zeta_gt, zeta_feed, I_wide = self.align(I, phi, zeta_gt, zeta_feed, I_wide, shifts=shifts)
         if self.cfg.arch == "v1":
             if scale is not None:
                 raise ConfigError("scale is a v2 option (v1 normalises each window by its own mean)")
@@ -600,8 +609,7 @@ def count_parameters(model: nn.Module) -> int:
 def init_weights(model: nn.Module, generator: torch.Generator) -> nn.Module:
     """Re-initialise every conv/linear layer from ``generator`` (no global RNG).
 
-    Kaiming-uniform weights (LeakyReLU 0.1 gain), zero biases; the last layers
-    of the decoders start at zero so the untrained network returns the solver output.
+    Kaiming-uniform weights (LeakyReLU 0.1 gain), zero biases; the last layers of the decoders start at zero so the untrained network returns the solver output.
     """
     with torch.no_grad():
         for name, m in model.named_modules():
@@ -616,13 +624,11 @@ def init_weights(model: nn.Module, generator: torch.Generator) -> nn.Module:
     return model
 
 
-
 @torch.no_grad()
 def predict_parameters(model: PolSpikeNet, I: torch.Tensor, phi: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """Learned zeta_hat and reliability weights w, each (B, N, H, W), for the evaluation harness.
 
-    ``I`` (B, N, H, W) radiance units (already RIR-aligned by the caller), ``phi`` (B, N).
-    Use as the ``learned`` zeta source and as ``weights_fn`` of RWPS.
+    ``I`` (B, N, H, W) radiance units (already RIR-aligned by the caller), ``phi`` (B, N).  Use as the ``learned`` zeta source and as ``weights_fn`` of RWPS.
     """
     zeta, w, _ = model.param(I.to(next(model.parameters()).dtype), phi)
     return zeta, w

@@ -11,6 +11,10 @@ configuration names the inputs it reads (``cfg.inputs``, e.g. :attr:`reconstruct
 Arrays are numpy arrays or torch tensors alike (only ``shape`` is read here).  Shapes, batched:
 ``I`` (B, N, H, W), ``phi`` (B, N), ``I_mean`` (B, H, W), ``I_harm`` (B, 2, H, W), ``I_wide`` (B, N, H, W);
 ``exposure`` and ``span_steps`` numbers or (B,) arrays.  Units: radiance (paper Eq. (1)), radians, steps.
+
+``shifts`` (B, N, 2), optional, is not an input a configuration names: the windows' RIR shifts (dy, dx in pixels,
+:func:`reconstruct.physics.rir.estimate_shifts` convention), estimated once by whoever builds the windows (the
+stream) and used by a model that aligns its windows (``accepts_shifts``) instead of estimating them again.
 """
 
 from __future__ import annotations
@@ -76,6 +80,8 @@ class WindowInputs:
     """spikes per step per unit radiance, a number or (B,) (``span_level``)."""
     span_steps: Any = None
     """steps of I_mean's span, a number or (B,) (``span_level``)."""
+    shifts: Any = None
+    """(B, N, 2) RIR shifts (dy, dx) registering each window onto its centre frame, estimated once (module docstring)."""
 
     @property
     def given(self) -> frozenset[str]:
@@ -91,8 +97,8 @@ class WindowInputs:
         return dataclasses.replace(self, **{k: None for k in EXTRA_INPUTS if k not in names})
 
     def map_arrays(self, fn: Callable[[Any], Any], fn_scalar: Callable[[Any], Any] | None = None) -> WindowInputs:
-        """``fn`` applied to ``I``, ``phi`` and the maps given; ``fn_scalar`` (default: unchanged) to exposure and span_steps."""
-        kw = {k: fn(getattr(self, k)) for k in ("I", "phi", *MAP_INPUTS) if getattr(self, k) is not None}
+        """``fn`` applied to ``I``, ``phi``, the maps and the shifts given; ``fn_scalar`` (default: unchanged) to exposure and span_steps."""
+        kw = {k: fn(getattr(self, k)) for k in ("I", "phi", *MAP_INPUTS, "shifts") if getattr(self, k) is not None}
         if fn_scalar is not None:
             kw.update({k: fn_scalar(getattr(self, k)) for k in ("exposure", "span_steps") if getattr(self, k) is not None})
         return dataclasses.replace(self, **kw)
@@ -111,7 +117,7 @@ class WindowInputs:
         same inputs), with the stream's ``exposure`` and ``span_steps``.
         """
         first = windows[0]
-        kw = {k: np.stack([getattr(w, k) for w in windows]) for k in ("I", "phi", *MAP_INPUTS) if getattr(first, k) is not None}
+        kw = {k: np.stack([getattr(w, k) for w in windows]) for k in ("I", "phi", *MAP_INPUTS, "shifts") if getattr(first, k) is not None}
         return cls(**kw, exposure=exposure, span_steps=span_steps)
 
     def check(self, cfg: ReadsInputs) -> WindowInputs:
@@ -131,7 +137,7 @@ class WindowInputs:
         if len(si) != 4 or si[1] != cfg.n_obs:
             raise ShapeError(f"I must be (B, {cfg.n_obs}, H, W); got {si}", actual_shape=si, expected_shape=f"(B, {cfg.n_obs}, H, W)")
         B, N, H, W = si
-        want = {"phi": (B, N), "I_mean": (B, H, W), "I_harm": (B, 2, H, W), "I_wide": si}
+        want = {"phi": (B, N), "I_mean": (B, H, W), "I_harm": (B, 2, H, W), "I_wide": si, "shifts": (B, N, 2)}
         for k, shape in want.items():
             v = getattr(self, k)
             if v is not None and _shape(v) != shape:

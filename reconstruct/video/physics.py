@@ -108,7 +108,12 @@ class PhysicsModel:
     def eval(self) -> PhysicsModel:
         return self
 
-    def __call__(self, I: torch.Tensor, phi: torch.Tensor, I_mean: torch.Tensor | None = None) -> PhysicsOutput:
+    @property
+    def accepts_shifts(self) -> bool:
+        """RIR on: the windows' ``shifts`` (B, N, 2) estimated once by the stream replace the model's own estimate."""
+        return self.rir
+
+    def __call__(self, I: torch.Tensor, phi: torch.Tensor, I_mean: torch.Tensor | None = None, shifts: torch.Tensor | None = None) -> PhysicsOutput:
         I = I.float()
         phi = phi.float()
         B, N, H, W = I.shape
@@ -122,7 +127,7 @@ class PhysicsModel:
         if self.rir and N > 1:
             from reconstruct.physics.rir import estimate_shifts, warp
 
-            sh = torch.stack([estimate_shifts(I[b], phi[b]) for b in range(B)]).to(I.dtype)
+            sh = (torch.stack([estimate_shifts(I[b], phi[b]) for b in range(B)]) if shifts is None else torch.as_tensor(shifts)).to(I.dtype)
             I = warp(I, sh)
             Z = None if Z is None else warp(Z, sh)
         w = None

@@ -41,13 +41,13 @@ import torch
 from polinfra.atomic import atomic_path, ensure_dir, write_json
 from polinfra.config import opt
 from polinfra.errors import ConfigError
-from reconstruct.physics.rir import estimate_shifts
+from reconstruct.physics.rir import ChainedRir
 from reconstruct.stream.display import DisplayHistogram, _to8, display_gain
 from reconstruct.stream.groups import SpikeMeanSums, spike_mean_steps, wide_window_steps, window_means
-from reconstruct.stream.motion_span import SPAN_PARTS, compensate_part_sums, part_shifts_from_windows
+from reconstruct.stream.motion_span import SPAN_PARTS, auto_span_shifts, compensate_part_sums, part_shifts_from_windows
 from reconstruct.stream.sources import SpikeSource
 from reconstruct.stream.window_inputs import WindowInputs, inputs_of
-from reconstruct.video.tiling import FeatureCache, auto_tile, run_model_on_windows
+from reconstruct.video.tiling import FeatureCache, auto_tile, run_model_on_windows, window_shifts
 
 __all__ = ["ReconstructConfig", "reconstruct_stream", "cpu_threads"]
 
@@ -73,7 +73,9 @@ class ReconstructConfig:
     precision: str = opt("float32", "float32 | bfloat16 (autocast; the solver stays float32)", choices=("float32", "bfloat16"))
     threads: int = opt(0, "torch threads on the CPU (0 = torch's setting as it is; cpu_threads() gives the idle cores)", lo=0, hi=4096)
     cache: bool = opt(True, "reuse per-observation features across overlapping windows (v2 networks, RIR off, whole frames)")
-    span: str = opt("plain", "the long span a network reads: plain (every spike of its 17.5 ms summed) | compensated (cut into 7 parts registered onto the centre part before they are summed, reconstruct.stream.motion_span: a panning camera no longer smears it) | rir (the same parts moved by the 7 windows' RIR shifts interpolated in time: no registration of its own)", choices=("plain", "compensated", "rir"))
+    span: str = opt("plain", "the long span a network reads: plain (every spike of its 17.5 ms summed) | compensated (cut into 7 parts registered onto the centre part before they are summed, reconstruct.stream.motion_span: a panning camera no longer smears it) | rir (the same parts moved by the 7 windows' RIR shifts interpolated in time: no registration of its own) | auto (per window, reconstruct.stream.motion_span.auto_span_shifts: rir where the windows register and their velocity smears the span by span_auto_px or more, plain where they register and it smears less, the parts' own registration where the windows do not register and it shows a smear)", choices=("plain", "compensated", "rir", "auto"))
+    span_auto_px: float = opt(1.0, "span auto: the plain span's smear in pixels (the windows' fitted speed times the span's steps) from which the rir span is used", lo=0.0, hi=1e6)
+    rir: str = opt("window", "how the windows' RIR shifts are estimated, once per window for the model and the span: window (reconstruct.physics.rir.estimate_shifts on each window: 6 masked phase correlations and a Gauss-Newton refinement, what the network does itself) | chained (reconstruct.physics.rir.ChainedRir: each frame registered once onto the previous one, the window's shifts their running sums)", choices=("window", "chained"))
 
 
 
@@ -249,7 +251,7 @@ def _reconstruct_stream(source: SpikeSource, model, out_dir, cfg: ReconstructCon
         )
     exposure = source.exposure if source.exposure is not None else cfg.exposure
     fps = output_fps(source.polarizer_rev_s, cfg.stride_deg) if source.polarizer_rev_s > 0 else 1.0
-    t0 = time.perf_counter()
+    t0, p0 = time.perf_counter(), time.process_time()
     frames_I: deque[np.ndarray] = deque(maxlen=N)
     need = inputs_of(model)
     wide = "I_wide" in need
@@ -267,7 +269,15 @@ def _reconstruct_stream(source: SpikeSource, model, out_dir, cfg: ReconstructCon
     mean_steps = spike_mean_steps(source.rate_hz) if "I_mean" in need else 0
     use_harm = "I_harm" in need
     span_kw = {"exposure": exposure if "exposure" in need else None, "span_steps": mean_steps if "span_steps" in need else None}
-    comp = cfg.span in ("compensated", "rir") and mean_steps > 0
+    comp = cfg.span in ("compensated", "rir", "auto") and mean_steps > 0
+    # the windows' RIR shifts, estimated once per window for the model (which would otherwise estimate them itself) and the span
+    aligns = bool(getattr(model, "accepts_shifts", False))
+    if cfg.rir == "chained" and not aligns and getattr(model.cfg, "use_rir", False):
+        raise ConfigError("--rir chained: this model estimates its own shifts (a symmetry ensemble does, per mirrored window); use --rir window")
+    want_shifts = aligns or (comp and cfg.span in ("rir", "auto"))
+    chained = ChainedRir() if cfg.rir == "chained" else None
+    cpu = {"rir": 0.0, "span": 0.0, "model": 0.0}  # process CPU seconds per stage
+    n_auto = {"plain": 0, "rir": 0, "parts": 0}
     prefix = SpikeMeanSums(centres, mean_steps, source.phi_step_rad.size, (source.height, source.width), source.phi_step_rad if (use_harm or comp) else None,
                            n_sub=SPAN_PARTS if comp else 1) if mean_steps else None
     tile = auto_tile(model, device) if cfg.tile < 0 else cfg.tile
@@ -279,10 +289,12 @@ def _reconstruct_stream(source: SpikeSource, model, out_dir, cfg: ReconstructCon
             return
         x = WindowInputs.batch([p.window for p in pending], **span_kw)
         I = x.I
+        c0 = time.process_time()
         if cache is not None:
             res = cache.run(x, np.stack([p.frames for p in pending]))
         else:
             res = run_model_on_windows(model, x, device, tile, precision=cfg.precision)
+        cpu["model"] += time.process_time() - c0
         for b in range(I.shape[0]):
             T, R = res["T"][b], res["R"][b]
             if not (np.isfinite(T).all() and np.isfinite(R).all()):
@@ -313,19 +325,30 @@ def _reconstruct_stream(source: SpikeSource, model, out_dir, cfg: ReconstructCon
                 next_c += 1
                 if len(frames_I) == N:
                     j = next_c - 1 - K
+                    Iw, pw, idx = np.stack(frames_I), phi_i[next_c - N : next_c], np.arange(next_c - N, next_c)
+                    wsh = None
+                    if want_shifts:
+                        c0 = time.process_time()
+                        wsh = window_shifts(model, Iw, pw) if chained is None else chained.window_shifts(torch.from_numpy(Iw), torch.from_numpy(np.asarray(pw, np.float64)), idx).numpy()
+                        cpu["rir"] += time.process_time() - c0
                     if comp:  # the span's parts registered onto its centre part, then summed
+                        c0 = time.process_time()
                         sums, parts = prefix.part_sums(j)
                         sh = None
                         if cfg.span == "rir":  # the windows' own registration, interpolated to the parts' times
-                            wsh = estimate_shifts(torch.from_numpy(np.stack(frames_I)).double(), torch.from_numpy(np.asarray(phi_i[next_c - N : next_c], np.float64))).numpy()
                             sh = part_shifts_from_windows(wsh, centres[next_c - N : next_c], parts)
+                        elif cfg.span == "auto":  # the windows' velocity, the parts' own where the windows do not register, or plain
+                            spw = float(exposure * Iw.mean() * cfg.window_steps)  # spikes per pixel per window
+                            sh, how = auto_span_shifts(wsh, centres[next_c - N : next_c], sums, parts, source.phi_step_rad, spw, cfg.span_auto_px)
+                            n_auto[how] += 1
                         mj, hj, _ = compensate_part_sums(sums, parts, source.phi_step_rad, exposure, use_harm, shifts=sh)
                         prefix.release(j)
+                        cpu["span"] += time.process_time() - c0
                     else:
                         hj = prefix.harmonic(j, exposure) if use_harm else None  # before mean(j), which frees older sums
                         mj = prefix.mean(j, exposure) if prefix is not None else None
-                    window = WindowInputs(np.stack(frames_I), phi_i[next_c - N : next_c], mj, hj, np.stack(frames_W) if wide else None)
-                    pending.append(_Pending(window, np.arange(next_c - N, next_c)))
+                    window = WindowInputs(Iw, pw, mj, hj, np.stack(frames_W) if wide else None, shifts=wsh if aligns else None)
+                    pending.append(_Pending(window, idx))
                     if len(pending) >= cfg.batch:
                         flush(writers)
             if done + len(pending) >= n_out:
@@ -354,6 +377,9 @@ def _reconstruct_stream(source: SpikeSource, model, out_dir, cfg: ReconstructCon
         "tile": tile,
         "precision": cfg.precision,
         "feature_cache": None if cache is None else {"encoded_frames": cache.encoded, "reused": cache.reused},
+        "rir_shifts": (cfg.rir if want_shifts else None),
+        "span_auto": n_auto if cfg.span == "auto" else None,
+        "cpu_s_per_frame": {**{k: v / done for k, v in cpu.items()}, "total": (time.process_time() - p0) / done} if done else None,
         **(meta or {}),
     }
     write_json(out / "reconstruct.json", summary)

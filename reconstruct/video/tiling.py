@@ -75,7 +75,8 @@ def run_model_on_windows(model, x: WindowInputs, device: str | torch.device = "c
     overlap whose border is discarded (bounded memory; the network is fully convolutional, the
     per-pixel solver is exact per tile); all tiles of all windows go through the model as one
     batch (at most ``max_batch`` tiles or windows per call: bounded memory, ~0.2 GB per v1 activation).  ``tile <= 0``: whole frames.  RIR, when
-    enabled, aligns each tile separately.  ``precision``: "float32" or "bfloat16" (autocast).
+    enabled, aligns each tile separately, unless ``x.shifts`` gives the windows' shifts (:func:`window_shifts`): a model
+    that ``accepts_shifts`` then gets them, every tile of a frame the frame's.  ``precision``: "float32" or "bfloat16" (autocast).
     ``zeta``: optional (B, N, H, W) mixing coefficients used instead of the network's own
     (``--zeta self``: the pane fitted to the stream); the network's solver and refinement then run
     on them (``model(I, phi, zeta_gt=zeta, alpha=1)``; its reliability weights stay learned).
@@ -90,18 +91,21 @@ def run_model_on_windows(model, x: WindowInputs, device: str | torch.device = "c
     maps = {"I": x.I, "zeta": None if zeta is None else _float32(dev)(zeta), "I_mean": None if x.I_mean is None else x.I_mean[:, None], "I_harm": x.I_harm, "I_wide": x.I_wide}
     maps = {k: v for k, v in maps.items() if v is not None}
     scalars = {k: v for k, v in x.extras().items() if k not in MAP_INPUTS}
+    shifts = x.shifts if (x.shifts is not None and getattr(model, "accepts_shifts", False)) else None
 
-    def call(m: dict[str, torch.Tensor], p: torch.Tensor, i: int, **kw):
+    def call(m: dict[str, torch.Tensor], p: torch.Tensor, i: int, sh: torch.Tensor | None = None, **kw):
         s = slice(i, i + max_batch)
         if "zeta" in m:
             kw.update(zeta_gt=m["zeta"][s], alpha=1.0)
+        if sh is not None:
+            kw["shifts"] = sh[s]
         kw.update({k: m[k][s, 0] if k == "I_mean" else m[k][s] for k in MAP_INPUTS if k in m})
         return model(m["I"][s], p[s], **kw, **scalars)
 
     with torch.inference_mode(), _autocast(dev, precision):
         if tile <= 0 or (H <= tile and W <= tile):
             padded = {k: _pad4(v, mult)[0] for k, v in maps.items()}
-            outs = [call(padded, x.phi, i) for i in range(0, B, max_batch)]
+            outs = [call(padded, x.phi, i, shifts) for i in range(0, B, max_batch)]
             return {k: torch.cat([getattr(o, k) for o in outs])[..., :H, :W].float().cpu().numpy() for k in _KEYS}
         net = _net_cfg(model)
         margin = max(margin, net.reach_px if net is not None else 0)  # a network that blurs its output needs that blur's radius inside the margin
@@ -118,13 +122,14 @@ def run_model_on_windows(model, x: WindowInputs, device: str | torch.device = "c
 
         tiles = {k: cut(v) for k, v in maps.items()}
         pt = x.phi.repeat_interleave(len(pos), 0)
+        st = None if shifts is None else shifts.repeat_interleave(len(pos), 0)  # tiles of a frame share its shifts
         # a v2 network normalises brightness by the window's scale: give every tile the whole frame's
         sc = None
         if net is not None and net.arch == "v2":
             sc = window_scale(_pad4(x.I, mult)[0]).reshape(B).repeat_interleave(len(pos), 0)
         res = {k: [] for k in _KEYS}
         for i in range(0, tiles["I"].shape[0], max_batch):
-            o = call(tiles, pt, i, **({} if sc is None else {"scale": sc[i : i + max_batch]}))
+            o = call(tiles, pt, i, st, **({} if sc is None else {"scale": sc[i : i + max_batch]}))
             for k in _KEYS:
                 res[k].append(getattr(o, k)[:, margin : margin + tile, margin : margin + tile].float())
         out = {}
@@ -132,6 +137,18 @@ def run_model_on_windows(model, x: WindowInputs, device: str | torch.device = "c
             t = torch.cat(res[k]).reshape(B, ny, nx, tile, tile).permute(0, 1, 3, 2, 4).reshape(B, ny * tile, nx * tile)
             out[k] = t[:, :H, :W].cpu().numpy()
         return out
+
+
+def window_shifts(model, I: np.ndarray, phi: np.ndarray) -> np.ndarray:
+    """RIR shifts (N, 2) float64 of one window ``I`` (N, H, W), ``phi`` (N,), estimated as ``model`` would estimate them
+    itself (:func:`reconstruct.physics.rir.estimate_shifts` on the float32 frames replicate-padded to its
+    ``pad_multiple``, as :func:`run_model_on_windows` pads them), so passing them (``WindowInputs.shifts``) changes
+    nothing but the time.
+    """
+    from reconstruct.physics.rir import estimate_shifts
+
+    It, _ = _pad4(torch.as_tensor(np.asarray(I), dtype=torch.float32)[None], _multiple(model))
+    return estimate_shifts(It[0].double(), torch.as_tensor(np.asarray(phi), dtype=torch.float32).double()).numpy()
 
 
 class FeatureCache:

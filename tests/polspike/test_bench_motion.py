@@ -42,7 +42,8 @@ def test_bench_motion_tiny(tmp_path):
 
 
 @pytest.mark.parametrize("args, fragment", [(["--motions", "fly"], "--motions"), (["--speeds", "fast"], "--speeds"), (["--methods", "magic"], "--methods"),
-                                            (["--width", "30"], "--width"), (["--calibrate", "never"], "--calibrate")])
+                                            (["--width", "30"], "--width"), (["--calibrate", "never"], "--calibrate"),
+                                            (["--rir", "phase"], "--rir")])
 def test_bench_motion_bad_input_exit_2_one_line(tmp_path, args, fragment):
     r = run("bench", "motion", "--out", str(tmp_path / "m"), *args)
     assert r.returncode == 2

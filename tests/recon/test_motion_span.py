@@ -138,3 +138,34 @@ def test_part_shifts_from_the_windows_rir_match_the_registered_parts():
     m_rir, _, used = compensate_part_sums(sums, parts, phi, 2.0, shifts=sh)
     m_reg, _, _ = compensated_span(spikes[lo:hi], phi[lo:hi], 2.0)
     assert np.abs(used).max() > 1.0 and _edge_width(m_rir) < 1.2 * _edge_width(m_reg) + 0.2
+
+
+def test_auto_span_takes_the_windows_velocity_the_parts_own_or_the_plain_span():
+    """``--span auto``: windows that follow one velocity move the parts by it (``rir``); noise-limited windows (below
+    one spike per pixel) whose shifts scatter, or fail to zero, leave it to the parts' own registration, which on a
+    400 px/s pan gives the closed form's shifts within 0.3 px (``parts``) and on a still scene leaves the span plain;
+    windows with spikes enough that find no motion keep it plain.
+    """
+    from reconstruct.stream.motion_span import auto_span_shifts, span_part_sums
+
+    L = 351
+    wc = L // 2 + 57 * np.arange(-3, 4)
+    scattered = np.array([[1.92, 1.05], [2.3, 1.59], [-0.11, -0.17], [0, 0], [-0.05, -0.35], [1.88, -0.7], [2.08, 1.83]])
+    for v in (400.0, 0.0):
+        spikes, phi, _ = _pan(v, L=L)
+        sums, parts = span_part_sums(spikes, phi)
+        mids = np.array([0.5 * (a + b - 1) for a, b in parts]) - L // 2
+        truth = np.stack([np.zeros(7), -v * mids / RATE], 1)  # the part at step t moved back by v t
+        for ws in (scattered, np.zeros((7, 2))):
+            sh, how = auto_span_shifts(ws, wc, sums, parts, phi, spikes_per_window=0.3)
+            if v:
+                assert how == "parts"
+                np.testing.assert_allclose(sh, truth, atol=0.3)
+            else:
+                assert how == "plain" and not sh.any()
+            sh, how = auto_span_shifts(ws, wc, sums, parts, phi, spikes_per_window=3.0)
+            assert how == "plain" and not sh.any()
+        lin = np.stack([np.zeros(7), -v * (wc - L // 2) / RATE], 1)  # windows that register, at the same pan
+        sh, how = auto_span_shifts(lin, wc, sums, parts, phi, spikes_per_window=3.0)
+        assert how == ("rir" if v else "plain")
+        np.testing.assert_allclose(sh, truth, atol=1e-6)

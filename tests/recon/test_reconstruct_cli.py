@@ -147,11 +147,14 @@ def test_cli_group_store_end_to_end(tmp_path):
     err_b = [np.abs(read_exr(tmp_path / "b" / "frames" / f"{i:06d}.exr", ["T"])["T"] - T).mean() for i in range(sb["frames"])]
     assert "learned" in s["zeta"] and err_b == err
     # the motion-compensated spans on a still scene: recorded, T as near the layer
-    for span in ("compensated", "rir"):
-        r = CliRunner().invoke(get_app(), ["reconstruct", str(tmp_path / "g"), "--out", str(tmp_path / span), "--frames", "exr", "--quiet", "--span", span])
+    # (and the windows' RIR shifts, estimated once per window, by either estimator: recorded)
+    for span, est in (("compensated", "window"), ("rir", "window"), ("plain", "chained")):
+        r = CliRunner().invoke(get_app(), ["reconstruct", str(tmp_path / "g"), "--out", str(tmp_path / span), "--frames", "exr", "--quiet", "--span", span, "--rir", est])
         assert r.exit_code == 0, r.output
         sc = json.loads((tmp_path / span / "reconstruct.json").read_text())
-        assert sc["span"] == span and s["span"] == "plain" and sc["frames"] == s["frames"]
+        assert sc["span"] == span and s["span"] == "auto" and sc["frames"] == s["frames"]
+        assert sc["rir_shifts"] == est and s["rir_shifts"] == "window"
+        assert sc["span_auto"] is None and sum(s["span_auto"].values()) == s["frames"]  # auto, the default: its choice per window counted
         assert max(np.abs(read_exr(tmp_path / span / "frames" / f"{i:06d}.exr", ["T"])["T"] - T).mean() for i in range(sc["frames"])) < 0.1
 
 
@@ -228,7 +231,9 @@ def test_cli_zeta_fallback_and_zeta_none_errors(tmp_path, polspike_cli, polspike
     r = polspike_cli("reconstruct", f, *geo, "--floor-anchor", "mean", "--out", tmp_path / "o")
     polspike_cli.one_line_exit_2(r, "--floor-anchor", "rwps", "best")
     r = polspike_cli("reconstruct", f, *geo, "--span", "moving", "--out", tmp_path / "o")
-    polspike_cli.one_line_exit_2(r, "--span", "plain", "compensated", "rir")
+    polspike_cli.one_line_exit_2(r, "--span", "plain", "compensated", "rir", "auto")
+    r = polspike_cli("reconstruct", f, *geo, "--rir", "phase", "--out", tmp_path / "o")
+    polspike_cli.one_line_exit_2(r, "--rir", "window", "chained")
     assert not (tmp_path / "o").exists()
     r = polspike_main("evaluate", tmp_path, "--method", "full", "--net-fallback", "zero", "--out", tmp_path / "e")
     polspike_main.one_line_exit_2(r, "net_fallback")
