@@ -581,17 +581,12 @@ class PolSpikeNet(nn.Module):
         by 0.8-1.2 on a 0.3-0.7 layer), and the regularised RWPS is the safer fallback there.
         """
         from reconstruct.physics.anchor import AnchorFloorConfig, anchored_floor
-        from reconstruct.physics.consistency import FloorConfig, box_mean, consistency_floor, count_quantum_variance
+        from reconstruct.physics.consistency import FloorConfig, consistency_floor, spike_noise_bounds
         from reconstruct.physics.solvers import PHYSICS_SOLVER_CONFIG
 
         z = zeta.detach().float()
         Iw = I.detach().float()
-        mv = qf = None
-        if exposure is not None:
-            e = torch.as_tensor(exposure, dtype=torch.float32, device=Iw.device).reshape(-1, 1, 1) if torch.is_tensor(exposure) else float(exposure)
-            mv = 4.0 * Iw.mean(1).clamp_min(0.0) / (e * 13.0) + 1e-12
-            lev = Iw.mean(1) if I_mean is None else torch.maximum(Iw.mean(1), I_mean.detach().float())  # the span's mean sees light the windows' zeros do not
-            qf = box_mean(count_quantum_variance(lev.clamp_min(0.0), e, 13), 5)
+        mv, qf = spike_noise_bounds(Iw, exposure, None if I_mean is None else I_mean.detach().float())
         ph = solve("rwps", z, Iw, None, PHYSICS_SOLVER_CONFIG)
         if self.cfg.floor_anchor == "best" and external:
             g = anchored_floor(T.float(), R.float(), z, Iw, None if I_mean is None else I_mean.detach().float(), None if I_mean is None else zbar_of(z, phi.float()),

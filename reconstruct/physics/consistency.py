@@ -55,7 +55,7 @@ import torch
 from polinfra.config import opt
 from polinfra.errors import ShapeError
 
-__all__ = ["FloorConfig", "FloorResult", "observation_residual", "observation_noise", "count_quantum_variance", "consistency_floor", "box_mean"]
+__all__ = ["FloorConfig", "FloorResult", "observation_residual", "observation_noise", "count_quantum_variance", "spike_noise_bounds", "consistency_floor", "box_mean"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -114,6 +114,23 @@ def count_quantum_variance(level, exposure, steps: int):
     m = level * float(steps) * exposure
     m = m.clamp(0.0, 1.0) if hasattr(m, "clamp") else min(max(float(m), 0.0), 1.0)
     return q * q * m * (1.0 - m)
+
+
+def spike_noise_bounds(I: torch.Tensor, exposure, I_mean: torch.Tensor | None = None, steps: int = 13, pool: int = 5):
+    """The spike model's bounds on sigma^2 of b = 2 I for windows ``I`` (B, N, H, W) of ``steps`` steps at ``exposure``
+    (None: unknown -> (None, None)): the Poisson variance 4 I / (exposure steps) of the windows' mean light (a cap,
+    ``combine = "min"``) and the noise of counts under one spike (:func:`count_quantum_variance`, box-averaged over
+    ``pool``) at the brighter of the windows' mean and the long span's ``I_mean`` (B, H, W), which sees light the
+    windows' zeros do not (a lower bound, ``noise_floor``).
+    """
+    if exposure is None:
+        return None, None
+    e = torch.as_tensor(exposure, dtype=I.dtype, device=I.device).reshape(-1, 1, 1) if torch.is_tensor(exposure) else float(exposure)
+    level = I.mean(1).clamp_min(0.0)
+    cap = 4.0 * level / (e * float(steps)) + 1e-12
+    if I_mean is not None:
+        level = torch.maximum(level, I_mean.to(I.dtype).clamp_min(0.0))
+    return cap, box_mean(count_quantum_variance(level, e, steps), pool)
 
 
 def observation_noise(zeta: torch.Tensor, I: torch.Tensor, pool: int = 5) -> torch.Tensor:
