@@ -37,6 +37,7 @@ def test_bench_motion_tiny(tmp_path):
         sc = row["scores"]
         margin = sc["net+floor"]["T_psnr"] - max(sc["rwps"]["T_psnr"], sc["mean17"]["T_psnr"])
         assert row["margin_db"] == pytest.approx(margin) and row["holds"] == (margin >= 0)
+        assert row["judged"] == "net+floor" and row["margin_core_db"] == pytest.approx(margin) and row["holds_core"] == (margin >= 0)
     assert "net+floor" in (out / "motion.md").read_text()
     assert (out / "motion.png").stat().st_size > 1000
 
