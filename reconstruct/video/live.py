@@ -15,6 +15,9 @@ linear T and R equal to float32 rounding, tested), by a path that keeps up with 
   (:class:`reconstruct.physics.rir.ChainedRir`: each frame registered once onto the one before; the shifts
   differ from :func:`reconstruct.physics.rir.estimate_shifts`'s, the quality change is measured in
   docs/realtime.md); torch on one thread;
+* the fused ``rwps`` as two stages (``pipeline``): the solve and write of a window on a solve thread while the
+  stream's thread reads, aggregates and registers the next frame (made beside the ring, copied in once the solve
+  before is done: the same numbers as one thread);
 * display gains from the running histogram of the first ``gain_frames`` frames (the whole video when it is
   shorter; a longer one keeps those gains: the display can be shown live), 8-bit conversion by a table and
   encoding on a background thread (H.264 by default, ``video_codec``; the 8-bit images by one numba pass,
