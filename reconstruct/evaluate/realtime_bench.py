@@ -56,12 +56,14 @@ LIVE_VARIANTS = {
     "threads2": {"threads": 2},
     "gray-video": {"video_codec": "h264-gray"},
     "y4m": {"video_codec": "y4m"},
+    "serial": {"pipeline": False},
 }
 """Live-path settings the bench can run beside the defaults: ``torch`` = the torch solvers, the torch RIR fit and the
 CRF-10 videos with the preview (the live path before its fused kernels), ``high-video`` = CRF-10 videos with the
 preview, ``preview`` = the defaults plus preview.mp4 (the three videos of the path before), ``coarse-rir`` = the RIR
 fit stopping at 2 x 2 blocks, ``threads2`` = the fused RWPS passes on two numba threads, ``gray-video`` = 4:0:0 H.264
-videos, ``y4m`` = raw 8-bit .y4m videos (no encoder process)."""
+videos, ``y4m`` = raw 8-bit .y4m videos (no encoder process), ``serial`` = the fused rwps stages one after the other on
+the stream's thread (no solve thread; rwps only)."""
 
 
 def _run(path: str, dat: Path, cfg, model, out: Path, video: bool) -> dict[str, Any]:
@@ -80,7 +82,7 @@ def _run(path: str, dat: Path, cfg, model, out: Path, video: bool) -> dict[str, 
     else:
         src = dat_source(dat, cfg.height, cfg.width, cfg.phi0_rad, cfg.rev_per_s, cfg.rate_hz)
         s = reconstruct_stream(src, model, out, ReconstructConfig(video=video, exposure=cfg.exposure))
-    return {"frames": s["frames"], "wall_s": time.perf_counter() - w0, "cpu_s": _cpu() - c0, "stages": None if times is None else {"wall": times.wall, "cpu": times.cpu}}
+    return {"frames": s["frames"], "pipeline": s.get("pipeline"), "wall_s": time.perf_counter() - w0, "cpu_s": _cpu() - c0, "stages": None if times is None else {"wall": times.wall, "cpu": times.cpu}}
 
 
 def _marginal(short: dict, long: dict) -> dict[str, float]:
@@ -174,12 +176,13 @@ def bench_realtime(width: int = 400, height: int = 250, short_s: float = 0.25, l
     from reconstruct.physics.zeta import PaneMaps
     from reconstruct.stream.packed import PackedDat, packed_source
     from reconstruct.stream.pane_stream import PaneStreamConfig, write_pane_dat
+    from reconstruct.video.live import LiveConfig
 
     # a pan of 20 px/s for RIR to follow (0.06 px per output frame); static where no method registers
     cfg = PaneStreamConfig(width=width, height=height, exposure=2.0, motion_px_s=(0.0, 20.0) if any(m.endswith("+rir") for m in methods) else (0.0, 0.0))
     res: dict[str, Any] = {"config": {"width": width, "height": height, "short_s": short_s, "long_s": long_s, "camera_fps": CAMERA_FPS, "video": video,
                                       "stream": dataclasses.asdict(cfg), "cpu_count": os.cpu_count(), "load_avg_start": os.getloadavg(),
-                                      "variants": {v: LIVE_VARIANTS[v] for v in variants}}, "methods": {}}
+                                      "variants": {v: LIVE_VARIANTS[v] for v in variants}, "pipeline_default": LiveConfig().pipeline}, "methods": {}}
     tick = (lambda s: progress(s)) if progress else (lambda s: None)
     with tempfile.TemporaryDirectory(dir=workdir) as d:
         d = Path(d)
@@ -200,7 +203,7 @@ def bench_realtime(width: int = 400, height: int = 250, short_s: float = 0.25, l
         for m in methods:
             method, rir = m.split("+")[0], m.endswith("+rir")
             row: dict[str, Any] = {}
-            paths = ("live", *(f"live:{v}" for v in variants if not (v == "coarse-rir" and not rir) and not (v == "threads2" and method != "rwps")), *(("stream",) if reference else ()))
+            paths = ("live", *(f"live:{v}" for v in variants if not (v == "coarse-rir" and not rir) and not (v in ("threads2", "serial") and method != "rwps")), *(("stream",) if reference else ()))
             for path in paths:
                 if path.startswith("live"):  # warm-up: the numba kernels load (or compile) on their first call
                     _run(path, dats["short"], cfg, _model(method, rir, maps, span), d / f"w_{m}_{path.replace(':', '_')}", video)

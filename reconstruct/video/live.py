@@ -15,6 +15,9 @@ linear T and R equal to float32 rounding, tested), by a path that keeps up with 
   (:class:`reconstruct.physics.rir.ChainedRir`: each frame registered once onto the one before; the shifts
   differ from :func:`reconstruct.physics.rir.estimate_shifts`'s, the quality change is measured in
   docs/realtime.md); torch on one thread;
+* the fused ``rwps`` as two stages (``pipeline``): the solve and write of a window on a solve thread while the
+  stream's thread reads, aggregates and registers the next frame (made beside the ring, copied in once the solve
+  before is done: the same numbers as one thread);
 * display gains from the running histogram of the first ``gain_frames`` frames (the whole video when it is
   shorter; a longer one keeps those gains: the display can be shown live), 8-bit conversion by a table and
   encoding on a background thread (H.264 by default, ``video_codec``; the 8-bit images by one numba pass,
@@ -78,6 +81,7 @@ class LiveConfig:
     rir_finest: int = opt(1, "RIR: finest level of the chained fit, 1 = full resolution, 2 = 2 x 2 blocks (cheaper; error measured in docs/realtime.md)", lo=1, hi=2)
     poll_s: float = opt(0.01, "follow: wait between looks at the growing file, seconds", lo=0.0, hi=10.0)
     idle_s: float = opt(5.0, "follow: stop when the file has not grown for this long, seconds (0 = only Ctrl-C stops)", lo=0.0, hi=1e6)
+    pipeline: bool = opt(True, "fused rwps: the solve and write of a window on a second thread while the stream's thread reads, aggregates and registers the next frame (the same numbers)")
 
 
 class StageTimes:
@@ -278,6 +282,48 @@ class _Centres:
         return int(np.searchsorted(self.c + self.agg.half, n_steps - 1, side="right"))
 
 
+class _SolveThread:
+    """The second stage of the fused rwps path: ``fn(*job)`` (the solve and write of a window) on a thread of its
+    own, one job at a time, in the order given, while the stream's thread makes the next frame.  :meth:`wait`
+    returns once the thread is idle (the ring it reads may change then) and raises what a job raised (later jobs are
+    then skipped).
+    """
+
+    def __init__(self, fn: Callable[..., None]):
+        self.fn = fn
+        self.jobs: queue.Queue = queue.Queue(maxsize=1)
+        self.idle = threading.Event()
+        self.idle.set()
+        self.err: BaseException | None = None
+        self.thread = threading.Thread(target=self._loop, name="polspike-solve", daemon=True)
+        self.thread.start()
+
+    def _loop(self) -> None:
+        while (job := self.jobs.get()) is not None:
+            try:
+                if self.err is None:
+                    self.fn(*job)
+            except BaseException as e:  # noqa: BLE001 - handed to the stream's thread in wait()
+                self.err = e
+            finally:
+                self.idle.set()
+
+    def wait(self) -> None:
+        self.idle.wait()
+        if self.err is not None:
+            raise self.err
+
+    def submit(self, *job) -> None:
+        self.wait()
+        self.idle.clear()
+        self.jobs.put(job)
+
+    def close(self) -> None:
+        """Let the job in hand finish, then end the thread."""
+        self.jobs.put(None)
+        self.thread.join()
+
+
 class _LiveWindow(NamedTuple):
     """A window waiting for its batch: the N Eq. (3) frames (N, H, W), their zeta (N, H, W) and angles (N,), when its
     last step arrived (None: not timed), and the indices of its frames.
@@ -360,7 +406,8 @@ def reconstruct_live(
     pending: list[_LiveWindow] = []
     lat: list[float] = []
     stats = {"nan_frames": 0}
-    done = 0
+    done = 0  # frames written
+    made = 0  # windows complete: written, in the solve thread or waiting for their batch
     nxt = 0
     stopped = "end of stream"
     t0 = time.perf_counter()
@@ -403,7 +450,16 @@ def reconstruct_live(
             emit(writers, p.I[K], T[b], R[b], p.arrived)
         pending.clear()
 
+    def solve_rwps(sh, centre, arr):  # on the solve thread with the pipeline: the ring stays as it is until it is done
+        with times("solve"):
+            T, R = rwps_fused(ring_Z, ring_I, model.solver_cfg, sh, threads=cfg.threads)
+        emit(writers, ring_I[centre] if pipe else ring_I[centre].copy(), T, R, arr)  # the writers copy what they keep
+
+    pipe = fused_rwps and cfg.pipeline
+    new_I = np.zeros((H, W), np.float32) if pipe else None  # the newest frame, kept out of the ring while the solve reads it
+    new_Z = np.zeros((H, W), np.float32) if pipe else None
     writers = _LiveWriters(out, fps, cfg, times)
+    solver = _SolveThread(solve_rwps) if pipe else None
     ok = False
     threads = torch.get_num_threads()
     torch.set_num_threads(1)  # small per-frame tensors: one thread (more spin-wait on a shared machine and gain nothing)
@@ -423,20 +479,24 @@ def reconstruct_live(
                 for j in range(nxt, m):
                     arrived.setdefault(j, now)
             progressed = False
-            while nxt < m and (cfg.max_frames == 0 or done + len(pending) < cfg.max_frames):
+            while nxt < m and (cfg.max_frames == 0 or made < cfg.max_frames):
                 if stop is not None and stop.is_set():
                     break
                 c = int(cen.c[nxt])
                 slot = nxt % N
+                fI, fZ = (new_I, new_Z) if pipe else (ring_I[slot], ring_Z[slot])
                 with times("aggregate"):
-                    _radiance(reader, c - agg.half, c + agg.half + 1, scale, ring_I[slot])  # Eq. (3), radiance units
+                    _radiance(reader, c - agg.half, c + agg.half + 1, scale, fI)  # Eq. (3), radiance units
                 ring_phi[slot] = np.float32(cen.phi[nxt])
                 if not fused:  # the fused LS pass takes zeta's closed form, not the frames of zeta
                     with times("zeta"):
-                        zeta_of(float(ring_phi[slot]), ring_Z[slot])  # paper Eq. (2)
+                        zeta_of(float(ring_phi[slot]), fZ)  # paper Eq. (2)
                 nxt += 1
                 progressed = True
+                if pipe and nxt < N:
+                    ring_I[slot], ring_Z[slot] = fI, fZ  # no window yet: nothing is being solved
                 if nxt >= N:
+                    made += 1
                     arr = arrived.pop(nxt - 1, None) if follow else None
                     for k in [k for k in arrived if k < nxt - 1]:
                         arrived.pop(k)
@@ -449,19 +509,27 @@ def reconstruct_live(
                         sh = None
                         if model.rir and N > 1:
                             order = [(nxt - N + k) % N for k in range(N)]
+                            views = [fI if o == slot else ring_I[o] for o in order]  # the new frame: the ring's or its own
                             with times("rir"):
-                                sw = chained.window_shifts([ring_I[o] for o in order], torch.from_numpy(ring_phi[order]), np.arange(nxt - N, nxt)).numpy()  # views
+                                sw = chained.window_shifts(views, torch.from_numpy(ring_phi[order]), np.arange(nxt - N, nxt)).numpy()
                             sh = np.empty_like(sw)
                             sh[order] = sw
-                        with times("solve"):
-                            T, R = rwps_fused(ring_Z, ring_I, model.solver_cfg, sh, threads=cfg.threads)
-                        emit(writers, ring_I[centre].copy(), T, R, arr)
+                        if pipe:  # the window before is solved by now: the new frame into the ring, this window to the solve thread
+                            with times("wait"):
+                                solver.wait()
+                            ring_I[slot], ring_Z[slot] = fI, fZ
+                            solver.submit(sh, centre, arr)
+                        else:
+                            solve_rwps(sh, centre, arr)
                     else:
                         order = [(nxt - N + k) % N for k in range(N)]
                         pending.append(_LiveWindow(ring_I[order], ring_Z[order], ring_phi[order], arr, np.arange(nxt - N, nxt)))
                         if len(pending) >= (1 if follow else cfg.batch):
                             flush(writers)
-            if cfg.max_frames and done + len(pending) >= cfg.max_frames:
+            if stop is not None and stop.is_set():  # set while the frames were made
+                stopped = "interrupt"
+                break
+            if cfg.max_frames and made >= cfg.max_frames:
                 stopped = "max frames"
                 break
             if not follow:
@@ -474,10 +542,15 @@ def reconstruct_live(
                     stop.wait(cfg.poll_s)
                 else:
                     time.sleep(cfg.poll_s)
+        if solver is not None:
+            with times("wait"):
+                solver.wait()  # the last window written (or the solve thread's error raised here)
         flush(writers)
         ok = True
     finally:
         torch.set_num_threads(threads)
+        if solver is not None:
+            solver.close()
         reader.close()
         writers.close(ok)
     if done == 0:
@@ -503,6 +576,7 @@ def reconstruct_live(
         "follow": follow,
         "stopped": stopped,
         "latency_s": None if la is None else {"mean": float(la.mean()), "median": float(np.median(la)), "p95": float(np.quantile(la, 0.95)), "max": float(la.max()), "frames": int(la.size)},
+        "pipeline": pipe,
         "stage_seconds": {"wall": dict(times.wall), "cpu": dict(times.cpu)},
         **(meta or {}),
     }

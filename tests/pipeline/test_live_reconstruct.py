@@ -120,6 +120,92 @@ def test_live_fused_rwps_with_rir_equals_the_torch_solver_on_a_moving_stream(tmp
     _assert_frames_match(tmp_path / "torch", tmp_path / "fused", out["torch"]["frames"])
 
 
+def _pan_dat(tmp_path):
+    import dataclasses
+
+    cfg = dataclasses.replace(CFG, motion_px_s=(0.0, 150.0))  # 0.44 px per output frame: RIR shifts every window
+    return write_pane_dat(tmp_path / "pan.dat", cfg, 0.06), cfg
+
+
+def _live(dat, cfg, out, stop=None, on_frame=None, **over):
+    from reconstruct.stream.packed import PackedDat
+    from reconstruct.video.live import LiveConfig, reconstruct_live
+
+    return reconstruct_live(PackedDat(dat, H, W), _model("rwps", rir=True), out, LiveConfig(frames="exr", **over), phi0_rad=cfg.phi0_rad,
+                            rev_per_s=cfg.rev_per_s, rate_hz=cfg.rate_hz, exposure=cfg.exposure, stop=stop, on_frame=on_frame)
+
+
+def _exr_bits(out, i):
+    from polinfra.exr import read_exr
+
+    a = read_exr(out / "frames" / f"{i:06d}.exr", ["T", "R"])
+    return {k: np.asarray(a[k], np.float32).view(np.uint32) for k in ("T", "R")}
+
+
+def test_live_rwps_pipeline_writes_the_serial_frames_bit_for_bit(tmp_path):
+    """RWPS + RIR on a panning stream: the solve on its own thread (the next frame made meanwhile) writes the same
+    EXR frames, bit for bit, in the same order and number, as the path with every stage on one thread; the videos
+    hold one frame per output frame.
+    """
+    import imageio.v3 as iio
+
+    dat, cfg = _pan_dat(tmp_path)
+    s = {p: _live(dat, cfg, tmp_path / str(p), pipeline=p) for p in (False, True)}
+    assert s[True]["pipeline"] and not s[False]["pipeline"]
+    n = s[False]["frames"]
+    assert s[True]["frames"] == n >= 10 and s[True]["nan_frames"] == s[False]["nan_frames"] == 0
+    assert len(list((tmp_path / "True" / "frames").glob("*.exr"))) == n
+    for i in range(n):
+        a, b = _exr_bits(tmp_path / "False", i), _exr_bits(tmp_path / "True", i)
+        for k in ("T", "R"):
+            assert np.array_equal(a[k], b[k]), (i, k)
+    assert any(not np.array_equal(_exr_bits(tmp_path / "True", i)["T"], _exr_bits(tmp_path / "True", i + 1)["T"]) for i in range(n - 1))
+    assert sum(1 for _ in iio.imiter(tmp_path / "True" / "T.mp4")) == n
+
+
+def test_live_rwps_pipeline_stops_between_frames_with_complete_outputs(tmp_path):
+    """``stop`` set from the frame callback (which runs on the solve thread): the run ends with every file complete,
+    the frames it wrote equal to the serial run's first ones, bit for bit.
+    """
+    import threading
+
+    import imageio.v3 as iio
+
+    dat, cfg = _pan_dat(tmp_path)
+    ref = _live(dat, cfg, tmp_path / "ref", video=False, pipeline=False)
+    stop = threading.Event()
+    s = _live(dat, cfg, tmp_path / "p", stop=stop, on_frame=lambda done, la: done >= 4 and stop.set())
+    assert s["stopped"] == "interrupt" and 4 <= s["frames"] < ref["frames"]
+    assert len(list((tmp_path / "p" / "frames").glob("*.exr"))) == s["frames"]
+    for i in range(s["frames"]):
+        a, b = _exr_bits(tmp_path / "ref", i), _exr_bits(tmp_path / "p", i)
+        assert np.array_equal(a["T"], b["T"]) and np.array_equal(a["R"], b["R"]), i
+    for name in ("T", "R"):
+        assert sum(1 for _ in iio.imiter(tmp_path / "p" / f"{name}.mp4")) == s["frames"]
+    assert not list((tmp_path / "p").glob("*.tmp*")) and not list((tmp_path / "p").glob(".*"))
+
+
+def test_live_rwps_pipeline_raises_the_solve_threads_error(tmp_path, monkeypatch):
+    """An error in the solve thread reaches the caller (the stream's thread) as itself; no video is left behind."""
+    import reconstruct.physics.fused_rwps as fr
+
+    dat, cfg = _pan_dat(tmp_path)
+    real, calls = fr.rwps_fused, []
+
+    def failing(*a, **k):
+        calls.append(1)
+        if len(calls) == 3:
+            raise FloatingPointError("solve failed on purpose")
+        return real(*a, **k)
+
+    monkeypatch.setattr(fr, "rwps_fused", failing)
+    with pytest.raises(FloatingPointError, match="on purpose"):
+        _live(dat, cfg, tmp_path / "p")
+    assert len(calls) == 3  # nothing solved after the failure
+    assert sorted(p.name for p in (tmp_path / "p" / "frames").glob("*.exr")) == ["000000.exr", "000001.exr"]
+    assert not list((tmp_path / "p").glob("*.mp4"))
+
+
 def test_live_path_writes_the_preview_only_with_the_flag(dat, tmp_path, polspike_main):
     """Through the console-script entry point on pane maps (``--pane``): T.mp4 and R.mp4 by default, preview.mp4 (input | T | R, three
     panels of W columns) with ``--preview``, every video one frame per output frame.
