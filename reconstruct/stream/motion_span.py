@@ -85,15 +85,24 @@ def span_part_sums(spikes: np.ndarray, phi: np.ndarray, n_sub: int = SPAN_PARTS)
     return np.stack([np.tensordot(harmonic_design(ph[a:b]), sp[a:b].astype(np.float64), axes=(1, 0)) for a, b in parts]), parts
 
 
+def _span_times(parts: list[tuple[int, int]]) -> tuple[int, int, np.ndarray]:
+    """The span of consecutive ``parts`` ([lo, hi) step ranges): its length in steps, its centre step, and each part's
+    middle step counted from that centre (n,).
+    """
+    lo, hi = parts[0][0], parts[-1][1]
+    c = lo + (hi - lo) // 2
+    return hi - lo, c, np.array([0.5 * (a + b - 1) for a, b in parts]) - c
+
+
 def register_parts(sums: np.ndarray, parts: list[tuple[int, int]], phi: np.ndarray, rir: RirConfig = SPAN_RIR) -> np.ndarray:
     """Each part's shift (n, 2) onto the part holding the span's centre step, by registering the parts' means
     (:func:`reconstruct.physics.rir.estimate_shifts` with ``rir``); ``phi`` the per-step angles ``parts`` index.
     """
     ph = np.asarray(phi, np.float64)
-    lo, hi = parts[0][0], parts[-1][1]
+    c = _span_times(parts)[1]
     means = torch.from_numpy(np.asarray(sums, np.float64)[:, 0] / np.array([max(b - a, 1) for a, b in parts], np.float64)[:, None, None])
     angles = torch.tensor([ph[a:b].mean() for a, b in parts], dtype=torch.float64)
-    centre = next(i for i, (a, b) in enumerate(parts) if a <= lo + (hi - lo) // 2 < b)
+    centre = next(i for i, (a, b) in enumerate(parts) if a <= c < b)
     return estimate_shifts(means, angles, center=centre, config=rir).cpu().numpy()
 
 
@@ -115,12 +124,11 @@ def auto_span_shifts(window_shifts: np.ndarray, window_centres: np.ndarray, sums
     sh = auto_part_shifts(window_shifts, window_centres, parts, smear_px, min_inliers)
     if sh is not None:
         return sh, "rir"
-    lo, hi = parts[0][0], parts[-1][1]
     if spikes_per_window >= min_spikes or n < 3:
         return np.zeros((n, 2)), "plain"
-    mid = np.array([0.5 * (a + b - 1) for a, b in parts]) - (lo + (hi - lo) // 2)
+    L, _, mid = _span_times(parts)
     vel, p_in = window_velocity(register_parts(sums, parts, phi), mid)
-    if p_in >= min_inliers and float(np.hypot(*vel)) * (hi - lo) >= smear_px:
+    if p_in >= min_inliers and float(np.hypot(*vel)) * L >= smear_px:
         return mid[:, None] * vel[None, :], "parts"
     return np.zeros((n, 2)), "plain"
 
@@ -132,9 +140,8 @@ def part_shifts_from_windows(window_shifts: np.ndarray, window_centres: np.ndarr
     whose registration failed, e.g. the outer ones of a fast pan where the low-DoP mask leaves the moving texture out,
     does not pull it).  The 7 windows cover +-171 steps and the 7 parts +-150: no registration of the span's own.
     """
-    lo, hi = parts[0][0], parts[-1][1]
-    mid = np.array([0.5 * (a + b - 1) for a, b in parts]) - (lo + (hi - lo) // 2)
-    return mid[:, None] * window_velocity(window_shifts, np.asarray(window_centres, np.float64) - (lo + (hi - lo) // 2), inlier_px)[0][None, :]
+    _, c, mid = _span_times(parts)
+    return mid[:, None] * window_velocity(window_shifts, np.asarray(window_centres, np.float64) - c, inlier_px)[0][None, :]
 
 
 def window_velocity(window_shifts: np.ndarray, t: np.ndarray, inlier_px: float = 0.5) -> tuple[np.ndarray, int]:
@@ -159,11 +166,11 @@ def auto_part_shifts(window_shifts: np.ndarray, window_centres: np.ndarray, part
     register) and at least ``min_inliers`` windows besides the centre follow it, else None: the plain span (a slow or
     still scene keeps every spike without resampling; noise-limited windows, whose shifts scatter, do not move it).
     """
-    lo, hi = parts[0][0], parts[-1][1]
-    vel, n_in = window_velocity(window_shifts, np.asarray(window_centres, np.float64) - (lo + (hi - lo) // 2))
-    if float(np.hypot(*vel)) * (hi - lo) < smear_px or n_in < min_inliers:
+    L, c, mid = _span_times(parts)
+    vel, n_in = window_velocity(window_shifts, np.asarray(window_centres, np.float64) - c)
+    if float(np.hypot(*vel)) * L < smear_px or n_in < min_inliers:
         return None
-    return part_shifts_from_windows(window_shifts, window_centres, parts)
+    return mid[:, None] * vel[None, :]  # part_shifts_from_windows, on the velocity just fitted
 
 
 def compensate_part_sums(sums: np.ndarray, parts: list[tuple[int, int]], phi: np.ndarray, exposure: float, harmonic: bool = True,
