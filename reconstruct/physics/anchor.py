@@ -44,7 +44,7 @@ import dataclasses
 import torch
 
 from polinfra.config import opt
-from reconstruct.physics.consistency import _check, box_mean, observation_noise, observation_residual
+from reconstruct.physics.consistency import _check, bounded_noise, box_mean, observation_noise, observation_residual
 
 SIG = 2.0
 """A power counts as resolved where its pooled estimate exceeds the noise's expectation by SIG standard deviations of
@@ -186,12 +186,7 @@ def anchored_floor(T: torch.Tensor, R: torch.Tensor, zeta: torch.Tensor, I: torc
     _check(zeta, I)
     dt = T.dtype
     z, Iw = zeta.to(torch.float64), I.to(torch.float64)
-    s2 = observation_noise(z, Iw, cfg.pool)
-    if model_var is not None:
-        s2 = torch.minimum(s2, box_mean(torch.broadcast_to(model_var.to(s2.dtype), s2.shape), cfg.pool))
-    if noise_floor is not None:
-        s2 = torch.maximum(s2, torch.as_tensor(noise_floor, dtype=s2.dtype, device=s2.device))
-    s2 = s2.clamp_min(1e-30)
+    s2 = bounded_noise(z, Iw, cfg.pool, model_var, "min", noise_floor).clamp_min(1e-30)
     a = physics_anchor(z, Iw, None if I_mean is None else I_mean.to(torch.float64), None if zbar_span is None else zbar_span.to(torch.float64),
                        span_ratio, cfg.pool, s2)
     Tn, Rn = T.to(torch.float64), R.to(torch.float64)

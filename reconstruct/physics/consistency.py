@@ -55,7 +55,7 @@ import torch
 from polinfra.config import opt
 from polinfra.errors import ShapeError
 
-__all__ = ["FloorConfig", "FloorResult", "observation_residual", "observation_noise", "count_quantum_variance", "spike_noise_bounds", "consistency_floor", "box_mean"]
+__all__ = ["FloorConfig", "FloorResult", "observation_residual", "observation_noise", "bounded_noise", "count_quantum_variance", "spike_noise_bounds", "consistency_floor", "box_mean"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -99,6 +99,23 @@ def box_mean(x: torch.Tensor, k: int) -> torch.Tensor:
     y = x.reshape(-1, 1, *shp[-2:])
     y = torch.nn.functional.avg_pool2d(y, k, stride=1, padding=k // 2, count_include_pad=False)[..., : shp[-2], : shp[-1]]
     return y.reshape(shp)
+
+
+def bounded_noise(zeta: torch.Tensor, I: torch.Tensor, pool: int, model_var: torch.Tensor | None = None, combine: str = "max",
+                  noise_floor: torch.Tensor | float | None = None) -> torch.Tensor:
+    """sigma^2 of one observation (..., H, W) as the floors weigh it: :func:`observation_noise` over ``pool``, then the
+    spike model's ``model_var`` (box-averaged over ``pool``) as a lower bound (``combine = "max"``) or a cap (``"min"``),
+    then at least ``noise_floor`` (:func:`count_quantum_variance`) whatever the rest says.
+    """
+    sigma2 = observation_noise(zeta, I, pool)
+    if model_var is not None:
+        if combine not in ("max", "min"):
+            raise ValueError(f"combine {combine!r}: max or min")
+        mv = box_mean(torch.broadcast_to(model_var.to(sigma2.dtype), sigma2.shape), pool)
+        sigma2 = torch.maximum(sigma2, mv) if combine == "max" else torch.minimum(sigma2, mv)
+    if noise_floor is not None:
+        sigma2 = torch.maximum(sigma2, torch.as_tensor(noise_floor, dtype=sigma2.dtype, device=sigma2.device))
+    return sigma2
 
 
 def count_quantum_variance(level, exposure, steps: int):
@@ -173,15 +190,7 @@ def consistency_floor(T: torch.Tensor, R: torch.Tensor, T_p: torch.Tensor, R_p: 
     """
     _check(zeta, I)
     zeta, I = zeta.to(T.dtype), I.to(T.dtype)
-    sigma2 = observation_noise(zeta, I, cfg.pool)
-    if model_var is not None:
-        if combine not in ("max", "min"):
-            raise ValueError(f"combine {combine!r}: max or min")
-        mv = box_mean(torch.broadcast_to(model_var.to(sigma2.dtype), sigma2.shape), cfg.pool)
-        sigma2 = torch.maximum(sigma2, mv) if combine == "max" else torch.minimum(sigma2, mv)
-    if noise_floor is not None:
-        sigma2 = torch.maximum(sigma2, torch.as_tensor(noise_floor, dtype=sigma2.dtype, device=sigma2.device))
-    sigma2 = sigma2.clamp_min(torch.finfo(T.dtype).tiny ** 0.5)
+    sigma2 = bounded_noise(zeta, I, cfg.pool, model_var, combine, noise_floor).clamp_min(torch.finfo(T.dtype).tiny ** 0.5)
     r_p = observation_residual(T_p, R_p, zeta, I)
     dT, dR = T - T_p, R - R_p
     Ad = zeta * dR.unsqueeze(-3) + (1.0 - zeta) * dT.unsqueeze(-3)
