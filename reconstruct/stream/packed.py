@@ -102,7 +102,19 @@ def window_radiance(packed: np.ndarray, height: int, stored_w: int, width: int, 
     return out
 
 
-class PackedArray:
+class _WindowReads:
+    """Eq. (3) windows of a packed reader (``read(a, b)``, ``height``, ``stored_w``, ``width``, ``flip``)."""
+
+    def counts(self, a: int, b: int) -> np.ndarray:
+        """Upright (H, W) spike counts over steps a..b-1."""
+        return window_counts(self.read(a, b), self.height, self.stored_w, self.width, self.flip)
+
+    def radiance(self, a: int, b: int, scale: np.float32, out: np.ndarray) -> np.ndarray:
+        """``counts(a, b).astype(np.float32) / scale`` into ``out`` (:func:`window_radiance`)."""
+        return window_radiance(self.read(a, b), self.height, self.stored_w, self.width, self.flip, scale, out)
+
+
+class PackedArray(_WindowReads):
     """Packed upright frames (T, H W / 8) in memory, with the reading interface of :class:`PackedDat`."""
 
     flip = False
@@ -118,13 +130,6 @@ class PackedArray:
 
     def read(self, a: int, b: int) -> np.ndarray:
         return self.packed[a:b]
-
-    def counts(self, a: int, b: int) -> np.ndarray:
-        return window_counts(self.read(a, b), self.height, self.stored_w, self.width, self.flip)
-
-    def radiance(self, a: int, b: int, scale: np.float32, out: np.ndarray) -> np.ndarray:
-        """``counts(a, b).astype(np.float32) / scale`` into ``out`` (:func:`window_radiance`)."""
-        return window_radiance(self.read(a, b), self.height, self.stored_w, self.width, self.flip, scale, out)
 
     def close(self) -> None:
         pass
@@ -159,7 +164,7 @@ class PackedChunks(PackedArray):
         return self._buf[a - self._start : b - self._start]
 
 
-class PackedDat:
+class PackedDat(_WindowReads):
     """A raw Vidar .dat read by offset (``spike_sim.vidar_dat``'s layout: upside down, LSB first, optional 16 header
     columns), also while it grows.
 
@@ -203,14 +208,6 @@ class PackedDat:
         if len(raw) != nb:
             raise DataFormatError(f"{self.path}: frames {a}..{b} asked, the file holds {self.refresh()}")
         return np.frombuffer(raw, np.uint8).reshape(b - a, self.frame_bytes)
-
-    def counts(self, a: int, b: int) -> np.ndarray:
-        """Upright (H, W) spike counts over steps a..b-1."""
-        return window_counts(self.read(a, b), self.height, self.stored_w, self.width, self.flip)
-
-    def radiance(self, a: int, b: int, scale: np.float32, out: np.ndarray) -> np.ndarray:
-        """``counts(a, b).astype(np.float32) / scale`` into ``out`` (:func:`window_radiance`)."""
-        return window_radiance(self.read(a, b), self.height, self.stored_w, self.width, self.flip, scale, out)
 
     def close(self) -> None:
         if self._fd is not None:
