@@ -24,8 +24,9 @@ Methods (:data:`METHODS`), all on the same Eq. (3) windows (13 steps, N = 7, 31.
   with the long span motion-compensated (:mod:`reconstruct.stream.motion_span`); ``net+bestfloor``: RIR on and the
   floor at the best physics (``NetConfig.floor_anchor = "best"``, :mod:`reconstruct.physics.anchor`); ``net+floor+rspan``:
   ``net+floor`` with the span's parts moved by the windows' RIR velocity (``polspike reconstruct --span rir``,
-  :func:`reconstruct.stream.motion_span.part_shifts_from_windows`); ``net+floor+aspan``: the plain span where that
-  velocity smears it by less than a pixel, else the rir span (``--span auto``, :func:`reconstruct.stream.motion_span.auto_part_shifts`).
+  :func:`reconstruct.stream.motion_span.part_shifts_from_windows`); ``net+floor+aspan``: ``--span auto``
+  (:func:`reconstruct.stream.motion_span.auto_span_shifts`: the rir span where the windows follow one velocity that
+  smears the span by a pixel or more, the parts' own registration where the windows are noise-limited, else plain).
 
 The windows' RIR shifts are estimated once per frame (``rir``: ``window``, :func:`reconstruct.physics.rir.estimate_shifts`,
 or ``chained``, :class:`reconstruct.physics.rir.ChainedRir` over the cell's consecutive frames) and shared by the physics,
@@ -212,7 +213,7 @@ def run_cell(cell: dict, *, width: int = 96, height: int = 64, frames: int = 1, 
 
             a = physics_anchor(Zw, Iw, torch.from_numpy(I_mean).double(), zbar_of(Zw, pt.double()))
             out["anchor"] = (a.T.numpy(), a.R.numpy())
-        mspan = None
+        mspan = sums = None
         parts = span_part_edges(hi - lo, SPAN_PARTS)
         tc = np.asarray(cents, np.float64) - lo  # the windows' centres in the span's steps
         for m, model in nets.items():
@@ -222,7 +223,8 @@ def run_cell(cell: dict, *, width: int = 96, height: int = 64, frames: int = 1, 
                     mspan = compensated_span(st.spikes[lo:hi], st.phi[lo:hi], st.exposure)
                 kw["I_mean"], kw["I_harm"] = mspan[0][None], mspan[1][None]
             if m in ("net+floor+rspan", "net+floor+aspan"):  # the span's parts moved by the windows' velocity (aspan: auto_span_shifts)
-                sums, _ = span_part_sums(st.spikes[lo:hi], st.phi[lo:hi])
+                if sums is None:  # the parts' sums, once per frame for both span methods
+                    sums, _ = span_part_sums(st.spikes[lo:hi], st.phi[lo:hi])
                 psh, how = (part_shifts_from_windows(sh.numpy(), tc, parts), "rir") if m == "net+floor+rspan" else auto_span_shifts(sh.numpy(), tc, sums, parts, st.phi[lo:hi], float(st.exposure * I.mean() * WINDOW))
                 sp = compensate_part_sums(sums, parts, st.phi[lo:hi], st.exposure, shifts=psh)
                 kw["I_mean"], kw["I_harm"] = sp[0][None], sp[1][None]
