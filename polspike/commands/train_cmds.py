@@ -151,8 +151,9 @@ def reconstruct_cmd(
     weights: Optional[Path] = typer.Option(None, "--weights", help="checkpoint [default: the shipped reconstruct/weights default, reconstruct.net.checkpoint.DEFAULT_WEIGHTS]"),
     rir_shifts: str = typer.Option("window", "--rir", help="how each window's RIR shifts are estimated (once, for the network and the span): window (6 masked phase correlations and a Gauss-Newton refinement per window, as the network was trained) | chained (each frame registered once onto the previous one, reconstruct.physics.rir.ChainedRir: ~15x cheaper; docs/motion.md)"),
     no_rir: bool = typer.Option(False, "--no-rir", help="no RIR alignment of the windows (a checkpoint trained without it, run as trained) [default: RIR before the solver and the network, also for a checkpoint trained without it]"),
-    floor: bool = typer.Option(True, "--floor/--no-floor", help="the network's data-consistency floor: its (T, R) must predict the 7 aligned windows within the noise of the physics-only RWPS's fit, else the physics stands (reconstruct/physics/consistency.py)"),
-    floor_anchor: Optional[str] = typer.Option(None, "--floor-anchor", help="what the floor falls back to: rwps (the physics-only RWPS; the data check only) | best (per pixel the best physics the observations support: least squares, the spike mean or a blend, reconstruct/physics/anchor.py) [default: the checkpoint's]"),
+    floor: bool = typer.Option(True, "--floor/--no-floor", help="the network's data-consistency floor: its (T, R) must predict the 7 aligned windows within the noise of the physics-only RWPS's fit, else it is pulled back toward the physics (--floor-anchor; reconstruct/physics/consistency.py)"),
+    floor_anchor: Optional[str] = typer.Option(None, "--floor-anchor", help="what the floor falls back to where the data check fails: best (per pixel the best physics the observations support: least squares, the spike mean or a blend, reconstruct/physics/anchor.py; on a self-calibrated or given zeta) | rwps (the physics-only RWPS) [default: the checkpoint's, best]"),
+    floor_layers: Optional[bool] = typer.Option(None, "--floor-layers/--no-floor-layers", help="with --floor-anchor best: also judge T and R by their own move from the anchor against its stated error (docs/motion.md) [default: the checkpoint's, off]"),
     max_frames: int = typer.Option(0, "--max-frames", help="stop after this many output frames (0 = all)"),
     device: str = typer.Option("auto", "--device", help="auto | cpu | cuda"),
     quiet: bool = typer.Option(False, "--quiet", help="no progress bar"),
@@ -282,9 +283,12 @@ def reconstruct_cmd(
     if floor_anchor is not None and floor_anchor not in ("rwps", "best"):
         raise ConfigError(f"--floor-anchor {floor_anchor!r}: use rwps or best")
     fa = {} if floor_anchor is None else {"floor_anchor": floor_anchor}
+    if floor_layers is not None:
+        fa["floor_layers"] = floor_layers
     load = lambda: load_model(weights or DEFAULT_WEIGHTS, dev, use_rir=rir, floor=floor, **fa)[0]  # noqa: E731
     net_model = load() if method == "net" else None  # a bad checkpoint is reported before the stream is read
     anchor_used = net_model.cfg.floor_anchor if net_model is not None else None
+    layers_used = bool(net_model.cfg.floor_layers) if net_model is not None and anchor_used == "best" else None
     if net_model is not None and ensemble > 1:
         from reconstruct.net.network import SymmetryEnsemble
 
@@ -336,7 +340,7 @@ def reconstruct_cmd(
                                           exposure=None if src.exposure is not None else cfg.exposure, rir=rir, load_learned=load, anchor=anchor,
                                           pane_n=pane_n, pane_model=pane_model, selfcal=selfcal)
     maps_out = _write_selfcal_maps(out, model, info)
-    meta = {**exposure_info, "method": method, "anchor": anchor, "ensemble": ensemble, "rir": rir, "floor": floor if method == "net" else None, "floor_anchor": anchor_used if floor else None, "span": span if method == "net" else None, "zeta": info["zeta"] if info is not None else "learned"}
+    meta = {**exposure_info, "method": method, "anchor": anchor, "ensemble": ensemble, "rir": rir, "floor": floor if method == "net" else None, "floor_anchor": anchor_used if floor else None, "floor_layers": layers_used if floor else None, "span": span if method == "net" else None, "zeta": info["zeta"] if info is not None else "learned"}
     live = is_dat and path != "stream" and method != "net" and getattr(model, "maps", None) is not None and anchor == "none" and dev == "cpu"
     if video_codec != "h264" and not live:
         raise ConfigError(f"--video-codec {video_codec} is an option of the live path (physics methods on pane maps over a .dat); the streaming path writes H.264")

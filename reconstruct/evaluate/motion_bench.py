@@ -20,9 +20,11 @@ Methods (:data:`METHODS`), all on the same Eq. (3) windows (13 steps, N = 7, 31.
   ``--pane`` does; ``"cell"``: on the cell's own moving stream; where it refuses, the true pane maps, and the cell says
   so), RIR on; the networks run on the same zeta;
 * ``net``: the shipped checkpoint as trained (RIR off, no floor); ``net+rir``: RIR on; ``net+floor``: RIR on and the
-  data-consistency floor (:mod:`reconstruct.physics.consistency`, the network's default); ``net+floor+mspan``: that,
-  with the long span motion-compensated (:mod:`reconstruct.stream.motion_span`); ``net+bestfloor``: RIR on and the
-  floor at the best physics (``NetConfig.floor_anchor = "best"``, :mod:`reconstruct.physics.anchor`); ``net+floor+rspan``:
+  data-consistency floor as the checkpoint sets it (the data check against the RWPS's residual, the fallback the best
+  physics per pixel: ``NetConfig.floor_anchor = "best"``, :mod:`reconstruct.physics.anchor`); ``net+rwpsfloor``: the
+  floor falling back to the RWPS (``floor_anchor = "rwps"``, :mod:`reconstruct.physics.consistency`);
+  ``net+bestfloor``: the best-physics floor with its layer checks (``floor_layers``); ``net+floor+mspan``: ``net+floor``
+  with the long span motion-compensated (:mod:`reconstruct.stream.motion_span`); ``net+floor+rspan``:
   ``net+floor`` with the span's parts moved by the windows' RIR velocity (``polspike reconstruct --span rir``,
   :func:`reconstruct.stream.motion_span.part_shifts_from_windows`); ``net+floor+aspan``: ``--span auto``
   (:func:`reconstruct.stream.motion_span.auto_span_shifts`: the rir span where the windows follow one velocity that
@@ -63,7 +65,7 @@ LIGHTS = {"dim": 0.02, "bright": 0.3}
 """Light levels, mean spikes per pixel per step."""
 
 PHYSICS = ("ls", "ridge", "irls", "rwps")
-NETS = ("net", "net+rir", "net+floor", "net+floor+mspan", "net+bestfloor", "net+floor+rspan", "net+floor+aspan")
+NETS = ("net", "net+rir", "net+floor", "net+rwpsfloor", "net+floor+mspan", "net+bestfloor", "net+floor+rspan", "net+floor+aspan")
 METHODS = ("tfp", "mean17", "mean", *PHYSICS, "anchor", *NETS)
 """Methods of the bench (module docstring)."""
 
@@ -120,14 +122,16 @@ _MODELS: dict = {}
 _PANES: dict = {}
 
 
-def _net(weights, use_rir: bool, floor: bool, anchor: str = "rwps"):
+FLOORS = {"net+rwpsfloor": {"floor_anchor": "rwps"}, "net+bestfloor": {"floor_anchor": "best", "floor_layers": True}}
+"""The floor settings of the methods that do not run the checkpoint's own (``net+floor`` and the span methods do)."""
+
+
+def _net(weights, use_rir: bool, floor: bool, overrides: dict | None = None):
     from reconstruct.net.checkpoint import DEFAULT_WEIGHTS, load_model
 
-    key = (str(weights or DEFAULT_WEIGHTS), use_rir, floor, anchor)
+    key = (str(weights or DEFAULT_WEIGHTS), use_rir, floor, tuple(sorted((overrides or {}).items())))
     if key not in _MODELS:
-        m = load_model(weights or DEFAULT_WEIGHTS, "cpu", use_rir=use_rir, floor=floor)[0]
-        m.cfg = dataclasses.replace(m.cfg, floor_anchor=anchor)
-        _MODELS[key] = m
+        _MODELS[key] = load_model(weights or DEFAULT_WEIGHTS, "cpu", use_rir=use_rir, floor=floor, **(overrides or {}))[0]
     return _MODELS[key]
 
 
@@ -182,7 +186,7 @@ def run_cell(cell: dict, *, width: int = 96, height: int = 64, frames: int = 1, 
     span_rad = 2 * math.pi * rev * WINDOW / rate_hz
     maps, zsrc = _pane(st, cfg, calibrate, steps, rate_hz, rev)
     chained = ChainedRir() if rir == "chained" else None
-    nets = {m: MapsZetaNet(_net(weights, m != "net", m not in ("net", "net+rir"), "best" if m == "net+bestfloor" else "rwps"), maps, span_rad) for m in methods if m in NETS}
+    nets = {m: MapsZetaNet(_net(weights, m != "net", m not in ("net", "net+rir"), FLOORS.get(m)), maps, span_rad) for m in methods if m in NETS}
     acc: dict[str, dict[str, list]] = {m: {"T_psnr": [], "T_ssim": [], "R_psnr": [], "R_ssim": []} for m in methods}
     moved: dict[str, list] = {}  # per span method, per frame: what moved the span's parts (rir, parts or plain)
     for f in range(frames):

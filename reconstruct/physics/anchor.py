@@ -148,6 +148,8 @@ class AnchorFloorConfig:
     tol: float = opt(4.0, "allowed excess residual over least squares' on the N windows, in noise variances of one observation (4 = twice least squares' own error power in the metric of the data, 2 dof)", lo=0.0, hi=1e6)
     tol_layer: float = opt(2.0, "allowed mean square move of T (of R) from the anchor, in units of the anchor's stated error power P_T (P_R) (2: the floored error is the smaller of the candidate's and the anchor's)", lo=0.0, hi=1e6)
     pool: int = opt(5, "side (pixels) of the box over which the noise, the powers and the moves are averaged", lo=1, hi=101)
+    layers: bool = opt(True, "also check T's and R's own moves from the anchor against its stated error powers (tol_layer); off: the data check alone, the fallback still the anchor")
+    layer_counts: float = opt(1.0, "the layer checks count in full where the windows expect at least this many spikes per pixel (pooled), in proportion below (0 = in full everywhere): under one spike per window the residual cannot measure the noise the anchor's stated error power is built from", lo=0.0, hi=1e6)
 
 
 @dataclasses.dataclass
@@ -166,7 +168,7 @@ class AnchoredFloorResult:
 def anchored_floor(T: torch.Tensor, R: torch.Tensor, zeta: torch.Tensor, I: torch.Tensor, I_mean: torch.Tensor | None = None,
                    zbar_span: torch.Tensor | None = None, cfg: AnchorFloorConfig = AnchorFloorConfig(), model_var: torch.Tensor | None = None,
                    span_ratio: float = SPAN_RATIO, reference: tuple[torch.Tensor, torch.Tensor] | None = None,
-                   noise_floor: torch.Tensor | float | None = None) -> AnchoredFloorResult:
+                   noise_floor: torch.Tensor | float | None = None, counts: torch.Tensor | None = None) -> AnchoredFloorResult:
     """Floor a candidate (T, R) (..., H, W) at the best physics (:func:`physics_anchor`) by the windows ``I`` on ``zeta``.
 
     Two checks, each a kept fraction of the candidate's move from the anchor (x = x_a + s (x_n - x_a)):
@@ -179,7 +181,14 @@ def anchored_floor(T: torch.Tensor, R: torch.Tensor, zeta: torch.Tensor, I: torc
       tol_layer = 2 (:mod:`reconstruct.physics.consistency` derives it): a candidate better than the best physics
       passes, a worse one ends at the physics' error.
 
-    T keeps min(s_d, s_T), R keeps min(s_d, s_R).  ``model_var`` caps sigma^2 at the spikes' own noise (the floor's
+    T keeps min(s_d, s_T), R keeps min(s_d, s_R) (``cfg.layers = False``: both keep s_d).  The layer checks rest on the anchor's stated error powers, which
+    are built from sigma^2, and sigma^2 is measured only where the windows count spikes: where a window expects fewer
+    than one (``counts`` (..., H, W), the expected spikes per window, pooled, against ``cfg.layer_counts``), a pool's
+    counts are mostly 0, its residual says nothing of the noise, and the anchor (there the long span's mean with the
+    reflection the windows cannot resolve left in) errs by far more than it states: on the motion bench's dim light
+    13 x more on the pixels the layer check clipped, where the network was 13 x better than the anchor.  So a layer
+    check counts in proportion g = min(1, counts / layer_counts): s_T -> 1 - g (1 - s_T), and below one spike the data
+    check alone stands, as in :func:`reconstruct.physics.consistency.consistency_floor`.  ``model_var`` caps sigma^2 at the spikes' own noise (the floor's
     ``combine = "min"``); ``noise_floor`` bounds it from below whatever the cap (the noise of counts below one spike,
     :func:`reconstruct.physics.consistency.count_quantum_variance`).
     """
@@ -200,6 +209,12 @@ def anchored_floor(T: torch.Tensor, R: torch.Tensor, zeta: torch.Tensor, I: torc
 
     s_d = frac(cfg.tol * s2, excess)
     dT, dR = Tn - a.T, Rn - a.R
-    s_T = torch.minimum(s_d, frac(cfg.tol_layer * box_mean(a.P_T_max, cfg.pool), box_mean(dT * dT, cfg.pool)))
-    s_R = torch.minimum(s_d, frac(cfg.tol_layer * box_mean(a.P_R_max, cfg.pool), box_mean(dR * dR, cfg.pool)))
+    l_T = frac(cfg.tol_layer * box_mean(a.P_T_max, cfg.pool), box_mean(dT * dT, cfg.pool))
+    l_R = frac(cfg.tol_layer * box_mean(a.P_R_max, cfg.pool), box_mean(dR * dR, cfg.pool))
+    if not cfg.layers:
+        l_T = l_R = torch.ones_like(s_d)
+    elif counts is not None and cfg.layer_counts > 0:
+        g = (box_mean(torch.broadcast_to(counts.to(torch.float64), l_T.shape), cfg.pool) / cfg.layer_counts).clamp(0.0, 1.0)
+        l_T, l_R = (torch.where(g >= 1.0, x, 1.0 - g * (1.0 - x)) for x in (l_T, l_R))
+    s_T, s_R = torch.minimum(s_d, l_T), torch.minimum(s_d, l_R)
     return AnchoredFloorResult(T=(a.T + s_T * dT).to(dt), R=(a.R + s_R * dR).to(dt), keep_T=s_T.to(dt), keep_R=s_R.to(dt), anchor=a)

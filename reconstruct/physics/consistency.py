@@ -55,7 +55,7 @@ import torch
 from polinfra.config import opt
 from polinfra.errors import ShapeError
 
-__all__ = ["FloorConfig", "FloorResult", "observation_residual", "observation_noise", "bounded_noise", "count_quantum_variance", "spike_noise_bounds", "consistency_floor", "box_mean"]
+__all__ = ["FloorConfig", "FloorResult", "observation_residual", "observation_noise", "bounded_noise", "count_quantum_variance", "spike_noise_bounds", "window_counts", "consistency_floor", "box_mean"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -131,6 +131,16 @@ def count_quantum_variance(level, exposure, steps: int):
     m = level * float(steps) * exposure
     m = m.clamp(0.0, 1.0) if hasattr(m, "clamp") else min(max(float(m), 0.0), 1.0)
     return q * q * m * (1.0 - m)
+
+
+def window_counts(I: torch.Tensor, exposure, steps: int = 13) -> torch.Tensor | None:
+    """Expected spikes per pixel in one window of ``steps`` steps, (B, H, W), from windows ``I`` (B, N, H, W) in
+    radiance units at ``exposure`` thresholds per step per unit radiance (a number or (B,)); None where it is unknown.
+    """
+    if exposure is None:
+        return None
+    e = torch.as_tensor(exposure, dtype=I.dtype, device=I.device).reshape(-1, 1, 1) if torch.is_tensor(exposure) else float(exposure)
+    return I.mean(1).clamp_min(0.0) * e * float(steps)
 
 
 def spike_noise_bounds(I: torch.Tensor, exposure, I_mean: torch.Tensor | None = None, steps: int = 13, pool: int = 5):

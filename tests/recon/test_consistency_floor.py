@@ -207,13 +207,13 @@ def test_truth_passes_the_anchored_floor():
 
 
 def test_network_with_garbage_refinement_gives_the_best_physics():
-    """floor_anchor = "best": a PolSpikeNet whose refinement outputs garbage returns T and R within 1 dB of the
-    best-physics anchor's PSNR on the same windows and zeta (reconstruct.physics.anchor.physics_anchor).
+    """floor_anchor = "best" with its layer checks: a PolSpikeNet whose refinement outputs garbage returns T and R
+    within 1 dB of the best-physics anchor's PSNR on the same windows and zeta (reconstruct.physics.anchor.physics_anchor).
     """
     from reconstruct.physics.anchor import physics_anchor
 
     g, I, Z, Tp, Rp = _window("integrate_fire", 3.0)
-    net = _garbage_net(floor_anchor="best")
+    net = _garbage_net(floor_anchor="best", floor_layers=True)
     with torch.inference_mode():
         on = net(I[None], torch.tensor(g.phi_nominal[1:8])[None].float(), zeta_gt=Z[None], alpha=1.0)
     a = physics_anchor(Z.double(), I.double())
@@ -280,3 +280,52 @@ def test_the_count_quantum_keeps_a_sub_spike_move_in_the_dark():
     assert float((f0.keep[dark] < 0.5).float().mean()) > 0.05 and float(f0.keep[dark].min()) < 0.01  # without the floor: pools with no spike pulled back
     assert float(f1.keep[dark].min()) == 1.0  # kept with it
     torch.testing.assert_close(f1.keep[:, 32:], f0.keep[:, 32:])  # the bright half: no floor, the same check
+
+
+def _layer_case():
+    """Noise-limited closed-form windows and a candidate off the truth by noise of sd 0.3: the layer checks bind."""
+    T, R, Z, I, Im, z0 = _closed_form(0.5, 0.002)
+    gen = torch.Generator().manual_seed(11)
+    return T + 0.3 * torch.randn(T.shape, generator=gen, dtype=T.dtype), R + 0.3 * torch.randn(R.shape, generator=gen, dtype=T.dtype), Z, I, Im, z0
+
+
+def test_layer_checks_count_from_one_spike_per_window():
+    """anchored_floor's layer checks count in full where the windows expect >= layer_counts spikes (the result is
+    the ungated one, bit for bit), not at all where they expect none (the data check alone: ``layers = False``), and
+    in between the kept fraction only rises as the expected count falls.
+    """
+    from reconstruct.physics.anchor import AnchorFloorConfig, anchored_floor
+
+    Tn, Rn, Z, I, Im, z0 = _layer_case()
+    full = anchored_floor(Tn, Rn, Z, I, Im, z0)
+    data = anchored_floor(Tn, Rn, Z, I, Im, z0, cfg=AnchorFloorConfig(layers=False))
+    assert float((full.keep_T < data.keep_T - 1e-6).double().mean()) > 0.05  # the layer checks bind somewhere
+    ones = torch.ones_like(Tn)
+    assert torch.equal(anchored_floor(Tn, Rn, Z, I, Im, z0, counts=1.5 * ones).T, full.T)
+    assert torch.equal(anchored_floor(Tn, Rn, Z, I, Im, z0, counts=0.0 * ones).T, data.T)
+    keeps = [anchored_floor(Tn, Rn, Z, I, Im, z0, counts=c * ones).keep_T for c in (1.0, 0.7, 0.4, 0.1)]
+    for hi, lo in zip(keeps, keeps[1:]):
+        assert bool((lo >= hi - 1e-12).all())
+    assert bool((keeps[-1] > keeps[0] + 1e-6).any())
+
+
+def test_default_floor_is_the_data_check_falling_back_to_the_best_physics():
+    """The checkpoint's default floor (floor_anchor = "best", floor_layers off) on an external zeta is anchored_floor's
+    data check against the RWPS's residual with the best physics as fallback: the network's output equals it, recomputed
+    here from the unfloored network; and a garbage refinement ends within 1 dB of the anchor's PSNR on T and R.
+    """
+    from reconstruct.physics.anchor import AnchorFloorConfig, anchored_floor, physics_anchor
+
+    g, I, Z, Tp, Rp = _window("integrate_fire", 3.0)
+    net = _garbage_net()
+    assert net.cfg.floor_anchor == "best" and not net.cfg.floor_layers
+    phi = torch.tensor(g.phi_nominal[1:8])[None].float()
+    with torch.inference_mode():
+        on = net(I[None], phi, zeta_gt=Z[None], alpha=1.0)
+        net.cfg = dataclasses.replace(net.cfg, floor=False)
+        off = net(I[None], phi, zeta_gt=Z[None], alpha=1.0)
+    f = anchored_floor(off.T, off.R, Z[None], I[None], cfg=AnchorFloorConfig(layers=False), reference=(Tp[None], Rp[None]))
+    assert torch.allclose(on.T, f.T, atol=1e-5) and torch.allclose(on.R, f.R, atol=1e-5)
+    a = physics_anchor(Z.double(), I.double())
+    for key, ref, gt in (("T", a.T, g.T[4]), ("R", a.R, g.R[4])):
+        assert psnr(getattr(on, key)[0].numpy(), gt) >= psnr(ref.float().numpy(), gt) - 1.0
