@@ -27,12 +27,13 @@ torch path computes in float32, so the two agree to float32 rounding amplified b
 from __future__ import annotations
 
 import contextlib
+import threading
 
 import numpy as np
 
 from reconstruct.physics.solvers import SolverConfig
 
-__all__ = ["rwps_fused", "rwps_fused_supports", "box_mean"]
+__all__ = ["rwps_fused", "rwps_fused_supports", "box_mean", "RwpsWindow"]
 
 _F32_TINY = float(np.finfo(np.float32).tiny)
 _TINY2 = _F32_TINY**0.5  # the torch solver's tiny in moments / Conf / priors (float32)
@@ -147,15 +148,12 @@ def _pixel_rows(z, I, oy, ox, fy, fx, warp, lam1, out, a, b, w, acc, y_lo, y_hi)
             c = _POISSON_FLOOR * psum[x] / N + _TINY2
             psum[x] = c
             pmin[x] += c
-        for k in range(N):
-            wk = w[k]
-            for x in range(W):
-                wk[x] = pmin[x] / (wk[x] + psum[x])
         acc[:7] = 0.0
-        for k in range(N):
+        for k in range(N):  # the weights (kept in w for the residual), their sums and the weighted moments in one pass
             ak, bk, wk = a[k], b[k], w[k]
             for x in range(W):
-                wx = wk[x]
+                wx = pmin[x] / (wk[x] + psum[x])
+                wk[x] = wx
                 bt = 1.0 - ak[x]
                 wa = wx * ak[x]
                 wb = wx * bt
@@ -164,11 +162,8 @@ def _pixel_rows(z, I, oy, ox, fy, fx, warp, lam1, out, a, b, w, acc, y_lo, y_hi)
                 stt[x] += wb * bt
                 rr[x] += wa * bk[x]
                 rt[x] += wb * bk[x]
-        for k in range(N):
-            wk = w[k]
-            for x in range(W):
-                sw[x] += wk[x]
-                sww[x] += wk[x] * wk[x]
+                sw[x] += wx
+                sww[x] += wx * wx
         for x in range(W):
             fl = _EPS * (srr[x] + stt[x]) + _TINY4
             m11 = srr[x] + fl
@@ -417,6 +412,83 @@ def rwps_fused(zeta: np.ndarray, I: np.ndarray, config: SolverConfig, shifts: np
         k["maps" + one](sc.s, int(config.noise_pool), int(config.prior_pool), float(config.prior_kappa), float(config.snr_kappa), float(config.lambda_low),
                   float(config.lambda_high), T, R, sc.work, sc.box, sc.cs, n)
     return T, R
+
+
+class RwpsWindow:
+    """One window's :func:`rwps_fused` (one band) in parts two threads can share: the pixel pass on chunks of rows that
+    any thread takes in turn (:meth:`pixels`), then the maps passes (:meth:`finish`).  Each row's sums are made by the
+    same compiled code whoever takes it, so T and R are those of :func:`rwps_fused`, bit for bit.  ``zeta`` and ``I``
+    are read until :meth:`wait_pixels` returns; ``sums`` (9, H, W) float64 holds the pixel sums until :meth:`finish`
+    returns (two windows in flight need two).
+    """
+
+    def __init__(self, zeta: np.ndarray, I: np.ndarray, config: SolverConfig, shifts: np.ndarray | None = None, sums: np.ndarray | None = None, chunks: int = 8):
+        from polinfra.errors import ConfigError, ShapeError
+
+        if not rwps_fused_supports(config):
+            raise ConfigError("the fused RWPS takes the adaptive, pooled-prior solver without Huber passes (PHYSICS_SOLVER_CONFIG)")
+        if I.ndim != 3 or zeta.shape != I.shape:
+            raise ShapeError(f"zeta and I must both be (N, H, W); got {zeta.shape} and {I.shape}", actual_shape=tuple(I.shape), expected_shape="(N, H, W)")
+        N, H, W = I.shape
+        self.k = _get()
+        self.sc = _scratch.get((N, H, W))
+        if self.sc is None:
+            self.sc = _scratch[(N, H, W)] = _Scratch(N, H, W)
+        self.s = self.sc.s if sums is None else sums
+        self.cfg = config
+        self.oy, self.ox, self.fy, self.fx, self.warp = _shift_parts(shifts, N)
+        self.z = np.ascontiguousarray(zeta, np.float32)
+        self.i = np.ascontiguousarray(I, np.float32)
+        self.n = max(1, min(int(chunks), H))
+        self.next = 0
+        self.left = self.n
+        self.lock = threading.Lock()
+        self.done = threading.Event()
+        self.err: BaseException | None = None
+
+    def pixels(self) -> int:
+        """Pass 1 on the chunks of rows no thread has taken yet (returns when none is left; others may still run);
+        returns the number of chunks this call made.
+        """
+        N, H, W = self.i.shape
+        a, b, w, acc = np.empty((N, W)), np.empty((N, W)), np.empty((N, W)), np.empty((16, W))
+        lam1 = float(self.cfg.lambda_high)
+        made = 0
+        while True:
+            with self.lock:
+                c = self.next
+                self.next += 1
+            if c >= self.n:
+                return made
+            made += 1
+            try:
+                if self.err is None:
+                    _pixel_rows_c(self.z, self.i, self.oy, self.ox, self.fy, self.fx, self.warp, lam1, self.s, a, b, w, acc, c * H // self.n, (c + 1) * H // self.n)
+            except BaseException as e:  # noqa: BLE001 - raised by wait_pixels on the waiting thread
+                self.err = e
+            with self.lock:
+                self.left -= 1
+                if self.left == 0:
+                    self.done.set()
+
+    def wait_pixels(self) -> None:
+        """Until every chunk of the pixel pass is made (zeta and I are free then); raises what a chunk raised."""
+        self.done.wait()
+        if self.err is not None:
+            raise self.err
+
+    def finish(self) -> tuple[np.ndarray, np.ndarray]:
+        """The rest of the pixel pass, then passes 2 and 3: (T, R), each (H, W) float32."""
+        self.pixels()
+        self.wait_pixels()
+        c = self.cfg
+        _, H, W = self.i.shape
+        T = np.empty((H, W), np.float32)
+        R = np.empty((H, W), np.float32)
+        with _threads(1):  # the box means' prange loops on one thread (numba's threads are per calling thread)
+            self.k["maps1"](self.s, int(c.noise_pool), int(c.prior_pool), float(c.prior_kappa), float(c.snr_kappa), float(c.lambda_low), float(c.lambda_high),
+                            T, R, self.sc.work, self.sc.box, self.sc.cs, 1)
+        return T, R
 
 
 @contextlib.contextmanager
