@@ -479,16 +479,23 @@ class RwpsWindow:
                 self.next += 1
             if c >= self.n:
                 return made
-            made += 1
             try:
+                made += 1
                 if self.err is None:
                     _pixel_rows_c(self.z, self.i, self.oy, self.ox, self.fy, self.fx, self.warp, lam1, self.s, a, b, w, acc, c * H // self.n, (c + 1) * H // self.n)
             except BaseException as e:  # noqa: BLE001 - raised by wait_pixels on the waiting thread
                 self.err = e
-            with self.lock:
-                self.left -= 1
-                if self.left == 0:
-                    self.done.set()
+            finally:
+                with self.lock:
+                    self.left -= 1
+                    if self.left == 0:
+                        self.done.set()
+
+    def cancel(self) -> None:
+        """Give the window up (its caller failed): waiting threads return at once, :meth:`finish` raises."""
+        if self.err is None:
+            self.err = RuntimeError("the window was given up")
+        self.done.set()
 
     def wait_pixels(self) -> None:
         """Until every chunk of the pixel pass is made (zeta and I are free then); raises what a chunk raised."""

@@ -16,8 +16,10 @@ linear T and R equal to float32 rounding, tested), by a path that keeps up with 
   differ from :func:`reconstruct.physics.rir.estimate_shifts`'s, the quality change is measured in
   docs/realtime.md); torch on one thread;
 * the fused ``rwps`` as two stages (``pipeline``): the solve and write of a window on a solve thread while the
-  stream's thread reads, aggregates and registers the next frame (made beside the ring, copied in once the solve
-  before is done: the same numbers as one thread);
+  stream's thread reads, aggregates and registers the next frame (made beside the ring, copied in once the pixel pass
+  before is done: the same numbers as one thread); that frame made, the stream's thread takes the pixel-pass rows of
+  the window in hand the solve thread has not reached (``share_pixels``,
+  :class:`reconstruct.physics.fused_rwps.RwpsWindow`; the same numbers);
 * display gains from the running histogram of the first ``gain_frames`` frames (the whole video when it is
   shorter; a longer one keeps those gains: the display can be shown live), 8-bit conversion by a table and
   encoding on a background thread (H.264 by default, ``video_codec``; the 8-bit images by one numba pass,
@@ -576,6 +578,8 @@ def reconstruct_live(
         ok = True
     finally:
         torch.set_num_threads(threads)
+        if win is not None and not ok:  # the solve thread may wait on rows the stream's thread will no longer make
+            win.cancel()
         if solver is not None:
             solver.close()
         reader.close()

@@ -137,6 +137,35 @@ def test_fused_rwps_window_shared_by_two_threads_equals_the_one_thread_kernel():
         assert 0 <= got.get("n", 0) <= chunks
 
 
+def test_fused_rwps_window_given_up_releases_the_finishing_thread():
+    """A chunk taken by a thread that never finishes it (its caller failed) leaves ``finish`` waiting; ``cancel``
+    releases it, and it raises instead of returning layers made without that chunk.
+    """
+    import threading
+
+    import reconstruct.physics.fused_rwps as F
+
+    Z, I, _, _ = _window(5)
+    win = F.RwpsWindow(Z, I, PHYSICS_SOLVER_CONFIG, chunks=4)
+    with win.lock:
+        win.next += 1  # the first chunk taken, never made
+    got = {}
+
+    def finish():
+        try:
+            got["out"] = win.finish()
+        except RuntimeError as e:
+            got["err"] = e
+
+    t = threading.Thread(target=finish, daemon=True)
+    t.start()
+    t.join(0.5)
+    assert t.is_alive() and not got
+    win.cancel()
+    t.join(10)
+    assert not t.is_alive() and "err" in got and "out" not in got
+
+
 def test_fused_rwps_recovers_the_layers_of_a_noise_free_window():
     """Without noise the residual variance is 0, Conf -> 1 and lambda -> lambda_low = 0: the plain weighted least
     squares, which is exact on Eq. (1)-(2) data.
