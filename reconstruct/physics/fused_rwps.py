@@ -11,15 +11,19 @@ stream clamps, in three passes instead of some sixty (N, H, W) tensor operations
    weighted least-squares solve and its residual variance (``_ls_noise``);
 2. on (H, W) maps: the box means of the noise and of the pooled prior
    (:func:`reconstruct.physics.solvers.pooled_difference_prior`; edge-aware like ``avg_pool2d`` with
-   ``count_include_pad=False``, by prefix sums), Conf and lambda (supp. Eq. (8));
+   ``count_include_pad=False``, by running sums down the columns and prefix sums along the rows), Conf and lambda
+   (supp. Eq. (8));
 3. per pixel: the final weighted ridge solve with the prior lambda (R - T - D0)^2 (supp. Eq. (9)).
+
+:class:`RwpsWindow` is the same solve (one band) with pass 1 on chunks of rows two threads can take in turn (the
+live path's stream thread takes the rows its solve thread has not reached), bit for bit the same.
 
 With ``shifts`` (N, 2) the observations are read through the bilinear, border-replicated translation of
 :func:`reconstruct.physics.rir.warp` (frames and zeta alike), so the warped window is never materialised: one shift
 per frame, so a row is two source rows blended and read at one integer offset plus one fraction.
 
 Sums and solves run in float64 with the float32 constants of the torch solver (eps 1e-7, its tiny floors; the pooled
-statistics of pass 2 and their box means are stored in float32, their prefix sums in float64); the
+statistics of pass 2 and their box means are stored in float32, their running and prefix sums in float64); the
 torch path computes in float32, so the two agree to float32 rounding amplified by the conditioning of the pixel
 (tested against the torch solver as the oracle: docs/realtime.md gives the tolerance).
 """
@@ -377,7 +381,7 @@ class _Scratch:
         self.s = np.empty((9, H, W))
         self.work = np.empty((5, H, W), np.float32)  # pooled statistics: float32 halves their memory traffic
         self.box = np.empty((5, H, W), np.float32)
-        self.cs = np.empty((H + 1, W + 1))
+        self.cs = np.empty((1, W))  # the box means' running column sums
 
 
 _scratch: dict[tuple[int, int, int], _Scratch] = {}
@@ -539,5 +543,5 @@ def box_mean(x: np.ndarray, k: int, threads: int = 1) -> np.ndarray:
     x3 = np.ascontiguousarray(x.reshape((-1,) + x.shape[-2:]))
     out = np.empty_like(x3)
     with _threads(threads) as n:
-        _get()["box"](x3, int(k), out, np.empty((x3.shape[-2] + 1, x3.shape[-1] + 1)), n)
+        _get()["box"](x3, int(k), out, np.empty((1, x3.shape[-1])), n)
     return out.reshape(x.shape)
