@@ -23,7 +23,7 @@ def bench_realtime_cmd(
     latency_s: float = typer.Option(1.0, "--latency-s", help="seconds written at real time for the --follow latency (0 = skip)"),
     reference: bool = typer.Option(True, "--reference/--no-reference", help="also run the streaming path (the ratio)"),
     video: bool = typer.Option(True, "--video/--no-video", help="write and time the MP4s"),
-    variants: str = typer.Option("torch", "--live-variants", help="comma-separated live-path settings also run, each a ratio: torch (torch solvers and RIR fit, CRF-10 videos with the preview: the live path before its fused kernels), high-video (CRF 10 with the preview), preview (the defaults plus preview.mp4), coarse-rir, threads2 (the fused RWPS on two numba threads), gray-video (4:0:0 H.264), y4m (raw .y4m, no encoder), serial (rwps: the solve on the stream's thread, no solve thread); '' for none"),
+    variants: str = typer.Option("torch", "--live-variants", help="comma-separated live-path settings also run, each a ratio: torch (torch solvers and RIR fit, CRF-10 videos with the preview: the live path before its fused kernels), high-video (CRF 10 with the preview), preview (the defaults plus preview.mp4), coarse-rir, threads2 (the fused RWPS on two numba threads), gray-video (4:0:0 H.264), y4m (raw .y4m, no encoder), serial (rwps: the solve on the stream's thread, no solve thread), unshared (rwps: the stream's thread does not take pixel rows of the solve); '' for none"),
     quiet: bool = typer.Option(False, "--quiet", help="no progress lines"),
 ) -> None:
     """Frames/s (wall and CPU) of the live path and the streaming path, per-stage real-time factors, --follow latency, peak RSS."""

@@ -57,13 +57,15 @@ LIVE_VARIANTS = {
     "gray-video": {"video_codec": "h264-gray"},
     "y4m": {"video_codec": "y4m"},
     "serial": {"pipeline": False},
+    "unshared": {"share_pixels": False},
 }
 """Live-path settings the bench can run beside the defaults: ``torch`` = the torch solvers, the torch RIR fit and the
 CRF-10 videos with the preview (the live path before its fused kernels), ``high-video`` = CRF-10 videos with the
 preview, ``preview`` = the defaults plus preview.mp4 (the three videos of the path before), ``coarse-rir`` = the RIR
 fit stopping at 2 x 2 blocks, ``threads2`` = the fused RWPS passes on two numba threads, ``gray-video`` = 4:0:0 H.264
 videos, ``y4m`` = raw 8-bit .y4m videos (no encoder process), ``serial`` = the fused rwps stages one after the other on
-the stream's thread (no solve thread; rwps only)."""
+the stream's thread (no solve thread; rwps only), ``unshared`` = the solve thread makes every pixel row of its window
+(the stream's thread waits instead of taking the rows left; rwps only)."""
 
 
 def _run(path: str, dat: Path, cfg, model, out: Path, video: bool) -> dict[str, Any]:

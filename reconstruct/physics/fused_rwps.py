@@ -11,15 +11,19 @@ stream clamps, in three passes instead of some sixty (N, H, W) tensor operations
    weighted least-squares solve and its residual variance (``_ls_noise``);
 2. on (H, W) maps: the box means of the noise and of the pooled prior
    (:func:`reconstruct.physics.solvers.pooled_difference_prior`; edge-aware like ``avg_pool2d`` with
-   ``count_include_pad=False``, by prefix sums), Conf and lambda (supp. Eq. (8));
+   ``count_include_pad=False``, by running sums down the columns and prefix sums along the rows), Conf and lambda
+   (supp. Eq. (8));
 3. per pixel: the final weighted ridge solve with the prior lambda (R - T - D0)^2 (supp. Eq. (9)).
+
+:class:`RwpsWindow` is the same solve (one band) with pass 1 on chunks of rows two threads can take in turn (the
+live path's stream thread takes the rows its solve thread has not reached), bit for bit the same.
 
 With ``shifts`` (N, 2) the observations are read through the bilinear, border-replicated translation of
 :func:`reconstruct.physics.rir.warp` (frames and zeta alike), so the warped window is never materialised: one shift
 per frame, so a row is two source rows blended and read at one integer offset plus one fraction.
 
 Sums and solves run in float64 with the float32 constants of the torch solver (eps 1e-7, its tiny floors; the pooled
-statistics of pass 2 and their box means are stored in float32, their prefix sums in float64); the
+statistics of pass 2 and their box means are stored in float32, their running and prefix sums in float64); the
 torch path computes in float32, so the two agree to float32 rounding amplified by the conditioning of the pixel
 (tested against the torch solver as the oracle: docs/realtime.md gives the tolerance).
 """
@@ -27,12 +31,14 @@ torch path computes in float32, so the two agree to float32 rounding amplified b
 from __future__ import annotations
 
 import contextlib
+import threading
+import types
 
 import numpy as np
 
 from reconstruct.physics.solvers import SolverConfig
 
-__all__ = ["rwps_fused", "rwps_fused_supports", "box_mean"]
+__all__ = ["rwps_fused", "rwps_fused_supports", "box_mean", "RwpsWindow"]
 
 _F32_TINY = float(np.finfo(np.float32).tiny)
 _TINY2 = _F32_TINY**0.5  # the torch solver's tiny in moments / Conf / priors (float32)
@@ -147,15 +153,12 @@ def _pixel_rows(z, I, oy, ox, fy, fx, warp, lam1, out, a, b, w, acc, y_lo, y_hi)
             c = _POISSON_FLOOR * psum[x] / N + _TINY2
             psum[x] = c
             pmin[x] += c
-        for k in range(N):
-            wk = w[k]
-            for x in range(W):
-                wk[x] = pmin[x] / (wk[x] + psum[x])
         acc[:7] = 0.0
-        for k in range(N):
+        for k in range(N):  # the weights (kept in w for the residual), their sums and the weighted moments in one pass
             ak, bk, wk = a[k], b[k], w[k]
             for x in range(W):
-                wx = wk[x]
+                wx = pmin[x] / (wk[x] + psum[x])
+                wk[x] = wx
                 bt = 1.0 - ak[x]
                 wa = wx * ak[x]
                 wb = wx * bt
@@ -164,11 +167,8 @@ def _pixel_rows(z, I, oy, ox, fy, fx, warp, lam1, out, a, b, w, acc, y_lo, y_hi)
                 stt[x] += wb * bt
                 rr[x] += wa * bk[x]
                 rt[x] += wb * bk[x]
-        for k in range(N):
-            wk = w[k]
-            for x in range(W):
-                sw[x] += wk[x]
-                sww[x] += wk[x] * wk[x]
+                sw[x] += wx
+                sww[x] += wx * wx
         for x in range(W):
             fl = _EPS * (srr[x] + stt[x]) + _TINY4
             m11 = srr[x] + fl
@@ -200,27 +200,36 @@ def _pixel_rows(z, I, oy, ox, fy, fx, warp, lam1, out, a, b, w, acc, y_lo, y_hi)
 
 
 def _box_mean(x, k, out, cs, chunks):  # pragma: no cover - compiled
-    """Edge-aware k x k box mean of each (H, W) map of x (M, H, W) into out: rows, then columns, each on ``chunks``
-    bands (``prange``); cs scratch (H + 1, W + 1).  The box of output i covers i - k // 2 .. i - k // 2 + k - 1
-    (avg_pool2d, padding k // 2, count_include_pad=False, cropped).  Per element the same sums in the same order
-    whatever ``chunks``.
+    """Edge-aware k x k box mean of each (H, W) map of x (M, H, W) into out: columns (running sums down the
+    columns), then rows (prefix sums along them), each on ``chunks`` bands (``prange``); cs scratch (>= 1, W).
+    The box of output i covers i - k // 2 .. i - k // 2 + k - 1 (avg_pool2d, padding k // 2, count_include_pad=False,
+    cropped).  Per element the same sums in the same order whatever ``chunks``.
     """
     M, H, W = x.shape
     h = k // 2
     for m in range(M):
-        for c in prange(chunks):  # vertical prefix sums and differences, a band of columns each
+        for c in prange(chunks):  # vertical running sums (a row in, a row out: vectorised), a band of columns each
             j_lo, j_hi = c * W // chunks, (c + 1) * W // chunks
-            for j in range(j_lo, j_hi):
-                cs[0, j] = 0.0
+            n = j_hi - j_lo
+            acc = cs[0, j_lo:j_hi]  # the bands hold disjoint columns of one row
+            acc[:] = 0.0
+            for i in range(min(k - h, H)):
+                xi = x[m, i, j_lo:j_hi]
+                for j in range(n):
+                    acc[j] += xi[j]
             for i in range(H):
-                for j in range(j_lo, j_hi):
-                    cs[i + 1, j] = cs[i, j] + x[m, i, j]
-            for i in range(H):
-                lo = max(i - h, 0)
-                hi = min(i - h + k, H)
-                inv = 1.0 / (hi - lo)
-                for j in range(j_lo, j_hi):
-                    out[m, i, j] = (cs[hi, j] - cs[lo, j]) * inv
+                inv = 1.0 / (min(i - h + k, H) - max(i - h, 0))
+                o = out[m, i, j_lo:j_hi]
+                for j in range(n):
+                    o[j] = acc[j] * inv
+                if i - h + k < H:  # the row entering the box of i + 1
+                    xi = x[m, i - h + k, j_lo:j_hi]
+                    for j in range(n):
+                        acc[j] += xi[j]
+                if i - h >= 0:  # the row leaving it
+                    xi = x[m, i - h, j_lo:j_hi]
+                    for j in range(n):
+                        acc[j] -= xi[j]
         for c in prange(chunks):  # horizontal, a band of rows each, four rows at a time (independent prefix chains)
             pre = np.empty((4, W + 1))
             i_lo, i_hi = c * H // chunks, (c + 1) * H // chunks
@@ -350,10 +359,19 @@ def _get():
         _box_mean_c = par(_box_mean)
         _k["pixels"] = par(_pass_pixels)
         _k["maps"] = par(_pass_maps)
-        _k["pixels1"] = jit(_pass_pixels)  # one band: the loops compiled plainly (the parallel form's outlined loop
-        _k["maps1"] = jit(_pass_maps)  # bodies vectorise less: the maps pass 4.0 -> 2.8 ms at 400 x 250)
+        # one band: the loops compiled plainly (the parallel form's outlined loop bodies vectorise less: the maps pass
+        # 4.0 -> 2.8 ms at 400 x 250), the box means too (no parallel region to enter: 2.5 -> 2.35 ms)
+        _k["pixels1"] = jit(_pass_pixels)
+        _k["maps1"] = jit(_one_band(_pass_maps, _box_mean_c=jit(_one_band(_box_mean))))
         _k["box"] = _box_mean_c
     return _k
+
+
+def _one_band(fn, **over):
+    """``fn`` with ``prange`` as ``range`` (and the other globals ``over`` gives), named apart for numba's cache."""
+    f = types.FunctionType(fn.__code__, {**fn.__globals__, "prange": range, **over}, fn.__name__ + "_one_band")
+    f.__qualname__ = fn.__qualname__ + "_one_band"
+    return f
 
 
 class _Scratch:
@@ -363,7 +381,7 @@ class _Scratch:
         self.s = np.empty((9, H, W))
         self.work = np.empty((5, H, W), np.float32)  # pooled statistics: float32 halves their memory traffic
         self.box = np.empty((5, H, W), np.float32)
-        self.cs = np.empty((H + 1, W + 1))
+        self.cs = np.empty((1, W))  # the box means' running column sums
 
 
 _scratch: dict[tuple[int, int, int], _Scratch] = {}
@@ -419,6 +437,90 @@ def rwps_fused(zeta: np.ndarray, I: np.ndarray, config: SolverConfig, shifts: np
     return T, R
 
 
+class RwpsWindow:
+    """One window's :func:`rwps_fused` (one band) in parts two threads can share: the pixel pass on chunks of rows that
+    any thread takes in turn (:meth:`pixels`), then the maps passes (:meth:`finish`).  Each row's sums are made by the
+    same compiled code whoever takes it, so T and R are those of :func:`rwps_fused`, bit for bit.  ``zeta`` and ``I``
+    are read until :meth:`wait_pixels` returns; ``sums`` (9, H, W) float64 holds the pixel sums until :meth:`finish`
+    returns (two windows in flight need two).
+    """
+
+    def __init__(self, zeta: np.ndarray, I: np.ndarray, config: SolverConfig, shifts: np.ndarray | None = None, sums: np.ndarray | None = None, chunks: int = 8):
+        from polinfra.errors import ConfigError, ShapeError
+
+        if not rwps_fused_supports(config):
+            raise ConfigError("the fused RWPS takes the adaptive, pooled-prior solver without Huber passes (PHYSICS_SOLVER_CONFIG)")
+        if I.ndim != 3 or zeta.shape != I.shape:
+            raise ShapeError(f"zeta and I must both be (N, H, W); got {zeta.shape} and {I.shape}", actual_shape=tuple(I.shape), expected_shape="(N, H, W)")
+        N, H, W = I.shape
+        self.k = _get()
+        self.sc = _scratch.get((N, H, W))
+        if self.sc is None:
+            self.sc = _scratch[(N, H, W)] = _Scratch(N, H, W)
+        self.s = self.sc.s if sums is None else sums
+        self.cfg = config
+        self.oy, self.ox, self.fy, self.fx, self.warp = _shift_parts(shifts, N)
+        self.z = np.ascontiguousarray(zeta, np.float32)
+        self.i = np.ascontiguousarray(I, np.float32)
+        self.n = max(1, min(int(chunks), H))
+        self.next = 0
+        self.left = self.n
+        self.lock = threading.Lock()
+        self.done = threading.Event()
+        self.err: BaseException | None = None
+
+    def pixels(self) -> int:
+        """Pass 1 on the chunks of rows no thread has taken yet (returns when none is left; others may still run);
+        returns the number of chunks this call made.
+        """
+        N, H, W = self.i.shape
+        a, b, w, acc = np.empty((N, W)), np.empty((N, W)), np.empty((N, W)), np.empty((16, W))
+        lam1 = float(self.cfg.lambda_high)
+        made = 0
+        while True:
+            with self.lock:
+                c = self.next
+                self.next += 1
+            if c >= self.n:
+                return made
+            try:
+                made += 1
+                if self.err is None:
+                    _pixel_rows_c(self.z, self.i, self.oy, self.ox, self.fy, self.fx, self.warp, lam1, self.s, a, b, w, acc, c * H // self.n, (c + 1) * H // self.n)
+            except BaseException as e:  # noqa: BLE001 - raised by wait_pixels on the waiting thread
+                self.err = e
+            finally:
+                with self.lock:
+                    self.left -= 1
+                    if self.left == 0:
+                        self.done.set()
+
+    def cancel(self) -> None:
+        """Give the window up (its caller failed): waiting threads return at once, :meth:`finish` raises."""
+        if self.err is None:
+            self.err = RuntimeError("the window was given up")
+        self.done.set()
+
+    def wait_pixels(self) -> None:
+        """Until every chunk of the pixel pass is made (zeta and I are free then); raises what a chunk raised."""
+        self.done.wait()
+        if self.err is not None:
+            raise self.err
+
+    def finish(self) -> tuple[np.ndarray, np.ndarray]:
+        """The rest of the pixel pass, then passes 2 and 3: (T, R), each (H, W) float32."""
+        self.pixels()
+        self.wait_pixels()
+        c = self.cfg
+        _, H, W = self.i.shape
+        T = np.empty((H, W), np.float32)
+        R = np.empty((H, W), np.float32)
+        with _threads(1):  # the box means' prange loops on one thread (numba's threads are per calling thread)
+            self.k["maps1"](self.s, int(c.noise_pool), int(c.prior_pool), float(c.prior_kappa), float(c.snr_kappa), float(c.lambda_low), float(c.lambda_high),
+                            T, R, self.sc.work, self.sc.box, self.sc.cs, 1)
+        return T, R
+
+
 @contextlib.contextmanager
 def _threads(threads: int):
     """The numba threads of the kernels' parallel loops: ``threads`` bands of rows (0 = one per thread of numba's
@@ -441,5 +543,5 @@ def box_mean(x: np.ndarray, k: int, threads: int = 1) -> np.ndarray:
     x3 = np.ascontiguousarray(x.reshape((-1,) + x.shape[-2:]))
     out = np.empty_like(x3)
     with _threads(threads) as n:
-        _get()["box"](x3, int(k), out, np.empty((x3.shape[-2] + 1, x3.shape[-1] + 1)), n)
+        _get()["box"](x3, int(k), out, np.empty((1, x3.shape[-1])), n)
     return out.reshape(x.shape)

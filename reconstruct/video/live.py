@@ -16,8 +16,10 @@ linear T and R equal to float32 rounding, tested), by a path that keeps up with 
   differ from :func:`reconstruct.physics.rir.estimate_shifts`'s, the quality change is measured in
   docs/realtime.md); torch on one thread;
 * the fused ``rwps`` as two stages (``pipeline``): the solve and write of a window on a solve thread while the
-  stream's thread reads, aggregates and registers the next frame (made beside the ring, copied in once the solve
-  before is done: the same numbers as one thread);
+  stream's thread reads, aggregates and registers the next frame (made beside the ring, copied in once the pixel pass
+  before is done: the same numbers as one thread); that frame made, the stream's thread takes the pixel-pass rows of
+  the window in hand the solve thread has not reached (``share_pixels``,
+  :class:`reconstruct.physics.fused_rwps.RwpsWindow`; the same numbers);
 * display gains from the running histogram of the first ``gain_frames`` frames (the whole video when it is
   shorter; a longer one keeps those gains: the display can be shown live), 8-bit conversion by a table and
   encoding on a background thread (H.264 by default, ``video_codec``; the 8-bit images by one numba pass,
@@ -82,6 +84,7 @@ class LiveConfig:
     poll_s: float = opt(0.01, "follow: wait between looks at the growing file, seconds", lo=0.0, hi=10.0)
     idle_s: float = opt(5.0, "follow: stop when the file has not grown for this long, seconds (0 = only Ctrl-C stops)", lo=0.0, hi=1e6)
     pipeline: bool = opt(True, "fused rwps: the solve and write of a window on a second thread while the stream's thread reads, aggregates and registers the next frame (the same numbers)")
+    share_pixels: bool = opt(True, "fused rwps with the pipeline and one numba thread: the stream's thread, its frame made, takes chunks of rows of the window's pixel pass the solve thread has not taken yet (the same numbers)")
 
 
 class StageTimes:
@@ -285,15 +288,13 @@ class _Centres:
 class _SolveThread:
     """The second stage of the fused rwps path: ``fn(*job)`` (the solve and write of a window) on a thread of its
     own, one job at a time, in the order given, while the stream's thread makes the next frame.  :meth:`wait`
-    returns once the thread is idle (the ring it reads may change then) and raises what a job raised (later jobs are
-    then skipped).
+    returns once every job given is done (the ring they read may change then) and raises what a job raised (later
+    jobs are then skipped).
     """
 
     def __init__(self, fn: Callable[..., None]):
         self.fn = fn
         self.jobs: queue.Queue = queue.Queue(maxsize=1)
-        self.idle = threading.Event()
-        self.idle.set()
         self.err: BaseException | None = None
         self.thread = threading.Thread(target=self._loop, name="polspike-solve", daemon=True)
         self.thread.start()
@@ -306,16 +307,22 @@ class _SolveThread:
             except BaseException as e:  # noqa: BLE001 - handed to the stream's thread in wait()
                 self.err = e
             finally:
-                self.idle.set()
+                self.jobs.task_done()
 
-    def wait(self) -> None:
-        self.idle.wait()
+    def check(self) -> None:
+        """Raise what a job raised."""
         if self.err is not None:
             raise self.err
 
-    def submit(self, *job) -> None:
-        self.wait()
-        self.idle.clear()
+    def wait(self) -> None:
+        self.jobs.join()
+        self.check()
+
+    def submit(self, *job, wait: bool = True) -> None:
+        """Hand a job over, once every job before is done (``wait``) or once the one waiting before it is taken."""
+        if wait:
+            self.wait()
+        self.check()
         self.jobs.put(job)
 
     def close(self) -> None:
@@ -405,7 +412,7 @@ def reconstruct_live(
     arrived: dict[int, float] = {}  # Eq. (3) frame -> when its last step was seen
     pending: list[_LiveWindow] = []
     lat: list[float] = []
-    stats = {"nan_frames": 0}
+    stats = {"nan_frames": 0, "shared_chunks": 0}
     done = 0  # frames written
     made = 0  # windows complete: written, in the solve thread or waiting for their batch
     nxt = 0
@@ -455,11 +462,22 @@ def reconstruct_live(
             T, R = rwps_fused(ring_Z, ring_I, model.solver_cfg, sh, threads=cfg.threads)
         emit(writers, ring_I[centre] if pipe else ring_I[centre].copy(), T, R, arr)  # the writers copy what they keep
 
+    def solve_shared(win, Ic, arr):  # on the solve thread: the pixel rows the stream's thread has not taken, the maps passes
+        with times("solve"):
+            T, R = win.finish()
+        emit(writers, Ic, T, R, arr)
+
     pipe = fused_rwps and cfg.pipeline
+    share = pipe and cfg.share_pixels and cfg.threads == 1
+    if share:
+        from reconstruct.physics.fused_rwps import RwpsWindow
+
+        sums = (np.empty((9, H, W)), np.empty((9, H, W)))  # the pixel sums of two windows in flight (pixel pass of one, maps of the one before)
+    win = None  # the window in hand (share)
     new_I = np.zeros((H, W), np.float32) if pipe else None  # the newest frame, kept out of the ring while the solve reads it
     new_Z = np.zeros((H, W), np.float32) if pipe else None
     writers = _LiveWriters(out, fps, cfg, times)
-    solver = _SolveThread(solve_rwps) if pipe else None
+    solver = _SolveThread(solve_shared if share else solve_rwps) if pipe else None
     ok = False
     threads = torch.get_num_threads()
     torch.set_num_threads(1)  # small per-frame tensors: one thread (more spin-wait on a shared machine and gain nothing)
@@ -514,7 +532,18 @@ def reconstruct_live(
                                 sw = chained.window_shifts(views, torch.from_numpy(ring_phi[order]), np.arange(nxt - N, nxt)).numpy()
                             sh = np.empty_like(sw)
                             sh[order] = sw
-                        if pipe:  # the window before is solved by now: the new frame into the ring, this window to the solve thread
+                        if share:  # the window before: its pixel rows not taken yet, here; then the ring is free
+                            if win is not None:
+                                with times("solve_shared"):
+                                    stats["shared_chunks"] += win.pixels()
+                                with times("wait"):
+                                    win.wait_pixels()
+                            solver.check()
+                            ring_I[slot], ring_Z[slot] = fI, fZ
+                            win = RwpsWindow(ring_Z, ring_I, model.solver_cfg, sh, sums=sums[made % 2])
+                            with times("wait"):  # the queue holds one window: the one before is taken, the maps of the one before it done
+                                solver.submit(win, ring_I[centre].copy(), arr, wait=False)
+                        elif pipe:  # the window before is solved by now: the new frame into the ring, this window to the solve thread
                             with times("wait"):
                                 solver.wait()
                             ring_I[slot], ring_Z[slot] = fI, fZ
@@ -549,6 +578,8 @@ def reconstruct_live(
         ok = True
     finally:
         torch.set_num_threads(threads)
+        if win is not None and not ok:  # the solve thread may wait on rows the stream's thread will no longer make
+            win.cancel()
         if solver is not None:
             solver.close()
         reader.close()
@@ -577,6 +608,7 @@ def reconstruct_live(
         "stopped": stopped,
         "latency_s": None if la is None else {"mean": float(la.mean()), "median": float(np.median(la)), "p95": float(np.quantile(la, 0.95)), "max": float(la.max()), "frames": int(la.size)},
         "pipeline": pipe,
+        "pixel_chunks_on_stream_thread": stats["shared_chunks"] if share else None,
         "stage_seconds": {"wall": dict(times.wall), "cpu": dict(times.cpu)},
         **(meta or {}),
     }

@@ -150,15 +150,17 @@ def test_live_rwps_pipeline_writes_the_serial_frames_bit_for_bit(tmp_path):
     import imageio.v3 as iio
 
     dat, cfg = _pan_dat(tmp_path)
-    s = {p: _live(dat, cfg, tmp_path / str(p), pipeline=p) for p in (False, True)}
-    assert s[True]["pipeline"] and not s[False]["pipeline"]
+    s = {p: _live(dat, cfg, tmp_path / str(p), pipeline=p, share_pixels=False) for p in (False, True)}
+    s["share"] = _live(dat, cfg, tmp_path / "share")  # the stream's thread takes the pixel rows the solve thread has not
+    assert s[True]["pipeline"] and not s[False]["pipeline"] and s[True]["pixel_chunks_on_stream_thread"] is None
+    assert s["share"]["frames"] == s[False]["frames"] and s["share"]["pixel_chunks_on_stream_thread"] >= 0
     n = s[False]["frames"]
     assert s[True]["frames"] == n >= 10 and s[True]["nan_frames"] == s[False]["nan_frames"] == 0
     assert len(list((tmp_path / "True" / "frames").glob("*.exr"))) == n
     for i in range(n):
-        a, b = _exr_bits(tmp_path / "False", i), _exr_bits(tmp_path / "True", i)
+        a, b, c = _exr_bits(tmp_path / "False", i), _exr_bits(tmp_path / "True", i), _exr_bits(tmp_path / "share", i)
         for k in ("T", "R"):
-            assert np.array_equal(a[k], b[k]), (i, k)
+            assert np.array_equal(a[k], b[k]) and np.array_equal(a[k], c[k]), (i, k)
     assert any(not np.array_equal(_exr_bits(tmp_path / "True", i)["T"], _exr_bits(tmp_path / "True", i + 1)["T"]) for i in range(n - 1))
     assert sum(1 for _ in iio.imiter(tmp_path / "True" / "T.mp4")) == n
 
@@ -185,12 +187,14 @@ def test_live_rwps_pipeline_stops_between_frames_with_complete_outputs(tmp_path)
     assert not list((tmp_path / "p").glob("*.tmp*")) and not list((tmp_path / "p").glob(".*"))
 
 
-def test_live_rwps_pipeline_raises_the_solve_threads_error(tmp_path, monkeypatch):
+@pytest.mark.parametrize("share", [False, True])
+def test_live_rwps_pipeline_raises_the_solve_threads_error(tmp_path, monkeypatch, share):
     """An error in the solve thread reaches the caller (the stream's thread) as itself; no video is left behind."""
     import reconstruct.physics.fused_rwps as fr
 
     dat, cfg = _pan_dat(tmp_path)
-    real, calls = fr.rwps_fused, []
+    owner, name = (fr.RwpsWindow, "finish") if share else (fr, "rwps_fused")
+    real, calls = getattr(owner, name), []
 
     def failing(*a, **k):
         calls.append(1)
@@ -198,9 +202,9 @@ def test_live_rwps_pipeline_raises_the_solve_threads_error(tmp_path, monkeypatch
             raise FloatingPointError("solve failed on purpose")
         return real(*a, **k)
 
-    monkeypatch.setattr(fr, "rwps_fused", failing)
+    monkeypatch.setattr(owner, name, failing)
     with pytest.raises(FloatingPointError, match="on purpose"):
-        _live(dat, cfg, tmp_path / "p")
+        _live(dat, cfg, tmp_path / "p", share_pixels=share)
     assert len(calls) == 3  # nothing solved after the failure
     assert sorted(p.name for p in (tmp_path / "p" / "frames").glob("*.exr")) == ["000000.exr", "000001.exr"]
     assert not list((tmp_path / "p").glob("*.mp4"))

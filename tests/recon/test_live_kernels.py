@@ -107,6 +107,65 @@ def test_fused_rwps_on_bands_of_rows_in_parallel_equals_one_band():
         assert np.array_equal(box_mean(x, 7, threads=bands), box_mean(x, 7, threads=1))
 
 
+def test_fused_rwps_window_shared_by_two_threads_equals_the_one_thread_kernel():
+    """The pixel pass on chunks of rows two threads take in turn, the maps on one (the live path's split): T and R
+    bit for bit those of ``rwps_fused``, whichever thread makes which rows (all on one, all on the other, both at
+    once); the sums array is poisoned with NaN first, so a row no thread made shows.
+    """
+    import threading
+
+    import reconstruct.physics.fused_rwps as F
+
+    Z, I, _, _ = _window(5)
+    sh = np.random.default_rng(11).uniform(-1.7, 1.7, (N, 2))
+    T0, R0 = F.rwps_fused(Z, I, PHYSICS_SOLVER_CONFIG, sh)
+    for mode in ("helper takes all", "finisher takes all", "both at once"):
+        for chunks in (1, 5, H):
+            sums = np.full((9, H, W), np.nan)
+            win = F.RwpsWindow(Z, I, PHYSICS_SOLVER_CONFIG, sh, sums=sums, chunks=chunks)
+            got = {}
+            if mode == "helper takes all":
+                assert win.pixels() == chunks
+            helper = threading.Thread(target=lambda: got.setdefault("n", win.pixels())) if mode == "both at once" else None
+            if helper is not None:
+                helper.start()
+            T1, R1 = win.finish()
+            if helper is not None:
+                helper.join()
+            assert np.array_equal(T1.view(np.uint32), T0.view(np.uint32)) and np.array_equal(R1.view(np.uint32), R0.view(np.uint32)), (mode, chunks)
+            assert win.pixels() == 0  # every chunk taken
+        assert 0 <= got.get("n", 0) <= chunks
+
+
+def test_fused_rwps_window_given_up_releases_the_finishing_thread():
+    """A chunk taken by a thread that never finishes it (its caller failed) leaves ``finish`` waiting; ``cancel``
+    releases it, and it raises instead of returning layers made without that chunk.
+    """
+    import threading
+
+    import reconstruct.physics.fused_rwps as F
+
+    Z, I, _, _ = _window(5)
+    win = F.RwpsWindow(Z, I, PHYSICS_SOLVER_CONFIG, chunks=4)
+    with win.lock:
+        win.next += 1  # the first chunk taken, never made
+    got = {}
+
+    def finish():
+        try:
+            got["out"] = win.finish()
+        except RuntimeError as e:
+            got["err"] = e
+
+    t = threading.Thread(target=finish, daemon=True)
+    t.start()
+    t.join(0.5)
+    assert t.is_alive() and not got
+    win.cancel()
+    t.join(10)
+    assert not t.is_alive() and "err" in got and "out" not in got
+
+
 def test_fused_rwps_recovers_the_layers_of_a_noise_free_window():
     """Without noise the residual variance is 0, Conf -> 1 and lambda -> lambda_low = 0: the plain weighted least
     squares, which is exact on Eq. (1)-(2) data.
