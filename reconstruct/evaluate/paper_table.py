@@ -132,7 +132,7 @@ def paper_tables(
             if table == "table1":
                 e = t1.setdefault(col, {"runs": [], "note": "checkpoint switched at test time, not retrained" if "test-time" in col else ""})
                 if col.startswith("w/o RIR") and "test-time" in col and not rep.config["network"]["trained"]["use_rir"]:
-                    e["note"] = "the full checkpoint was trained without RIR: this column equals Ours"
+                    e["note"] = "the full checkpoint was trained without RIR: this column is it as trained; Ours runs it with RIR (RIR has no weights)"
                 e["runs"].append({"checkpoint": path, "label": label, **final})
                 e["mean"] = _mean(e["runs"])
             else:
