@@ -21,6 +21,8 @@ def evaluate_cmd(
     dt_ms: float = typer.Option(0.65, "--dt-ms", help="aggregation window, milliseconds (odd number of steps)"),
     stride_deg: float = typer.Option(31.5, "--stride-deg", help="polarizer rotation between output frames, degrees"),
     rir: bool = typer.Option(True, "--rir/--no-rir", help="reflection-invariant registration of each window (full: the without-RIR ablation)"),
+    floor: bool = typer.Option(True, "--floor/--no-floor", help="full: the network's data-consistency floor, as polspike reconstruct runs it (--no-floor: the refinement's output as it is)"),
+    floor_anchor: Optional[str] = typer.Option(None, "--floor-anchor", help="full with the floor: what it falls back to where the data check fails: best (the best physics per pixel) | rwps (the physics-only RWPS) [default: the checkpoint's, best]"),
     checkpoint: Optional[Path] = typer.Option(None, "--checkpoint", help="network checkpoint for --method full / --zeta learned [default: the shipped reconstruct/weights default, reconstruct.net.checkpoint.DEFAULT_WEIGHTS]"),
     no_attention: bool = typer.Option(False, "--no-attention", help="full: the checkpoint is the without-angle-attention ablation (trained so)"),
     no_conf: bool = typer.Option(False, "--no-conf", help="full: the without-Conf ablation (trained so, else a test-time ablation)"),
@@ -59,10 +61,12 @@ def evaluate_cmd(
     from reconstruct.evaluate.harness import EvalConfig, evaluate_groups, load_groups, markdown_table, sweep_markdown, window_sweep, write_report
     from reconstruct.stream.synthetic import SyntheticConfig
 
+    if floor_anchor is not None and floor_anchor not in ("rwps", "best"):
+        raise ConfigError(f"--floor-anchor {floor_anchor!r}: use rwps or best")
     cfg = from_dict(
         EvalConfig,
         {"n_obs": n_obs, "dt_ms": dt_ms, "stride_deg": stride_deg, "methods": method, "zeta": zeta, "rir": rir, "max_frames": max_frames, "pane_n": pane_n, "pane_model": pane_model, "dtype": dtype, "device": device,
-         "checkpoint": str(checkpoint or ""), "no_attention": no_attention, "no_conf": no_conf, "net_tile": net_tile, "net_zeta": net_zeta, "net_fallback": net_fallback, "net_ensemble": net_ensemble, "anchor": anchor, "self_fov": self_fov},
+         "checkpoint": str(checkpoint or ""), "no_attention": no_attention, "no_conf": no_conf, "net_tile": net_tile, "net_zeta": net_zeta, "net_fallback": net_fallback, "net_ensemble": net_ensemble, "anchor": anchor, "self_fov": self_fov, "floor": floor, "floor_anchor": floor_anchor or ""},
         where="command line",
     )
     try:
@@ -137,6 +141,8 @@ def evaluate_paper_cmd(
     net_ensemble: int = typer.Option(1, "--net-ensemble", help="average every network column over 1, 2, 4 or 8 mirror / transpose symmetries of each window (test-time self-ensemble; that many forward passes)"),
     device: str = typer.Option("cpu", "--device", help="cpu, cuda or auto"),
     threads: int = typer.Option(0, "--threads", help="torch CPU threads (0 = torch default)"),
+    floor: bool = typer.Option(True, "--floor/--no-floor", help="every network column: the network's data-consistency floor, as polspike reconstruct runs it (--no-floor: the refinement's output as it is)"),
+    floor_anchor: Optional[str] = typer.Option(None, "--floor-anchor", help="with the floor: what it falls back to where the data check fails: best (the best physics per pixel) | rwps (the physics-only RWPS) [default: the checkpoint's, best]"),
     synthetic_groups: int = typer.Option(4, "--synthetic-groups", help="synthetic: number of groups"),
     synthetic_size: str = typer.Option("200x125", "--synthetic-size", help="synthetic: WxH"),
     quiet: bool = typer.Option(False, "--quiet", help="no progress bar"),
@@ -164,7 +170,9 @@ def evaluate_paper_cmd(
     from polinfra.errors import ConfigError
     from reconstruct.stream.synthetic import SyntheticConfig
 
-    cfg = from_dict(EvalConfig, {"n_obs": n_obs, "dt_ms": dt_ms, "zeta": zeta, "max_frames": max_frames, "net_tile": net_tile, "net_ensemble": net_ensemble, "device": device}, where="command line")
+    if floor_anchor is not None and floor_anchor not in ("rwps", "best"):
+        raise ConfigError(f"--floor-anchor {floor_anchor!r}: use rwps or best")
+    cfg = from_dict(EvalConfig, {"n_obs": n_obs, "dt_ms": dt_ms, "zeta": zeta, "max_frames": max_frames, "net_tile": net_tile, "net_ensemble": net_ensemble, "device": device, "floor": floor, "floor_anchor": floor_anchor or ""}, where="command line")
     try:
         w, h = (int(x) for x in synthetic_size.lower().split("x"))
     except ValueError:

@@ -84,6 +84,8 @@ class EvalConfig:
     methods: str = opt("ls,ridge,irls,rwps", "comma-separated methods from ls, ridge, irls, rwps, full (the network)")
     zeta: str = opt("gt", "where zeta comes from", choices=ZETA_SOURCES)
     rir: bool = opt(True, "align each window with reflection-invariant registration")
+    floor: bool = opt(True, "method full: the network's data-consistency floor (reconstruct.net.network.NetConfig.floor, anchored as the checkpoint sets floor_anchor); false: the refinement's output as it is")
+    floor_anchor: str = opt("", "method full with the floor: what it falls back to where the data check fails, best (the best physics per pixel, reconstruct.physics.anchor) or rwps (the physics-only RWPS); empty = the checkpoint's", choices=("", "best", "rwps"))
     max_frames: int = opt(0, "evaluate at most this many output frames per group (0 = all)", lo=0, hi=10**9)
     figure_frames: int = opt(3, "frames shown in the figure grid", lo=0, hi=20)
     batch: int = opt(4, "windows solved together", lo=1, hi=4096)
@@ -177,6 +179,10 @@ def load_network(cfg: EvalConfig) -> tuple[torch.nn.Module, dict]:
         log.warning("%s was trained with Conf; evaluating it without Conf (test-time ablation; the paper retrains)", path)
     if not cfg.no_conf and not trained["use_conf"]:
         raise CheckpointError(f"{path} was trained without Conf; add --no-conf to evaluate it as that ablation")
+    if not cfg.floor:
+        overrides["floor"] = False
+    elif cfg.floor_anchor:
+        overrides["floor_anchor"] = cfg.floor_anchor
     if cfg.net_solver and cfg.net_solver != net.get("solver_method", "rwps"):
         overrides["solver_method"] = cfg.net_solver
     model, data = load_model(path, _device(cfg.device), **overrides)
@@ -186,7 +192,7 @@ def load_network(cfg: EvalConfig) -> tuple[torch.nn.Module, dict]:
     label = NET_METHOD + "".join(f"-no{n}" for n, k in (("rir", "use_rir"), ("att", "use_attention"), ("conf", "use_conf")) if not used[k])
     if "solver_method" in overrides:
         label += f"-{overrides['solver_method']}"
-    info = {"path": str(path), "label": label, "trained": trained, "overrides": overrides, "step": data.get("step"), "ensemble": cfg.net_ensemble}
+    info = {"path": str(path), "label": label, "trained": trained, "overrides": overrides, "step": data.get("step"), "ensemble": cfg.net_ensemble, "floor": model.cfg.floor, "floor_anchor": model.cfg.floor_anchor if model.cfg.floor else None}
     if cfg.net_ensemble > 1:
         from reconstruct.net.network import SymmetryEnsemble
 

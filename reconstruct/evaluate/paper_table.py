@@ -132,7 +132,7 @@ def paper_tables(
             if table == "table1":
                 e = t1.setdefault(col, {"runs": [], "note": "checkpoint switched at test time, not retrained" if "test-time" in col else ""})
                 if col.startswith("w/o RIR") and "test-time" in col and not rep.config["network"]["trained"]["use_rir"]:
-                    e["note"] = "the full checkpoint was trained without RIR: this column equals Ours"
+                    e["note"] = "the full checkpoint was trained without RIR: this column is it as trained; Ours runs it with RIR (RIR has no weights)"
                 e["runs"].append({"checkpoint": path, "label": label, **final})
                 e["mean"] = _mean(e["runs"])
             else:
@@ -145,7 +145,7 @@ def paper_tables(
             progress(j + 1, len(jobs))
     conf = {"n_obs": cfg.n_obs, "dt_ms": cfg.dt_ms, "stride_deg": cfg.stride_deg, "max_frames": cfg.max_frames, "physics_zeta": cfg.zeta, "net_zeta": net_zeta,
             "groups": [g.name for g in groups], "checkpoints": {k: list(v) for k, v in checkpoints.items()}, "n_seeds": len(full),
-            "net_ensemble": cfg.net_ensemble}
+            "net_ensemble": cfg.net_ensemble, "floor": cfg.floor, "floor_anchor": cfg.floor_anchor or ("checkpoint's" if cfg.floor else "")}
     return {"table1": t1, "table3": t3, "config": conf}
 
 
@@ -160,7 +160,7 @@ def paper_markdown(res: dict) -> str:
     cols = list(t1)
     out = [f"# Test split in the paper's layout (N = {c['n_obs']}, dt = {c['dt_ms']} ms; {len(c['groups'])} groups; network zeta {c.get('net_zeta', 'learned')}"
            + (f", at most {c['max_frames']} frames each" if c["max_frames"] else "") + f"; network columns: mean of {c['n_seeds']} checkpoint(s)"
-           + (f", each a self-ensemble of {c['net_ensemble']} symmetries" if c.get("net_ensemble", 1) > 1 else "") + ")", "",
+           + (f", each a self-ensemble of {c['net_ensemble']} symmetries" if c.get("net_ensemble", 1) > 1 else "") + ("; no data-consistency floor" if c.get("floor", True) is False else "") + ")", "",
            "## Table 1", "", "| Metric | " + " | ".join(cols) + " |", "|---|" + "---:|" * len(cols)]
     for k, name, nd in (("psnr_T", "PSNR T (dB)", 2), ("ssim_T", "SSIM T", 3), ("psnr_R", "PSNR R (dB)", 2), ("ssim_R", "SSIM R", 3)):
         out.append(f"| {name} | " + " | ".join(_f(t1[col]["mean"][k], nd) for col in cols) + " |")
