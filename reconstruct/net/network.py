@@ -568,21 +568,17 @@ class PolSpikeNet(nn.Module):
     @torch.no_grad()
     def data_floor(self, T: torch.Tensor, R: torch.Tensor, zeta: torch.Tensor, I: torch.Tensor, exposure=None, I_mean=None, phi=None, external: bool = True) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """The data-consistency floor (:mod:`reconstruct.physics.consistency`): (T, R) against the physics-only RWPS
-        (Poisson reliability weights, :data:`reconstruct.physics.solvers.PHYSICS_SOLVER_CONFIG`, layers >= 0: what
-        ``polspike reconstruct --method rwps`` returns on this zeta) on the same (aligned) windows -> (T, R, kept fraction).
+        (``polspike reconstruct --method rwps`` on this zeta, layers >= 0) on the same aligned windows -> (T, R, kept fraction).
         Given the stream's ``exposure``, the noise is capped at the windows' Poisson noise, var(2 I) = 4 I / (exposure L)
         with L = 13 steps (0.65 ms at 20 kHz: the windows this network reads), so misalignment or a wrong zeta in the
         residual does not widen the allowance; and bounded from below by the noise of counts under one spike per window
         (:func:`reconstruct.physics.consistency.count_quantum_variance` at the brighter of the windows' and the span's
         mean), which a dark pool's all-zero windows cannot show.  ``floor_anchor = "best"`` (the default) makes the same
-        data check (the excess residual over the RWPS's) but falls back to the best physics per pixel instead
-        (:func:`reconstruct.physics.anchor.anchored_floor`, with the long span's ``I_mean`` where the network reads it, at
-        the polarizer-cycle mean zeta of the windows' angles ``phi``): where least squares beats the RWPS (bright light,
-        a strong reflection: by 2-4 dB on the motion bench) a correction the data refuse ends there, not at the RWPS.
-        ``floor_layers`` adds its layer checks.  The kept fraction returned is T's.
-        It does so on an ``external`` zeta only (self-calibrated or given): least squares on the network's learned zeta,
-        which nothing checks, can be far off (a 16 x 20 view the self-calibration calls ambiguous: the anchor's T erred
-        by 0.8-1.2 on a 0.3-0.7 layer), and the regularised RWPS is the safer fallback there.
+        data check but falls back to the best physics per pixel (:func:`reconstruct.physics.anchor.anchored_floor`, with
+        the long span's ``I_mean`` at the polarizer-cycle mean zeta of the angles ``phi``), where least squares beats
+        the RWPS (bright light, a strong reflection: by 2-4 dB on the motion bench); ``floor_layers`` adds its layer
+        checks; the kept fraction returned is T's.  Only on an ``external`` zeta (self-calibrated or given): least
+        squares on the unchecked learned zeta can be far off (the anchor's T erred by 0.8-1.2 on a 0.3-0.7 layer).
         """
         from reconstruct.physics.anchor import AnchorFloorConfig, anchored_floor
         from reconstruct.physics.consistency import FloorConfig, consistency_floor, spike_noise_bounds, window_counts
