@@ -170,15 +170,29 @@ def confidence(zeta: torch.Tensor, w: torch.Tensor | None = None, kappa: float =
 
 def _box(x: torch.Tensor, k: int) -> torch.Tensor:
     """Mean over a k x k box (edge-aware: padding does not count) of (..., H, W), as two 1-D passes (rows, then
-    columns; the valid part of a box is a product of row and column ranges, so this is the 2-D mean), O(k) per pixel.
+    columns; the valid part of a box is a product of row and column ranges, so this is the 2-D mean): every element
+    the float sum of its window's values in increasing index, divided by their count, as ``avg_pool2d`` with
+    ``count_include_pad=False`` computes it (bit for bit, tests/recon/test_solver_box.py), by k shifted additions of
+    whole maps instead of a scalar loop per pixel.
     """
     if k <= 1:
         return x
-    shp = x.shape
-    y = x.reshape(-1, 1, *shp[-2:])
-    y = torch.nn.functional.avg_pool2d(y, (k, 1), stride=1, padding=(k // 2, 0), count_include_pad=False)[..., : shp[-2], :]
-    y = torch.nn.functional.avg_pool2d(y, (1, k), stride=1, padding=(0, k // 2), count_include_pad=False)[..., : shp[-1]]
-    return y.reshape(shp)
+    return _box_pass(_box_pass(x, k, -2), k, -1)
+
+
+def _box_pass(x: torch.Tensor, k: int, dim: int) -> torch.Tensor:
+    """The edge-aware 1-D mean over k values along ``dim`` (-2 or -1) of (..., H, W); window of i: i - k // 2 .. i - k // 2 + k - 1.
+
+    Zero-padded shifted copies added in increasing index: out-of-range terms add +0.0, which leaves a float sum as it is.
+    """
+    n, h = x.shape[dim], k // 2
+    xp = torch.nn.functional.pad(x, (h, k - 1 - h) if dim == -1 else (0, 0, h, k - 1 - h))
+    acc = torch.zeros_like(x)
+    for d in range(k):
+        acc += xp.narrow(dim, d, n)
+    i = torch.arange(n, device=x.device)
+    count = ((i - h + k).clamp(max=n) - (i - h).clamp(min=0)).to(x.dtype)
+    return acc / (count[:, None] if dim == -2 else count)
 
 
 def _ls_noise(zeta: torch.Tensor, b: torch.Tensor, w: torch.Tensor, pool: int):
