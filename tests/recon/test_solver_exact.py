@@ -1,4 +1,7 @@
-"""The solvers' box mean: the same floats as ``avg_pool2d`` with ``count_include_pad=False`` (the oracle), and a brute-force mean."""
+"""The solvers' shortcuts give the floats of the plain computation: the box mean those of ``avg_pool2d`` with
+``count_include_pad=False`` (and a brute-force mean), the RWPS solve with its window sums shared between the noise pass
+and the final solve those of the same steps each computing its own sums.
+"""
 
 from __future__ import annotations
 
@@ -6,7 +9,7 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from reconstruct.physics.solvers import _box
+from reconstruct.physics.solvers import PHYSICS_SOLVER_CONFIG, _box, lambda_from_conf, poisson_reliability, pooled_difference_prior, solve, solve_weighted_ridge
 
 
 def _pooled(x: torch.Tensor, k: int) -> torch.Tensor:
@@ -44,3 +47,19 @@ def test_box_gradient_matches_avg_pool():
     (ga,) = torch.autograd.grad((_box(x, 5) * wgt).sum(), x)
     (gb,) = torch.autograd.grad((_pooled(x, 5) * wgt).sum(), x)
     assert torch.allclose(ga, gb, rtol=1e-12, atol=1e-15)
+
+
+@pytest.mark.parametrize("given_w", [False, True])
+def test_rwps_with_shared_sums_is_the_unshared_steps_bit_for_bit(given_w):
+    g = torch.Generator().manual_seed(11)
+    zeta = 0.4 * torch.rand(2, 7, 30, 41, generator=g)
+    I = torch.rand(2, 7, 30, 41, generator=g)
+    w = torch.rand(2, 7, 30, 41, generator=g) if given_w else None
+    c = PHYSICS_SOLVER_CONFIG
+    got = solve("rwps", zeta, I, w, c)
+    b = 2.0 * I
+    w0 = w.clamp(0.0, 1.0) if given_w else poisson_reliability(zeta, I, first_lambda=c.lambda_high)
+    D0, q = pooled_difference_prior(zeta, b, w0, c.prior_pool, c.prior_kappa, c.noise_pool)  # its own sums
+    lam = lambda_from_conf(q / (q + c.snr_kappa), c.lambda_low, c.lambda_high)
+    R, T = solve_weighted_ridge(zeta, b, w0, lam, "equal", D0)  # its own sums
+    assert torch.equal(got.R, R) and torch.equal(got.T, T) and torch.equal(got.lam, lam)
