@@ -175,7 +175,7 @@ def reconstruct_cmd(
     threads: int = typer.Option(0, "--threads", help="torch threads of the streaming path on the CPU [default 0 = auto: the cores idle when the run starts (1-minute load average), at least 1; the live path runs its solver on one]"),
     preview: Optional[bool] = typer.Option(None, "--preview/--no-preview", help="also write preview.mp4 (input | T | R side by side; more encoder CPU than T.mp4 and R.mp4 together) [default: the streaming path yes, the live path no: it keeps up with the camera]"),
     fast: bool = typer.Option(False, "--fast", help="the network's convolutions in channels-last memory format: about 1.9x on them on the CPU, T and R within float32 rounding of the default (reconstruct/net/inference.py)"),
-    compile_: bool = typer.Option(False, "--compile", help="torch.compile (inductor) of the network's parameter branch and refinement: needs a C++ compiler, else runs eagerly with a warning; the first frames compile (tens of seconds; reconstruct.json 'compile')"),
+    compile_: bool = typer.Option(False, "--compile", help="torch.compile (inductor) of the network's forward pass: needs a C++ compiler, else runs eagerly with a warning; the first batch compiles (minutes on 2 cores; reconstruct.json 'compile'), T and R within float32 rounding of the default (reconstruct/net/inference.py)"),
 ) -> None:
     """Turn a spike group or a .dat into reflection-free T and R video at the output cadence (~343 FPS)."""
     import dataclasses

@@ -5,10 +5,12 @@
   idle: measured 1.9x on the refinement and 1.8x on the per-observation encoders on one thread (docs/realtime.md,
   "The network path").  The convolutions then sum in another order, so T and R move by float32 rounding (a few 1e-7
   of a layer value; tests/recon/test_net_inference.py states the tolerance).
-* ``compile``: ``torch.compile`` (inductor) of the parameter branch and the refinement: their pointwise operations
-  fused into generated C++ loops beside the oneDNN convolutions.  Needs a C++ compiler (``$CXX``, g++, c++ or clang++ on
-  the PATH): without one, or when the first compiled call fails, the modules run eagerly (a warning says so).  The
-  first call of each input shape compiles (tens of seconds; :class:`CompileStats` records it).
+* ``compile``: ``torch.compile`` (inductor) of the network's whole forward pass: the convolutions, and the solves, the
+  floor and the levels' many pointwise operations fused into generated C++ loops (graph breaks where Python decides,
+  e.g. RIR's warp).  Needs a C++ compiler (``$CXX``, g++, c++ or clang++ on the PATH): without one, or when the
+  compiled call fails, the network runs eagerly (a warning says so).  The first call compiles (minutes on two cores;
+  :class:`CompileStats` records it); only that first input shape is compiled: another (a stream's last, smaller batch)
+  runs eagerly rather than compiling again.
 
 Both change the module in place and keep :meth:`PolSpikeNet.forward`'s contract, so wrappers (the external-zeta models
 of :mod:`reconstruct.net.net_zeta`, :class:`reconstruct.net.network.SymmetryEnsemble`) run the faster network as they
@@ -69,14 +71,16 @@ def cxx_compiler() -> str | None:
 
 
 def _guarded(module: torch.nn.Module, stats: CompileStats, what: str) -> None:
-    """Replace ``module.forward`` by its compiled form, falling back to the eager forward for good on the first failure."""
+    """Replace ``module.forward`` by its compiled form for the first input shape it sees, falling back to the eager
+    forward for good on the first failure (and for other shapes).
+    """
     eager = module.forward
     compiled = torch.compile(eager, dynamic=False)
     seen: set[tuple] = set()
 
     def forward(*args, **kw):
-        if stats.status == "on":
-            key = tuple(tuple(a.shape) for a in args if torch.is_tensor(a))
+        key = tuple(tuple(a.shape) for a in args if torch.is_tensor(a))
+        if stats.status == "on" and (not seen or key in seen):
             w0, c0 = time.perf_counter(), time.process_time()
             try:
                 out = compiled(*args, **kw)
@@ -98,8 +102,8 @@ def _guarded(module: torch.nn.Module, stats: CompileStats, what: str) -> None:
 def accelerate(model, *, fast: bool = False, compile_: bool = False) -> CompileStats:
     """Apply the speed-ups to the network inside ``model`` (in place; eval mode expected) -> the compile status.
 
-    ``fast``: channels-last convolutions; ``compile_``: ``torch.compile`` of the parameter branch and the refinement
-    (module docstring).  A model without a network (a physics model) is left as it is.
+    ``fast``: channels-last convolutions; ``compile_``: ``torch.compile`` of the network's forward pass (module
+    docstring).  A model without a network (a physics model) is left as it is.
     """
     stats = CompileStats()
     net = find_network(model)
@@ -116,6 +120,5 @@ def accelerate(model, *, fast: bool = False, compile_: bool = False) -> CompileS
             log.warning("--compile: %s; running the network eagerly", stats.status)
             return stats
         stats.status = "on"
-        _guarded(net.param, stats, "the parameter branch")
-        _guarded(net.refine, stats, "the refinement")
+        _guarded(net, stats, "the network")
     return stats
