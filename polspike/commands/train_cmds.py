@@ -175,6 +175,8 @@ def reconstruct_cmd(
     video_codec: str = typer.Option("h264", "--video-codec", help="live path videos: h264 (T.mp4, R.mp4, plays everywhere) | h264-gray (4:0:0 .mp4: less encoder CPU; ffmpeg, mpv, VLC, not browsers) | y4m (raw 8-bit T.y4m, R.y4m: no encoder CPU, 100 kB per 400 x 250 frame)"),
     threads: int = typer.Option(0, "--threads", help="torch threads of the streaming path on the CPU [default 0 = auto: the cores idle when the run starts (1-minute load average), at least 1; the live path runs its solver on one]"),
     preview: Optional[bool] = typer.Option(None, "--preview/--no-preview", help="also write preview.mp4 (input | T | R side by side; more encoder CPU than T.mp4 and R.mp4 together) [default: the streaming path yes, the live path no: it keeps up with the camera]"),
+    fast: bool = typer.Option(False, "--fast", help="the network's convolutions in channels-last memory format: about 1.9x on them on the CPU, T and R within float32 rounding of the default (reconstruct/net/inference.py)"),
+    compile_: bool = typer.Option(False, "--compile", help="torch.compile (inductor) of the network's forward pass: needs a C++ compiler, else runs eagerly with a warning; the first batch compiles (minutes on 2 cores; reconstruct.json 'compile'), T and R within float32 rounding of the default (reconstruct/net/inference.py)"),
 ) -> None:
     """Turn a spike group or a .dat into reflection-free T and R video at the output cadence (~343 FPS)."""
     import dataclasses
@@ -192,6 +194,8 @@ def reconstruct_cmd(
 
     if method not in ("net", *PHYSICS_METHODS):
         raise ConfigError(f"--method {method!r}: choose net or one of {', '.join(PHYSICS_METHODS)}")
+    if (fast or compile_) and method != "net":
+        raise ConfigError(f"{'--fast' if fast else '--compile'} speeds up the network (--method net); a physics solver has no convolutions")
     if zeta is not None and zeta not in (*STREAM_ZETA_SOURCES, "none"):
         raise ConfigError(f"--zeta {zeta!r}: choose one of {', '.join(STREAM_ZETA_SOURCES)}, none")
     from reconstruct.net.net_zeta import NET_FALLBACKS, NET_ZETA_SOURCES
@@ -287,6 +291,12 @@ def reconstruct_cmd(
         fa["floor_layers"] = floor_layers
     load = lambda: load_model(weights or DEFAULT_WEIGHTS, dev, use_rir=rir, floor=floor, **fa)[0]  # noqa: E731
     net_model = load() if method == "net" else None  # a bad checkpoint is reported before the stream is read
+    if net_model is not None and (fast or compile_):
+        from reconstruct.net.inference import accelerate
+
+        speed = {"fast": fast, "compile": accelerate(net_model, fast=fast, compile_=compile_).summary()}
+    else:
+        speed = {}
     anchor_used = net_model.cfg.floor_anchor if net_model is not None else None
     layers_used = bool(net_model.cfg.floor_layers) if net_model is not None and anchor_used == "best" else None
     if net_model is not None and ensemble > 1:
@@ -340,7 +350,7 @@ def reconstruct_cmd(
                                           exposure=None if src.exposure is not None else cfg.exposure, rir=rir, load_learned=load, anchor=anchor,
                                           pane_n=pane_n, pane_model=pane_model, selfcal=selfcal)
     maps_out = _write_selfcal_maps(out, model, info)
-    meta = {**exposure_info, "method": method, "anchor": anchor, "ensemble": ensemble, "rir": rir, "floor": floor if method == "net" else None, "floor_anchor": anchor_used if floor else None, "floor_layers": layers_used if floor else None, "span": span if method == "net" else None, "zeta": info["zeta"] if info is not None else "learned"}
+    meta = {**exposure_info, "method": method, "anchor": anchor, "ensemble": ensemble, "rir": rir, "floor": floor if method == "net" else None, "floor_anchor": anchor_used if floor else None, "floor_layers": layers_used if floor else None, "span": span if method == "net" else None, "zeta": info["zeta"] if info is not None else "learned", **speed}
     live = is_dat and path != "stream" and method != "net" and getattr(model, "maps", None) is not None and anchor == "none" and dev == "cpu"
     if video_codec != "h264" and not live:
         raise ConfigError(f"--video-codec {video_codec} is an option of the live path (physics methods on pane maps over a .dat); the streaming path writes H.264")

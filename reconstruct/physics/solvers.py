@@ -90,7 +90,7 @@ import torch
 from polinfra.config import opt
 from polinfra.errors import ConfigError, ShapeError
 
-__all__ = ["SOLVERS", "PHYSICS_SOLVER_CONFIG", "adaptive_confidence", "pooled_difference_prior", "SolverConfig", "SolverResult", "moments", "confidence", "lambda_from_conf", "solve_weighted_ridge", "huber_factor", "solve", "poisson_reliability"]
+__all__ = ["SOLVERS", "PHYSICS_SOLVER_CONFIG", "adaptive_confidence", "pooled_difference_prior", "SolverConfig", "SolverResult", "moments", "confidence", "lambda_from_conf", "solve_weighted_ridge", "weighted_sums", "huber_factor", "solve", "poisson_reliability"]
 
 SOLVERS = ("ls", "ridge", "irls", "rwps")
 """Solver names accepted by :func:`solve`."""
@@ -170,33 +170,49 @@ def confidence(zeta: torch.Tensor, w: torch.Tensor | None = None, kappa: float =
 
 def _box(x: torch.Tensor, k: int) -> torch.Tensor:
     """Mean over a k x k box (edge-aware: padding does not count) of (..., H, W), as two 1-D passes (rows, then
-    columns; the valid part of a box is a product of row and column ranges, so this is the 2-D mean), O(k) per pixel.
+    columns; the valid part of a box is a product of row and column ranges, so this is the 2-D mean): every element
+    the float sum of its window's values in increasing index, divided by their count, as ``avg_pool2d`` with
+    ``count_include_pad=False`` computes it (bit for bit, tests/recon/test_solver_exact.py), by k shifted additions of
+    whole maps instead of a scalar loop per pixel.
     """
     if k <= 1:
         return x
-    shp = x.shape
-    y = x.reshape(-1, 1, *shp[-2:])
-    y = torch.nn.functional.avg_pool2d(y, (k, 1), stride=1, padding=(k // 2, 0), count_include_pad=False)[..., : shp[-2], :]
-    y = torch.nn.functional.avg_pool2d(y, (1, k), stride=1, padding=(0, k // 2), count_include_pad=False)[..., : shp[-1]]
-    return y.reshape(shp)
+    return _box_pass(_box_pass(x, k, -2), k, -1)
 
 
-def _ls_noise(zeta: torch.Tensor, b: torch.Tensor, w: torch.Tensor, pool: int):
-    """The weighted least-squares solve and its residual noise, shared by the adaptive Conf and the pooled prior:
-    (S_rr, S_rt, S_tt, sum w, det M, tiny, R_ls, T_ls, sigma^2 box-averaged over ``pool`` pixels).
+def _box_pass(x: torch.Tensor, k: int, dim: int) -> torch.Tensor:
+    """The edge-aware 1-D mean over k values along ``dim`` (-2 or -1) of (..., H, W); window of i: i - k // 2 .. i - k // 2 + k - 1.
+
+    Zero-padded shifted copies added in increasing index: out-of-range terms add +0.0, which leaves a float sum as it is.
     """
-    S_rr, S_rt, S_tt, sw = moments(zeta, w)
+    n, h = x.shape[dim], k // 2
+    xp = torch.nn.functional.pad(x, (h, k - 1 - h) if dim == -1 else (0, 0, h, k - 1 - h))
+    acc = torch.zeros_like(x)
+    for d in range(k):
+        acc += xp.narrow(dim, d, n)
+    i = torch.arange(n, device=x.device)
+    count = ((i - h + k).clamp(max=n) - (i - h).clamp(min=0)).to(x.dtype)
+    return acc / (count[:, None] if dim == -2 else count)
+
+
+def _ls_noise(zeta: torch.Tensor, b: torch.Tensor, w: torch.Tensor, pool: int, sums: tuple[torch.Tensor, ...] | None = None):
+    """The weighted least-squares solve and its residual noise, shared by the adaptive Conf and the pooled prior:
+    (S_rr, S_rt, S_tt, sum w, det M, tiny, R_ls, T_ls, sigma^2 box-averaged over ``pool`` pixels).  ``sums``: the
+    window sums of :func:`weighted_sums` when the caller has them.
+    """
+    sums = weighted_sums(zeta, b, w) if sums is None else sums
+    S_rr, S_rt, S_tt, sw = sums[:4]
     tiny = torch.finfo(zeta.dtype).tiny ** 0.5
     det = (S_rr * S_tt - S_rt * S_rt).clamp_min(0.0)
     n_eff = sw * sw / ((w * w).sum(-3) + tiny)
-    R, T = solve_weighted_ridge(zeta, b, w, 0.0)
+    R, T = solve_weighted_ridge(zeta, b, w, 0.0, sums=sums)
     r = b - (zeta * R.unsqueeze(-3) + (1.0 - zeta) * T.unsqueeze(-3))
     dof = (n_eff - 2.0).clamp_min(0.5)
     sigma2 = _box((w * r * r).sum(-3) / (sw + tiny) * n_eff / dof, pool)
     return S_rr, S_rt, S_tt, sw, det, tiny, R, T, sigma2
 
 
-def adaptive_confidence(zeta: torch.Tensor, b: torch.Tensor, w: torch.Tensor, snr_kappa: float = 1.0, pool: int = 5) -> torch.Tensor:
+def adaptive_confidence(zeta: torch.Tensor, b: torch.Tensor, w: torch.Tensor, snr_kappa: float = 1.0, pool: int = 5, sums: tuple[torch.Tensor, ...] | None = None) -> torch.Tensor:
     """Noise-aware Conf in [0, 1) (``lambda_map = "adaptive"``; module docstring, "Adaptive Conf").
 
     An empirical-Bayes signal-to-noise ratio of the reflection estimate: a first weighted
@@ -212,11 +228,12 @@ def adaptive_confidence(zeta: torch.Tensor, b: torch.Tensor, w: torch.Tensor, sn
         zeta, b, w: (..., N, H, W) mixing coefficients, right sides (2 I) and weights.
         snr_kappa: q at which Conf = 1/2.
         pool: box side in pixels.
+        sums: optional :func:`weighted_sums` of (zeta, b, w), computed here when omitted.
 
     Returns:
         Conf (..., H, W).
     """
-    S_rr, S_rt, S_tt, sw, det, tiny, R, T, sigma2 = _ls_noise(zeta, b, w, pool)
+    S_rr, S_rt, S_tt, sw, det, tiny, R, T, sigma2 = _ls_noise(zeta, b, w, pool, sums)
     v_R = (sigma2 * S_tt / (det + _eps(zeta.dtype) * S_tt * S_tt + tiny)).clamp_max(1e12)
     v_pool = _box(v_R, pool)
     s2 = (_box(R * R, pool) - v_pool).clamp_min(0.0)
@@ -225,7 +242,7 @@ def adaptive_confidence(zeta: torch.Tensor, b: torch.Tensor, w: torch.Tensor, sn
 
 
 def pooled_difference_prior(
-    zeta: torch.Tensor, b: torch.Tensor, w: torch.Tensor, pool: int = 31, kappa0: float = 0.003, noise_pool: int = 5
+    zeta: torch.Tensor, b: torch.Tensor, w: torch.Tensor, pool: int = 31, kappa0: float = 0.003, noise_pool: int = 5, sums: tuple[torch.Tensor, ...] | None = None
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Prior mean D0 of R - T and the SNR q of the difference (``rwps_prior = "pooled"``; module docstring).
 
@@ -244,11 +261,12 @@ def pooled_difference_prior(
         pool: box side in pixels of the pooled prior.
         kappa0: box-mean conditioning 4 Var_w(zeta) at which D0 keeps half its value.
         noise_pool: box side of the residual-noise estimate.
+        sums: optional :func:`weighted_sums` of (zeta, b, w), computed here when omitted.
 
     Returns:
         (D0, q), each (..., H, W).
     """
-    S_rr, S_rt, S_tt, sw, det, tiny, R, T, sigma2 = _ls_noise(zeta, b, w, noise_pool)
+    S_rr, S_rt, S_tt, sw, det, tiny, R, T, sigma2 = _ls_noise(zeta, b, w, noise_pool, sums)
     v_D = (sigma2 * sw / (det + _eps(zeta.dtype) * sw * sw + tiny)).clamp_max(1e12)
     D = R - T
     u = det / (sw + tiny)
@@ -265,8 +283,20 @@ def lambda_from_conf(conf: torch.Tensor, lambda_low: float, lambda_high: float) 
     return lambda_low * conf + lambda_high * (1.0 - conf)  # supp. Eq. (8)
 
 
+def weighted_sums(zeta: torch.Tensor, b: torch.Tensor, w: torch.Tensor) -> tuple[torch.Tensor, ...]:
+    """The window sums of the weighted normal equations, over the window axis -3: (S_rr, S_rt, S_tt, sum w) of
+    :func:`moments` and the right sides r_R = sum w zeta b, r_T = sum w (1 - zeta) b (supp. Eq. (9)).  One solve's
+    least-squares pass and its final ridge solve share them (same zeta, b and weights).
+    """
+    S_rr, S_rt, S_tt, sw = moments(zeta, w)
+    r_R = (w * zeta * b).sum(-3)
+    r_T = (w * (1.0 - zeta) * b).sum(-3)
+    return S_rr, S_rt, S_tt, sw, r_R, r_T
+
+
 def solve_weighted_ridge(
-    zeta: torch.Tensor, b: torch.Tensor, w: torch.Tensor, lam: torch.Tensor | float = 0.0, prior: str = "zero", prior_mean: torch.Tensor | None = None
+    zeta: torch.Tensor, b: torch.Tensor, w: torch.Tensor, lam: torch.Tensor | float = 0.0, prior: str = "zero", prior_mean: torch.Tensor | None = None,
+    sums: tuple[torch.Tensor, ...] | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Closed-form (A^T W A + lambda sum(w) I)^{-1} A^T W b per pixel, supp. Eq. (9).
 
@@ -280,13 +310,12 @@ def solve_weighted_ridge(
             mean 2 <I> (TFP) instead of shrinking the well-determined mean level).
         prior_mean: with ``prior = "equal"``, the prior pulls R - T toward this (..., H, W) value
             instead of 0: lambda (R - T - D0)^2 (``rwps_prior = "pooled"``).
+        sums: optional :func:`weighted_sums` of (zeta, b, w), computed here when omitted.
 
     Returns:
         (R, T), each (..., H, W).
     """
-    S_rr, S_rt, S_tt, sw = moments(zeta, w)
-    r_R = (w * zeta * b).sum(-3)
-    r_T = (w * (1.0 - zeta) * b).sum(-3)
+    S_rr, S_rt, S_tt, sw, r_R, r_T = weighted_sums(zeta, b, w) if sums is None else sums
     if prior_mean is not None and prior == "equal":
         r_R = r_R + lam * sw * prior_mean
         r_T = r_T - lam * sw * prior_mean
@@ -381,11 +410,12 @@ def solve(
     else:
         w0 = torch.ones_like(I)
     D0 = None
+    sums = weighted_sums(zeta, b, w0) if (method == "rwps" and config.lambda_map == "adaptive") else None  # the noise pass's and the final solve's
     if method == "rwps" and config.lambda_map == "adaptive" and config.rwps_prior == "pooled":
-        D0, q = pooled_difference_prior(zeta, b, w0, config.prior_pool, config.prior_kappa, config.noise_pool)
+        D0, q = pooled_difference_prior(zeta, b, w0, config.prior_pool, config.prior_kappa, config.noise_pool, sums)
         conf = q / (q + config.snr_kappa)
     elif method == "rwps" and config.lambda_map == "adaptive":
-        conf = adaptive_confidence(zeta, b, w0, config.snr_kappa, config.noise_pool)
+        conf = adaptive_confidence(zeta, b, w0, config.snr_kappa, config.noise_pool, sums)
     else:
         conf = confidence(zeta, w0, config.conf_kappa)
     if method == "rwps":
@@ -395,7 +425,7 @@ def solve(
     else:
         lam = torch.zeros_like(conf)
     prior = "equal" if (method == "rwps" and config.lambda_map == "adaptive" and config.rwps_prior in ("equal", "pooled")) else "zero"
-    R, T = solve_weighted_ridge(zeta, b, w0, lam, prior, D0)
+    R, T = solve_weighted_ridge(zeta, b, w0, lam, prior, D0, sums)
     w = w0
     if method in ("irls", "rwps"):
         iters = config.rwps_irls_iters if (method == "rwps" and config.rwps_irls_iters >= 0) else config.irls_iters

@@ -1,0 +1,46 @@
+"""``polspike bench net-speed``: the network path's CPU cost with ``--fast`` / ``--compile``, as ratios to the default path in one run."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import typer
+
+from polspike.cli import bench_app
+
+
+@bench_app.command("net-speed")
+def bench_net_speed_cmd(
+    out: Path = typer.Option(Path("out/bench/net_speed"), "--out", help="output folder: net_speed.json, net_speed.md"),
+    width: int = typer.Option(400, "--width", help="frame width (H W divisible by 8)"),
+    height: int = typer.Option(250, "--height", help="frame height"),
+    frames: int = typer.Option(12, "--frames", help="timed output frames per variant (even: two windows per forward pass)"),
+    variants: str = typer.Option("default,fast", "--variants", help="comma-separated, the first the reference: default, fast, compile, fast+compile (compile: torch.compile, needs a C++ compiler, minutes of compile time on 2 cores)"),
+    threads: int = typer.Option(1, "--threads", help="torch threads"),
+    rir: str = typer.Option("window", "--rir", help="the windows' RIR shifts: window | chained (as polspike reconstruct --rir)"),
+) -> None:
+    """CPU seconds per frame by stage of the shipped network's streaming path, per speed-up variant, beside the default, with the largest change of T and R."""
+    from rich.console import Console
+
+    from polinfra.atomic import write_json, write_text
+    from polinfra.errors import ConfigError
+    from reconstruct.evaluate.net_speed_bench import NET_SPEED_VARIANTS, bench_net_speed, net_speed_markdown
+
+    vs = tuple(v.strip() for v in variants.split(",") if v.strip())
+    if not vs or [v for v in vs if v not in NET_SPEED_VARIANTS]:
+        raise ConfigError(f"--variants {variants!r}: choose among {', '.join(NET_SPEED_VARIANTS)}")
+    if frames < 2 or frames % 2:
+        raise ConfigError(f"--frames {frames}: an even number >= 2 (two windows per forward pass)")
+    if (height * width) % 8:
+        raise ConfigError(f"{width} x {height}: a .dat frame needs H W divisible by 8")
+    if threads < 1:
+        raise ConfigError(f"--threads {threads}: at least 1")
+    if rir not in ("window", "chained"):
+        raise ConfigError(f"--rir {rir!r}: choose window or chained")
+    con = Console(stderr=True)
+    res = bench_net_speed(width, height, frames, vs, threads, rir, progress=lambda s: con.print(f"[dim]{s}[/]"))
+    md = net_speed_markdown(res)
+    write_json(out / "net_speed.json", res)
+    write_text(out / "net_speed.md", md)
+    Console().print(md)
+    Console().print(f"wrote {out / 'net_speed.json'}, {out / 'net_speed.md'}")
