@@ -103,6 +103,7 @@ class NetConfig:
     floor_tol: float = opt(4.0, "the floor's allowed excess residual, in noise variances of one observation (4: the floored error is the smaller of the refinement's and the physics', reconstruct.physics.consistency)", lo=0.0, hi=1e6)
     floor_anchor: str = opt("best", "what the floor falls back to where the data check fails: best (per pixel the best physics the observations support, least squares, the spike mean or a blend, reconstruct.physics.anchor; on an external zeta, else rwps) | rwps (the physics-only RWPS)", choices=("rwps", "best"))
     floor_layers: bool = opt(False, "with floor_anchor = best: also judge T and R by their own move from the anchor against its stated error power (in proportion to the windows' expected spikes up to one per window). It lifts bright strong-reflection motion cells by 0.3-0.6 dB but costs 1.0 dB on the paper-profile test windows (RIR on), where the anchor errs 2-4 x more than it states")
+    floor_gain_spread: float = opt(0.0, "the sensor's per-pixel photo-gain spread (relative sd; 0.0577 is SCSim's measurement of the camera) the floor allows for: a gain error scales a pixel's 7 observations alike and a fit absorbs it, so a move along the physics itself within three spreads is not counted (reconstruct.physics.consistency.move_excess). Off: with a dominant reflection a wrong T hides in R's rescaling (docs/motion.md)", lo=0.0, hi=0.5)
     floor_mode: str = opt("shrink", "the floor: shrink (keep the fraction min(1, floor_tol sigma^2 / excess) of the refinement's move from the physics) | hard (the physics wherever the excess exceeds floor_tol sigma^2)", choices=("shrink", "hard"))
 
     def __post_init__(self) -> None:
@@ -584,16 +585,15 @@ class PolSpikeNet(nn.Module):
         from reconstruct.physics.consistency import FloorConfig, consistency_floor, spike_noise_bounds, window_counts
         from reconstruct.physics.solvers import PHYSICS_SOLVER_CONFIG
 
-        z = zeta.detach().float()
-        Iw = I.detach().float()
+        z, Iw, gs = zeta.detach().float(), I.detach().float(), self.cfg.floor_gain_spread
         mv, qf = spike_noise_bounds(Iw, exposure, None if I_mean is None else I_mean.detach().float())
         ph = solve("rwps", z, Iw, None, PHYSICS_SOLVER_CONFIG)
         if self.cfg.floor_anchor == "best" and external:
             g = anchored_floor(T.float(), R.float(), z, Iw, None if I_mean is None else I_mean.detach().float(), None if I_mean is None else zbar_of(z, phi.float()),
                                AnchorFloorConfig(tol=self.cfg.floor_tol, layers=self.cfg.floor_layers), mv, reference=(ph.T.clamp_min(0.0), ph.R.clamp_min(0.0)), noise_floor=qf,
-                               counts=window_counts(Iw, exposure))
+                               counts=window_counts(Iw, exposure), gain_spread=gs)
             return g.T.to(T.dtype), g.R.to(R.dtype), g.keep_T
-        f = consistency_floor(T.float(), R.float(), ph.T.clamp_min(0.0), ph.R.clamp_min(0.0), z, Iw, FloorConfig(tol=self.cfg.floor_tol, mode=self.cfg.floor_mode), mv, "min", noise_floor=qf)
+        f = consistency_floor(T.float(), R.float(), ph.T.clamp_min(0.0), ph.R.clamp_min(0.0), z, Iw, FloorConfig(tol=self.cfg.floor_tol, mode=self.cfg.floor_mode), mv, "min", noise_floor=qf, gain_spread=gs)
         return f.T.to(T.dtype), f.R.to(R.dtype), f.keep
 
 

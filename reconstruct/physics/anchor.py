@@ -44,7 +44,7 @@ import dataclasses
 import torch
 
 from polinfra.config import opt
-from reconstruct.physics.consistency import _check, bounded_noise, box_mean, observation_noise, observation_residual
+from reconstruct.physics.consistency import _check, bounded_noise, box_mean, move_excess, observation_noise
 
 SIG = 2.0
 """A power counts as resolved where its pooled estimate exceeds the noise's expectation by SIG standard deviations of
@@ -168,7 +168,8 @@ class AnchoredFloorResult:
 def anchored_floor(T: torch.Tensor, R: torch.Tensor, zeta: torch.Tensor, I: torch.Tensor, I_mean: torch.Tensor | None = None,
                    zbar_span: torch.Tensor | None = None, cfg: AnchorFloorConfig = AnchorFloorConfig(), model_var: torch.Tensor | None = None,
                    span_ratio: float = SPAN_RATIO, reference: tuple[torch.Tensor, torch.Tensor] | None = None,
-                   noise_floor: torch.Tensor | float | None = None, counts: torch.Tensor | None = None) -> AnchoredFloorResult:
+                   noise_floor: torch.Tensor | float | None = None, counts: torch.Tensor | None = None,
+                   gain_spread: float = 0.0) -> AnchoredFloorResult:
     """Floor a candidate (T, R) (..., H, W) at the best physics (:func:`physics_anchor`) by the windows ``I`` on ``zeta``.
 
     Two checks, each a kept fraction of the candidate's move from the anchor (x = x_a + s (x_n - x_a)):
@@ -190,7 +191,7 @@ def anchored_floor(T: torch.Tensor, R: torch.Tensor, zeta: torch.Tensor, I: torc
     check counts in proportion g = min(1, counts / layer_counts): s_T -> 1 - g (1 - s_T), and below one spike the data
     check alone stands, as in :func:`reconstruct.physics.consistency.consistency_floor`.  ``model_var`` caps sigma^2 at the spikes' own noise (the floor's
     ``combine = "min"``); ``noise_floor`` bounds it from below whatever the cap (the noise of counts below one spike,
-    :func:`reconstruct.physics.consistency.count_quantum_variance`).
+    :func:`reconstruct.physics.consistency.count_quantum_variance`); ``gain_spread`` frees a rescaling of the reference within the sensor's gain spread (:func:`reconstruct.physics.consistency.move_excess`).
     """
     _check(zeta, I)
     dt = T.dtype
@@ -200,9 +201,7 @@ def anchored_floor(T: torch.Tensor, R: torch.Tensor, zeta: torch.Tensor, I: torc
                        span_ratio, cfg.pool, s2)
     Tn, Rn = T.to(torch.float64), R.to(torch.float64)
     Tr, Rr = (a.T, a.R) if reference is None else (reference[0].to(torch.float64), reference[1].to(torch.float64))
-    Ad = z * (Rn - Rr).unsqueeze(-3) + (1.0 - z) * (Tn - Tr).unsqueeze(-3)
-    r_a = observation_residual(Tr, Rr, z, Iw)
-    excess = box_mean((Ad * Ad).sum(-3) - 2.0 * (r_a * Ad).sum(-3), cfg.pool)  # RSS(candidate) - RSS(reference)
+    excess = box_mean(move_excess(Tn, Rn, Tr, Rr, z, Iw, gain_spread), cfg.pool)  # RSS(candidate) - RSS(reference), less a gain error
 
     def frac(allow, move):
         return torch.where(move <= allow, torch.ones_like(move), allow / move.clamp_min(1e-300)).clamp(0.0, 1.0)

@@ -55,7 +55,7 @@ import torch
 from polinfra.config import opt
 from polinfra.errors import ShapeError
 
-__all__ = ["FloorConfig", "FloorResult", "observation_residual", "observation_noise", "bounded_noise", "count_quantum_variance", "spike_noise_bounds", "window_counts", "consistency_floor", "box_mean"]
+__all__ = ["FloorConfig", "FloorResult", "observation_residual", "observation_noise", "bounded_noise", "count_quantum_variance", "spike_noise_bounds", "window_counts", "move_excess", "consistency_floor", "box_mean"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -143,6 +143,26 @@ def window_counts(I: torch.Tensor, exposure, steps: int = 13) -> torch.Tensor | 
     return I.mean(1).clamp_min(0.0) * e * float(steps)
 
 
+def move_excess(T: torch.Tensor, R: torch.Tensor, T_ref: torch.Tensor, R_ref: torch.Tensor, zeta: torch.Tensor, I: torch.Tensor,
+                gain_spread: float = 0.0) -> torch.Tensor:
+    """RSS(T, R) - RSS(T_ref, R_ref) on the windows ``I`` (..., N, H, W) on ``zeta``, per pixel (..., H, W), less what
+    a photo-gain error explains: a pixel's gain g scales its N observations alike, so the true layers differ from a
+    fit by the factor 1 + g, along the reference itself.  The candidate's move d = x - x_ref loses its component along
+    x_ref in the metric of the data, alpha = <A d, A x_ref> / |A x_ref|^2, as far as |alpha| <= 3 ``gain_spread`` (three
+    sd of the sensor's spread: the pooled check carries a pixel beyond it into its neighbours), before the excess is taken: a candidate that is the reference rescaled within the
+    spread passes, any other move is measured in full.
+    """
+    r = observation_residual(T_ref, R_ref, zeta, I)
+    dT, dR = T - T_ref, R - R_ref
+    if gain_spread > 0:
+        u = zeta * R_ref.unsqueeze(-3) + (1.0 - zeta) * T_ref.unsqueeze(-3)
+        Ad = zeta * dR.unsqueeze(-3) + (1.0 - zeta) * dT.unsqueeze(-3)
+        alpha = ((Ad * u).sum(-3) / (u * u).sum(-3).clamp_min(torch.finfo(u.dtype).tiny ** 0.5)).clamp(-3.0 * gain_spread, 3.0 * gain_spread)
+        dT, dR = dT - alpha * T_ref, dR - alpha * R_ref
+    Ad = zeta * dR.unsqueeze(-3) + (1.0 - zeta) * dT.unsqueeze(-3)
+    return (Ad * Ad).sum(-3) - 2.0 * (r * Ad).sum(-3)
+
+
 def spike_noise_bounds(I: torch.Tensor, exposure, I_mean: torch.Tensor | None = None, steps: int = 13, pool: int = 5):
     """The spike model's bounds on sigma^2 of b = 2 I for windows ``I`` (B, N, H, W) of ``steps`` steps at ``exposure``
     (None: unknown -> (None, None)): the Poisson variance 4 I / (exposure steps) of the windows' mean light (a cap,
@@ -180,7 +200,7 @@ def observation_noise(zeta: torch.Tensor, I: torch.Tensor, pool: int = 5) -> tor
 
 def consistency_floor(T: torch.Tensor, R: torch.Tensor, T_p: torch.Tensor, R_p: torch.Tensor, zeta: torch.Tensor, I: torch.Tensor,
                       cfg: FloorConfig = FloorConfig(), model_var: torch.Tensor | None = None, combine: str = "max",
-                      noise_floor: torch.Tensor | float | None = None) -> FloorResult:
+                      noise_floor: torch.Tensor | float | None = None, gain_spread: float = 0.0) -> FloorResult:
     """Floor a candidate (T, R) at the physics (T_p, R_p) by the N observations ``I`` (..., N, H, W) on ``zeta``.
 
     Args:
@@ -194,6 +214,8 @@ def consistency_floor(T: torch.Tensor, R: torch.Tensor, T_p: torch.Tensor, R_p: 
         noise_floor: optional sigma^2 that holds whatever the residual and ``model_var`` say (broadcastable to
             (..., H, W)): the noise of counts below one spike (:func:`count_quantum_variance`), which no residual of
             windows that all count 0 can show.
+        gain_spread: the sensor's relative photo-gain spread: a move along the physics itself within two of it is
+            free (:func:`move_excess`).
 
     Returns:
         :class:`FloorResult` (module docstring).
@@ -201,16 +223,12 @@ def consistency_floor(T: torch.Tensor, R: torch.Tensor, T_p: torch.Tensor, R_p: 
     _check(zeta, I)
     zeta, I = zeta.to(T.dtype), I.to(T.dtype)
     sigma2 = bounded_noise(zeta, I, cfg.pool, model_var, combine, noise_floor).clamp_min(torch.finfo(T.dtype).tiny ** 0.5)
-    r_p = observation_residual(T_p, R_p, zeta, I)
     dT, dR = T - T_p, R - R_p
-    Ad = zeta * dR.unsqueeze(-3) + (1.0 - zeta) * dT.unsqueeze(-3)
-    a = (Ad * Ad).sum(-3)
-    c = (r_p * Ad).sum(-3)
     allow = cfg.tol * sigma2
-    e1 = box_mean(a - 2.0 * c, cfg.pool)
+    e1 = box_mean(move_excess(T, R, T_p, R_p, zeta, I, gain_spread), cfg.pool)
     ok = e1 <= allow
     if cfg.mode == "hard":
         s = ok.to(T.dtype)
     else:
-        s = torch.where(ok, torch.ones_like(a), allow / e1.clamp_min(torch.finfo(T.dtype).tiny ** 0.5)).clamp(0.0, 1.0)
+        s = torch.where(ok, torch.ones_like(e1), allow / e1.clamp_min(torch.finfo(T.dtype).tiny ** 0.5)).clamp(0.0, 1.0)
     return FloorResult(T=T_p + s * dT, R=R_p + s * dR, keep=s, excess=e1 / sigma2, sigma2=sigma2)

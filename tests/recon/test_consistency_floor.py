@@ -329,3 +329,23 @@ def test_default_floor_is_the_data_check_falling_back_to_the_best_physics():
     a = physics_anchor(Z.double(), I.double())
     for key, ref, gt in (("T", a.T, g.T[4]), ("R", a.R, g.R[4])):
         assert psnr(getattr(on, key)[0].numpy(), gt) >= psnr(ref.float().numpy(), gt) - 1.0
+
+
+def test_truth_behind_a_pixel_gain_spread_passes_with_the_gain_allowance():
+    """Closed-form windows whose every pixel has a photo-gain error g (sd 6 %, fixed pattern: all 7 observations scaled
+    alike) and little noise: least squares absorbs g, so the true layers miss the data by g^2 sum_k b_k^2 and the floor
+    pulls them toward the physics on most pixels.  With ``gain_spread`` the move along the physics within two spreads
+    is not counted: the truth passes on >= 90 % (a pixel beyond three spreads fails its 5 x 5 neighbours with it), while a candidate off the truth by noise of sd 0.05 is still pulled
+    back on most pixels.
+    """
+    T, R, Z, I, Im, z0 = _closed_form(0.002, 0.0005)
+    g = 1.0 + 0.06 * torch.randn(T.shape, generator=torch.Generator().manual_seed(3), dtype=T.dtype)
+    Ig = I * g
+    ls = solve("ls", Z, Ig, None, PHYSICS_SOLVER_CONFIG)
+    bare = consistency_floor(T, R, ls.T, ls.R, Z, Ig)
+    held = consistency_floor(T, R, ls.T, ls.R, Z, Ig, gain_spread=0.06)
+    assert float((bare.keep == 1).double().mean()) < 0.5
+    assert float((held.keep == 1).double().mean()) >= 0.9
+    gen = torch.Generator().manual_seed(4)
+    off = consistency_floor(T + 0.05 * torch.randn(T.shape, generator=gen, dtype=T.dtype), R, ls.T, ls.R, Z, Ig, gain_spread=0.06)
+    assert float((off.keep == 1).double().mean()) < 0.5
