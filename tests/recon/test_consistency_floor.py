@@ -309,16 +309,16 @@ def test_layer_checks_count_from_one_spike_per_window():
     assert bool((keeps[-1] > keeps[0] + 1e-6).any())
 
 
-def test_default_floor_is_the_data_check_falling_back_to_the_best_physics():
-    """The checkpoint's default floor (floor_anchor = "best", floor_layers off) on an external zeta is anchored_floor's
-    data check against the RWPS's residual with the best physics as fallback: the network's output equals it, recomputed
-    here from the unfloored network; and a garbage refinement ends within 1 dB of the anchor's PSNR on T and R.
+def test_anchor_floor_is_the_data_check_falling_back_to_the_best_physics():
+    """floor_anchor = "best" (floor_layers off) on an external zeta is anchored_floor's data check against the RWPS's
+    residual with the best physics as fallback: the network's output equals it, recomputed here from the unfloored
+    network; and a garbage refinement ends within 1 dB of the anchor's PSNR on T and R.
     """
     from reconstruct.physics.anchor import AnchorFloorConfig, anchored_floor, physics_anchor
 
     g, I, Z, Tp, Rp = _window("integrate_fire", 3.0)
-    net = _garbage_net()
-    assert net.cfg.floor_anchor == "best" and not net.cfg.floor_layers
+    net = _garbage_net(floor_anchor="best")
+    assert not net.cfg.floor_layers
     phi = torch.tensor(g.phi_nominal[1:8])[None].float()
     with torch.inference_mode():
         on = net(I[None], phi, zeta_gt=Z[None], alpha=1.0)
