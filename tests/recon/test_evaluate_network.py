@@ -100,7 +100,7 @@ def test_cli_full_method(tmp_path):
 def test_floor_switch_acts_after_the_solver_only(tmp_path, group):
     """``floor = False`` loads the network without its data-consistency floor: the solver rows are the same
     numbers (the floor acts on the refined output only), the final rows move, and the report says so;
-    ``floor_anchor`` picks the fallback (best vs rwps).
+    ``floor_anchor`` picks the fallback (rwps, the default, vs best).
     """
     cfg = NetConfig(feat_ch=8, ref_ch=(8, 8, 8), dec_ch=(8, 8, 8))
     net = init_weights(PolSpikeNet(cfg), torch.Generator().manual_seed(0))
@@ -109,15 +109,15 @@ def test_floor_switch_acts_after_the_solver_only(tmp_path, group):
         net.refine.dec_r.out.bias.fill_(-0.3)
     ck = str(save_checkpoint(tmp_path / "m.pt", net))
     runs = {k: evaluate_groups([group], EvalConfig(methods="full", zeta="gt", net_zeta="gt", checkpoint=ck, **kw))
-            for k, kw in (("on", {}), ("off", {"floor": False}), ("rwps", {"floor_anchor": "rwps"}))}
+            for k, kw in (("on", {}), ("off", {"floor": False}), ("best", {"floor_anchor": "best"}))}
     ov = {k: _overall(r) for k, r in runs.items()}
-    assert runs["on"].config["network"]["floor"] is True and runs["on"].config["network"]["floor_anchor"] == "best"
+    assert runs["on"].config["network"]["floor"] is True and runs["on"].config["network"]["floor_anchor"] == "rwps"
     assert runs["off"].config["network"]["overrides"].get("floor") is False and runs["off"].config["network"]["floor"] is False
-    assert runs["rwps"].config["network"]["overrides"].get("floor_anchor") == "rwps"
+    assert runs["best"].config["network"]["overrides"].get("floor_anchor") == "best"
     for k in ov:
         assert ov[k]["full@gt:solver"]["psnr_T"] == ov["on"]["full@gt:solver"]["psnr_T"], k
     assert ov["on"]["full@gt"]["psnr_T"] > ov["off"]["full@gt"]["psnr_T"] + 1.0, (ov["on"]["full@gt"]["psnr_T"], ov["off"]["full@gt"]["psnr_T"])
-    assert ov["rwps"]["full@gt"]["psnr_T"] != ov["on"]["full@gt"]["psnr_T"]
+    assert ov["best"]["full@gt"]["psnr_T"] != ov["on"]["full@gt"]["psnr_T"]
 
 
 def test_floor_flags_reject_bad_values_through_the_console_script(tmp_path, polspike_cli):
