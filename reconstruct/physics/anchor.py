@@ -208,11 +208,11 @@ def anchored_floor(T: torch.Tensor, R: torch.Tensor, zeta: torch.Tensor, I: torc
 
     s_d = frac(cfg.tol * s2, excess)
     dT, dR = Tn - a.T, Rn - a.R
+    if not cfg.layers:
+        return AnchoredFloorResult(T=(a.T + s_d * dT).to(dt), R=(a.R + s_d * dR).to(dt), keep_T=s_d.to(dt), keep_R=s_d.to(dt), anchor=a)
     l_T = frac(cfg.tol_layer * box_mean(a.P_T_max, cfg.pool), box_mean(dT * dT, cfg.pool))
     l_R = frac(cfg.tol_layer * box_mean(a.P_R_max, cfg.pool), box_mean(dR * dR, cfg.pool))
-    if not cfg.layers:
-        l_T = l_R = torch.ones_like(s_d)
-    elif counts is not None and cfg.layer_counts > 0:
+    if counts is not None and cfg.layer_counts > 0:
         g = (box_mean(torch.broadcast_to(counts.to(torch.float64), l_T.shape), cfg.pool) / cfg.layer_counts).clamp(0.0, 1.0)
         l_T, l_R = (torch.where(g >= 1.0, x, 1.0 - g * (1.0 - x)) for x in (l_T, l_R))
     s_T, s_R = torch.minimum(s_d, l_T), torch.minimum(s_d, l_R)

@@ -133,13 +133,18 @@ def count_quantum_variance(level, exposure, steps: int):
     return q * q * m * (1.0 - m)
 
 
+def _per_image(exposure, I: torch.Tensor):
+    """``exposure`` (a number, or (B,) one per image) shaped to broadcast over (B, H, W) maps of ``I`` (B, N, H, W)."""
+    return torch.as_tensor(exposure, dtype=I.dtype, device=I.device).reshape(-1, 1, 1) if torch.is_tensor(exposure) else float(exposure)
+
+
 def window_counts(I: torch.Tensor, exposure, steps: int = 13) -> torch.Tensor | None:
     """Expected spikes per pixel in one window of ``steps`` steps, (B, H, W), from windows ``I`` (B, N, H, W) in
     radiance units at ``exposure`` thresholds per step per unit radiance (a number or (B,)); None where it is unknown.
     """
     if exposure is None:
         return None
-    e = torch.as_tensor(exposure, dtype=I.dtype, device=I.device).reshape(-1, 1, 1) if torch.is_tensor(exposure) else float(exposure)
+    e = _per_image(exposure, I)
     return I.mean(1).clamp_min(0.0) * e * float(steps)
 
 
@@ -153,13 +158,11 @@ def move_excess(T: torch.Tensor, R: torch.Tensor, T_ref: torch.Tensor, R_ref: to
     spread passes, any other move is measured in full.
     """
     r = observation_residual(T_ref, R_ref, zeta, I)
-    dT, dR = T - T_ref, R - R_ref
-    if gain_spread > 0:
-        u = zeta * R_ref.unsqueeze(-3) + (1.0 - zeta) * T_ref.unsqueeze(-3)
-        Ad = zeta * dR.unsqueeze(-3) + (1.0 - zeta) * dT.unsqueeze(-3)
+    Ad = zeta * (R - R_ref).unsqueeze(-3) + (1.0 - zeta) * (T - T_ref).unsqueeze(-3)
+    if gain_spread > 0:  # A x_ref, the reference's predicted observations, is b - r
+        u = 2.0 * I - r
         alpha = ((Ad * u).sum(-3) / (u * u).sum(-3).clamp_min(torch.finfo(u.dtype).tiny ** 0.5)).clamp(-3.0 * gain_spread, 3.0 * gain_spread)
-        dT, dR = dT - alpha * T_ref, dR - alpha * R_ref
-    Ad = zeta * dR.unsqueeze(-3) + (1.0 - zeta) * dT.unsqueeze(-3)
+        Ad = Ad - alpha.unsqueeze(-3) * u  # A (d - alpha x_ref), A being linear
     return (Ad * Ad).sum(-3) - 2.0 * (r * Ad).sum(-3)
 
 
@@ -172,7 +175,7 @@ def spike_noise_bounds(I: torch.Tensor, exposure, I_mean: torch.Tensor | None = 
     """
     if exposure is None:
         return None, None
-    e = torch.as_tensor(exposure, dtype=I.dtype, device=I.device).reshape(-1, 1, 1) if torch.is_tensor(exposure) else float(exposure)
+    e = _per_image(exposure, I)
     level = I.mean(1).clamp_min(0.0)
     cap = 4.0 * level / (e * float(steps)) + 1e-12
     if I_mean is not None:
