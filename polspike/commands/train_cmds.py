@@ -13,7 +13,7 @@ from typing import Optional
 import typer
 
 from polinfra.errors import ConfigError
-from polspike.cli import app_typer
+from polspike.cli import FLOOR_ANCHORS, app_typer
 
 
 def on_the_fly_sets(cfg):
@@ -152,8 +152,8 @@ def reconstruct_cmd(
     rir_shifts: str = typer.Option("window", "--rir", help="how each window's RIR shifts are estimated (once, for the network and the span): window (6 masked phase correlations and a Gauss-Newton refinement per window, as the network was trained) | chained (each frame registered once onto the previous one, reconstruct.physics.rir.ChainedRir: ~15x cheaper; docs/motion.md)"),
     no_rir: bool = typer.Option(False, "--no-rir", help="no RIR alignment of the windows (a checkpoint trained without it, run as trained) [default: RIR before the solver and the network, also for a checkpoint trained without it]"),
     floor: bool = typer.Option(True, "--floor/--no-floor", help="the network's data-consistency floor: its (T, R) must predict the 7 aligned windows within the noise of the physics-only RWPS's fit, else it is pulled back toward the physics (--floor-anchor; reconstruct/physics/consistency.py)"),
-    floor_anchor: Optional[str] = typer.Option(None, "--floor-anchor", help="what the floor falls back to where the data check fails: best (per pixel the best physics the observations support: least squares, the spike mean or a blend, reconstruct/physics/anchor.py; on a self-calibrated or given zeta) | rwps (the physics-only RWPS) [default: the checkpoint's, best]"),
-    floor_layers: Optional[bool] = typer.Option(None, "--floor-layers/--no-floor-layers", help="with --floor-anchor best: also judge T and R by their own move from the anchor against its stated error (docs/motion.md) [default: the checkpoint's, off]"),
+    floor_anchor: Optional[str] = typer.Option(None, "--floor-anchor", help="what the floor falls back to where the data check fails: blend (per pixel the RWPS and the best closed-form physics weighed by their error powers; on a self-calibrated or given zeta) | rwps (the physics-only RWPS) | best (per pixel the best closed-form physics alone: least squares, the spike mean or a blend, reconstruct/physics/anchor.py) [default: the checkpoint's, blend]"),
+    floor_layers: Optional[bool] = typer.Option(None, "--floor-layers/--no-floor-layers", help="with --floor-anchor best or blend: also judge T and R by their own move from the anchor against its stated error (docs/motion.md) [default: the checkpoint's, off]"),
     max_frames: int = typer.Option(0, "--max-frames", help="stop after this many output frames (0 = all)"),
     device: str = typer.Option("auto", "--device", help="auto | cpu | cuda"),
     quiet: bool = typer.Option(False, "--quiet", help="no progress bar"),
@@ -284,8 +284,8 @@ def reconstruct_cmd(
         src = group_source(input, cfg.chunk_steps)
     else:
         raise ConfigError(f"input {input} is neither a .dat file nor a spike group directory")
-    if floor_anchor is not None and floor_anchor not in ("rwps", "best"):
-        raise ConfigError(f"--floor-anchor {floor_anchor!r}: use rwps or best")
+    if floor_anchor is not None and floor_anchor not in FLOOR_ANCHORS:
+        raise ConfigError(f"--floor-anchor {floor_anchor!r}: use one of {', '.join(FLOOR_ANCHORS)}")
     fa = {} if floor_anchor is None else {"floor_anchor": floor_anchor}
     if floor_layers is not None:
         fa["floor_layers"] = floor_layers
@@ -298,7 +298,7 @@ def reconstruct_cmd(
     else:
         speed = {}
     anchor_used = net_model.cfg.floor_anchor if net_model is not None else None
-    layers_used = bool(net_model.cfg.floor_layers) if net_model is not None and anchor_used == "best" else None
+    layers_used = bool(net_model.cfg.floor_layers) if net_model is not None and anchor_used in ("best", "blend") else None
     if net_model is not None and ensemble > 1:
         from reconstruct.net.network import SymmetryEnsemble
 

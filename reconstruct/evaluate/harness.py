@@ -85,7 +85,7 @@ class EvalConfig:
     zeta: str = opt("gt", "where zeta comes from", choices=ZETA_SOURCES)
     rir: bool = opt(True, "align each window with reflection-invariant registration")
     floor: bool = opt(True, "method full: the network's data-consistency floor (reconstruct.net.network.NetConfig.floor, anchored as the checkpoint sets floor_anchor); false: the refinement's output as it is")
-    floor_anchor: str = opt("", "method full with the floor: what it falls back to where the data check fails, best (the best physics per pixel, reconstruct.physics.anchor) or rwps (the physics-only RWPS); empty = the checkpoint's", choices=("", "best", "rwps"))
+    floor_anchor: str = opt("", "method full with the floor: what it falls back to where the data check fails, best (the best physics per pixel, reconstruct.physics.anchor) or rwps (the physics-only RWPS); empty = the checkpoint's", choices=("", "best", "rwps", "blend"))
     max_frames: int = opt(0, "evaluate at most this many output frames per group (0 = all)", lo=0, hi=10**9)
     figure_frames: int = opt(3, "frames shown in the figure grid", lo=0, hi=20)
     batch: int = opt(4, "windows solved together", lo=1, hi=4096)

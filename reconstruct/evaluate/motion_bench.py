@@ -20,10 +20,12 @@ Methods (:data:`METHODS`), all on the same Eq. (3) windows (13 steps, N = 7, 31.
   ``--pane`` does; ``"cell"``: on the cell's own moving stream; where it refuses, the true pane maps, and the cell says
   so), RIR on; the networks run on the same zeta;
 * ``net``: the shipped checkpoint as trained (RIR off, no floor); ``net+rir``: RIR on; ``net+floor``: RIR on and the
-  data-consistency floor as the checkpoint sets it (the data check against the RWPS's residual, falling back to the
-  RWPS, :mod:`reconstruct.physics.consistency`); ``net+anchorfloor``: the floor falling back to the best closed-form
-  physics per pixel (``floor_anchor = "best"``, :mod:`reconstruct.physics.anchor`), ``net+anchorfloor+aspan`` with
-  ``--span auto``; ``net+bestfloor``: that floor with its layer checks (``floor_layers``); ``net+floor+mspan``: ``net+floor``
+  data-consistency floor as the checkpoint sets it (the data check against the RWPS's residual, falling back per
+  pixel to the RWPS and the best closed-form physics weighed by their error powers, ``floor_anchor = "blend"``,
+  :mod:`reconstruct.physics.anchor`); ``net+rwpsfloor``: the floor falling back to the RWPS alone
+  (``floor_anchor = "rwps"``, :mod:`reconstruct.physics.consistency`), ``net+rwpsfloor+aspan`` with ``--span auto``;
+  ``net+anchorfloor``: the floor falling back to the best closed-form physics alone (``floor_anchor = "best"``),
+  ``net+anchorfloor+aspan`` with ``--span auto``; ``net+bestfloor``: that floor with its layer checks (``floor_layers``); ``net+floor+mspan``: ``net+floor``
   with the long span motion-compensated (:mod:`reconstruct.stream.motion_span`); ``net+floor+rspan``:
   ``net+floor`` with the span's parts moved by the windows' RIR velocity (``polspike reconstruct --span rir``,
   :func:`reconstruct.stream.motion_span.part_shifts_from_windows`); ``net+floor+aspan``: ``--span auto``
@@ -65,7 +67,7 @@ LIGHTS = {"dim": 0.02, "bright": 0.3}
 """Light levels, mean spikes per pixel per step."""
 
 PHYSICS = ("ls", "ridge", "irls", "rwps")
-NETS = ("net", "net+rir", "net+floor", "net+anchorfloor", "net+floor+mspan", "net+bestfloor", "net+floor+rspan", "net+floor+aspan", "net+anchorfloor+aspan")
+NETS = ("net", "net+rir", "net+floor", "net+anchorfloor", "net+floor+mspan", "net+bestfloor", "net+floor+rspan", "net+floor+aspan", "net+anchorfloor+aspan", "net+rwpsfloor", "net+rwpsfloor+aspan")
 METHODS = ("tfp", "mean17", "mean", *PHYSICS, "anchor", *NETS)
 """Methods of the bench (module docstring)."""
 
@@ -122,7 +124,8 @@ _MODELS: dict = {}
 _PANES: dict = {}
 
 
-FLOORS = {"net+anchorfloor": {"floor_anchor": "best"}, "net+anchorfloor+aspan": {"floor_anchor": "best"}, "net+bestfloor": {"floor_anchor": "best", "floor_layers": True}}
+FLOORS = {"net+anchorfloor": {"floor_anchor": "best"}, "net+anchorfloor+aspan": {"floor_anchor": "best"}, "net+bestfloor": {"floor_anchor": "best", "floor_layers": True},
+          "net+rwpsfloor": {"floor_anchor": "rwps"}, "net+rwpsfloor+aspan": {"floor_anchor": "rwps"}}
 """The floor settings of the methods that do not run the checkpoint's own (``net+floor`` and the span methods do)."""
 
 
@@ -226,7 +229,7 @@ def run_cell(cell: dict, *, width: int = 96, height: int = 64, frames: int = 1, 
                 if mspan is None:
                     mspan = compensated_span(st.spikes[lo:hi], st.phi[lo:hi], st.exposure)
                 kw["I_mean"], kw["I_harm"] = mspan[0][None], mspan[1][None]
-            if m in ("net+floor+rspan", "net+floor+aspan", "net+anchorfloor+aspan"):  # the span's parts moved by the windows' velocity (aspan: auto_span_shifts)
+            if m in ("net+floor+rspan", "net+floor+aspan", "net+anchorfloor+aspan", "net+rwpsfloor", "net+rwpsfloor+aspan"):  # the span's parts moved by the windows' velocity (aspan: auto_span_shifts)
                 if sums is None:  # the parts' sums, once per frame for both span methods
                     sums, _ = span_part_sums(st.spikes[lo:hi], st.phi[lo:hi])
                 psh, how = (part_shifts_from_windows(sh.numpy(), tc, parts), "rir") if m == "net+floor+rspan" else auto_span_shifts(sh.numpy(), tc, sums, parts, st.phi[lo:hi], float(st.exposure * I.mean() * WINDOW))
@@ -249,7 +252,7 @@ def run_cell(cell: dict, *, width: int = 96, height: int = 64, frames: int = 1, 
 
 
 DEFAULT_NET = ("net+floor+aspan", "net+floor")
-"""The method that stands for ``polspike reconstruct``'s defaults (RIR, the RWPS floor, ``--span auto``), or the plain
+"""The method that stands for ``polspike reconstruct``'s defaults (RIR, the checkpoint's floor, ``--span auto``), or the plain
 span's where a run did not include it."""
 
 

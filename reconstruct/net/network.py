@@ -101,8 +101,8 @@ class NetConfig:
     span_rad: float = opt(math.radians(7.02), "polarizer rotation inside one aggregation window (0.65 ms at 30 rev/s), rad; recorded with the weights, not used by the layers", lo=0.0, hi=math.pi)
     floor: bool = opt(True, "data-consistency floor at inference (reconstruct.physics.consistency): the final (T, R) must predict the N aligned windows (paper Eq. (1)-(2)) within floor_tol noise variances of the physics-only RWPS's residual on the same zeta; where it does not, it is pulled back toward that physics. No weights; off while training")
     floor_tol: float = opt(4.0, "the floor's allowed excess residual, in noise variances of one observation (4: the floored error is the smaller of the refinement's and the physics', reconstruct.physics.consistency)", lo=0.0, hi=1e6)
-    floor_anchor: str = opt("rwps", "what the floor falls back to where the data check fails: rwps (the physics-only RWPS) | best (per pixel the best closed-form physics, least squares, the spike mean or a blend, reconstruct.physics.anchor; on an external zeta, else rwps: +1 to +5 dB with a strong reflection in bright light on the motion bench, but far below the RWPS where zeta barely modulates and its spatial prior wins, docs/motion.md)", choices=("rwps", "best"))
-    floor_layers: bool = opt(False, "with floor_anchor = best: also judge T and R by their own move from the anchor against its stated error power (in proportion to the windows' expected spikes up to one per window). It lifts bright strong-reflection motion cells by 0.3-0.6 dB but costs 1.0 dB on the paper-profile test windows (RIR on), where the anchor errs 2-4 x more than it states")
+    floor_anchor: str = opt("blend", "what the floor falls back to where the data check fails: blend (per pixel the physics-only RWPS and the best closed-form physics weighed by their error powers, reconstruct.physics.anchor.error_blend; on an external zeta, else rwps) | rwps (the physics-only RWPS) | best (the best closed-form physics alone, reconstruct.physics.anchor: far below the RWPS where zeta barely modulates under a bright reflection; docs/motion.md)", choices=("rwps", "best", "blend"))
+    floor_layers: bool = opt(False, "with floor_anchor = best or blend: also judge T and R by their own move from the anchor against its stated error power (in proportion to the windows' expected spikes up to one per window). It lifts bright strong-reflection motion cells by 0.3-0.6 dB but costs 1.0 dB on the paper-profile test windows (RIR on), where the anchor errs 2-4 x more than it states")
     floor_gain_spread: float = opt(0.0, "the sensor's per-pixel photo-gain spread (relative sd; 0.0577 is SCSim's measurement of the camera) the floor allows for: a gain error scales a pixel's 7 observations alike and a fit absorbs it, so a move along the physics itself within three spreads is not counted (reconstruct.physics.consistency.move_excess). Off: with a dominant reflection a wrong T hides in R's rescaling (docs/motion.md)", lo=0.0, hi=0.5)
     floor_mode: str = opt("shrink", "the floor: shrink (keep the fraction min(1, floor_tol sigma^2 / excess) of the refinement's move from the physics) | hard (the physics wherever the excess exceeds floor_tol sigma^2)", choices=("shrink", "hard"))
 
@@ -574,8 +574,9 @@ class PolSpikeNet(nn.Module):
         with L = 13 steps (0.65 ms at 20 kHz: the windows this network reads), so misalignment or a wrong zeta in the
         residual does not widen the allowance; and bounded from below by the noise of counts under one spike per window
         (:func:`reconstruct.physics.consistency.count_quantum_variance` at the brighter of the windows' and the span's
-        mean), which a dark pool's all-zero windows cannot show.  ``floor_anchor = "best"`` makes the same
-        data check but falls back to the best physics per pixel (:func:`reconstruct.physics.anchor.anchored_floor`, with
+        mean), which a dark pool's all-zero windows cannot show.  ``floor_anchor = "blend"`` (the default) makes the same
+        data check but falls back per pixel to the RWPS and the best closed-form physics weighed by their error powers
+        (:func:`reconstruct.physics.anchor.error_blend`); ``"best"`` to the best physics per pixel alone (:func:`reconstruct.physics.anchor.anchored_floor`, with
         the long span's ``I_mean`` at the polarizer-cycle mean zeta of the angles ``phi``), where least squares beats
         the RWPS (bright light, a strong reflection: by 2-4 dB on the motion bench); ``floor_layers`` adds its layer
         checks; the kept fraction returned is T's.  Only on an ``external`` zeta (self-calibrated or given): least
@@ -588,10 +589,11 @@ class PolSpikeNet(nn.Module):
         z, Iw, gs = zeta.detach().float(), I.detach().float(), self.cfg.floor_gain_spread
         mv, qf = spike_noise_bounds(Iw, exposure, None if I_mean is None else I_mean.detach().float())
         ph = solve("rwps", z, Iw, None, PHYSICS_SOLVER_CONFIG)
-        if self.cfg.floor_anchor == "best" and external:
+        if self.cfg.floor_anchor in ("best", "blend") and external:
             g = anchored_floor(T.float(), R.float(), z, Iw, None if I_mean is None else I_mean.detach().float(), None if I_mean is None else zbar_of(z, phi.float()),
                                AnchorFloorConfig(tol=self.cfg.floor_tol, layers=self.cfg.floor_layers), mv, reference=(ph.T.clamp_min(0.0), ph.R.clamp_min(0.0)), noise_floor=qf,
-                               counts=window_counts(Iw, exposure), gain_spread=gs)
+                               counts=window_counts(Iw, exposure), gain_spread=gs,
+                               fallback="blend" if self.cfg.floor_anchor == "blend" else "anchor")
             return g.T.to(T.dtype), g.R.to(R.dtype), g.keep_T
         f = consistency_floor(T.float(), R.float(), ph.T.clamp_min(0.0), ph.R.clamp_min(0.0), z, Iw, FloorConfig(tol=self.cfg.floor_tol, mode=self.cfg.floor_mode), mv, "min", noise_floor=qf, gain_spread=gs)
         return f.T.to(T.dtype), f.R.to(R.dtype), f.keep

@@ -349,3 +349,43 @@ def test_truth_behind_a_pixel_gain_spread_passes_with_the_gain_allowance():
     gen = torch.Generator().manual_seed(4)
     off = consistency_floor(T + 0.05 * torch.randn(T.shape, generator=gen, dtype=T.dtype), R, ls.T, ls.R, Z, Ig, gain_spread=0.06)
     assert float((off.keep == 1).double().mean()) < 0.5
+
+
+def test_error_blend_is_the_minimum_variance_combination():
+    """Two unbiased estimates with independent Gaussian errors, the anchor's of stated power P_a = 0.04 and the
+    reference's of power P_r (unstated): the blend's mean square error is within 15 % of P_a P_r / (P_a + P_r) (the
+    minimum-variance combination), below both inputs', and at P_r = 0 the blend is the reference.
+    """
+    from reconstruct.physics.anchor import error_blend
+
+    rng = np.random.default_rng(3)
+    x = torch.tensor(rng.uniform(0.2, 0.8, (128, 128)))
+    Pa = 0.04
+    xa = x + Pa**0.5 * torch.tensor(rng.standard_normal(x.shape))
+    for Pr in (0.01, 0.04, 0.16):
+        xr = x + Pr**0.5 * torch.tensor(rng.standard_normal(x.shape))
+        e = float(((error_blend(xa, xr, torch.full_like(x, Pa), 9) - x) ** 2).mean())
+        best = Pa * Pr / (Pa + Pr)
+        assert abs(e - best) < 0.15 * best, (Pr, e, best)
+        assert e < min(Pa, Pr)
+    assert float(((error_blend(xa, x, torch.full_like(x, Pa), 9) - x) ** 2).mean()) < 0.05 * Pa
+
+
+def test_anchor_pools_a_smooth_strong_reflection_the_windows_barely_modulate():
+    """A strong smooth reflection (R 1.2 +- 0.1, T 0.25 +- 0.1) under a pane that barely modulates (zeta 0.15 +- 0.01)
+    with noise sd 0.01: the reflection's texture is not resolvable, so shrinking R toward 0 (``r_pool`` 0) leaves the
+    whole reflection in T, while shrinking it toward its 5 x 5 neighbourhood (the default) removes it: T > 10 dB better.
+    """
+    from reconstruct.physics.anchor import physics_anchor
+
+    rng = np.random.default_rng(5)
+    yy, xx = np.mgrid[0:48, 0:48] / 48
+    T = 0.25 + 0.1 * np.sin(2 * np.pi * (2 * xx + yy))
+    R = 1.2 + 0.1 * np.cos(2 * np.pi * (xx - 2 * yy))
+    phi = np.deg2rad(31.5 * np.arange(7) + 10.0)
+    Z = 0.15 + 0.01 * np.cos(2 * phi)[:, None, None] + 0 * xx
+    b = (1 - Z) * T + Z * R + 0.01 * rng.standard_normal(Z.shape)
+    Zt, It, Tt = torch.tensor(Z), torch.tensor(b / 2), torch.tensor(T)
+    pooled, zero = physics_anchor(Zt, It, r_pool=5), physics_anchor(Zt, It, r_pool=0)
+    assert _p(pooled.T, Tt) >= _p(zero.T, Tt) + 10.0
+    assert _p(pooled.T, Tt) >= _p(pooled.T_ls, Tt)

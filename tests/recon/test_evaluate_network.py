@@ -100,7 +100,7 @@ def test_cli_full_method(tmp_path):
 def test_floor_switch_acts_after_the_solver_only(tmp_path, group):
     """``floor = False`` loads the network without its data-consistency floor: the solver rows are the same
     numbers (the floor acts on the refined output only), the final rows move, and the report says so;
-    ``floor_anchor`` picks the fallback (rwps, the default, vs best).
+    ``floor_anchor`` picks the fallback (blend, the default, vs best).
     """
     cfg = NetConfig(feat_ch=8, ref_ch=(8, 8, 8), dec_ch=(8, 8, 8))
     net = init_weights(PolSpikeNet(cfg), torch.Generator().manual_seed(0))
@@ -111,7 +111,7 @@ def test_floor_switch_acts_after_the_solver_only(tmp_path, group):
     runs = {k: evaluate_groups([group], EvalConfig(methods="full", zeta="gt", net_zeta="gt", checkpoint=ck, **kw))
             for k, kw in (("on", {}), ("off", {"floor": False}), ("best", {"floor_anchor": "best"}))}
     ov = {k: _overall(r) for k, r in runs.items()}
-    assert runs["on"].config["network"]["floor"] is True and runs["on"].config["network"]["floor_anchor"] == "rwps"
+    assert runs["on"].config["network"]["floor"] is True and runs["on"].config["network"]["floor_anchor"] == "blend"
     assert runs["off"].config["network"]["overrides"].get("floor") is False and runs["off"].config["network"]["floor"] is False
     assert runs["best"].config["network"]["overrides"].get("floor_anchor") == "best"
     for k in ov:
@@ -123,5 +123,5 @@ def test_floor_switch_acts_after_the_solver_only(tmp_path, group):
 def test_floor_flags_reject_bad_values_through_the_console_script(tmp_path, polspike_cli):
     for cmd in ("evaluate", "evaluate-paper"):
         r = polspike_cli(cmd, "synthetic:1", "--floor-anchor", "mean", "--out", tmp_path / "o")
-        polspike_cli.one_line_exit_2(r, "--floor-anchor", "rwps or best")
+        polspike_cli.one_line_exit_2(r, "--floor-anchor", "rwps, best, blend")
     assert not (tmp_path / "o").exists()

@@ -136,14 +136,14 @@ def test_cli_group_store_end_to_end(tmp_path):
 
     err = [np.abs(read_exr(tmp_path / "o" / "frames" / f"{i:06d}.exr", ["T"])["T"] - T).mean() for i in range(s["frames"])]
     assert max(err) < 0.1
-    assert s["floor"] is True and s["floor_anchor"] == "rwps" and s["floor_layers"] is None  # the network's defaults
-    # the floor at the best physics per pixel: recorded; this 16 x 20 view does not self-calibrate (ambiguous), so the
-    # network runs on its learned zeta, where the best-physics anchor (least squares on that zeta) is not trusted and the
-    # RWPS floor stands either way: the same frames (with the anchor, its T erred by 0.34 on the last frame)
-    r = CliRunner().invoke(get_app(), ["reconstruct", str(tmp_path / "g"), "--out", str(tmp_path / "b"), "--frames", "exr", "--quiet", "--floor-anchor", "best"])
+    assert s["floor"] is True and s["floor_anchor"] == "blend" and s["floor_layers"] is False  # the network's defaults
+    # the floor at the RWPS alone: recorded; this 16 x 20 view does not self-calibrate (ambiguous), so the network runs
+    # on its learned zeta, where the best-physics anchor (least squares on that zeta) is not trusted and the RWPS floor
+    # stands either way: the same frames (with the anchor, its T erred by 0.34 on the last frame)
+    r = CliRunner().invoke(get_app(), ["reconstruct", str(tmp_path / "g"), "--out", str(tmp_path / "b"), "--frames", "exr", "--quiet", "--floor-anchor", "rwps"])
     assert r.exit_code == 0, r.output
     sb = json.loads((tmp_path / "b" / "reconstruct.json").read_text())
-    assert sb["floor_anchor"] == "best" and sb["floor_layers"] is False and sb["frames"] == s["frames"]
+    assert sb["floor_anchor"] == "rwps" and sb["floor_layers"] is None and sb["frames"] == s["frames"]
     err_b = [np.abs(read_exr(tmp_path / "b" / "frames" / f"{i:06d}.exr", ["T"])["T"] - T).mean() for i in range(sb["frames"])]
     assert "learned" in s["zeta"] and err_b == err
     # the motion-compensated spans on a still scene: recorded, T as near the layer
