@@ -574,12 +574,10 @@ class PolSpikeNet(nn.Module):
         with L = 13 steps (0.65 ms at 20 kHz: the windows this network reads), so misalignment or a wrong zeta in the
         residual does not widen the allowance; and bounded from below by the noise of counts under one spike per window
         (:func:`reconstruct.physics.consistency.count_quantum_variance` at the brighter of the windows' and the span's
-        mean), which a dark pool's all-zero windows cannot show.  ``floor_anchor = "blend"`` (the default) makes the same
-        data check but falls back per pixel to the RWPS and the best closed-form physics weighed by their error powers
-        (:func:`reconstruct.physics.anchor.error_blend`); ``"best"`` to the best physics per pixel alone (:func:`reconstruct.physics.anchor.anchored_floor`, with
-        the long span's ``I_mean`` at the polarizer-cycle mean zeta of the angles ``phi``), where least squares beats
-        the RWPS (bright light, a strong reflection: by 2-4 dB on the motion bench); ``floor_layers`` adds its layer
-        checks; the kept fraction returned is T's.  Only on an ``external`` zeta (self-calibrated or given): least
+        mean), which a dark pool's all-zero windows cannot show.  ``floor_anchor = "blend"`` (default): the same check,
+        falling back per pixel to the RWPS and the best closed-form physics weighed by their error powers, ``"best"``
+        to the latter alone (:func:`reconstruct.physics.anchor.anchored_floor`, with the long span's ``I_mean`` at the
+        polarizer-cycle mean zeta of ``phi``); ``floor_layers`` adds its layer checks; the kept fraction returned is T's.  Only on an ``external`` zeta (self-calibrated or given): least
         squares on the unchecked learned zeta can be far off (the anchor's T erred by 0.8-1.2 on a 0.3-0.7 layer).
         """
         from reconstruct.physics.anchor import AnchorFloorConfig, anchored_floor
