@@ -352,10 +352,9 @@ def reconstruct_cmd(
     maps_out = _write_selfcal_maps(out, model, info)
     meta = {**exposure_info, "method": method, "anchor": anchor, "ensemble": ensemble, "rir": rir, "floor": floor if method == "net" else None, "floor_anchor": anchor_used if floor else None, "floor_layers": layers_used if floor else None, "span": span if method == "net" else None, "zeta": info["zeta"] if info is not None else "learned", **speed}
     live = is_dat and path != "stream" and method != "net" and getattr(model, "maps", None) is not None and anchor == "none" and dev == "cpu"
-    if video_codec != "h264" and not live:
-        raise ConfigError(f"--video-codec {video_codec} is an option of the live path (physics methods on pane maps over a .dat); the streaming path writes H.264")
-    if (follow or path == "live") and not live:
-        raise ConfigError(f"{'--follow' if follow else '--path live'} needs pane maps (zeta {info['zeta'] if info else 'learned'} is not) on the CPU")
+    if not live and (follow or path == "live" or video_codec != "h264"):  # what the checks above could not know: maps, device
+        what = "--follow" if follow else "--path live" if path == "live" else f"--video-codec {video_codec} (an option of the live path)"
+        raise ConfigError(f"{what} needs pane maps (zeta {info['zeta'] if info else 'learned'} is not) on the CPU")
     if live:
         from polspike.commands.live_cmd import run_live
         from reconstruct.stream.packed import PackedDat
