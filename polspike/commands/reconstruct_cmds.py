@@ -23,6 +23,7 @@ def evaluate_cmd(
     rir: bool = typer.Option(True, "--rir/--no-rir", help="reflection-invariant registration of each window (full: the without-RIR ablation)"),
     floor: bool = typer.Option(True, "--floor/--no-floor", help="full: the network's data-consistency floor, as polspike reconstruct runs it (--no-floor: the refinement's output as it is)"),
     floor_anchor: Optional[str] = typer.Option(None, "--floor-anchor", help="full with the floor: what it falls back to where the data check fails: blend (per pixel the RWPS and the best closed-form physics, weighed by their error powers) | rwps (the physics-only RWPS) | best (the best closed-form physics alone) [default: the checkpoint's, blend]"),
+    gain_spread: str = typer.Option("", "--gain-spread", help="full with the floor: its allowance for the sensor's per-pixel gain spread: auto (each group's own sensor) | a relative sd from 0 to 0.5 [default: the checkpoint's, 0: none]"),
     checkpoint: Optional[Path] = typer.Option(None, "--checkpoint", help="network checkpoint for --method full / --zeta learned [default: the shipped reconstruct/weights default, reconstruct.net.checkpoint.DEFAULT_WEIGHTS]"),
     no_attention: bool = typer.Option(False, "--no-attention", help="full: the checkpoint is the without-angle-attention ablation (trained so)"),
     no_conf: bool = typer.Option(False, "--no-conf", help="full: the without-Conf ablation (trained so, else a test-time ablation)"),
@@ -66,7 +67,7 @@ def evaluate_cmd(
     cfg = from_dict(
         EvalConfig,
         {"n_obs": n_obs, "dt_ms": dt_ms, "stride_deg": stride_deg, "methods": method, "zeta": zeta, "rir": rir, "max_frames": max_frames, "pane_n": pane_n, "pane_model": pane_model, "dtype": dtype, "device": device,
-         "checkpoint": str(checkpoint or ""), "no_attention": no_attention, "no_conf": no_conf, "net_tile": net_tile, "net_zeta": net_zeta, "net_fallback": net_fallback, "net_ensemble": net_ensemble, "anchor": anchor, "self_fov": self_fov, "floor": floor, "floor_anchor": floor_anchor or ""},
+         "checkpoint": str(checkpoint or ""), "no_attention": no_attention, "no_conf": no_conf, "net_tile": net_tile, "net_zeta": net_zeta, "net_fallback": net_fallback, "net_ensemble": net_ensemble, "anchor": anchor, "self_fov": self_fov, "floor": floor, "floor_anchor": floor_anchor or "", "gain_spread": gain_spread},
         where="command line",
     )
     try:
@@ -143,6 +144,7 @@ def evaluate_paper_cmd(
     threads: int = typer.Option(0, "--threads", help="torch CPU threads (0 = torch default)"),
     floor: bool = typer.Option(True, "--floor/--no-floor", help="every network column: the network's data-consistency floor, as polspike reconstruct runs it (--no-floor: the refinement's output as it is)"),
     floor_anchor: Optional[str] = typer.Option(None, "--floor-anchor", help="with the floor: what it falls back to where the data check fails: blend (per pixel the RWPS and the best closed-form physics, weighed by their error powers) | rwps (the physics-only RWPS) | best (the best closed-form physics alone) [default: the checkpoint's, blend]"),
+    gain_spread: str = typer.Option("", "--gain-spread", help="full with the floor: its allowance for the sensor's per-pixel gain spread: auto (each group's own sensor) | a relative sd from 0 to 0.5 [default: the checkpoint's, 0: none]"),
     synthetic_groups: int = typer.Option(4, "--synthetic-groups", help="synthetic: number of groups"),
     synthetic_size: str = typer.Option("200x125", "--synthetic-size", help="synthetic: WxH"),
     quiet: bool = typer.Option(False, "--quiet", help="no progress bar"),
@@ -172,7 +174,7 @@ def evaluate_paper_cmd(
 
     if floor_anchor is not None and floor_anchor not in FLOOR_ANCHORS:
         raise ConfigError(f"--floor-anchor {floor_anchor!r}: use one of {', '.join(FLOOR_ANCHORS)}")
-    cfg = from_dict(EvalConfig, {"n_obs": n_obs, "dt_ms": dt_ms, "zeta": zeta, "max_frames": max_frames, "net_tile": net_tile, "net_ensemble": net_ensemble, "device": device, "floor": floor, "floor_anchor": floor_anchor or ""}, where="command line")
+    cfg = from_dict(EvalConfig, {"n_obs": n_obs, "dt_ms": dt_ms, "zeta": zeta, "max_frames": max_frames, "net_tile": net_tile, "net_ensemble": net_ensemble, "device": device, "floor": floor, "floor_anchor": floor_anchor or "", "gain_spread": gain_spread}, where="command line")
     try:
         w, h = (int(x) for x in synthetic_size.lower().split("x"))
     except ValueError:

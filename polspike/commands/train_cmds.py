@@ -154,6 +154,7 @@ def reconstruct_cmd(
     floor: bool = typer.Option(True, "--floor/--no-floor", help="the network's data-consistency floor: its (T, R) must predict the 7 aligned windows within the noise of the physics-only RWPS's fit, else it is pulled back toward the physics (--floor-anchor; reconstruct/physics/consistency.py)"),
     floor_anchor: Optional[str] = typer.Option(None, "--floor-anchor", help="what the floor falls back to where the data check fails: blend (per pixel the RWPS and the best closed-form physics weighed by their error powers; on a self-calibrated or given zeta) | rwps (the physics-only RWPS) | best (per pixel the best closed-form physics alone: least squares, the spike mean or a blend, reconstruct/physics/anchor.py) [default: the checkpoint's, blend]"),
     floor_layers: Optional[bool] = typer.Option(None, "--floor-layers/--no-floor-layers", help="with --floor-anchor best or blend: also judge T and R by their own move from the anchor against its stated error (docs/motion.md) [default: the checkpoint's, off]"),
+    gain_spread: Optional[str] = typer.Option(None, "--gain-spread", help="the floor's allowance for the sensor's per-pixel gain spread: auto (a stored group's own, its simulator's fixed pattern; 0 for a .dat) | a relative sd from 0 to 0.5 [default: the checkpoint's, 0: none]"),
     max_frames: int = typer.Option(0, "--max-frames", help="stop after this many output frames (0 = all)"),
     device: str = typer.Option("auto", "--device", help="auto | cpu | cuda"),
     quiet: bool = typer.Option(False, "--quiet", help="no progress bar"),
@@ -289,6 +290,10 @@ def reconstruct_cmd(
     fa = {} if floor_anchor is None else {"floor_anchor": floor_anchor}
     if floor_layers is not None:
         fa["floor_layers"] = floor_layers
+    from reconstruct.net.checkpoint import gain_spread_option
+
+    if (gs_opt := gain_spread_option(gain_spread)) is not None:
+        fa["floor_gain_spread"] = gs_opt
     load = lambda: load_model(weights or DEFAULT_WEIGHTS, dev, use_rir=rir, floor=floor, **fa)[0]  # noqa: E731
     net_model = load() if method == "net" else None  # a bad checkpoint is reported before the stream is read
     if net_model is not None and (fast or compile_):
@@ -297,6 +302,19 @@ def reconstruct_cmd(
         speed = {"fast": fast, "compile": accelerate(net_model, fast=fast, compile_=compile_).summary()}
     else:
         speed = {}
+    gs_used = None
+    if net_model is not None:
+        from reconstruct.net.checkpoint import set_stream_gain_spread
+        from spike_sim.config import pixel_gain_spread
+
+        stream_gs = 0.0
+        if net_model.cfg.floor_gain_spread < 0 and input.is_dir():
+            from spike_sim.store import open_group
+
+            with open_group(input) as g:
+                stream_gs = pixel_gain_spread(g.json_attr("config_json") or {"fixed_pattern": False})
+        set_stream_gain_spread(net_model, stream_gs)
+        gs_used = net_model.cfg.floor_gain_spread if net_model.cfg.floor_gain_spread >= 0 else stream_gs
     anchor_used = net_model.cfg.floor_anchor if net_model is not None else None
     layers_used = bool(net_model.cfg.floor_layers) if net_model is not None and anchor_used in ("best", "blend") else None
     if net_model is not None and ensemble > 1:
@@ -350,7 +368,7 @@ def reconstruct_cmd(
                                           exposure=None if src.exposure is not None else cfg.exposure, rir=rir, load_learned=load, anchor=anchor,
                                           pane_n=pane_n, pane_model=pane_model, selfcal=selfcal)
     maps_out = _write_selfcal_maps(out, model, info)
-    meta = {**exposure_info, "method": method, "anchor": anchor, "ensemble": ensemble, "rir": rir, "floor": floor if method == "net" else None, "floor_anchor": anchor_used if floor else None, "floor_layers": layers_used if floor else None, "span": span if method == "net" else None, "zeta": info["zeta"] if info is not None else "learned", **speed}
+    meta = {**exposure_info, "method": method, "anchor": anchor, "ensemble": ensemble, "rir": rir, "floor": floor if method == "net" else None, "floor_anchor": anchor_used if floor else None, "floor_layers": layers_used if floor else None, "floor_gain_spread": gs_used if floor else None, "span": span if method == "net" else None, "zeta": info["zeta"] if info is not None else "learned", **speed}
     live = is_dat and path != "stream" and method != "net" and getattr(model, "maps", None) is not None and anchor == "none" and dev == "cpu"
     if not live and (follow or path == "live" or video_codec != "h264"):  # what the checks above could not know: maps, device
         what = "--follow" if follow else "--path live" if path == "live" else f"--video-codec {video_codec} (an option of the live path)"

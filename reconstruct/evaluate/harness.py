@@ -86,6 +86,7 @@ class EvalConfig:
     rir: bool = opt(True, "align each window with reflection-invariant registration")
     floor: bool = opt(True, "method full: the network's data-consistency floor (reconstruct.net.network.NetConfig.floor, anchored as the checkpoint sets floor_anchor); false: the refinement's output as it is")
     floor_anchor: str = opt("", "method full with the floor: what it falls back to where the data check fails, best (the best physics per pixel, reconstruct.physics.anchor) or rwps (the physics-only RWPS); empty = the checkpoint's", choices=("", "best", "rwps", "blend"))
+    gain_spread: str = opt("", "method full with the floor: its allowance for the sensor's per-pixel gain spread, auto (each group's own sensor, its simulator's fixed pattern) or a relative sd (reconstruct.net.network.NetConfig.floor_gain_spread); empty = the checkpoint's")
     max_frames: int = opt(0, "evaluate at most this many output frames per group (0 = all)", lo=0, hi=10**9)
     figure_frames: int = opt(3, "frames shown in the figure grid", lo=0, hi=20)
     batch: int = opt(4, "windows solved together", lo=1, hi=4096)
@@ -181,8 +182,13 @@ def load_network(cfg: EvalConfig) -> tuple[torch.nn.Module, dict]:
         raise CheckpointError(f"{path} was trained without Conf; add --no-conf to evaluate it as that ablation")
     if not cfg.floor:
         overrides["floor"] = False
-    elif cfg.floor_anchor:
-        overrides["floor_anchor"] = cfg.floor_anchor
+    else:
+        from reconstruct.net.checkpoint import gain_spread_option
+
+        if cfg.floor_anchor:
+            overrides["floor_anchor"] = cfg.floor_anchor
+        if (gs := gain_spread_option(cfg.gain_spread)) is not None:
+            overrides["floor_gain_spread"] = gs
     if cfg.net_solver and cfg.net_solver != net.get("solver_method", "rwps"):
         overrides["solver_method"] = cfg.net_solver
     model, data = load_model(path, _device(cfg.device), **overrides)
@@ -192,7 +198,8 @@ def load_network(cfg: EvalConfig) -> tuple[torch.nn.Module, dict]:
     label = NET_METHOD + "".join(f"-no{n}" for n, k in (("rir", "use_rir"), ("att", "use_attention"), ("conf", "use_conf")) if not used[k])
     if "solver_method" in overrides:
         label += f"-{overrides['solver_method']}"
-    info = {"path": str(path), "label": label, "trained": trained, "overrides": overrides, "step": data.get("step"), "ensemble": cfg.net_ensemble, "floor": model.cfg.floor, "floor_anchor": model.cfg.floor_anchor if model.cfg.floor else None}
+    info = {"path": str(path), "label": label, "trained": trained, "overrides": overrides, "step": data.get("step"), "ensemble": cfg.net_ensemble, "floor": model.cfg.floor, "floor_anchor": model.cfg.floor_anchor if model.cfg.floor else None,
+            "floor_gain_spread": model.cfg.floor_gain_spread if model.cfg.floor else None}
     if cfg.net_ensemble > 1:
         from reconstruct.net.network import SymmetryEnsemble
 
@@ -307,8 +314,9 @@ def group_noise(group: EvalGroup, cfg: EvalConfig) -> dict | None:
         return None
     if not sim:
         return None
-    fp = bool(sim.get("fixed_pattern", True))
-    rel = float(np.sqrt(sum(float(sim.get(k, 0.0)) ** 2 for k in ("gain_sigma", "offset_sigma", "threshold_sigma")))) if fp else 0.0
+    from spike_sim.config import pixel_gain_spread
+
+    rel = pixel_gain_spread(sim)
     return {
         "exposure": float(sim.get("exposure", 1.0)),
         "window_steps": window_steps_from_ms(cfg.dt_ms, rate),
@@ -406,6 +414,7 @@ def evaluate_groups(
     solvers = [m for m in methods if m in SOLVERS]
     model = net_info = None
     if NET_METHOD in methods or cfg.zeta == "learned":
+        from reconstruct.net.checkpoint import set_stream_gain_spread
         from reconstruct.video.tiling import run_model_on_windows
 
         model, net_info = load_network(cfg)
@@ -429,6 +438,7 @@ def evaluate_groups(
         if net_rows and Znet is None and (nz == "none" or (nz == "self" and _refused_fallback(cfg) == "none")):
             Znet = np.zeros(g.I.shape, np.float64)  # no separable reflection: zeta = 0, T is the whole light
         share = share_context(g, cfg)
+        gspread = float((share["noise"] if share is not None and share["noise"] is not None else group_noise(g, cfg) or {}).get("rel_sigma", 0.0)) if net_rows else 0.0
         t["zeta"] += time.perf_counter() - t0
         M = g.I.shape[0]
         has = np.ones(M, bool) if g.has_gt is None else g.has_gt
@@ -468,6 +478,7 @@ def evaluate_groups(
                 t0 = time.perf_counter()
                 zn = None if Znet is None else np.stack([np.ascontiguousarray(Znet[i - K : i + K + 1], np.float32) for i in cb])
                 x = network_inputs(g, model, raw.float().cpu().numpy(), Pw.float().cpu().numpy(), cb, K)  # with the long span it reads; ConfigError where the group lacks it
+                set_stream_gain_spread(model, gspread)  # the floor's allowance for the group's sensor
                 o = run_model_on_windows(model, x, device=next(model.parameters()).device, tile=cfg.net_tile, zeta=zn)
                 est[net_rows[0]] = (o["T"], o["R"])
                 est[net_rows[1]] = (o["T_base"], o["R_base"])

@@ -26,7 +26,7 @@ from polinfra.errors import CheckpointError, ConfigError
 from reconstruct.net.network import NetConfig, PolSpikeNet
 from reconstruct.physics.solvers import SolverConfig
 
-__all__ = ["CKPT_FORMAT", "DEFAULT_WEIGHTS", "V1_WEIGHTS", "V2_WEIGHTS", "V2_MEAN_WEIGHTS", "V3_WEIGHTS", "V4_WEIGHTS", "V5_WEIGHTS", "V6_WEIGHTS", "save_checkpoint", "read_checkpoint", "load_model", "export_weights"]
+__all__ = ["CKPT_FORMAT", "DEFAULT_WEIGHTS", "V1_WEIGHTS", "V2_WEIGHTS", "V2_MEAN_WEIGHTS", "V3_WEIGHTS", "V4_WEIGHTS", "V5_WEIGHTS", "V6_WEIGHTS", "save_checkpoint", "read_checkpoint", "load_model", "export_weights", "set_stream_gain_spread", "gain_spread_option"]
 
 CKPT_FORMAT = "polspike-ckpt/1"
 V1_WEIGHTS = Path(__file__).resolve().parents[1] / "weights" / "polspike_v1.pt"
@@ -123,3 +123,33 @@ def export_weights(src: str | os.PathLike, dest: str | os.PathLike, *, note: dic
     with atomic_path(dest) as tmp:
         torch.save(data, tmp)
     return Path(dest)
+
+
+def set_stream_gain_spread(model: torch.nn.Module, spread: float) -> torch.nn.Module:
+    """Tell every :class:`PolSpikeNet` in ``model`` (an ensemble too) the per-pixel gain spread of the stream it is
+    about to read (:func:`spike_sim.config.pixel_gain_spread` of a stored simulation; 0 where it is unknown).  The data
+    floor allows for it where ``NetConfig.floor_gain_spread`` is -1 (the default); a value >= 0 there wins.
+    """
+    if spread < 0 or spread > 0.5:
+        raise ValueError(f"gain spread {spread}: a relative sd in [0, 0.5]")
+    for m in model.modules():
+        if isinstance(m, PolSpikeNet):
+            m.stream_gain_spread = float(spread)
+    return model
+
+
+def gain_spread_option(text: str | None, flag: str = "--gain-spread") -> float | None:
+    """``NetConfig.floor_gain_spread`` from a command-line value: None or "" -> None (the checkpoint's), "auto" -> -1
+    (the stream's own sensor), else a relative sd in [0, 0.5]; a :class:`ConfigError` naming ``flag`` otherwise.
+    """
+    if text is None or text == "":
+        return None
+    if text == "auto":
+        return -1.0
+    try:
+        v = float(text)
+    except ValueError:
+        v = float("nan")
+    if not 0.0 <= v <= 0.5:
+        raise ConfigError(f"{flag} {text!r}: auto (the stream's own sensor) or a relative sd in [0, 0.5] (0.0735 for the simulator's default sensor)")
+    return v

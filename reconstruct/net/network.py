@@ -103,7 +103,7 @@ class NetConfig:
     floor_tol: float = opt(4.0, "the floor's allowed excess residual, in noise variances of one observation (4: the floored error is the smaller of the refinement's and the physics', reconstruct.physics.consistency)", lo=0.0, hi=1e6)
     floor_anchor: str = opt("blend", "what the floor falls back to where the data check fails: blend (per pixel the physics-only RWPS and the best closed-form physics weighed by their error powers, reconstruct.physics.anchor.error_blend; on an external zeta, else rwps) | rwps (the physics-only RWPS) | best (the best closed-form physics alone, reconstruct.physics.anchor: far below the RWPS where zeta barely modulates under a bright reflection; docs/motion.md)", choices=("rwps", "best", "blend"))
     floor_layers: bool = opt(False, "with floor_anchor = best or blend: also judge T and R by their own move from the anchor against its stated error power (in proportion to the windows' expected spikes up to one per window). It lifts bright strong-reflection motion cells by 0.3-0.6 dB but costs 1.0 dB on the paper-profile test windows (RIR on), where the anchor errs 2-4 x more than it states")
-    floor_gain_spread: float = opt(0.0, "the sensor's per-pixel photo-gain spread (relative sd; 0.0577 is SCSim's measurement of the camera) the floor allows for: a gain error scales a pixel's 7 observations alike and a fit absorbs it, so a move along the physics itself within three spreads is not counted (reconstruct.physics.consistency.move_excess). Off: with a dominant reflection a wrong T hides in R's rescaling (docs/motion.md)", lo=0.0, hi=0.5)
+    floor_gain_spread: float = opt(0.0, "the sensor's per-pixel gain spread (relative sd) the floor allows for: a gain error scales a pixel's 7 observations alike and a fit absorbs it, so a move along the physics itself within three spreads is not counted (reconstruct.physics.consistency.move_excess). -1: the stream's own where it is known (a stored simulation's fixed pattern, set by the reader: reconstruct.net.checkpoint.set_stream_gain_spread), else 0. Off by default: it lets through network errors the floor catches without it (docs/motion.md, 'What is left')", lo=-1.0, hi=0.5)
     floor_mode: str = opt("shrink", "the floor: shrink (keep the fraction min(1, floor_tol sigma^2 / excess) of the refinement's move from the physics) | hard (the physics wherever the excess exceeds floor_tol sigma^2)", choices=("shrink", "hard"))
 
     def __post_init__(self) -> None:
@@ -584,7 +584,7 @@ class PolSpikeNet(nn.Module):
         from reconstruct.physics.consistency import FloorConfig, consistency_floor, spike_noise_bounds, window_counts
         from reconstruct.physics.solvers import PHYSICS_SOLVER_CONFIG
 
-        z, Iw, gs = zeta.detach().float(), I.detach().float(), self.cfg.floor_gain_spread
+        z, Iw, gs = zeta.detach().float(), I.detach().float(), self.cfg.floor_gain_spread if self.cfg.floor_gain_spread >= 0 else getattr(self, "stream_gain_spread", 0.0)
         mv, qf = spike_noise_bounds(Iw, exposure, None if I_mean is None else I_mean.detach().float())
         ph = solve("rwps", z, Iw, None, PHYSICS_SOLVER_CONFIG)
         if self.cfg.floor_anchor in ("best", "blend") and external:

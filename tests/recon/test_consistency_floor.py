@@ -389,3 +389,35 @@ def test_anchor_pools_a_smooth_strong_reflection_the_windows_barely_modulate():
     pooled, zero = physics_anchor(Zt, It, r_pool=5), physics_anchor(Zt, It, r_pool=0)
     assert _p(pooled.T, Tt) >= _p(zero.T, Tt) + 10.0
     assert _p(pooled.T, Tt) >= _p(pooled.T_ls, Tt)
+
+
+def test_pixel_gain_spread_adds_the_fixed_pattern_in_quadrature():
+    """A stored configuration's count spread: gain, comparator offset and capacitance in quadrature; 0 without the
+    fixed pattern (the ideal preset).
+    """
+    from spike_sim.config import DEFAULT, IDEAL, pixel_gain_spread
+
+    d = dataclasses.asdict(DEFAULT)
+    assert pixel_gain_spread(d) == pytest.approx(float(np.sqrt(0.0577**2 + 0.0455**2 + 0.00294**2)))
+    assert pixel_gain_spread(dataclasses.asdict(IDEAL)) == 0.0
+
+
+def test_the_floor_allows_the_streams_own_gain_spread():
+    """A candidate that is the physics rescaled by 10 % (a pixel gain error, which the fit absorbs): on bright windows
+    the floor (``floor_gain_spread = -1``: the stream's own) pulls it back to the physics when the stream has no gain
+    spread, and keeps it when the reader set the stream's spread to 5.8 % (three spreads cover 10 %); the default
+    ``floor_gain_spread = 0`` ignores the stream's.
+    """
+    from reconstruct.net.checkpoint import set_stream_gain_spread
+
+    g, I, Z, Tp, Rp = _window("poisson", 200.0)
+    net = _garbage_net(floor_anchor="rwps", floor_gain_spread=-1.0)
+    T, R = 1.1 * Tp, 1.1 * Rp
+    keep = {}
+    for label, spread in (("none", 0.0), ("sensor", 0.058)):
+        set_stream_gain_spread(net, spread)
+        keep[label] = float(net.data_floor(T[None], R[None], Z[None], I[None], 200.0)[2].mean())
+    assert keep["none"] < 0.5 < 0.95 < keep["sensor"], keep
+    pinned = _garbage_net(floor_anchor="rwps")
+    set_stream_gain_spread(pinned, 0.058)
+    assert float(pinned.data_floor(T[None], R[None], Z[None], I[None], 200.0)[2].mean()) == pytest.approx(keep["none"])
