@@ -231,6 +231,9 @@ def anchored_floor(T: torch.Tensor, R: torch.Tensor, zeta: torch.Tensor, I: torc
     check alone stands, as in :func:`reconstruct.physics.consistency.consistency_floor`.  ``model_var`` caps sigma^2 at the spikes' own noise (the floor's
     ``combine = "min"``); ``noise_floor`` bounds it from below whatever the cap (the noise of counts below one spike,
     :func:`reconstruct.physics.consistency.count_quantum_variance`); ``gain_spread`` frees a rescaling of the reference within the sensor's gain spread (:func:`reconstruct.physics.consistency.move_excess`).
+    ``fallback``: where the checks pull the candidate, ``"anchor"`` (the anchor) or ``"blend"`` (with a ``reference``:
+    per pixel the anchor and the reference weighed by their error powers, :func:`error_blend`; the moves and the
+    layer checks are then measured from that blend).
     """
     _check(zeta, I)
     dt = T.dtype
