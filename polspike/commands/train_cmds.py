@@ -287,13 +287,9 @@ def reconstruct_cmd(
         raise ConfigError(f"input {input} is neither a .dat file nor a spike group directory")
     if floor_anchor is not None and floor_anchor not in FLOOR_ANCHORS:
         raise ConfigError(f"--floor-anchor {floor_anchor!r}: use one of {', '.join(FLOOR_ANCHORS)}")
-    fa = {} if floor_anchor is None else {"floor_anchor": floor_anchor}
-    if floor_layers is not None:
-        fa["floor_layers"] = floor_layers
-    from reconstruct.net.checkpoint import gain_spread_option
+    from reconstruct.net.checkpoint import floor_overrides
 
-    if (gs_opt := gain_spread_option(gain_spread)) is not None:
-        fa["floor_gain_spread"] = gs_opt
+    fa = floor_overrides(True, floor_anchor, gain_spread, floor_layers)
     load = lambda: load_model(weights or DEFAULT_WEIGHTS, dev, use_rir=rir, floor=floor, **fa)[0]  # noqa: E731
     net_model = load() if method == "net" else None  # a bad checkpoint is reported before the stream is read
     if net_model is not None and (fast or compile_):

@@ -65,6 +65,7 @@ from reconstruct.physics.solvers import PHYSICS_SOLVER_CONFIG, SOLVERS, SolverCo
 from reconstruct.physics.span import anchor_to_mean, long_span_separation, zbar_of
 from reconstruct.physics.zeta import ZETA_SOURCES, PaneMaps, zeta_from_maps
 from reconstruct.stream.groups import EvalGroup, network_inputs
+from spike_sim.config import pixel_gain_spread
 
 __all__ = ["BOUND_GOAL_DB", "SHARE_KEYS", "SHARE_FRAME_KEYS", "group_noise", "share_context", "share_scores", "net_zeta_of", "REGIME_FACTORS", "EvalConfig", "EvalReport", "finite_means", "BASELINES", "ANCHOR_SUFFIX", "SPAN_METHOD", "NET_METHOD", "load_network", "group_zeta", "evaluate_groups", "write_report", "parse_methods", "load_groups", "window_sweep", "markdown_table", "sweep_markdown"]
 
@@ -157,7 +158,7 @@ def load_network(cfg: EvalConfig) -> tuple[torch.nn.Module, dict]:
         ConfigError: the window length differs from the network's.
     """
     from polinfra.errors import CheckpointError
-    from reconstruct.net.checkpoint import DEFAULT_WEIGHTS, load_model, read_checkpoint
+    from reconstruct.net.checkpoint import DEFAULT_WEIGHTS, floor_overrides, load_model, read_checkpoint
 
     path = Path(cfg.checkpoint) if cfg.checkpoint else DEFAULT_WEIGHTS
     net = read_checkpoint(path)["net"]
@@ -180,15 +181,7 @@ def load_network(cfg: EvalConfig) -> tuple[torch.nn.Module, dict]:
         log.warning("%s was trained with Conf; evaluating it without Conf (test-time ablation; the paper retrains)", path)
     if not cfg.no_conf and not trained["use_conf"]:
         raise CheckpointError(f"{path} was trained without Conf; add --no-conf to evaluate it as that ablation")
-    if not cfg.floor:
-        overrides["floor"] = False
-    else:
-        from reconstruct.net.checkpoint import gain_spread_option
-
-        if cfg.floor_anchor:
-            overrides["floor_anchor"] = cfg.floor_anchor
-        if (gs := gain_spread_option(cfg.gain_spread)) is not None:
-            overrides["floor_gain_spread"] = gs
+    overrides.update(floor_overrides(cfg.floor, cfg.floor_anchor, cfg.gain_spread))
     if cfg.net_solver and cfg.net_solver != net.get("solver_method", "rwps"):
         overrides["solver_method"] = cfg.net_solver
     model, data = load_model(path, _device(cfg.device), **overrides)
@@ -198,8 +191,7 @@ def load_network(cfg: EvalConfig) -> tuple[torch.nn.Module, dict]:
     label = NET_METHOD + "".join(f"-no{n}" for n, k in (("rir", "use_rir"), ("att", "use_attention"), ("conf", "use_conf")) if not used[k])
     if "solver_method" in overrides:
         label += f"-{overrides['solver_method']}"
-    info = {"path": str(path), "label": label, "trained": trained, "overrides": overrides, "step": data.get("step"), "ensemble": cfg.net_ensemble, "floor": model.cfg.floor, "floor_anchor": model.cfg.floor_anchor if model.cfg.floor else None,
-            "floor_gain_spread": model.cfg.floor_gain_spread if model.cfg.floor else None}
+    info = {"path": str(path), "label": label, "trained": trained, "overrides": overrides, "step": data.get("step"), "ensemble": cfg.net_ensemble, "floor": model.cfg.floor, "floor_anchor": model.cfg.floor_anchor if model.cfg.floor else None, "floor_gain_spread": model.cfg.floor_gain_spread if model.cfg.floor else None}
     if cfg.net_ensemble > 1:
         from reconstruct.net.network import SymmetryEnsemble
 
@@ -314,16 +306,13 @@ def group_noise(group: EvalGroup, cfg: EvalConfig) -> dict | None:
         return None
     if not sim:
         return None
-    from spike_sim.config import pixel_gain_spread
-
-    rel = pixel_gain_spread(sim)
     return {
         "exposure": float(sim.get("exposure", 1.0)),
         "window_steps": window_steps_from_ms(cfg.dt_ms, rate),
         "model": "integrate_fire",
         "photons_per_threshold": float(sim.get("photons_per_threshold", 1000.0)) if sim.get("shot_noise", True) else float("inf"),
         "reset_sigma": float(sim.get("reset_sigma", 0.0)) if sim.get("reset_noise", True) else 0.0,
-        "rel_sigma": rel,
+        "rel_sigma": pixel_gain_spread(sim),
     }
 
 

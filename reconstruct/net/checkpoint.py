@@ -26,7 +26,7 @@ from polinfra.errors import CheckpointError, ConfigError
 from reconstruct.net.network import NetConfig, PolSpikeNet
 from reconstruct.physics.solvers import SolverConfig
 
-__all__ = ["CKPT_FORMAT", "DEFAULT_WEIGHTS", "V1_WEIGHTS", "V2_WEIGHTS", "V2_MEAN_WEIGHTS", "V3_WEIGHTS", "V4_WEIGHTS", "V5_WEIGHTS", "V6_WEIGHTS", "save_checkpoint", "read_checkpoint", "load_model", "export_weights", "set_stream_gain_spread", "gain_spread_option"]
+__all__ = ["CKPT_FORMAT", "DEFAULT_WEIGHTS", "V1_WEIGHTS", "V2_WEIGHTS", "V2_MEAN_WEIGHTS", "V3_WEIGHTS", "V4_WEIGHTS", "V5_WEIGHTS", "V6_WEIGHTS", "save_checkpoint", "read_checkpoint", "load_model", "export_weights", "set_stream_gain_spread", "gain_spread_option", "floor_overrides"]
 
 CKPT_FORMAT = "polspike-ckpt/1"
 V1_WEIGHTS = Path(__file__).resolve().parents[1] / "weights" / "polspike_v1.pt"
@@ -153,3 +153,17 @@ def gain_spread_option(text: str | None, flag: str = "--gain-spread") -> float |
     if not 0.0 <= v <= 0.5:
         raise ConfigError(f"{flag} {text!r}: auto (the stream's own sensor) or a relative sd in [0, 0.5] (0.0735 for the simulator's default sensor)")
     return v
+
+
+def floor_overrides(floor: bool = True, anchor: str | None = None, gain_spread: str | None = None, layers: bool | None = None) -> dict[str, Any]:
+    """The :class:`NetConfig` overrides of the data floor from command-line values (None or "": the checkpoint's):
+    ``floor`` off, or its fallback ``anchor``, its ``gain_spread`` (:func:`gain_spread_option`) and its layer checks.
+    """
+    if not floor:
+        return {"floor": False}
+    out: dict[str, Any] = {} if not anchor else {"floor_anchor": anchor}
+    if layers is not None:
+        out["floor_layers"] = layers
+    if (gs := gain_spread_option(gain_spread)) is not None:
+        out["floor_gain_spread"] = gs
+    return out
