@@ -37,9 +37,6 @@ from polinfra.errors import PolspikeError
 #: (see :func:`_escape_help_markup`); with None typer prints plain click help.
 _MARKUP_MODE = "rich"
 
-FLOOR_ANCHORS = ("rwps", "best", "blend")
-"""Values of ``--floor-anchor`` (reconstruct.net.network.NetConfig.floor_anchor)."""
-
 
 def _escape_help_markup(cmd: Any) -> None:
     """Escape rich markup in the help strings of ``cmd`` and its subcommands, once.

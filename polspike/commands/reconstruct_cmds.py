@@ -7,7 +7,7 @@ from typing import Optional
 
 import typer
 
-from polspike.cli import FLOOR_ANCHORS, app_typer, bench_app
+from polspike.cli import app_typer, bench_app
 
 
 @app_typer.command("evaluate")
@@ -60,10 +60,10 @@ def evaluate_cmd(
     from polinfra.errors import ConfigError
     from polinfra.progress import rich_progress
     from reconstruct.evaluate.harness import EvalConfig, evaluate_groups, load_groups, markdown_table, sweep_markdown, window_sweep, write_report
+    from reconstruct.net.checkpoint import floor_overrides
     from reconstruct.stream.synthetic import SyntheticConfig
 
-    if floor_anchor is not None and floor_anchor not in FLOOR_ANCHORS:
-        raise ConfigError(f"--floor-anchor {floor_anchor!r}: use one of {', '.join(FLOOR_ANCHORS)}")
+    floor_overrides(floor, floor_anchor, gain_spread)  # a bad --floor-anchor or --gain-spread: one line, before any work
     cfg = from_dict(
         EvalConfig,
         {"n_obs": n_obs, "dt_ms": dt_ms, "stride_deg": stride_deg, "methods": method, "zeta": zeta, "rir": rir, "max_frames": max_frames, "pane_n": pane_n, "pane_model": pane_model, "dtype": dtype, "device": device,
@@ -170,10 +170,10 @@ def evaluate_paper_cmd(
         if not p.is_file():
             raise CheckpointError(f"checkpoint not found: {p}")
     from polinfra.errors import ConfigError
+    from reconstruct.net.checkpoint import floor_overrides
     from reconstruct.stream.synthetic import SyntheticConfig
 
-    if floor_anchor is not None and floor_anchor not in FLOOR_ANCHORS:
-        raise ConfigError(f"--floor-anchor {floor_anchor!r}: use one of {', '.join(FLOOR_ANCHORS)}")
+    floor_overrides(floor, floor_anchor, gain_spread)  # a bad --floor-anchor or --gain-spread: one line, before any work
     cfg = from_dict(EvalConfig, {"n_obs": n_obs, "dt_ms": dt_ms, "zeta": zeta, "max_frames": max_frames, "net_tile": net_tile, "net_ensemble": net_ensemble, "device": device, "floor": floor, "floor_anchor": floor_anchor or "", "gain_spread": gain_spread}, where="command line")
     try:
         w, h = (int(x) for x in synthetic_size.lower().split("x"))

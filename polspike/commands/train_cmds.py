@@ -13,7 +13,7 @@ from typing import Optional
 import typer
 
 from polinfra.errors import ConfigError
-from polspike.cli import FLOOR_ANCHORS, app_typer
+from polspike.cli import app_typer
 
 
 def on_the_fly_sets(cfg):
@@ -285,11 +285,9 @@ def reconstruct_cmd(
         src = group_source(input, cfg.chunk_steps)
     else:
         raise ConfigError(f"input {input} is neither a .dat file nor a spike group directory")
-    if floor_anchor is not None and floor_anchor not in FLOOR_ANCHORS:
-        raise ConfigError(f"--floor-anchor {floor_anchor!r}: use one of {', '.join(FLOOR_ANCHORS)}")
     from reconstruct.net.checkpoint import floor_overrides
 
-    fa = floor_overrides(True, floor_anchor, gain_spread, floor_layers)
+    fa = floor_overrides(True, floor_anchor, gain_spread, floor_layers)  # a bad --floor-anchor or --gain-spread: one line
     load = lambda: load_model(weights or DEFAULT_WEIGHTS, dev, use_rir=rir, floor=floor, **fa)[0]  # noqa: E731
     net_model = load() if method == "net" else None  # a bad checkpoint is reported before the stream is read
     if net_model is not None and (fast or compile_):
@@ -298,19 +296,17 @@ def reconstruct_cmd(
         speed = {"fast": fast, "compile": accelerate(net_model, fast=fast, compile_=compile_).summary()}
     else:
         speed = {}
-    gs_used = None
-    if net_model is not None:
+    gs_used = None if net_model is None else net_model.cfg.floor_gain_spread
+    if gs_used is not None and gs_used < 0:  # --gain-spread auto: a stored group's own sensor, 0 for a .dat
         from reconstruct.net.checkpoint import set_stream_gain_spread
         from spike_sim.config import pixel_gain_spread
+        from spike_sim.store import open_group
 
-        stream_gs = 0.0
-        if net_model.cfg.floor_gain_spread < 0 and input.is_dir():
-            from spike_sim.store import open_group
-
+        gs_used = 0.0
+        if input.is_dir():
             with open_group(input) as g:
-                stream_gs = pixel_gain_spread(g.json_attr("config_json") or {"fixed_pattern": False})
-        set_stream_gain_spread(net_model, stream_gs)
-        gs_used = net_model.cfg.floor_gain_spread if net_model.cfg.floor_gain_spread >= 0 else stream_gs
+                gs_used = pixel_gain_spread(g.json_attr("config_json") or {"fixed_pattern": False})
+        set_stream_gain_spread(net_model, gs_used)
     anchor_used = net_model.cfg.floor_anchor if net_model is not None else None
     layers_used = bool(net_model.cfg.floor_layers) if net_model is not None and anchor_used in ("best", "blend") else None
     if net_model is not None and ensemble > 1:

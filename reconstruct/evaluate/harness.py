@@ -56,6 +56,7 @@ import torch
 from polinfra.config import opt, to_dict
 from polinfra.errors import ConfigError, DataFormatError
 from reconstruct.evaluate.metrics import LPIPS_NA, lpips_status, masked_psnr, masked_score, psnr, score
+from reconstruct.net.checkpoint import FLOOR_ANCHORS
 from reconstruct.net.learned_zeta import zeta_learned
 from reconstruct.net.net_zeta import NET_FALLBACKS, fallback_for
 from reconstruct.net.network import SYMMETRY_CODES
@@ -86,7 +87,7 @@ class EvalConfig:
     zeta: str = opt("gt", "where zeta comes from", choices=ZETA_SOURCES)
     rir: bool = opt(True, "align each window with reflection-invariant registration")
     floor: bool = opt(True, "method full: the network's data-consistency floor (reconstruct.net.network.NetConfig.floor, anchored as the checkpoint sets floor_anchor); false: the refinement's output as it is")
-    floor_anchor: str = opt("", "method full with the floor: what it falls back to where the data check fails, best (the best physics per pixel, reconstruct.physics.anchor) or rwps (the physics-only RWPS); empty = the checkpoint's", choices=("", "best", "rwps", "blend"))
+    floor_anchor: str = opt("", "method full with the floor: what it falls back to where the data check fails, best (the best physics per pixel, reconstruct.physics.anchor) or rwps (the physics-only RWPS); empty = the checkpoint's", choices=("", *FLOOR_ANCHORS))
     gain_spread: str = opt("", "method full with the floor: its allowance for the sensor's per-pixel gain spread, auto (each group's own sensor, its simulator's fixed pattern) or a relative sd (reconstruct.net.network.NetConfig.floor_gain_spread); empty = the checkpoint's")
     max_frames: int = opt(0, "evaluate at most this many output frames per group (0 = all)", lo=0, hi=10**9)
     figure_frames: int = opt(3, "frames shown in the figure grid", lo=0, hi=20)
@@ -427,7 +428,8 @@ def evaluate_groups(
         if net_rows and Znet is None and (nz == "none" or (nz == "self" and _refused_fallback(cfg) == "none")):
             Znet = np.zeros(g.I.shape, np.float64)  # no separable reflection: zeta = 0, T is the whole light
         share = share_context(g, cfg)
-        gspread = float((share["noise"] if share is not None and share["noise"] is not None else group_noise(g, cfg) or {}).get("rel_sigma", 0.0)) if net_rows else 0.0
+        if net_rows and model.cfg.floor_gain_spread < 0:  # the floor's allowance for the group's own sensor (--gain-spread auto)
+            set_stream_gain_spread(model, float(((share or {}).get("noise") or group_noise(g, cfg) or {}).get("rel_sigma", 0.0)))
         t["zeta"] += time.perf_counter() - t0
         M = g.I.shape[0]
         has = np.ones(M, bool) if g.has_gt is None else g.has_gt
@@ -467,7 +469,6 @@ def evaluate_groups(
                 t0 = time.perf_counter()
                 zn = None if Znet is None else np.stack([np.ascontiguousarray(Znet[i - K : i + K + 1], np.float32) for i in cb])
                 x = network_inputs(g, model, raw.float().cpu().numpy(), Pw.float().cpu().numpy(), cb, K)  # with the long span it reads; ConfigError where the group lacks it
-                set_stream_gain_spread(model, gspread)  # the floor's allowance for the group's sensor
                 o = run_model_on_windows(model, x, device=next(model.parameters()).device, tile=cfg.net_tile, zeta=zn)
                 est[net_rows[0]] = (o["T"], o["R"])
                 est[net_rows[1]] = (o["T_base"], o["R_base"])

@@ -229,7 +229,7 @@ def run_cell(cell: dict, *, width: int = 96, height: int = 64, frames: int = 1, 
                 if mspan is None:
                     mspan = compensated_span(st.spikes[lo:hi], st.phi[lo:hi], st.exposure)
                 kw["I_mean"], kw["I_harm"] = mspan[0][None], mspan[1][None]
-            if m in ("net+floor+rspan", "net+floor+aspan", "net+anchorfloor+aspan", "net+rwpsfloor", "net+rwpsfloor+aspan"):  # the span's parts moved by the windows' velocity (aspan: auto_span_shifts)
+            if m.endswith(("+rspan", "+aspan")):  # the span's parts moved by the windows' velocity (aspan: auto_span_shifts)
                 if sums is None:  # the parts' sums, once per frame for both span methods
                     sums, _ = span_part_sums(st.spikes[lo:hi], st.phi[lo:hi])
                 psh, how = (part_shifts_from_windows(sh.numpy(), tc, parts), "rir") if m == "net+floor+rspan" else auto_span_shifts(sh.numpy(), tc, sums, parts, st.phi[lo:hi], float(st.exposure * I.mean() * WINDOW))

@@ -14,6 +14,7 @@ with one line saying what and what to do.
 
 from __future__ import annotations
 
+import dataclasses
 import os
 from pathlib import Path
 from typing import Any
@@ -26,7 +27,7 @@ from polinfra.errors import CheckpointError, ConfigError
 from reconstruct.net.network import NetConfig, PolSpikeNet
 from reconstruct.physics.solvers import SolverConfig
 
-__all__ = ["CKPT_FORMAT", "DEFAULT_WEIGHTS", "V1_WEIGHTS", "V2_WEIGHTS", "V2_MEAN_WEIGHTS", "V3_WEIGHTS", "V4_WEIGHTS", "V5_WEIGHTS", "V6_WEIGHTS", "save_checkpoint", "read_checkpoint", "load_model", "export_weights", "set_stream_gain_spread", "gain_spread_option", "floor_overrides"]
+__all__ = ["CKPT_FORMAT", "DEFAULT_WEIGHTS", "V1_WEIGHTS", "V2_WEIGHTS", "V2_MEAN_WEIGHTS", "V3_WEIGHTS", "V4_WEIGHTS", "V5_WEIGHTS", "V6_WEIGHTS", "save_checkpoint", "read_checkpoint", "load_model", "export_weights", "set_stream_gain_spread", "gain_spread_option", "floor_overrides", "FLOOR_ANCHORS"]
 
 CKPT_FORMAT = "polspike-ckpt/1"
 V1_WEIGHTS = Path(__file__).resolve().parents[1] / "weights" / "polspike_v1.pt"
@@ -128,7 +129,7 @@ def export_weights(src: str | os.PathLike, dest: str | os.PathLike, *, note: dic
 def set_stream_gain_spread(model: torch.nn.Module, spread: float) -> torch.nn.Module:
     """Tell every :class:`PolSpikeNet` in ``model`` (an ensemble too) the per-pixel gain spread of the stream it is
     about to read (:func:`spike_sim.config.pixel_gain_spread` of a stored simulation; 0 where it is unknown).  The data
-    floor allows for it where ``NetConfig.floor_gain_spread`` is -1 (the default); a value >= 0 there wins.
+    floor allows for it where ``NetConfig.floor_gain_spread`` is -1 (``--gain-spread auto``); a value >= 0 there wins.
     """
     if spread < 0 or spread > 0.5:
         raise ValueError(f"gain spread {spread}: a relative sd in [0, 0.5]")
@@ -155,15 +156,23 @@ def gain_spread_option(text: str | None, flag: str = "--gain-spread") -> float |
     return v
 
 
+FLOOR_ANCHORS: tuple[str, ...] = tuple(next(f for f in dataclasses.fields(NetConfig) if f.name == "floor_anchor").metadata["choices"])
+"""Values of ``NetConfig.floor_anchor`` (``--floor-anchor``)."""
+
+
 def floor_overrides(floor: bool = True, anchor: str | None = None, gain_spread: str | None = None, layers: bool | None = None) -> dict[str, Any]:
     """The :class:`NetConfig` overrides of the data floor from command-line values (None or "": the checkpoint's):
-    ``floor`` off, or its fallback ``anchor``, its ``gain_spread`` (:func:`gain_spread_option`) and its layer checks.
+    ``floor`` off, or its fallback ``anchor``, its ``gain_spread`` (:func:`gain_spread_option`) and its layer checks;
+    a :class:`ConfigError` naming the flag for a bad ``anchor`` or ``gain_spread``.
     """
+    if anchor and anchor not in FLOOR_ANCHORS:
+        raise ConfigError(f"--floor-anchor {anchor!r}: use one of {', '.join(FLOOR_ANCHORS)}")
+    gs = gain_spread_option(gain_spread)
     if not floor:
         return {"floor": False}
     out: dict[str, Any] = {} if not anchor else {"floor_anchor": anchor}
     if layers is not None:
         out["floor_layers"] = layers
-    if (gs := gain_spread_option(gain_spread)) is not None:
+    if gs is not None:
         out["floor_gain_spread"] = gs
     return out
