@@ -428,8 +428,6 @@ def evaluate_groups(
         if net_rows and Znet is None and (nz == "none" or (nz == "self" and _refused_fallback(cfg) == "none")):
             Znet = np.zeros(g.I.shape, np.float64)  # no separable reflection: zeta = 0, T is the whole light
         share = share_context(g, cfg)
-        if net_rows and model.cfg.floor_gain_spread < 0:  # the floor's allowance for the group's own sensor (--gain-spread auto)
-            set_stream_gain_spread(model, float(((share or {}).get("noise") or group_noise(g, cfg) or {}).get("rel_sigma", 0.0)))
         t["zeta"] += time.perf_counter() - t0
         M = g.I.shape[0]
         has = np.ones(M, bool) if g.has_gt is None else g.has_gt
@@ -469,6 +467,8 @@ def evaluate_groups(
                 t0 = time.perf_counter()
                 zn = None if Znet is None else np.stack([np.ascontiguousarray(Znet[i - K : i + K + 1], np.float32) for i in cb])
                 x = network_inputs(g, model, raw.float().cpu().numpy(), Pw.float().cpu().numpy(), cb, K)  # with the long span it reads; ConfigError where the group lacks it
+                if b0 == 0 and model.cfg.floor_gain_spread < 0:  # once per group: the floor's allowance for its own sensor (--gain-spread auto)
+                    set_stream_gain_spread(model, float(((share or {}).get("noise") or group_noise(g, cfg) or {}).get("rel_sigma", 0.0)))
                 o = run_model_on_windows(model, x, device=next(model.parameters()).device, tile=cfg.net_tile, zeta=zn)
                 est[net_rows[0]] = (o["T"], o["R"])
                 est[net_rows[1]] = (o["T_base"], o["R_base"])
