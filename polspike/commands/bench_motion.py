@@ -27,7 +27,7 @@ def motion_cmd(
     frames: int = typer.Option(1, "--frames", help="output frames scored per cell"),
     seed: int = typer.Option(0, "--seed", help="scene seed (pictures, pane azimuth, shake, initial charges)"),
     calibrate: str = typer.Option("still", "--calibrate", help="where the self-calibrated zeta comes from: still (the same rig's still stream, once per scene and light) | cell (each cell's own moving stream)"),
-    weights: Optional[Path] = typer.Option(None, "--weights", help="checkpoint [default: the shipped default, reconstruct.net.checkpoint.DEFAULT_WEIGHTS]"),
+    weights: Optional[Path] = typer.Option(None, "--weights", help="checkpoint file, or a shipped one by name: default | fast (the real-time network, docs/realtime.md) [default: the shipped default, reconstruct.net.checkpoint.DEFAULT_WEIGHTS]"),
     rir: str = typer.Option("window", "--rir", help="the windows' RIR shifts, estimated once per frame and shared by every method: window (per window) | chained (each frame onto the previous, reconstruct.physics.rir.ChainedRir)"),
     json_out: bool = typer.Option(False, "--json", help="print the JSON result"),
 ) -> None:

@@ -18,8 +18,9 @@ def bench_net_speed_cmd(
     variants: str = typer.Option("default,fast", "--variants", help="comma-separated, the first the reference: default, fast, compile, fast+compile (compile: torch.compile, needs a C++ compiler, minutes of compile time on 2 cores)"),
     threads: int = typer.Option(1, "--threads", help="torch threads"),
     rir: str = typer.Option("window", "--rir", help="the windows' RIR shifts: window | chained (as polspike reconstruct --rir)"),
+    weights: str = typer.Option("default", "--weights", help="comma-separated checkpoints (files, or the shipped default | fast), each run under every variant; the first row is the reference (e.g. default,fast with --variants default,fast+compile: the real-time network against the default in one run)"),
 ) -> None:
-    """CPU seconds per frame by stage of the shipped network's streaming path, per speed-up variant, beside the default, with the largest change of T and R."""
+    """CPU seconds per frame by stage of the network's streaming path, per checkpoint and speed-up variant, beside the first (the reference), with how far T and R move."""
     from rich.console import Console
 
     from polinfra.atomic import write_json, write_text
@@ -37,8 +38,14 @@ def bench_net_speed_cmd(
         raise ConfigError(f"--threads {threads}: at least 1")
     if rir not in ("window", "chained"):
         raise ConfigError(f"--rir {rir!r}: choose window or chained")
+    from reconstruct.net.checkpoint import resolve_weights
+
+    ws = tuple(w.strip() for w in weights.split(",") if w.strip())
+    missing = [w for w in ws if not resolve_weights(w).is_file()]
+    if not ws or missing:
+        raise ConfigError(f"--weights {weights!r}: {', '.join(missing) or 'empty'} is neither a checkpoint file nor default / fast")
     con = Console(stderr=True)
-    res = bench_net_speed(width, height, frames, vs, threads, rir, progress=lambda s: con.print(f"[dim]{s}[/]"))
+    res = bench_net_speed(width, height, frames, vs, threads, rir, progress=lambda s: con.print(f"[dim]{s}[/]"), weights=ws)
     md = net_speed_markdown(res)
     write_json(out / "net_speed.json", res)
     write_text(out / "net_speed.md", md)

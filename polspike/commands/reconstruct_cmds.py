@@ -24,7 +24,7 @@ def evaluate_cmd(
     floor: bool = typer.Option(True, "--floor/--no-floor", help="full: the network's data-consistency floor, as polspike reconstruct runs it (--no-floor: the refinement's output as it is)"),
     floor_anchor: Optional[str] = typer.Option(None, "--floor-anchor", help="full with the floor: what it falls back to where the data check fails: blend (per pixel the RWPS and the best closed-form physics, weighed by their error powers) | rwps (the physics-only RWPS) | best (the best closed-form physics alone) [default: the checkpoint's, blend]"),
     gain_spread: str = typer.Option("", "--gain-spread", help="full with the floor: its allowance for the sensor's per-pixel gain spread: auto (each group's own sensor) | a relative sd from 0 to 0.5 [default: the checkpoint's, 0: none]"),
-    checkpoint: Optional[Path] = typer.Option(None, "--checkpoint", help="network checkpoint for --method full / --zeta learned [default: the shipped reconstruct/weights default, reconstruct.net.checkpoint.DEFAULT_WEIGHTS]"),
+    checkpoint: Optional[Path] = typer.Option(None, "--checkpoint", help="network checkpoint for --method full / --zeta learned (a file, or default | fast) [default: the shipped reconstruct/weights default, reconstruct.net.checkpoint.DEFAULT_WEIGHTS]"),
     no_attention: bool = typer.Option(False, "--no-attention", help="full: the checkpoint is the without-angle-attention ablation (trained so)"),
     no_conf: bool = typer.Option(False, "--no-conf", help="full: the without-Conf ablation (trained so, else a test-time ablation)"),
     net_tile: int = typer.Option(256, "--net-tile", help="full: network tile size in pixels (0 = whole frame)"),

@@ -148,7 +148,7 @@ def reconstruct_cmd(
     window_steps: int = typer.Option(13, "--window-steps", help="Eq. (3) window in steps (13 = 0.65 ms)"),
     stride_deg: float = typer.Option(31.5, "--stride-deg", help="polarizer rotation between output frames (31.5 deg -> 342.9 FPS at 30 rev/s)"),
     frames: str = typer.Option("none", "--frames", help="also write frames: none | png | exr"),
-    weights: Optional[Path] = typer.Option(None, "--weights", help="checkpoint [default: the shipped reconstruct/weights default, reconstruct.net.checkpoint.DEFAULT_WEIGHTS]"),
+    weights: Optional[Path] = typer.Option(None, "--weights", help="checkpoint file, or a shipped one by name: default | fast (the real-time network, docs/realtime.md) [default: the shipped reconstruct/weights default, reconstruct.net.checkpoint.DEFAULT_WEIGHTS]"),
     rir_shifts: str = typer.Option("window", "--rir", help="how each window's RIR shifts are estimated (once, for the network and the span): window (6 masked phase correlations and a Gauss-Newton refinement per window, as the network was trained) | chained (each frame registered once onto the previous one, reconstruct.physics.rir.ChainedRir: ~15x cheaper; docs/motion.md)"),
     no_rir: bool = typer.Option(False, "--no-rir", help="no RIR alignment of the windows (a checkpoint trained without it, run as trained) [default: RIR before the solver and the network, also for a checkpoint trained without it]"),
     floor: bool = typer.Option(True, "--floor/--no-floor", help="the network's data-consistency floor: its (T, R) must predict the 7 aligned windows within the noise of the physics-only RWPS's fit, else it is pulled back toward the physics (--floor-anchor; reconstruct/physics/consistency.py)"),
@@ -285,7 +285,7 @@ def reconstruct_cmd(
         src = group_source(input, cfg.chunk_steps)
     else:
         raise ConfigError(f"input {input} is neither a .dat file nor a spike group directory")
-    from reconstruct.net.checkpoint import floor_overrides
+    from reconstruct.net.checkpoint import floor_overrides, resolve_weights
 
     fa = floor_overrides(True, floor_anchor, gain_spread, floor_layers)  # a bad --floor-anchor or --gain-spread: one line
     load = lambda: load_model(weights or DEFAULT_WEIGHTS, dev, use_rir=rir, floor=floor, **fa)[0]  # noqa: E731
@@ -360,7 +360,7 @@ def reconstruct_cmd(
                                           exposure=None if src.exposure is not None else cfg.exposure, rir=rir, load_learned=load, anchor=anchor,
                                           pane_n=pane_n, pane_model=pane_model, selfcal=selfcal)
     maps_out = _write_selfcal_maps(out, model, info)
-    meta = {**exposure_info, "method": method, "anchor": anchor, "ensemble": ensemble, "rir": rir, "floor": floor if method == "net" else None, "floor_anchor": anchor_used if floor else None, "floor_layers": layers_used if floor else None, "floor_gain_spread": gs_used if floor else None, "span": span if method == "net" else None, "zeta": info["zeta"] if info is not None else "learned", **speed}
+    meta = {**exposure_info, "method": method, "weights": str(resolve_weights(weights)) if net_model is not None else None, "anchor": anchor, "ensemble": ensemble, "rir": rir, "floor": floor if method == "net" else None, "floor_anchor": anchor_used if floor else None, "floor_layers": layers_used if floor else None, "floor_gain_spread": gs_used if floor else None, "span": span if method == "net" else None, "zeta": info["zeta"] if info is not None else "learned", **speed}
     live = is_dat and path != "stream" and method != "net" and getattr(model, "maps", None) is not None and anchor == "none" and dev == "cpu"
     if not live and (follow or path == "live" or video_codec != "h264"):  # what the checks above could not know: maps, device
         what = "--follow" if follow else "--path live" if path == "live" else f"--video-codec {video_codec} (an option of the live path)"

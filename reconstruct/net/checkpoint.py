@@ -27,7 +27,7 @@ from polinfra.errors import CheckpointError, ConfigError
 from reconstruct.net.network import NetConfig, PolSpikeNet
 from reconstruct.physics.solvers import SolverConfig
 
-__all__ = ["CKPT_FORMAT", "DEFAULT_WEIGHTS", "V1_WEIGHTS", "V2_WEIGHTS", "V2_MEAN_WEIGHTS", "V3_WEIGHTS", "V4_WEIGHTS", "V5_WEIGHTS", "V6_WEIGHTS", "save_checkpoint", "read_checkpoint", "load_model", "export_weights", "set_stream_gain_spread", "gain_spread_option", "floor_overrides", "FLOOR_ANCHORS"]
+__all__ = ["CKPT_FORMAT", "DEFAULT_WEIGHTS", "V1_WEIGHTS", "V2_WEIGHTS", "V2_MEAN_WEIGHTS", "V3_WEIGHTS", "V4_WEIGHTS", "V5_WEIGHTS", "V6_WEIGHTS", "save_checkpoint", "read_checkpoint", "load_model", "export_weights", "set_stream_gain_spread", "gain_spread_option", "floor_overrides", "FLOOR_ANCHORS", "FAST_WEIGHTS", "NAMED_WEIGHTS", "resolve_weights"]
 
 CKPT_FORMAT = "polspike-ckpt/1"
 V1_WEIGHTS = Path(__file__).resolve().parents[1] / "weights" / "polspike_v1.pt"
@@ -39,6 +39,23 @@ V2_MEAN_WEIGHTS = Path(__file__).resolve().parents[1] / "weights" / "polspike_v2
 DEFAULT_WEIGHTS = Path(__file__).resolve().parents[1] / "weights" / "polspike_v7.pt"
 """The shipped checkpoint (see ``docs/MODEL_CARD.md``): v7, v6 with the difference R - T moved toward the first harmonic
 of the whole long span of spikes where that span identifies it (``span_level``; on an external zeta only)."""
+FAST_WEIGHTS = Path(__file__).resolve().parents[1] / "weights" / "polspike_fast.pt"
+"""The real-time checkpoint (``--weights fast``, docs/realtime.md): the default's design with about a quarter of its
+channels, trained with RIR on camera motion and sensor randomisation; for ``polspike reconstruct --weights fast --fast
+--compile --rir chained``."""
+NAMED_WEIGHTS = {"default": DEFAULT_WEIGHTS, "fast": FAST_WEIGHTS}
+"""Shipped checkpoints by the name ``--weights`` takes in place of a path."""
+
+
+def resolve_weights(weights: str | os.PathLike | None) -> Path:
+    """The checkpoint file of ``--weights``: a path, a name of :data:`NAMED_WEIGHTS` (where no file of that name
+    exists), or None / "" (the default)."""
+    if weights is None or str(weights) == "":
+        return DEFAULT_WEIGHTS
+    p = Path(weights)
+    return p if p.exists() else NAMED_WEIGHTS.get(str(weights), p)
+
+
 V6_WEIGHTS = Path(__file__).resolve().parents[1] / "weights" / "polspike_v6.pt"
 """The default before v7 (issue 16, fifth round): v5's weights with T's and R's low frequencies taken from the solver on
 the wide windows (every spike between the N windows' centres; ``t_level_px``, ``r_level_from = wide``); v7's levels too."""
@@ -70,10 +87,10 @@ def save_checkpoint(path: str | os.PathLike, model: PolSpikeNet, *, extra: dict[
 
 
 def read_checkpoint(path: str | os.PathLike) -> dict[str, Any]:
-    """Load and validate the raw checkpoint dict (CPU tensors)."""
-    p = Path(path)
+    """Load and validate the raw checkpoint dict (CPU tensors); ``path`` may name a shipped one (:func:`resolve_weights`)."""
+    p = resolve_weights(path)
     if not p.is_file():
-        raise CheckpointError(f"checkpoint not found: {p}; pass --weights PATH or train one with `polspike train`")
+        raise CheckpointError(f"checkpoint not found: {p}; pass --weights PATH (or {' / '.join(NAMED_WEIGHTS)}) or train one with `polspike train`")
     try:
         data = torch.load(p, map_location="cpu", weights_only=True)
     except Exception as exc:  # torch raises many types for corrupt files

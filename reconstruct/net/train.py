@@ -94,6 +94,9 @@ class TrainConfig:
     val_select: str = opt("learned", "validation score that picks best.pt: learned (psnr_T, the network on its own zeta) | mean (the mean of that and psnr_T_forced, the network on the true zeta: a network run with --zeta self where the stream calibrates) | r_share (the mean of psnrrefl_R and psnrrefl_R_forced: R over the pixels where the reflection carries >= 20 % of the light, for an R-only run with trainable) | ssim (the mean of ssim_T and ssim_T_forced, T's structure on both zetas; SSIM is then scored whatever val_ssim says)", choices=("learned", "mean", "r_share", "ssim"))
     init_zero: tuple[str, ...] = opt((), "parameter-name prefixes set to zero after init_from (e.g. refine.dec_t.out to restart a decoder's output as zero: the network starts as its base)")
     trainable: tuple[str, ...] = opt((), "parameter-name prefixes that train (e.g. refine.dec_r: the R decoder alone, every T output stays exactly as init_from's); the others are frozen; empty = all")
+    max_skipped_frac: float = opt(0.0, "stop when more updates than this fraction of the steps so far (and more than 20) had a non-finite gradient and were skipped (a randomly initialised parameter branch's zeta can overflow the solver's backward now and then); 0 = after 20", lo=0.0, hi=0.5)
+    teacher: str = opt("", "distil from this checkpoint (e.g. reconstruct/weights/polspike_v7.pt, or a shipped name): its T and R on the same windows and zeta feed (RIR as this network's [net] use_rir, no data floor) are a second target, L1 weighted lambda_teacher (l_teach in log.csv): a smaller network learns what the larger one learned; empty = none")
+    lambda_teacher: float = opt(0.0, "weight of the teacher's L1 term (teacher)", lo=0.0, hi=100.0)
     init_from: str = opt("", "start from these weights (a checkpoint or exported .pt of the same [net] architecture; path relative to the working directory) instead of a random initialisation: fine-tuning")
 
 
@@ -261,7 +264,7 @@ REFL_SHARE = SHARE_MIN
 """Reflected share of the mixed light above which a pixel counts as reflection-affected (evaluation; the same 20 %
 as :data:`reconstruct.physics.identifiability.SHARE_MIN`, here with the centre window's zeta)."""
 
-_LOG_FIELDS = ["step", "epoch", "alpha", "loss", "l_rec", "l_grad", "l_phys", "l_excl", "l_base", "l_ssim", "val_psnr_T", "val_psnr_T_base", "val_psnr_T_oracle", "val_psnr_T_forced", "val_ssim_T", "val_ssim_T_forced", "val_score", "seconds"]
+_LOG_FIELDS = ["step", "epoch", "alpha", "loss", "l_rec", "l_grad", "l_phys", "l_excl", "l_base", "l_ssim", "l_teach", "val_psnr_T", "val_psnr_T_base", "val_psnr_T_oracle", "val_psnr_T_forced", "val_ssim_T", "val_ssim_T_forced", "val_score", "seconds"]
 
 
 def _write_log(run: Path, rows: list[dict[str, Any]]) -> None:
@@ -429,6 +432,14 @@ def train(
             p.requires_grad_(n in keep)
         log.info("training %d of %d parameter tensors (trainable = %s); the rest frozen", len(keep), len(named), list(cfg.trainable))
     model.to(dev)
+    teacher = None
+    if cfg.teacher and cfg.lambda_teacher > 0:
+        from reconstruct.net.checkpoint import load_model
+
+        teacher = load_model(cfg.teacher, dev, use_rir=cfg.net.use_rir, floor=False)[0]
+        for p in teacher.parameters():
+            p.requires_grad_(False)
+        log.info("distilling from %s (lambda_teacher %g)", cfg.teacher, cfg.lambda_teacher)
     opt_ = torch.optim.Adam([p for p in model.parameters() if p.requires_grad], lr=cfg.lr)
     step = 0
     metrics: dict[str, float] = {}
@@ -491,6 +502,12 @@ def train(
                     feed, scale = assumed_glass_feed(b, z, scale, cfg, g, cfg.batch_size, rws)
         out = net(I, phi, zeta_gt=z, alpha=alpha, **x.extras(), zeta_scale=scale, zeta_shape=shape, zeta_feed=feed)
         loss, parts = total_loss(out, T, R, alpha, cfg.loss)
+        if teacher is not None:  # the teacher on the same windows, zeta feed and alignment; eval mode (no floor)
+            with torch.no_grad():
+                tout = teacher(I, phi, zeta_gt=z, alpha=alpha, **x.extras(), zeta_scale=scale, zeta_shape=shape, zeta_feed=feed)
+            l_teach = (out.T - tout.T).abs().mean() + (out.R - tout.R).abs().mean()
+            loss = loss + cfg.lambda_teacher * l_teach
+            parts = {**parts, "loss": float(loss.detach()), "l_teach": float(l_teach.detach())}
         if not math.isfinite(parts["loss"]):
             raise FloatingPointError(f"non-finite loss at step {step}: {parts}")
         opt_.zero_grad(set_to_none=True)
@@ -502,7 +519,7 @@ def train(
         if not torch.isfinite(gnorm):  # a finite loss with a non-finite gradient: skip the update, never poison the weights
             skipped += 1
             log.warning("step %d: non-finite gradient norm; update skipped (%d so far)", step, skipped)
-            if skipped > MAX_SKIPPED:
+            if skipped > max(MAX_SKIPPED, int(cfg.max_skipped_frac * max(step, 1))):
                 raise FloatingPointError(f"non-finite gradients on {skipped} steps (last at step {step}); lower lr or check the data")
             opt_.zero_grad(set_to_none=True)
         else:

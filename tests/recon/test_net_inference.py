@@ -144,3 +144,38 @@ def test_net_speed_cli_rejects_an_unknown_variant(tmp_path):
     exe = Path(sys.executable).with_name("polspike")
     r = subprocess.run([str(exe) if exe.exists() else "polspike", "bench", "net-speed", "--variants", "default,turbo", "--out", str(tmp_path)], capture_output=True, text=True)
     assert r.returncode == 2 and "turbo" in r.stderr + r.stdout and "Traceback" not in r.stderr
+
+
+def test_named_weights_are_the_shipped_files_and_a_file_of_that_name_wins(tmp_path, monkeypatch):
+    from reconstruct.net.checkpoint import DEFAULT_WEIGHTS, FAST_WEIGHTS, resolve_weights
+
+    assert resolve_weights(None) == DEFAULT_WEIGHTS and resolve_weights("default") == DEFAULT_WEIGHTS and resolve_weights("fast") == FAST_WEIGHTS
+    assert FAST_WEIGHTS.is_file() and DEFAULT_WEIGHTS.is_file()
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "fast").write_bytes(b"x")
+    assert resolve_weights("fast") == Path("fast")  # a file the user names is never shadowed
+
+
+def test_fast_weights_are_a_smaller_network_that_the_stream_runs_by_name(tmp_path):
+    """The real-time checkpoint: the default's design, a third of its parameters and convolution work or less, RIR on
+    as trained; the bench runs it beside the default and reports how far its frames lie from the default's."""
+    from reconstruct.evaluate.bench import count_flops
+    from reconstruct.evaluate.net_speed_bench import bench_net_speed, net_speed_markdown
+    from reconstruct.net.checkpoint import load_model
+
+    fast, dflt = load_model("fast")[0], load_model("default")[0]
+    assert fast.cfg.use_rir and fast.cfg.base == dflt.cfg.base and fast.cfg.use_mean
+    n = lambda m: sum(p.numel() for p in m.parameters())  # noqa: E731
+    assert n(fast) < n(dflt) / 3
+    assert count_flops(fast) < count_flops(dflt) / 3
+    res = bench_net_speed(48, 32, frames=2, variants=("default",), workdir=str(tmp_path), weights=("default", "fast"))
+    row = res["variants"]["fast:default"]
+    assert res["reference"] == "default:default" and row["ratio_cpu"] > 0 and "max_abs_change" not in row
+    assert 5.0 < row["psnr_vs_reference"]["T"] < 100.0  # another network: near the default's frames, not equal to them
+    assert "| fast:default |" in net_speed_markdown(res)
+
+
+def test_net_speed_cli_rejects_unknown_weights(tmp_path):
+    exe = Path(sys.executable).with_name("polspike")
+    r = subprocess.run([str(exe) if exe.exists() else "polspike", "bench", "net-speed", "--weights", "default,nosuch.pt", "--out", str(tmp_path)], capture_output=True, text=True)
+    assert r.returncode == 2 and "nosuch.pt" in r.stderr + r.stdout and "default / fast" in r.stderr + r.stdout and "Traceback" not in r.stderr

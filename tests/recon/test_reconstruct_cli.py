@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -149,17 +150,19 @@ def test_cli_group_store_end_to_end(tmp_path):
     assert "learned" in s["zeta"] and err_b == err
     # the motion-compensated spans on a still scene: recorded, T as near the layer
     # (and the windows' RIR shifts, estimated once per window, by either estimator: recorded)
-    # (--gain-spread auto on the last: the group's own sensor, its simulator's fixed pattern in quadrature, recorded)
+    # (--gain-spread auto on the last: the group's own sensor, its simulator's fixed pattern in quadrature, recorded;
+    # and the real-time network by name, recorded as its file)
     from spike_sim.config import DEFAULT
 
     for span, est in (("compensated", "window"), ("rir", "window"), ("plain", "chained")):
-        gs = ["--gain-spread", "auto"] if span == "plain" else []
+        gs = ["--gain-spread", "auto", "--weights", "fast"] if span == "plain" else []
         r = CliRunner().invoke(get_app(), ["reconstruct", str(tmp_path / "g"), "--out", str(tmp_path / span), "--frames", "exr", "--quiet", "--span", span, "--rir", est, *gs])
         assert r.exit_code == 0, r.output
         sc = json.loads((tmp_path / span / "reconstruct.json").read_text())
         assert sc["span"] == span and s["span"] == "auto" and sc["frames"] == s["frames"]
         assert sc["floor_gain_spread"] == (pytest.approx((DEFAULT.gain_sigma**2 + DEFAULT.offset_sigma**2 + DEFAULT.threshold_sigma**2) ** 0.5) if gs else 0.0)
         assert sc["rir_shifts"] == est and s["rir_shifts"] == "window"
+        assert Path(sc["weights"]).name == ("polspike_fast.pt" if gs else "polspike_v7.pt")
         assert sc["span_auto"] is None and sum(s["span_auto"].values()) == s["frames"]  # auto, the default: its choice per window counted
         assert max(np.abs(read_exr(tmp_path / span / "frames" / f"{i:06d}.exr", ["T"])["T"] - T).mean() for i in range(sc["frames"])) < 0.1
 

@@ -304,3 +304,19 @@ def test_val_score_of_each_selection():
     m2 = {k: v for k, v in m.items() if not k.startswith("psnrrefl")}
     assert val_score(m2, "r_share") == 19.0
     assert val_score({**m, "ssim_T": 0.90, "ssim_T_forced": 0.94}, "ssim") == pytest.approx(0.92)  # ssim: both zeta paths
+
+
+def test_teacher_term_is_the_distance_to_the_teachers_output(tmp_path, sets, tiny_run):
+    """Distillation: a student started from its teacher's weights matches it on the first step (l_teach 0 up to float
+    rounding: the same layers, the teacher in eval mode without the floor), then departs from it as it trains on the
+    ground truth (l_teach > 0); no teacher, no term."""
+    tr, va = sets
+    init = str(tiny_run[0] / "last.pt")
+    cfg = dataclasses.replace(CFG, init_from=init, teacher=init, lambda_teacher=1.0, lr=1e-2, epochs=1, val_items=2)
+    train(cfg, tr, va, tmp_path / "d")
+    rows = list(csv.DictReader((tmp_path / "d" / "log.csv").open()))
+    lt = [float(r["l_teach"]) for r in rows if r["l_teach"]]
+    assert len(lt) == 2 and lt[0] < 1e-5 < lt[1]
+    assert all(float(r["loss"]) > 0 for r in rows)
+    train(dataclasses.replace(cfg, teacher=""), tr, va, tmp_path / "n")
+    assert not any(r["l_teach"] for r in csv.DictReader((tmp_path / "n" / "log.csv").open()))
