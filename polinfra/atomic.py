@@ -18,7 +18,7 @@ from typing import Any
 from polinfra.errors import OutputError
 from polinfra.faults import fault_point
 
-__all__ = ["atomic_path", "write_bytes", "write_json", "write_text", "ensure_dir"]
+__all__ = ["atomic_path", "write_bytes", "write_json", "write_text", "ensure_dir", "json_safe"]
 
 
 def ensure_dir(path: str | os.PathLike) -> Path:
@@ -102,6 +102,27 @@ def write_text(final: str | os.PathLike, text: str) -> Path:
 def write_json(final: str | os.PathLike, obj: Any) -> Path:
     """Atomically write ``obj`` as indented JSON (NaN/Inf rejected)."""
     return write_text(final, json.dumps(obj, indent=2, sort_keys=True, allow_nan=False, default=_json_default) + "\n")
+
+
+def json_safe(o: Any) -> Any:
+    """A copy of ``o`` that :func:`write_json` takes: non-finite floats -> None (JSON has no inf / NaN; a result that
+    holds one says so as null instead of failing the write), numpy scalars -> Python.
+    """
+    import math
+
+    import numpy as np
+
+    if isinstance(o, dict):
+        return {k: json_safe(v) for k, v in o.items()}
+    if isinstance(o, (list, tuple)):
+        return [json_safe(v) for v in o]
+    if isinstance(o, (np.floating, float)):
+        return float(o) if math.isfinite(float(o)) else None
+    if isinstance(o, np.integer):
+        return int(o)
+    if isinstance(o, np.bool_):
+        return bool(o)
+    return o
 
 
 def _json_default(o: Any) -> Any:

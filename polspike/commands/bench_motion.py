@@ -36,7 +36,7 @@ def motion_cmd(
 
     from rich.console import Console
 
-    from polinfra.atomic import ensure_dir, write_json, write_text
+    from polinfra.atomic import ensure_dir, json_safe, write_json, write_text
     from polinfra.errors import ConfigError
     from polinfra.progress import rich_progress
     from reconstruct.evaluate.motion_bench import METHODS, default_cells, motion_plot, motion_table, run_motion_bench
@@ -67,7 +67,7 @@ def motion_cmd(
     ensure_dir(out)
     with rich_progress("bench motion", enabled=not json_out) as cb:
         res = run_motion_bench(cells, progress=cb, width=width, height=height, frames=frames, seed=seed, methods=tuple(me), weights=weights, calibrate=calibrate, rir=rir)
-    write_json(out / "motion.json", res)
+    write_json(out / "motion.json", json_safe(res))  # a non-finite score (a method's NaN output) as null
     table = motion_table(res)
     write_text(out / "motion.md", table)
     motion_plot(res, out / "motion.png")

@@ -28,9 +28,13 @@ def _prep(est, gt, data_range: float) -> tuple[np.ndarray, np.ndarray]:
 
 
 def psnr(est, gt, data_range: float = 1.0) -> float:
-    """Peak signal-to-noise ratio in dB (skimage.metrics.peak_signal_noise_ratio); inf-safe (capped at 100 dB)."""
+    """Peak signal-to-noise ratio in dB (skimage.metrics.peak_signal_noise_ratio); inf-safe (capped at 100 dB); NaN where
+    the estimate has a non-finite pixel (never the cap: ``min(100, nan)`` is 100).
+    """
     from skimage.metrics import peak_signal_noise_ratio
 
+    if not np.isfinite(np.asarray(est, dtype=np.float64)).all():
+        return float("nan")
     e, g = _prep(est, gt, data_range)
     if np.array_equal(e, g):
         return 100.0

@@ -49,7 +49,8 @@ NAMED_WEIGHTS = {"default": DEFAULT_WEIGHTS, "fast": FAST_WEIGHTS}
 
 def resolve_weights(weights: str | os.PathLike | None) -> Path:
     """The checkpoint file of ``--weights``: a path, a name of :data:`NAMED_WEIGHTS` (where no file of that name
-    exists), or None / "" (the default)."""
+    exists), or None / "" (the default).
+    """
     if weights is None or str(weights) == "":
         return DEFAULT_WEIGHTS
     p = Path(weights)

@@ -47,6 +47,7 @@ import time
 
 import numpy as np
 
+from polinfra.atomic import json_safe as _json_safe  # pane_outputs imports it from here
 from reconstruct.pane.calibrate_config import CalibratePaneConfig
 from reconstruct.pane.camera import FOV_INNER_DEG
 from reconstruct.pane.content_glass import (
@@ -380,16 +381,3 @@ def _normal(x) -> np.ndarray:
     return np.array([-st * math.cos(a), st * math.sin(a), math.cos(t)])
 
 
-def _json_safe(o):
-    """Non-finite floats -> None (JSON has no inf / NaN); numpy scalars -> Python."""
-    if isinstance(o, dict):
-        return {k: _json_safe(v) for k, v in o.items()}
-    if isinstance(o, (list, tuple)):
-        return [_json_safe(v) for v in o]
-    if isinstance(o, (np.floating, float)):
-        return float(o) if math.isfinite(float(o)) else None
-    if isinstance(o, np.integer):
-        return int(o)
-    if isinstance(o, np.bool_):
-        return bool(o)
-    return o

@@ -248,12 +248,14 @@ def anchored_floor(T: torch.Tensor, R: torch.Tensor, zeta: torch.Tensor, I: torc
         fT, fR = error_blend(a.T, Tr, a.P_T, cfg.pool), error_blend(a.R, Rr, a.P_R, cfg.pool)
     elif fallback not in ("anchor", "blend"):
         raise ValueError(f"fallback {fallback!r}: anchor or blend")
+    bad = ~(torch.isfinite(Tn) & torch.isfinite(Rn))  # a candidate pixel that is no number: the fallback, kept 0, no NaN pooled
+    Tn, Rn = torch.where(bad, fT, Tn), torch.where(bad, fR, Rn)
     excess = box_mean(move_excess(Tn, Rn, Tr, Rr, z, Iw, gain_spread), cfg.pool)  # RSS(candidate) - RSS(reference), less a gain error
 
     def frac(allow, move):
         return torch.where(move <= allow, torch.ones_like(move), allow / move.clamp_min(1e-300)).clamp(0.0, 1.0)
 
-    s_d = frac(cfg.tol * s2, excess)
+    s_d = frac(cfg.tol * s2, excess).masked_fill(bad, 0.0)
     dT, dR = Tn - fT, Rn - fR
     if not cfg.layers:
         return AnchoredFloorResult(T=(fT + s_d * dT).to(dt), R=(fR + s_d * dR).to(dt), keep_T=s_d.to(dt), keep_R=s_d.to(dt), anchor=a)

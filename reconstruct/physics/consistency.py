@@ -225,6 +225,8 @@ def consistency_floor(T: torch.Tensor, R: torch.Tensor, T_p: torch.Tensor, R_p: 
     """
     _check(zeta, I)
     zeta, I = zeta.to(T.dtype), I.to(T.dtype)
+    bad = ~(torch.isfinite(T) & torch.isfinite(R))  # a candidate pixel that is no number: the physics, kept 0, no NaN pooled
+    T, R = torch.where(bad, T_p, T), torch.where(bad, R_p, R)
     sigma2 = bounded_noise(zeta, I, cfg.pool, model_var, combine, noise_floor).clamp_min(torch.finfo(T.dtype).tiny ** 0.5)
     dT, dR = T - T_p, R - R_p
     allow = cfg.tol * sigma2
@@ -234,4 +236,5 @@ def consistency_floor(T: torch.Tensor, R: torch.Tensor, T_p: torch.Tensor, R_p: 
         s = ok.to(T.dtype)
     else:
         s = torch.where(ok, torch.ones_like(e1), allow / e1.clamp_min(torch.finfo(T.dtype).tiny ** 0.5)).clamp(0.0, 1.0)
+    s = s.masked_fill(bad, 0.0)
     return FloorResult(T=T_p + s * dT, R=R_p + s * dR, keep=s, excess=e1 / sigma2, sigma2=sigma2)

@@ -421,3 +421,26 @@ def test_the_floor_allows_the_streams_own_gain_spread():
     pinned = _garbage_net(floor_anchor="rwps")
     set_stream_gain_spread(pinned, 0.058)
     assert float(pinned.data_floor(T[None], R[None], Z[None], I[None], 200.0)[2].mean()) == pytest.approx(keep["none"])
+
+
+def test_a_candidate_that_is_no_number_gives_the_fallback_there_and_nothing_else_moves():
+    """NaN / inf pixels of a candidate (a network that overflowed) are the floor's fallback there, kept 0, and no NaN
+    spreads through the floor's pools: with the truth elsewhere, the other pixels are as without the bad ones.
+    Both floors: the data check on the RWPS and the anchored floor with the blend."""
+    from reconstruct.physics.anchor import anchored_floor
+
+    g, I, Z, Tp, Rp = _window("poisson", 1.0)
+    Tg, Rg = torch.tensor(g.T[4]).float(), torch.tensor(g.R[4]).float()
+    bad = torch.zeros_like(Tg, dtype=torch.bool)
+    bad[10:13, 20:24] = True
+    bad[40, 70] = True
+    Tn, Rn = Tg.masked_fill(bad, float("nan")), Rg.clone()
+    Rn[5, 5], bad[5, 5] = float("inf"), True
+    far = ~torch.nn.functional.max_pool2d(bad[None, None].float(), 11, 1, 5)[0, 0].bool()  # beyond two pools of 5
+    f, f0 = consistency_floor(Tn, Rn, Tp, Rp, Z, I), consistency_floor(Tg, Rg, Tp, Rp, Z, I)
+    assert torch.isfinite(f.T).all() and torch.isfinite(f.R).all()
+    assert torch.equal(f.T[bad], Tp[bad]) and torch.equal(f.R[bad], Rp[bad]) and float(f.keep[bad].max()) == 0.0
+    assert torch.equal(f.T[far], f0.T[far]) and torch.equal(f.R[far], f0.R[far])
+    a, a0 = anchored_floor(Tn, Rn, Z, I, reference=(Tp, Rp), fallback="blend"), anchored_floor(Tg, Rg, Z, I, reference=(Tp, Rp), fallback="blend")
+    assert torch.isfinite(a.T).all() and torch.isfinite(a.R).all() and float(a.keep_T[bad].max()) == 0.0
+    assert torch.allclose(a.T[far], a0.T[far]) and torch.allclose(a.R[far], a0.R[far])

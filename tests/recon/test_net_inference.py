@@ -158,7 +158,8 @@ def test_named_weights_are_the_shipped_files_and_a_file_of_that_name_wins(tmp_pa
 
 def test_fast_weights_are_a_smaller_network_that_the_stream_runs_by_name(tmp_path):
     """The real-time checkpoint: the default's design, a third of its parameters and convolution work or less, RIR on
-    as trained; the bench runs it beside the default and reports how far its frames lie from the default's."""
+    as trained; the bench runs it beside the default and reports how far its frames lie from the default's.
+    """
     from reconstruct.evaluate.bench import count_flops
     from reconstruct.evaluate.net_speed_bench import bench_net_speed, net_speed_markdown
     from reconstruct.net.checkpoint import load_model

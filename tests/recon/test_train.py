@@ -309,7 +309,8 @@ def test_val_score_of_each_selection():
 def test_teacher_term_is_the_distance_to_the_teachers_output(tmp_path, sets, tiny_run):
     """Distillation: a student started from its teacher's weights matches it on the first step (l_teach 0 up to float
     rounding: the same layers, the teacher in eval mode without the floor), then departs from it as it trains on the
-    ground truth (l_teach > 0); no teacher, no term."""
+    ground truth (l_teach > 0); no teacher, no term.
+    """
     tr, va = sets
     init = str(tiny_run[0] / "last.pt")
     cfg = dataclasses.replace(CFG, init_from=init, teacher=init, lambda_teacher=1.0, lr=1e-2, epochs=1, val_items=2)
