@@ -426,7 +426,8 @@ def test_the_floor_allows_the_streams_own_gain_spread():
 def test_a_candidate_that_is_no_number_gives_the_fallback_there_and_nothing_else_moves():
     """NaN / inf pixels of a candidate (a network that overflowed) are the floor's fallback there, kept 0, and no NaN
     spreads through the floor's pools: with the truth elsewhere, the other pixels are as without the bad ones.
-    Both floors: the data check on the RWPS and the anchored floor with the blend."""
+    Both floors: the data check on the RWPS and the anchored floor with the blend.
+    """
     from reconstruct.physics.anchor import anchored_floor
 
     g, I, Z, Tp, Rp = _window("poisson", 1.0)
