@@ -243,9 +243,11 @@ def anchored_floor(T: torch.Tensor, R: torch.Tensor, zeta: torch.Tensor, I: torc
                        span_ratio, cfg.pool, s2, cfg.r_pool)
     Tn, Rn = T.to(torch.float64), R.to(torch.float64)
     Tr, Rr = (a.T, a.R) if reference is None else (reference[0].to(torch.float64), reference[1].to(torch.float64))
-    fT, fR = a.T, a.R
+    # the fallback from the anchor projected onto layers >= 0 (as the RWPS reference is): never farther from a true
+    # layer, and bounded where the least squares runs away (zeta ~ 1 leaves T unobserved: -19 with P_T 480 measured)
+    fT, fR = a.T.clamp_min(0.0), a.R.clamp_min(0.0)
     if fallback == "blend" and reference is not None:
-        fT, fR = error_blend(a.T, Tr, a.P_T, cfg.pool), error_blend(a.R, Rr, a.P_R, cfg.pool)
+        fT, fR = error_blend(fT, Tr, a.P_T, cfg.pool), error_blend(fR, Rr, a.P_R, cfg.pool)
     elif fallback not in ("anchor", "blend"):
         raise ValueError(f"fallback {fallback!r}: anchor or blend")
     bad = ~(torch.isfinite(Tn) & torch.isfinite(Rn))  # a candidate pixel that is no number: the fallback, kept 0, no NaN pooled

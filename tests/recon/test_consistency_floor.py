@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import math
 
 import numpy as np
 import pytest
@@ -445,3 +446,25 @@ def test_a_candidate_that_is_no_number_gives_the_fallback_there_and_nothing_else
     a, a0 = anchored_floor(Tn, Rn, Z, I, reference=(Tp, Rp), fallback="blend"), anchored_floor(Tg, Rg, Z, I, reference=(Tp, Rp), fallback="blend")
     assert torch.isfinite(a.T).all() and torch.isfinite(a.R).all() and float(a.keep_T[bad].max()) == 0.0
     assert torch.allclose(a.T[far], a0.T[far]) and torch.allclose(a.R[far], a0.R[far])
+
+
+def test_the_fallback_never_takes_least_squares_below_zero():
+    """Where zeta is near 1, T hardly reaches the windows and least squares runs away (the anchor's T far below 0 on
+    the pixels that see almost only the reflection); the blend floor's fallback is >= 0 there, and any pixel the data
+    check pulls lies between the candidate and that fallback.
+    """
+    from reconstruct.physics.anchor import anchored_floor, physics_anchor
+
+    g = np.random.default_rng(8)
+    H, W, N = 24, 30, 7
+    phi = torch.tensor((np.arange(N) - 3) * math.radians(31.5))
+    zbar = torch.full((H, W), 0.985, dtype=torch.float64)
+    zeta = (zbar + 0.012 * torch.cos(2 * phi)[:, None, None]).clamp(0, 1)
+    T, R = torch.full((H, W), 0.5, dtype=torch.float64), torch.full((H, W), 0.6, dtype=torch.float64)
+    I = 0.5 * (zeta * R + (1 - zeta) * T) + torch.from_numpy(g.normal(0.0, 0.02, (N, H, W)))
+    a = physics_anchor(zeta, I)
+    assert float(a.T.min()) < -1.0  # the runaway this guards against
+    bad_T, bad_R = torch.full((H, W), 5.0, dtype=torch.float64), torch.zeros((H, W), dtype=torch.float64)  # fails the data check
+    f = anchored_floor(bad_T, bad_R, zeta, I, reference=(T.clamp_min(0.0) * 0.9, R * 0.9), fallback="blend")
+    assert float(f.T.min()) >= 0.0 and float(f.R.min()) >= 0.0
+    assert float((f.keep_T < 1).double().mean()) > 0.5

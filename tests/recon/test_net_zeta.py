@@ -92,7 +92,8 @@ def test_default_floor_holds_the_rwps_where_the_best_physics_fails(stream, tmp_p
     """R about 5 x T under a pane that barely modulates in most of the view (true zeta): least squares, and so the best
     closed-form physics, is far off in the corner where zeta is large, and the RWPS's spatial prior holds it.  The
     network floored at the default blend of the two scores within 0.5 dB of the network floored at the RWPS alone or
-    better, and the floor at the best physics alone is > 4 dB below (measured 18.5, 18.4 and 11.7 dB).
+    better, and the floor at the best physics alone is > 2 dB below (measured 18.5, 18.4 and 15.7 dB; 11.7 before its
+    fallback was held at layers >= 0).
     """
     import torch
 
@@ -113,7 +114,7 @@ def test_default_floor_holds_the_rwps_where_the_best_physics_fails(stream, tmp_p
         assert s["frames"] == 1 and s["nan_frames"] == 0
         psnr[fa] = _psnr(read_exr(tmp_path / fa / "frames" / "000000.exr", ["T"])["T"], stream["T"])
     assert psnr["blend"] >= psnr["rwps"] - 0.5, psnr
-    assert psnr["best"] < psnr["rwps"] - 4.0, psnr
+    assert psnr["best"] < psnr["rwps"] - 2.0, psnr
 
 
 @needs_ckpt
