@@ -23,7 +23,7 @@ def bench_net_speed_cmd(
     """CPU seconds per frame by stage of the network's streaming path, per checkpoint and speed-up variant, beside the first (the reference), with how far T and R move."""
     from rich.console import Console
 
-    from polinfra.atomic import write_json, write_text
+    from polinfra.atomic import json_safe, write_json, write_text
     from polinfra.errors import ConfigError
     from reconstruct.evaluate.net_speed_bench import NET_SPEED_VARIANTS, bench_net_speed, net_speed_markdown
 
@@ -47,7 +47,7 @@ def bench_net_speed_cmd(
     con = Console(stderr=True)
     res = bench_net_speed(width, height, frames, vs, threads, rir, progress=lambda s: con.print(f"[dim]{s}[/]"), weights=ws)
     md = net_speed_markdown(res)
-    write_json(out / "net_speed.json", res)
+    write_json(out / "net_speed.json", json_safe(res))  # an identical other network's PSNR (inf) as null
     write_text(out / "net_speed.md", md)
     Console().print(md)
     Console().print(f"wrote {out / 'net_speed.json'}, {out / 'net_speed.md'}")

@@ -74,7 +74,7 @@ def bench_net_speed(width: int = 400, height: int = 250, frames: int = 12, varia
     cfg = PaneStreamConfig(width=width, height=height, exposure=2.0, motion_px_s=(0.0, 20.0))
     tick = progress or (lambda s: None)
     n0 = torch.get_num_threads()
-    res: dict[str, Any] = {"config": {"width": width, "height": height, "frames": frames, "threads": threads, "rir": rir, "weights": [Path(resolve_weights(w)).name for w in weights],
+    res: dict[str, Any] = {"config": {"width": width, "height": height, "frames": frames, "threads": threads, "rir": rir, "weights": [resolve_weights(w).name for w in weights],
                                       "torch": torch.__version__, "stream": dataclasses.asdict(cfg), "load_avg_start": os.getloadavg()}, "variants": {}}
     fps_out = 360.0 * cfg.rev_per_s / 31.5
     seconds = (frames + 2 + 8) / fps_out + 0.03  # the timed frames, the warm-up's, the window's 6 more and the 17.5 ms span
@@ -89,7 +89,7 @@ def bench_net_speed(width: int = 400, height: int = 250, frames: int = 12, varia
             tick(f"write a {seconds:.3f} s stream")
             dat = write_pane_dat(d / "s.dat", cfg, seconds)
             for wname, vname, name in rows:
-                net = load_model(resolve_weights(wname), "cpu", use_rir=True, floor=True)[0]
+                net = load_model(wname, "cpu", use_rir=True, floor=True)[0]
                 stats = accelerate(net, **NET_SPEED_VARIANTS[vname])
                 model = MapsZetaNet(net, maps, span)
                 run = lambda n, out: reconstruct_stream(dat_source(dat, height, width, cfg.phi0_rad, cfg.rev_per_s, cfg.rate_hz), model, out,  # noqa: E731
@@ -103,17 +103,18 @@ def bench_net_speed(width: int = 400, height: int = 250, frames: int = 12, varia
                 row = {"cpu_s_per_frame": s["cpu_s_per_frame"], "frames_per_cpu_s": 1.0 / s["cpu_s_per_frame"]["total"], "frames_per_wall_s": s["frames_per_second_processed"],
                        "warm_up": warm, "compile": dict(stats.summary()), "load_avg": os.getloadavg()}
                 got = _frames(d / f"o_{name}")
+                row["weights"], row["variant"] = wname, vname
                 if ref is None:
                     ref = got
                 else:
-                    row["max_abs_change"] = {k: float(np.abs(got[k].astype(np.float64) - ref[k]).max()) for k in ("T", "R")}
-                    row["ratio_cpu"] = row["frames_per_cpu_s"] / res["variants"][rows[0][2]]["frames_per_cpu_s"]
-                    row["ratio_model_cpu"] = res["variants"][rows[0][2]]["cpu_s_per_frame"]["model"] / row["cpu_s_per_frame"]["model"]
-                    row["ratio_wall"] = row["frames_per_wall_s"] / res["variants"][rows[0][2]]["frames_per_wall_s"]
-                row["weights"], row["variant"] = wname, vname
-                if wname != rows[0][0] and got and ref:
-                    row["psnr_vs_reference"] = {k: _psnr(got[k], ref[k]) for k in ("T", "R")}
-                    del row["max_abs_change"]
+                    first = res["variants"][rows[0][2]]
+                    row["ratio_cpu"] = row["frames_per_cpu_s"] / first["frames_per_cpu_s"]
+                    row["ratio_model_cpu"] = first["cpu_s_per_frame"]["model"] / row["cpu_s_per_frame"]["model"]
+                    row["ratio_wall"] = row["frames_per_wall_s"] / first["frames_per_wall_s"]
+                    if wname == rows[0][0]:  # the same network sped up: how far its floats move
+                        row["max_abs_change"] = {k: float(np.abs(got[k].astype(np.float64) - ref[k]).max()) for k in ("T", "R")}
+                    elif got and ref:  # another network: how far its output lies
+                        row["psnr_vs_reference"] = {k: _psnr(got[k], ref[k]) for k in ("T", "R")}
                 res["variants"][name] = row
                 log.info("%s: %.3f frames per CPU second", name, row["frames_per_cpu_s"])
     finally:
@@ -126,8 +127,7 @@ def bench_net_speed(width: int = 400, height: int = 250, frames: int = 12, varia
 def net_speed_markdown(res: dict[str, Any]) -> str:
     """Markdown table of :func:`bench_net_speed`."""
     c = res["config"]
-    w = c["weights"] if isinstance(c["weights"], list) else [c["weights"]]
-    lines = [f"Network path at {c['width']} x {c['height']}, {c['frames']} frames, {c['threads']} torch thread(s), --rir {c['rir']} ({', '.join(w)}); "
+    lines = [f"Network path at {c['width']} x {c['height']}, {c['frames']} frames, {c['threads']} torch thread(s), --rir {c['rir']} ({', '.join(c['weights'])}); "
              f"load average {c['load_avg_start'][0]:.1f} -> {c['load_avg_end'][0]:.1f}", "",
              "| row | RIR | span | model | total CPU s / frame | frames / CPU s | frames / s (wall) | x reference (CPU) | x reference (wall) | model x reference | "
              "max abs dT | max abs dR | T, R PSNR vs reference (dB) | warm-up (compile) CPU s |",
@@ -136,9 +136,10 @@ def net_speed_markdown(res: dict[str, Any]) -> str:
         cs = r["cpu_s_per_frame"]
         ch = r.get("max_abs_change", {})
         pv = r.get("psnr_vs_reference")
+        pvs = "-" if pv is None else f"{pv['T']:.1f}, {pv['R']:.1f}"
         f = lambda v, nd=3: "-" if v is None else f"{v:.{nd}f}"  # noqa: E731
         e = lambda v: "-" if v is None else f"{v:.1e}"  # noqa: E731
         lines.append(f"| {name} | {f(cs['rir'])} | {f(cs['span'])} | {f(cs['model'])} | {f(cs['total'])} | {f(r['frames_per_cpu_s'])} | {f(r['frames_per_wall_s'])} | "
                      f"{f(r.get('ratio_cpu'), 2)} | {f(r.get('ratio_wall'), 2)} | {f(r.get('ratio_model_cpu'), 2)} | {e(ch.get('T'))} | {e(ch.get('R'))} | "
-                     f"{'-' if pv is None else f'{pv[chr(84)]:.1f}, {pv[chr(82)]:.1f}'} | {f(r['warm_up']['cpu_s'], 1)} |")
+                     f"{pvs} | {f(r['warm_up']['cpu_s'], 1)} |")
     return "\n".join(lines) + "\n"

@@ -57,7 +57,7 @@ import dataclasses
 import torch
 
 from polinfra.config import opt
-from reconstruct.physics.consistency import _check, bounded_noise, box_mean, move_excess, observation_noise
+from reconstruct.physics.consistency import _check, bounded_noise, box_mean, finite_or, move_excess, observation_noise
 
 SIG = 2.0
 """A power counts as resolved where its pooled estimate exceeds the noise's expectation by SIG standard deviations of
@@ -250,8 +250,7 @@ def anchored_floor(T: torch.Tensor, R: torch.Tensor, zeta: torch.Tensor, I: torc
         fT, fR = error_blend(fT, Tr, a.P_T, cfg.pool), error_blend(fR, Rr, a.P_R, cfg.pool)
     elif fallback not in ("anchor", "blend"):
         raise ValueError(f"fallback {fallback!r}: anchor or blend")
-    bad = ~(torch.isfinite(Tn) & torch.isfinite(Rn))  # a candidate pixel that is no number: the fallback, kept 0, no NaN pooled
-    Tn, Rn = torch.where(bad, fT, Tn), torch.where(bad, fR, Rn)
+    Tn, Rn, bad = finite_or(Tn, Rn, fT, fR)  # a candidate pixel that is no number: the fallback, kept 0
     excess = box_mean(move_excess(Tn, Rn, Tr, Rr, z, Iw, gain_spread), cfg.pool)  # RSS(candidate) - RSS(reference), less a gain error
 
     def frac(allow, move):

@@ -55,7 +55,7 @@ import torch
 from polinfra.config import opt
 from polinfra.errors import ShapeError
 
-__all__ = ["FloorConfig", "FloorResult", "observation_residual", "observation_noise", "bounded_noise", "count_quantum_variance", "spike_noise_bounds", "window_counts", "move_excess", "consistency_floor", "box_mean"]
+__all__ = ["FloorConfig", "FloorResult", "observation_residual", "observation_noise", "bounded_noise", "count_quantum_variance", "spike_noise_bounds", "window_counts", "move_excess", "consistency_floor", "box_mean", "finite_or"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -201,6 +201,14 @@ def observation_noise(zeta: torch.Tensor, I: torch.Tensor, pool: int = 5) -> tor
     return box_mean(rss / dof, pool)
 
 
+def finite_or(T: torch.Tensor, R: torch.Tensor, T_f: torch.Tensor, R_f: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """A candidate's pixels that are no number (NaN or inf in T or R: a network that overflowed) replaced by the
+    fallback's -> (T, R, those pixels): a floor then keeps 0 of the candidate there, and no NaN spreads through its pools.
+    """
+    bad = ~(torch.isfinite(T) & torch.isfinite(R))
+    return torch.where(bad, T_f, T), torch.where(bad, R_f, R), bad
+
+
 def consistency_floor(T: torch.Tensor, R: torch.Tensor, T_p: torch.Tensor, R_p: torch.Tensor, zeta: torch.Tensor, I: torch.Tensor,
                       cfg: FloorConfig = FloorConfig(), model_var: torch.Tensor | None = None, combine: str = "max",
                       noise_floor: torch.Tensor | float | None = None, gain_spread: float = 0.0) -> FloorResult:
@@ -225,8 +233,7 @@ def consistency_floor(T: torch.Tensor, R: torch.Tensor, T_p: torch.Tensor, R_p: 
     """
     _check(zeta, I)
     zeta, I = zeta.to(T.dtype), I.to(T.dtype)
-    bad = ~(torch.isfinite(T) & torch.isfinite(R))  # a candidate pixel that is no number: the physics, kept 0, no NaN pooled
-    T, R = torch.where(bad, T_p, T), torch.where(bad, R_p, R)
+    T, R, bad = finite_or(T, R, T_p, R_p)  # a candidate pixel that is no number: the physics, kept 0
     sigma2 = bounded_noise(zeta, I, cfg.pool, model_var, combine, noise_floor).clamp_min(torch.finfo(T.dtype).tiny ** 0.5)
     dT, dR = T - T_p, R - R_p
     allow = cfg.tol * sigma2
