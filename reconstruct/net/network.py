@@ -53,6 +53,7 @@ import torch.nn.functional as F
 
 from polinfra.config import opt
 from polinfra.errors import ConfigError, ShapeError
+from reconstruct.net.floor import network_floor
 from reconstruct.physics.solvers import SolverConfig, solve
 from reconstruct.physics.span import anchor_to_mean, gaussian_blur, gaussian_radius, long_span_separation, span_blend, span_weights, zbar_of
 from reconstruct.physics.symmetry import symmetry_angles, symmetry_harmonic, symmetry_image
@@ -566,35 +567,10 @@ class PolSpikeNet(nn.Module):
             T, R, keep = self.data_floor(T, R, zeta_used, I, exposure, I_mean if self.cfg.use_mean else None, phi, external=zeta_gt is not None and alpha >= 1.0)
         return NetOutput(T=T, R=R, T_base=T0, R_base=R0, zeta_hat=zeta_hat, zeta_used=zeta_used, weights=w, conf=res.conf, res=resid, I=I, zeta_gt=zeta_gt, floor_keep=keep)
 
-    @torch.no_grad()
     def data_floor(self, T: torch.Tensor, R: torch.Tensor, zeta: torch.Tensor, I: torch.Tensor, exposure=None, I_mean=None, phi=None, external: bool = True) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """The data-consistency floor (:mod:`reconstruct.physics.consistency`): (T, R) against the physics-only RWPS
-        (``polspike reconstruct --method rwps`` on this zeta, layers >= 0) on the same aligned windows -> (T, R, kept fraction).
-        Given the stream's ``exposure``, the noise is capped at the windows' Poisson noise, var(2 I) = 4 I / (exposure L)
-        with L = 13 steps (0.65 ms at 20 kHz: the windows this network reads), so misalignment or a wrong zeta in the
-        residual does not widen the allowance; and bounded from below by the noise of counts under one spike per window
-        (:func:`reconstruct.physics.consistency.count_quantum_variance` at the brighter of the windows' and the span's
-        mean), which a dark pool's all-zero windows cannot show.  ``floor_anchor = "blend"`` (default): the same check,
-        falling back per pixel to the RWPS and the best closed-form physics weighed by their error powers, ``"best"``
-        to the latter alone (:func:`reconstruct.physics.anchor.anchored_floor`, with the long span's ``I_mean`` at the
-        polarizer-cycle mean zeta of ``phi``); ``floor_layers`` adds its layer checks; the kept fraction returned is T's.  Only on an ``external`` zeta (self-calibrated or given): least
-        squares on the unchecked learned zeta can be far off (the anchor's T erred by 0.8-1.2 on a 0.3-0.7 layer).
-        """
-        from reconstruct.physics.anchor import AnchorFloorConfig, anchored_floor
-        from reconstruct.physics.consistency import FloorConfig, consistency_floor, spike_noise_bounds, window_counts
-        from reconstruct.physics.solvers import PHYSICS_SOLVER_CONFIG
-
-        z, Iw, gs = zeta.detach().float(), I.detach().float(), self.cfg.floor_gain_spread if self.cfg.floor_gain_spread >= 0 else getattr(self, "stream_gain_spread", 0.0)
-        mv, qf = spike_noise_bounds(Iw, exposure, None if I_mean is None else I_mean.detach().float())
-        ph = solve("rwps", z, Iw, None, PHYSICS_SOLVER_CONFIG)
-        if self.cfg.floor_anchor in ("best", "blend") and external:
-            g = anchored_floor(T.float(), R.float(), z, Iw, None if I_mean is None else I_mean.detach().float(), None if I_mean is None else zbar_of(z, phi.float()),
-                               AnchorFloorConfig(tol=self.cfg.floor_tol, layers=self.cfg.floor_layers), mv, reference=(ph.T.clamp_min(0.0), ph.R.clamp_min(0.0)), noise_floor=qf,
-                               counts=window_counts(Iw, exposure), gain_spread=gs,
-                               fallback="blend" if self.cfg.floor_anchor == "blend" else "anchor")
-            return g.T.to(T.dtype), g.R.to(R.dtype), g.keep_T
-        f = consistency_floor(T.float(), R.float(), ph.T.clamp_min(0.0), ph.R.clamp_min(0.0), z, Iw, FloorConfig(tol=self.cfg.floor_tol, mode=self.cfg.floor_mode), mv, "min", noise_floor=qf, gain_spread=gs)
-        return f.T.to(T.dtype), f.R.to(R.dtype), f.keep
+        """The data-consistency floor of this configuration (:func:`reconstruct.net.floor.network_floor`) -> (T, R, T's kept fraction)."""
+        gs = self.cfg.floor_gain_spread if self.cfg.floor_gain_spread >= 0 else getattr(self, "stream_gain_spread", 0.0)
+        return network_floor(self.cfg, T, R, zeta, I, exposure, I_mean, phi, external, gs)
 
 
 def count_parameters(model: nn.Module) -> int:

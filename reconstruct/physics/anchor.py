@@ -58,6 +58,7 @@ import torch
 
 from polinfra.config import opt
 from reconstruct.physics.consistency import _check, bounded_noise, box_mean, finite_or, move_excess, observation_noise
+from reconstruct.physics.rir import _quantile
 
 SIG = 2.0
 """A power counts as resolved where its pooled estimate exceeds the noise's expectation by SIG standard deviations of
@@ -76,7 +77,7 @@ def _null_log_sd(ratio: torch.Tensor, pool: int) -> torch.Tensor:
     is the noise's even where every pixel is smeared; it is wider than chi-square's because the noise estimate is itself
     pooled and local, and dim integrate-and-fire counts are far from Gaussian.
     """
-    q10 = torch.quantile(ratio.flatten(-2).float(), 0.1, dim=-1).to(ratio.dtype).clamp(1e-6, 1.0)
+    q10 = _quantile(ratio.flatten(-2).float(), 0.1, dim=-1).to(ratio.dtype).clamp(1e-6, 1.0)  # torch.quantile's, by selection
     return torch.clamp_min(-torch.log(q10) / 1.2816, (2.0 / pool**2) ** 0.5)[..., None, None]
 
 

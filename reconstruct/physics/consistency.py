@@ -50,12 +50,15 @@ from __future__ import annotations
 
 import dataclasses
 
+import numpy as np
 import torch
 
 from polinfra.config import opt
 from polinfra.errors import ShapeError
+from reconstruct.physics.fused_rwps import rwps_fused, rwps_fused_supports
+from reconstruct.physics.solvers import PHYSICS_SOLVER_CONFIG, SolverConfig, _box, solve
 
-__all__ = ["FloorConfig", "FloorResult", "observation_residual", "observation_noise", "bounded_noise", "count_quantum_variance", "spike_noise_bounds", "window_counts", "move_excess", "consistency_floor", "box_mean", "finite_or"]
+__all__ = ["FloorConfig", "FloorResult", "observation_residual", "observation_noise", "bounded_noise", "count_quantum_variance", "spike_noise_bounds", "window_counts", "move_excess", "consistency_floor", "box_mean", "finite_or", "rwps_reference"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -92,13 +95,10 @@ def observation_residual(T: torch.Tensor, R: torch.Tensor, zeta: torch.Tensor, I
 
 
 def box_mean(x: torch.Tensor, k: int) -> torch.Tensor:
-    """Mean of (..., H, W) maps over a k x k box (stride 1, borders averaged over the pixels inside)."""
-    if k <= 1:
-        return x
-    shp = x.shape
-    y = x.reshape(-1, 1, *shp[-2:])
-    y = torch.nn.functional.avg_pool2d(y, k, stride=1, padding=k // 2, count_include_pad=False)[..., : shp[-2], : shp[-1]]
-    return y.reshape(shp)
+    """Mean of (..., H, W) maps over a k x k box (stride 1, borders averaged over the pixels inside): ``avg_pool2d``
+    with ``count_include_pad=False``, bit for bit, as the solvers' two 1-D passes (half its cost in float64).
+    """
+    return _box(x, k)
 
 
 def bounded_noise(zeta: torch.Tensor, I: torch.Tensor, pool: int, model_var: torch.Tensor | None = None, combine: str = "max",
@@ -156,14 +156,27 @@ def move_excess(T: torch.Tensor, R: torch.Tensor, T_ref: torch.Tensor, R_ref: to
     x_ref in the metric of the data, alpha = <A d, A x_ref> / |A x_ref|^2, as far as |alpha| <= 3 ``gain_spread`` (three
     sd of the sensor's spread: the pooled check carries a pixel beyond it into its neighbours), before the excess is taken: a candidate that is the reference rescaled within the
     spread passes, any other move is measured in full.
+
+    In closed form from the windows' moments over N (no (..., N, H, W) temporaries): A_k d = p + zeta_k q with
+    p = T - T_ref, q = (R - R_ref) - p, and the reference's residual r_k = b_k - T_ref - zeta_k (R_ref - T_ref), so the
+    excess sum (A_k d)^2 - 2 r_k A_k d needs only sum zeta, sum zeta^2, sum b and sum zeta b; the gain's direction
+    A x_ref = T_ref + zeta_k (R_ref - T_ref) is of the same form.
     """
-    r = observation_residual(T_ref, R_ref, zeta, I)
-    Ad = zeta * (R - R_ref).unsqueeze(-3) + (1.0 - zeta) * (T - T_ref).unsqueeze(-3)
-    if gain_spread > 0:  # A x_ref, the reference's predicted observations, is b - r
-        u = 2.0 * I - r
-        alpha = ((Ad * u).sum(-3) / (u * u).sum(-3).clamp_min(torch.finfo(u.dtype).tiny ** 0.5)).clamp(-3.0 * gain_spread, 3.0 * gain_spread)
-        Ad = Ad - alpha.unsqueeze(-3) * u  # A (d - alpha x_ref), A being linear
-    return (Ad * Ad).sum(-3) - 2.0 * (r * Ad).sum(-3)
+    _check(zeta, I)
+    n = float(zeta.shape[-3])
+    b = 2.0 * I
+    sz, szz, sb, szb = zeta.sum(-3), (zeta * zeta).sum(-3), b.sum(-3), (zeta * b).sum(-3)
+    e_ref = R_ref - T_ref
+    sr = sb - n * T_ref - sz * e_ref  # sum_k r_k
+    szr = szb - sz * T_ref - szz * e_ref  # sum_k zeta_k r_k
+    p = T - T_ref
+    q = (R - R_ref) - p
+    if gain_spread > 0:  # A x_ref, the reference's predicted observations: T_ref + zeta_k e_ref
+        sdu = n * p * T_ref + (p * e_ref + q * T_ref) * sz + q * e_ref * szz
+        suu = n * T_ref * T_ref + 2.0 * T_ref * e_ref * sz + e_ref * e_ref * szz
+        alpha = (sdu / suu.clamp_min(torch.finfo(suu.dtype).tiny ** 0.5)).clamp(-3.0 * gain_spread, 3.0 * gain_spread)
+        p, q = p - alpha * T_ref, q - alpha * e_ref  # A (d - alpha x_ref), A being linear
+    return n * p * p + 2.0 * p * q * sz + q * q * szz - 2.0 * (p * sr + q * szr)
 
 
 def spike_noise_bounds(I: torch.Tensor, exposure, I_mean: torch.Tensor | None = None, steps: int = 13, pool: int = 5):
@@ -185,19 +198,21 @@ def spike_noise_bounds(I: torch.Tensor, exposure, I_mean: torch.Tensor | None = 
 
 def observation_noise(zeta: torch.Tensor, I: torch.Tensor, pool: int = 5) -> torch.Tensor:
     """sigma^2 of one observation b_k = 2 I_k, (..., H, W): the unweighted least-squares residual RSS / (N - 2),
-    box-averaged over ``pool`` pixels (zeta that does not modulate: the residual about the window mean, N - 1 dof).
+    box-averaged over ``pool`` (zeta that does not modulate, std over the N below 1e-4: the residual about the window
+    mean, N - 1 dof).  In closed form: b_k = T + zeta_k (R - T) is a line in zeta_k, so least squares leaves the
+    residual r_k = (b_k - <b>) - (zeta_k - <zeta>) D with D = sum (zeta_k - <zeta>)(b_k - <b>) / sum (zeta_k - <zeta>)^2.
     """
     _check(zeta, I)
-    from reconstruct.physics.solvers import solve_weighted_ridge
-
     b = 2.0 * I
     N = I.shape[-3]
-    R, T = solve_weighted_ridge(zeta, b, torch.ones_like(b), 0.0)
-    r = b - (zeta * R.unsqueeze(-3) + (1.0 - zeta) * T.unsqueeze(-3))
+    dz = zeta - zeta.mean(-3, keepdim=True)
+    db = b - b.mean(-3, keepdim=True)
+    szz = (dz * dz).sum(-3, keepdim=True)
+    modulates = szz > max(N - 1, 1) * 1e-8  # the windows' zeta std above 1e-4: the 2 x 2 system is not singular
+    D = torch.where(modulates, (dz * db).sum(-3, keepdim=True) / szz.clamp_min(torch.finfo(szz.dtype).tiny ** 0.5), torch.zeros_like(szz))
+    r = db - dz * D
     rss = (r * r).sum(-3)
-    # where zeta is (nearly) constant the 2x2 system is singular: the fit keeps one dof, not two
-    modulates = zeta.std(-3) > 1e-4
-    dof = torch.where(modulates, torch.full_like(rss, max(N - 2, 1)), torch.full_like(rss, max(N - 1, 1)))
+    dof = torch.where(modulates.squeeze(-3), torch.full_like(rss, max(N - 2, 1)), torch.full_like(rss, max(N - 1, 1)))
     return box_mean(rss / dof, pool)
 
 
@@ -245,3 +260,24 @@ def consistency_floor(T: torch.Tensor, R: torch.Tensor, T_p: torch.Tensor, R_p: 
         s = torch.where(ok, torch.ones_like(e1), allow / e1.clamp_min(torch.finfo(T.dtype).tiny ** 0.5)).clamp(0.0, 1.0)
     s = s.masked_fill(bad, 0.0)
     return FloorResult(T=T_p + s * dT, R=R_p + s * dR, keep=s, excess=e1 / sigma2, sigma2=sigma2)
+
+
+@torch.compiler.disable
+def rwps_reference(zeta: torch.Tensor, I: torch.Tensor, config: SolverConfig = PHYSICS_SOLVER_CONFIG) -> tuple[torch.Tensor, torch.Tensor]:
+    """The physics-only RWPS layers clamped at 0, (T, R) each (..., H, W), of windows ``I`` (..., N, H, W) on ``zeta``,
+    without gradient: ``solve("rwps", zeta, I, None, config)`` clamped as the floors and the stream clamp it.  On the
+    CPU, for a configuration :func:`reconstruct.physics.fused_rwps.rwps_fused_supports` takes, through the fused numba
+    passes on the torch threads (about 9x faster on one thread; equal to float32 rounding amplified by the pixel's
+    conditioning, docs/realtime.md); elsewhere through :func:`reconstruct.physics.solvers.solve`.
+    """
+    with torch.no_grad():
+        if I.device.type == "cpu" and I.dim() >= 3 and zeta.shape == I.shape:
+            if rwps_fused_supports(config):
+                lead, (N, H, W) = I.shape[:-3], I.shape[-3:]
+                z, x = zeta.detach().reshape(-1, N, H, W).float().numpy(), I.detach().reshape(-1, N, H, W).float().numpy()
+                out = [rwps_fused(z[i], x[i], config, threads=torch.get_num_threads()) for i in range(z.shape[0])]
+                T = torch.from_numpy(np.stack([o[0] for o in out])).reshape(*lead, H, W).to(I.dtype)
+                R = torch.from_numpy(np.stack([o[1] for o in out])).reshape(*lead, H, W).to(I.dtype)
+                return T, R
+        res = solve("rwps", zeta, I, None, config)
+        return res.T.clamp_min(0.0), res.R.clamp_min(0.0)

@@ -87,16 +87,19 @@ def registration_mask(I: torch.Tensor, phi: torch.Tensor, config: RirConfig = Ri
     return mask
 
 
-def _quantile(x: torch.Tensor, q: float) -> torch.Tensor:
-    """``torch.quantile(x, q)`` of a 1-D tensor without NaN (linear interpolation between the two order statistics
-    around rank q (n - 1), by ``torch.lerp`` as torch does) from two selections instead of a sort.
+def _quantile(x: torch.Tensor, q: float, dim: int | None = None) -> torch.Tensor:
+    """``torch.quantile(x, q, dim)`` of a tensor without NaN (linear interpolation between the two order statistics
+    around rank q (n - 1), by ``torch.lerp`` as torch does) from two selections instead of a sort; ``dim`` None: of
+    all its values.
     """
-    n = x.numel()
+    if dim is None:
+        x, dim = x.flatten(), 0
+    n = x.shape[dim]
     pos = q * (n - 1)
     lo = int(np.floor(pos))
     hi = min(lo + 1, n - 1)
-    a = torch.kthvalue(x, lo + 1).values
-    b = torch.kthvalue(x, hi + 1).values if hi != lo else a
+    a = torch.kthvalue(x, lo + 1, dim=dim).values
+    b = torch.kthvalue(x, hi + 1, dim=dim).values if hi != lo else a
     return torch.lerp(a, b, torch.tensor(pos - lo, dtype=x.dtype))
 
 

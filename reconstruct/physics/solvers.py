@@ -436,3 +436,4 @@ def solve(
             R, T = solve_weighted_ridge(zeta, b, w, lam, prior, D0)
     return SolverResult(R=R, T=T, conf=conf, weights=w, lam=lam)
 
+

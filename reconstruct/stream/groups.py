@@ -201,10 +201,8 @@ class SpikeMeanSums:
             return
         if not part.shape[0]:
             return
-        for a in range(0, part.shape[0], 256):  # bounded float32 copies
-            q = part[a : a + 256]
-            X = harmonic_design(self.phi[s0 + a : s0 + a + q.shape[0]]).astype(np.float32)
-            self.acc += np.tensordot(X, q.astype(np.float32), axes=(1, 0))
+        p = 2.0 * self.phi[s0 : s0 + part.shape[0]]
+        harmonic_accumulate(self.acc, part, np.cos(p), np.sin(p))
 
     def feed(self, s0: int, chunk: np.ndarray) -> None:
         """The next chunk of spikes (steps s0 .. s0 + len); chunks arrive in order without gaps."""
@@ -264,6 +262,43 @@ class SpikeMeanSums:
         return span_harmonic(d, self.phi[lo:hi], exposure)
 
 
+def _harmonic_accumulate_py(acc, part, c, s):  # pragma: no cover - compiled by numba below; kept plain for reading
+    t, H, W = part.shape
+    for y in range(H):
+        a0, a1, a2 = acc[0, y], acc[1, y], acc[2, y]  # three float64 rows stay in the L1 cache over the steps
+        for k in range(t):
+            ck, sk, row = c[k], s[k], part[k, y]
+            for x in range(W):
+                v = np.float64(row[x])
+                a0[x] += v
+                a1[x] += ck * v
+                a2[x] += sk * v
+
+
+_harmonic_kernel: list = []
+
+
+def harmonic_accumulate(acc: np.ndarray, part: np.ndarray, cos2: np.ndarray, sin2: np.ndarray) -> None:
+    """Acc (3, H, W) float64 += the spikes ``part`` (t, H, W) summed over the steps with weights 1, ``cos2``, ``sin2``
+    (t,) (cos and sin of 2 phi per step): the sums :func:`span_harmonic` reads, in float64 and in step order per pixel,
+    by one numba pass over the spikes as they come (no float copies of the chunk); numpy where numba is missing.
+    """
+    part = np.ascontiguousarray(part)
+    c, s = np.ascontiguousarray(cos2, np.float64), np.ascontiguousarray(sin2, np.float64)
+    if not _harmonic_kernel:
+        try:
+            import numba
+
+            _harmonic_kernel.append(numba.njit(cache=True, nogil=True, error_model="numpy")(_harmonic_accumulate_py))
+        except ImportError:  # pragma: no cover - numba is a dependency
+            _harmonic_kernel.append(None)
+    k = _harmonic_kernel[0]
+    if k is not None and acc.dtype == np.float64 and acc.flags.c_contiguous:
+        k(acc, part, c, s)
+        return
+    acc += np.tensordot(np.stack([np.ones_like(c), c, s]), part.astype(np.float64), axes=(1, 0))  # pragma: no cover
+
+
 def harmonic_design(phi: np.ndarray) -> np.ndarray:
     """(3, t) rows 1, cos 2 phi, sin 2 phi of per-step angles ``phi`` (radians): the first-harmonic design whose
     products with a span's spikes :func:`span_harmonic` takes.
@@ -292,7 +327,7 @@ def span_harmonic(sums: np.ndarray, phi: np.ndarray, exposure: float = 1.0) -> n
     if X.shape[1] == 0:
         return np.zeros((2, *sums.shape[1:]), np.float32)
     G = X @ X.T + HARMONIC_RIDGE * X.shape[1] * np.diag([0.0, 1.0, 1.0])
-    coef = np.linalg.solve(G, sums.reshape(3, -1)).reshape(sums.shape)
+    coef = (np.linalg.solve(G, np.eye(3)) @ sums.reshape(3, -1)).reshape(sums.shape)  # one 3 x 3 inverse for every pixel
     return (coef[1:] / exposure).astype(np.float32)
 
 

@@ -468,3 +468,65 @@ def test_the_fallback_never_takes_least_squares_below_zero():
     f = anchored_floor(bad_T, bad_R, zeta, I, reference=(T.clamp_min(0.0) * 0.9, R * 0.9), fallback="blend")
     assert float(f.T.min()) >= 0.0 and float(f.R.min()) >= 0.0
     assert float((f.keep_T < 1).double().mean()) > 0.5
+
+
+def test_noise_estimate_is_the_least_squares_residual_per_pixel():
+    """observation_noise (pool 1) is numpy lstsq's residual of b = zeta R + (1 - zeta) T over N - 2 dof per pixel, and
+    where zeta does not modulate the residual about the window mean over N - 1.
+    """
+    rng = np.random.default_rng(8)
+    N, H, W = 7, 5, 6
+    z = rng.uniform(0.02, 0.6, (N, H, W))
+    z[:, 0, :] = 0.3  # a pane that does not modulate on the first row
+    I = rng.uniform(0.0, 1.0, (N, H, W))
+    got = observation_noise(torch.tensor(z), torch.tensor(I), pool=1).numpy()
+    b = 2 * I
+    for y in range(H):
+        for x in range(W):
+            if y == 0:
+                want = ((b[:, y, x] - b[:, y, x].mean()) ** 2).sum() / (N - 1)
+            else:
+                A = np.stack([z[:, y, x], 1 - z[:, y, x]], 1)
+                rss = np.linalg.lstsq(A, b[:, y, x], rcond=None)[1][0]
+                want = rss / (N - 2)
+            assert got[y, x] == pytest.approx(want, rel=1e-9, abs=1e-12), (y, x)
+
+
+def test_excess_less_a_gain_error_is_the_residual_difference_of_the_move_less_its_part_along_the_reference():
+    """move_excess with a gain spread: RSS(x_ref + d') - RSS(x_ref) in numpy, d' = d - alpha x_ref, alpha the data
+    metric's projection of d on x_ref clipped to 3 spreads.
+    """
+    from reconstruct.physics.consistency import move_excess
+
+    rng = np.random.default_rng(9)
+    N, H, W, gs = 7, 8, 9, 0.02
+    z, I = rng.uniform(0.02, 0.6, (N, H, W)), rng.uniform(0.0, 1.0, (N, H, W))
+    Tr, Rr = rng.uniform(0.1, 1.0, (H, W)), rng.uniform(0.0, 1.0, (H, W))
+    T, R = Tr * (1 + rng.uniform(-0.1, 0.1, (H, W))), Rr * (1 + rng.uniform(-0.1, 0.1, (H, W)))
+    b = 2 * I
+
+    def A(T_, R_):
+        return z * R_ + (1 - z) * T_
+
+    u, Ad = A(Tr, Rr), A(T - Tr, R - Rr)
+    alpha = np.clip((Ad * u).sum(0) / (u * u).sum(0), -3 * gs, 3 * gs)
+    T2, R2 = T - alpha * Tr, R - alpha * Rr
+    want = ((b - A(T2, R2)) ** 2).sum(0) - ((b - A(Tr, Rr)) ** 2).sum(0)
+    got = move_excess(*(torch.tensor(v) for v in (T, R, Tr, Rr, z, I)), gain_spread=gs).numpy()
+    np.testing.assert_allclose(got, want, rtol=1e-9, atol=1e-12)
+    assert np.any(np.abs(alpha) == 3 * gs) and np.any(np.abs(alpha) < 3 * gs)  # both branches of the clip are met
+
+
+def test_the_floors_rwps_reference_is_the_torch_solver_clamped():
+    """rwps_reference (the fused kernel on the CPU) equals solve("rwps") clamped at 0 within the fused kernel's
+    tolerance (test_live_kernels), per image of a batch.
+    """
+    from reconstruct.physics.consistency import rwps_reference
+
+    g0, I0, Z0, Tp0, Rp0 = _window("poisson", 1.0)
+    g1, I1, Z1, Tp1, Rp1 = _window("poisson", 4.0, seed=1)
+    T, R = rwps_reference(torch.stack([Z0, Z1]).float(), torch.stack([I0, I1]).float())
+    assert T.shape == (2, *Tp0.shape) and T.dtype == torch.float32
+    for got, want in ((T[0], Tp0), (T[1], Tp1), (R[0], Rp0), (R[1], Rp1)):
+        peak = float(want.max())
+        assert peak > 0 and float((got - want.float()).abs().max()) <= 2e-5 * peak

@@ -62,6 +62,22 @@ def test_streamed_span_harmonic_is_the_direct_fit_of_the_raw_spikes(chunk):
         np.testing.assert_allclose(sums.mean(j, 0.5), spikes[lo:hi].sum(0) / ((hi - lo) * 0.5), rtol=1e-6)
 
 
+@pytest.mark.parametrize("dtype", [np.uint8, np.bool_])
+def test_harmonic_sums_are_the_weighted_step_sums_in_float64(dtype):
+    """harmonic_accumulate adds sum_t s_t (1, cos 2 phi_t, sin 2 phi_t) per pixel: numpy's float64 sum of the same
+    products is the oracle (integer counts exact), onto what the sums held before.
+    """
+    from reconstruct.stream.groups import harmonic_accumulate
+
+    rng = np.random.default_rng(4)
+    spikes = (rng.random((300, 6, 7)) < 0.35).astype(dtype)
+    p = 2.0 * rng.uniform(0.0, 7.0, 300)
+    acc = rng.normal(size=(3, 6, 7))
+    want = acc + np.stack([spikes.sum(0, dtype=np.float64), (np.cos(p)[:, None, None] * spikes).sum(0), (np.sin(p)[:, None, None] * spikes).sum(0)])
+    harmonic_accumulate(acc, spikes, np.cos(p), np.sin(p))
+    np.testing.assert_allclose(acc, want, rtol=0, atol=1e-11)
+
+
 def test_spike_mean_sums_without_angles_has_no_harmonic_and_the_same_mean():
     from polinfra.errors import DataFormatError
 
