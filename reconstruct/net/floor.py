@@ -2,7 +2,7 @@
 
 :func:`network_floor` is what :meth:`reconstruct.net.network.PolSpikeNet.data_floor` runs after the refinement at
 inference: (T, R) against the physics-only RWPS (``polspike reconstruct --method rwps`` on this zeta, layers >= 0;
-:func:`reconstruct.physics.consistency.rwps_reference`) through :mod:`reconstruct.physics.consistency` or, with an
+:func:`reconstruct.physics.solvers.solve` clamped at 0) through :mod:`reconstruct.physics.consistency` or, with an
 anchor, :mod:`reconstruct.physics.anchor`.
 """
 
@@ -11,7 +11,8 @@ from __future__ import annotations
 import torch
 
 from reconstruct.physics.anchor import AnchorFloorConfig, anchored_floor
-from reconstruct.physics.consistency import FloorConfig, consistency_floor, rwps_reference, spike_noise_bounds, window_counts
+from reconstruct.physics.consistency import FloorConfig, consistency_floor, spike_noise_bounds, window_counts
+from reconstruct.physics.solvers import PHYSICS_SOLVER_CONFIG, solve
 from reconstruct.physics.span import zbar_of
 
 __all__ = ["network_floor"]
@@ -37,7 +38,8 @@ def network_floor(cfg, T: torch.Tensor, R: torch.Tensor, zeta: torch.Tensor, I: 
     z, Iw = zeta.detach().float(), I.detach().float()
     Im = None if I_mean is None else I_mean.detach().float()
     mv, qf = spike_noise_bounds(Iw, exposure, Im)
-    ref = rwps_reference(z, Iw)
+    ph = solve("rwps", z, Iw, None, PHYSICS_SOLVER_CONFIG)
+    ref = (ph.T.clamp_min(0.0), ph.R.clamp_min(0.0))
     if cfg.floor_anchor in ("best", "blend") and external:
         g = anchored_floor(T.float(), R.float(), z, Iw, Im, None if Im is None else zbar_of(z, phi.float()),
                            AnchorFloorConfig(tol=cfg.floor_tol, layers=cfg.floor_layers), mv, reference=ref, noise_floor=qf,

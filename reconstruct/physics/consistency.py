@@ -50,15 +50,13 @@ from __future__ import annotations
 
 import dataclasses
 
-import numpy as np
 import torch
 
 from polinfra.config import opt
 from polinfra.errors import ShapeError
-from reconstruct.physics.fused_rwps import rwps_fused, rwps_fused_supports
-from reconstruct.physics.solvers import PHYSICS_SOLVER_CONFIG, SolverConfig, _box, solve
+from reconstruct.physics.solvers import _box
 
-__all__ = ["FloorConfig", "FloorResult", "observation_residual", "observation_noise", "bounded_noise", "count_quantum_variance", "spike_noise_bounds", "window_counts", "move_excess", "consistency_floor", "box_mean", "finite_or", "rwps_reference"]
+__all__ = ["FloorConfig", "FloorResult", "observation_residual", "observation_noise", "bounded_noise", "count_quantum_variance", "spike_noise_bounds", "window_counts", "move_excess", "consistency_floor", "box_mean", "finite_or"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -261,23 +259,3 @@ def consistency_floor(T: torch.Tensor, R: torch.Tensor, T_p: torch.Tensor, R_p: 
     s = s.masked_fill(bad, 0.0)
     return FloorResult(T=T_p + s * dT, R=R_p + s * dR, keep=s, excess=e1 / sigma2, sigma2=sigma2)
 
-
-@torch.compiler.disable
-def rwps_reference(zeta: torch.Tensor, I: torch.Tensor, config: SolverConfig = PHYSICS_SOLVER_CONFIG) -> tuple[torch.Tensor, torch.Tensor]:
-    """The physics-only RWPS layers clamped at 0, (T, R) each (..., H, W), of windows ``I`` (..., N, H, W) on ``zeta``,
-    without gradient: ``solve("rwps", zeta, I, None, config)`` clamped as the floors and the stream clamp it.  On the
-    CPU, for a configuration :func:`reconstruct.physics.fused_rwps.rwps_fused_supports` takes, through the fused numba
-    passes on the torch threads (about 9x faster on one thread; equal to float32 rounding amplified by the pixel's
-    conditioning, docs/realtime.md); elsewhere through :func:`reconstruct.physics.solvers.solve`.
-    """
-    with torch.no_grad():
-        if I.device.type == "cpu" and I.dim() >= 3 and zeta.shape == I.shape:
-            if rwps_fused_supports(config):
-                lead, (N, H, W) = I.shape[:-3], I.shape[-3:]
-                z, x = zeta.detach().reshape(-1, N, H, W).float().numpy(), I.detach().reshape(-1, N, H, W).float().numpy()
-                out = [rwps_fused(z[i], x[i], config, threads=torch.get_num_threads()) for i in range(z.shape[0])]
-                T = torch.from_numpy(np.stack([o[0] for o in out])).reshape(*lead, H, W).to(I.dtype)
-                R = torch.from_numpy(np.stack([o[1] for o in out])).reshape(*lead, H, W).to(I.dtype)
-                return T, R
-        res = solve("rwps", zeta, I, None, config)
-        return res.T.clamp_min(0.0), res.R.clamp_min(0.0)

@@ -516,17 +516,3 @@ def test_excess_less_a_gain_error_is_the_residual_difference_of_the_move_less_it
     np.testing.assert_allclose(got, want, rtol=1e-9, atol=1e-12)
     assert np.any(np.abs(alpha) == 3 * gs) and np.any(np.abs(alpha) < 3 * gs)  # both branches of the clip are met
 
-
-def test_the_floors_rwps_reference_is_the_torch_solver_clamped():
-    """rwps_reference (the fused kernel on the CPU) equals solve("rwps") clamped at 0 within the fused kernel's
-    tolerance (test_live_kernels), per image of a batch.
-    """
-    from reconstruct.physics.consistency import rwps_reference
-
-    g0, I0, Z0, Tp0, Rp0 = _window("poisson", 1.0)
-    g1, I1, Z1, Tp1, Rp1 = _window("poisson", 4.0, seed=1)
-    T, R = rwps_reference(torch.stack([Z0, Z1]).float(), torch.stack([I0, I1]).float())
-    assert T.shape == (2, *Tp0.shape) and T.dtype == torch.float32
-    for got, want in ((T[0], Tp0), (T[1], Tp1), (R[0], Rp0), (R[1], Rp1)):
-        peak = float(want.max())
-        assert peak > 0 and float((got - want.float()).abs().max()) <= 2e-5 * peak
