@@ -56,7 +56,7 @@ from polinfra.config import opt
 from polinfra.errors import ShapeError
 from reconstruct.physics.solvers import _box
 
-__all__ = ["FloorConfig", "FloorResult", "observation_residual", "observation_noise", "bounded_noise", "count_quantum_variance", "spike_noise_bounds", "window_counts", "move_excess", "consistency_floor", "box_mean", "finite_or"]
+__all__ = ["FloorConfig", "FloorResult", "observation_noise", "bounded_noise", "count_quantum_variance", "spike_noise_bounds", "window_counts", "move_excess", "consistency_floor", "box_mean", "finite_or"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -84,12 +84,6 @@ class FloorResult:
 def _check(zeta: torch.Tensor, I: torch.Tensor) -> None:
     if I.dim() < 3 or zeta.shape != I.shape:
         raise ShapeError(f"zeta and I must be (..., N, H, W) of one shape; got {tuple(zeta.shape)} and {tuple(I.shape)}", actual_shape=tuple(zeta.shape), expected_shape=tuple(I.shape))
-
-
-def observation_residual(T: torch.Tensor, R: torch.Tensor, zeta: torch.Tensor, I: torch.Tensor) -> torch.Tensor:
-    """Per-observation residuals b_k - zeta_k R - (1 - zeta_k) T, (..., N, H, W), for layers (..., H, W) (b = 2 I)."""
-    _check(zeta, I)
-    return 2.0 * I - (zeta * R.unsqueeze(-3) + (1.0 - zeta) * T.unsqueeze(-3))
 
 
 def box_mean(x: torch.Tensor, k: int) -> torch.Tensor:
@@ -258,4 +252,3 @@ def consistency_floor(T: torch.Tensor, R: torch.Tensor, T_p: torch.Tensor, R_p: 
         s = torch.where(ok, torch.ones_like(e1), allow / e1.clamp_min(torch.finfo(T.dtype).tiny ** 0.5)).clamp(0.0, 1.0)
     s = s.masked_fill(bad, 0.0)
     return FloorResult(T=T_p + s * dT, R=R_p + s * dR, keep=s, excess=e1 / sigma2, sigma2=sigma2)
-

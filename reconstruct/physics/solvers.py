@@ -435,5 +435,3 @@ def solve(
             w = w0 * huber_factor(r, delta)  # supp. Eq. (11): w^(j+1) = w q^(j)
             R, T = solve_weighted_ridge(zeta, b, w, lam, prior, D0)
     return SolverResult(R=R, T=T, conf=conf, weights=w, lam=lam)
-
-

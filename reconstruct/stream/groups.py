@@ -21,6 +21,7 @@ whatever the split).
 from __future__ import annotations
 
 import dataclasses
+import functools
 import json
 import logging
 import math
@@ -275,28 +276,19 @@ def _harmonic_accumulate_py(acc, part, c, s):  # pragma: no cover - compiled by 
                 a2[x] += sk * v
 
 
-_harmonic_kernel: list = []
+@functools.cache
+def _harmonic_kernel():
+    import numba
+
+    return numba.njit(cache=True, nogil=True, error_model="numpy")(_harmonic_accumulate_py)
 
 
 def harmonic_accumulate(acc: np.ndarray, part: np.ndarray, cos2: np.ndarray, sin2: np.ndarray) -> None:
-    """Acc (3, H, W) float64 += the spikes ``part`` (t, H, W) summed over the steps with weights 1, ``cos2``, ``sin2``
-    (t,) (cos and sin of 2 phi per step): the sums :func:`span_harmonic` reads, in float64 and in step order per pixel,
-    by one numba pass over the spikes as they come (no float copies of the chunk); numpy where numba is missing.
+    """``acc`` (3, H, W) float64 += the spikes ``part`` (t, H, W) summed over the steps with weights 1, ``cos2``,
+    ``sin2`` (t,) (cos and sin of 2 phi per step): the sums :func:`span_harmonic` reads, in float64 and in step order
+    per pixel, by one numba pass over the spikes as they come (no float copies of the chunk).
     """
-    part = np.ascontiguousarray(part)
-    c, s = np.ascontiguousarray(cos2, np.float64), np.ascontiguousarray(sin2, np.float64)
-    if not _harmonic_kernel:
-        try:
-            import numba
-
-            _harmonic_kernel.append(numba.njit(cache=True, nogil=True, error_model="numpy")(_harmonic_accumulate_py))
-        except ImportError:  # pragma: no cover - numba is a dependency
-            _harmonic_kernel.append(None)
-    k = _harmonic_kernel[0]
-    if k is not None and acc.dtype == np.float64 and acc.flags.c_contiguous:
-        k(acc, part, c, s)
-        return
-    acc += np.tensordot(np.stack([np.ones_like(c), c, s]), part.astype(np.float64), axes=(1, 0))  # pragma: no cover
+    _harmonic_kernel()(acc, np.ascontiguousarray(part), np.ascontiguousarray(cos2, np.float64), np.ascontiguousarray(sin2, np.float64))
 
 
 def harmonic_design(phi: np.ndarray) -> np.ndarray:
