@@ -15,7 +15,7 @@ def bench_net_speed_cmd(
     width: int = typer.Option(400, "--width", help="frame width (H W divisible by 8)"),
     height: int = typer.Option(250, "--height", help="frame height"),
     frames: int = typer.Option(12, "--frames", help="timed output frames per variant (even: two windows per forward pass)"),
-    variants: str = typer.Option("default,fast", "--variants", help="comma-separated, the first the reference: default, fast, compile, fast+compile (compile: torch.compile, needs a C++ compiler, minutes of compile time on 2 cores)"),
+    variants: str = typer.Option("default,fast", "--variants", help="comma-separated, the first the reference: default, fast, compile, fast+compile, fast+bf16, fast+bf16+compile (compile: torch.compile, needs a C++ compiler, minutes of compile time on 2 cores; bf16: the learned layers in bfloat16 where the CPU has AMX or AVX-512 BF16)"),
     threads: int = typer.Option(1, "--threads", help="torch threads"),
     rir: str = typer.Option("window", "--rir", help="the windows' RIR shifts: window | chained (as polspike reconstruct --rir)"),
     weights: str = typer.Option("default", "--weights", help="comma-separated checkpoints (files, or the shipped default | fast), each run under every variant; the first row is the reference (e.g. default,fast with --variants default,fast+compile: the real-time network against the default in one run)"),

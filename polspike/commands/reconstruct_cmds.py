@@ -28,6 +28,7 @@ def evaluate_cmd(
     no_attention: bool = typer.Option(False, "--no-attention", help="full: the checkpoint is the without-angle-attention ablation (trained so)"),
     no_conf: bool = typer.Option(False, "--no-conf", help="full: the without-Conf ablation (trained so, else a test-time ablation)"),
     net_tile: int = typer.Option(256, "--net-tile", help="full: network tile size in pixels (0 = whole frame)"),
+    bf16: bool = typer.Option(False, "--bf16", help="full: the network's learned layers in bfloat16 where the CPU has AMX or AVX-512 BF16 (as polspike reconstruct --bf16), to measure its quality change"),
     max_frames: int = typer.Option(0, "--max-frames", help="at most this many output frames per group (0 = all)"),
     pane_n: float = typer.Option(1.5, "--pane-n", help="physics zeta: calibrated refractive index"),
     pane_model: str = typer.Option("single", "--pane-model", help="physics zeta: single, thin_slab or thick_slab"),
@@ -59,7 +60,8 @@ def evaluate_cmd(
     from polinfra.config import from_dict
     from polinfra.errors import ConfigError
     from polinfra.progress import rich_progress
-    from reconstruct.evaluate.harness import EvalConfig, evaluate_groups, load_groups, markdown_table, sweep_markdown, window_sweep, write_report
+    from reconstruct.evaluate.harness import EvalConfig, evaluate_groups, load_groups, markdown_table, write_report
+    from reconstruct.evaluate.paper_table import sweep_markdown, window_sweep
     from reconstruct.net.checkpoint import floor_overrides
     from reconstruct.stream.synthetic import SyntheticConfig
 
@@ -67,7 +69,7 @@ def evaluate_cmd(
     cfg = from_dict(
         EvalConfig,
         {"n_obs": n_obs, "dt_ms": dt_ms, "stride_deg": stride_deg, "methods": method, "zeta": zeta, "rir": rir, "max_frames": max_frames, "pane_n": pane_n, "pane_model": pane_model, "dtype": dtype, "device": device,
-         "checkpoint": str(checkpoint or ""), "no_attention": no_attention, "no_conf": no_conf, "net_tile": net_tile, "net_zeta": net_zeta, "net_fallback": net_fallback, "net_ensemble": net_ensemble, "anchor": anchor, "self_fov": self_fov, "floor": floor, "floor_anchor": floor_anchor or "", "gain_spread": gain_spread},
+         "checkpoint": str(checkpoint or ""), "no_attention": no_attention, "no_conf": no_conf, "net_tile": net_tile, "bf16": bf16, "net_zeta": net_zeta, "net_fallback": net_fallback, "net_ensemble": net_ensemble, "anchor": anchor, "self_fov": self_fov, "floor": floor, "floor_anchor": floor_anchor or "", "gain_spread": gain_spread},
         where="command line",
     )
     try:

@@ -68,7 +68,7 @@ from reconstruct.physics.zeta import ZETA_SOURCES, PaneMaps, zeta_from_maps
 from reconstruct.stream.groups import EvalGroup, network_inputs
 from spike_sim.config import pixel_gain_spread
 
-__all__ = ["BOUND_GOAL_DB", "SHARE_KEYS", "SHARE_FRAME_KEYS", "group_noise", "share_context", "share_scores", "net_zeta_of", "REGIME_FACTORS", "EvalConfig", "EvalReport", "finite_means", "BASELINES", "ANCHOR_SUFFIX", "SPAN_METHOD", "NET_METHOD", "load_network", "group_zeta", "evaluate_groups", "write_report", "parse_methods", "load_groups", "window_sweep", "markdown_table", "sweep_markdown"]
+__all__ = ["BOUND_GOAL_DB", "SHARE_KEYS", "SHARE_FRAME_KEYS", "group_noise", "share_context", "share_scores", "net_zeta_of", "REGIME_FACTORS", "EvalConfig", "EvalReport", "finite_means", "BASELINES", "ANCHOR_SUFFIX", "SPAN_METHOD", "NET_METHOD", "load_network", "group_zeta", "evaluate_groups", "write_report", "parse_methods", "load_groups", "markdown_table"]
 
 log = logging.getLogger(__name__)
 
@@ -102,6 +102,7 @@ class EvalConfig:
     no_attention: bool = opt(False, "method full: the checkpoint must be trained without angle attention (paper Table 1 ablation)")
     no_conf: bool = opt(False, "method full: evaluate without Conf (checkpoint trained without it, else a test-time ablation)")
     net_tile: int = opt(256, "method full: network tile size in pixels (bounded memory; 0 = whole frame)", lo=0, hi=100000)
+    bf16: bool = opt(False, "method full: the network's learned layers in bfloat16 where the CPU computes it natively (reconstruct.net.inference.accelerate; its quality change)")
     net_solver: str = opt("", "method full: physics solver before the network's refinement instead of the trained one (supp. Table 3); empty = as trained", choices=("", "ls", "ridge", "irls", "rwps"))
     net_zeta: str = opt("", "method full: zeta of the network's solver and refinement: learned (its parameter branch), self, gt, physics, or none (zeta = 0: no separable reflection, T is the whole light); empty = self when zeta is self, else learned", choices=("", "learned", "self", "gt", "physics", "none"))
     net_ensemble: int = opt(1, "method full: test-time self-ensemble over 1, 2, 4 or 8 symmetries of the image (reconstruct.net.network.SymmetryEnsemble; that many forward passes)", choices=tuple(SYMMETRY_CODES))
@@ -193,6 +194,10 @@ def load_network(cfg: EvalConfig) -> tuple[torch.nn.Module, dict]:
     if "solver_method" in overrides:
         label += f"-{overrides['solver_method']}"
     info = {"path": str(path), "label": label, "trained": trained, "overrides": overrides, "step": data.get("step"), "ensemble": cfg.net_ensemble, "floor": model.cfg.floor, "floor_anchor": model.cfg.floor_anchor if model.cfg.floor else None, "floor_gain_spread": model.cfg.floor_gain_spread if model.cfg.floor else None}
+    if cfg.bf16:
+        from reconstruct.net.inference import accelerate
+
+        info["bf16"] = accelerate(model, bf16=True).bf16
     if cfg.net_ensemble > 1:
         from reconstruct.net.network import SymmetryEnsemble
 
@@ -661,29 +666,6 @@ def _load_store(path: str, dt_ms: float, stride_deg: float, n_obs: int, frames: 
     with open_group(path) as g:
         rate = g.rate_hz
     return load_store_group(path, window_steps_from_ms(dt_ms, rate), stride_deg, n_obs, frames, name)
-
-
-def window_sweep(groups: list[EvalGroup] | None, dataset: str, split: str, cfg: EvalConfig, n_values=(5, 7, 9), dt_values=(0.30, 0.65, 1.10), synthetic=None, solver_cfg: SolverConfig = PHYSICS_SOLVER_CONFIG, rir_cfg: RirConfig = RirConfig()) -> list[dict]:
-    """Supp. Table 1 analysis: PSNR / SSIM of T for every (N, dt) pair, solvers of cfg.methods.
-
-    Groups are re-aggregated for each dt (the window changes the frames).
-    """
-    rows = []
-    for dt in dt_values:
-        c_dt = dataclasses.replace(cfg, dt_ms=float(dt), figure_frames=0)
-        gs = load_groups(dataset, split, dataclasses.replace(c_dt, n_obs=max(n_values)), synthetic)
-        for n in n_values:
-            rep = evaluate_groups(gs, dataclasses.replace(c_dt, n_obs=int(n)), solver_cfg, rir_cfg)
-            for r in rep.rows:
-                if r["group"] == "overall":
-                    rows.append({"n_obs": int(n), "dt_ms": float(dt), **{k: r[k] for k in ("method", "n_frames", "psnr_T", "ssim_T", "psnr_R", "ssim_R")}})
-    return rows
-
-
-def sweep_markdown(rows: list[dict]) -> str:
-    """Markdown table of :func:`window_sweep` rows."""
-    head = "| N | dt (ms) | method | frames | PSNR T (dB) | SSIM T |\n|---:|---:|---|---:|---:|---:|\n"
-    return head + "\n".join(f"| {r['n_obs']} | {r['dt_ms']:.2f} | {r['method']} | {r['n_frames']} | {_fmt(r['psnr_T'], 2)} | {_fmt(r['ssim_T'])} |" for r in rows) + "\n"
 
 
 # ---- per-regime table (stress.toml) ---------------------------------------------------------------

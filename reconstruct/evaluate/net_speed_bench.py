@@ -29,7 +29,8 @@ __all__ = ["NET_SPEED_VARIANTS", "bench_net_speed", "net_speed_markdown"]
 
 log = logging.getLogger(__name__)
 
-NET_SPEED_VARIANTS = {"default": {}, "fast": {"fast": True}, "compile": {"compile_": True}, "fast+compile": {"fast": True, "compile_": True}}
+NET_SPEED_VARIANTS = {"default": {}, "fast": {"fast": True}, "compile": {"compile_": True}, "fast+compile": {"fast": True, "compile_": True},
+                      "fast+bf16": {"fast": True, "bf16": True}, "fast+bf16+compile": {"fast": True, "bf16": True, "compile_": True}}
 """Variants by name: the keyword arguments of :func:`reconstruct.net.inference.accelerate`."""
 
 
@@ -113,7 +114,7 @@ def bench_net_speed(width: int = 400, height: int = 250, frames: int = 12, varia
                     row["ratio_wall"] = row["frames_per_wall_s"] / first["frames_per_wall_s"]
                     if wname == rows[0][0]:  # the same network sped up: how far its floats move
                         row["max_abs_change"] = {k: float(np.abs(got[k].astype(np.float64) - ref[k]).max()) for k in ("T", "R")}
-                    elif got and ref:  # another network: how far its output lies
+                    if got and ref:  # how far the output lies from the reference's (another network's, or bfloat16's rounding)
                         row["psnr_vs_reference"] = {k: _psnr(got[k], ref[k]) for k in ("T", "R")}
                 res["variants"][name] = row
                 log.info("%s: %.3f frames per CPU second", name, row["frames_per_cpu_s"])

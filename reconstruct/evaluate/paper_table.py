@@ -1,5 +1,6 @@
 """The test split in the paper's layout: Table 1 (final T of the full network and its three ablations,
-with baselines) and supp. Table 3 (each solver: solver-only / final after the same refinement).
+with baselines) and supp. Table 3 (each solver: solver-only / final after the same refinement); and the window
+analysis of supp. Table 1 (:func:`window_sweep`, ``polspike evaluate --sweep``).
 
 ``polspike evaluate-paper DATASET --full CKPT [--full CKPT2] [--no-rir ...] [--no-attention ...]
 [--no-conf ...]`` runs :func:`reconstruct.evaluate.harness.evaluate_groups` once per checkpoint and variant
@@ -36,11 +37,12 @@ from collections.abc import Callable, Sequence
 from typing import Any
 
 from polinfra.errors import ConfigError
-from reconstruct.evaluate.harness import EvalConfig, evaluate_groups, finite_means
+from reconstruct.evaluate.harness import EvalConfig, evaluate_groups, finite_means, load_groups
+from reconstruct.physics.rir import RirConfig
 from reconstruct.physics.solvers import PHYSICS_SOLVER_CONFIG, SOLVERS, SolverConfig
 from reconstruct.stream.groups import EvalGroup
 
-__all__ = ["PAPER_TABLE1", "PAPER_TABLE3", "ABLATIONS", "paper_tables", "paper_markdown", "paper_csv"]
+__all__ = ["PAPER_TABLE1", "PAPER_TABLE3", "ABLATIONS", "paper_tables", "paper_markdown", "paper_csv", "window_sweep", "sweep_markdown"]
 
 METRICS = ("psnr_T", "ssim_T", "psnr_R", "ssim_R")
 
@@ -198,3 +200,26 @@ def paper_csv(res: dict, header: bool = True) -> list[list]:
                 rows.append(["table3", s, st, r["checkpoint"], *[r[k] for k in METRICS]])
             rows.append(["table3", s, st, "mean", *[e[st]["mean"][k] for k in METRICS]])
     return rows
+
+
+def window_sweep(groups: list[EvalGroup] | None, dataset: str, split: str, cfg: EvalConfig, n_values=(5, 7, 9), dt_values=(0.30, 0.65, 1.10), synthetic=None, solver_cfg: SolverConfig = PHYSICS_SOLVER_CONFIG, rir_cfg: RirConfig = RirConfig()) -> list[dict]:
+    """Supp. Table 1 analysis: PSNR / SSIM of T for every (N, dt) pair, solvers of cfg.methods.
+
+    Groups are re-aggregated for each dt (the window changes the frames).
+    """
+    rows = []
+    for dt in dt_values:
+        c_dt = dataclasses.replace(cfg, dt_ms=float(dt), figure_frames=0)
+        gs = load_groups(dataset, split, dataclasses.replace(c_dt, n_obs=max(n_values)), synthetic)
+        for n in n_values:
+            rep = evaluate_groups(gs, dataclasses.replace(c_dt, n_obs=int(n)), solver_cfg, rir_cfg)
+            for r in rep.rows:
+                if r["group"] == "overall":
+                    rows.append({"n_obs": int(n), "dt_ms": float(dt), **{k: r[k] for k in ("method", "n_frames", "psnr_T", "ssim_T", "psnr_R", "ssim_R")}})
+    return rows
+
+
+def sweep_markdown(rows: list[dict]) -> str:
+    """Markdown table of :func:`window_sweep` rows."""
+    head = "| N | dt (ms) | method | frames | PSNR T (dB) | SSIM T |\n|---:|---:|---|---:|---:|---:|\n"
+    return head + "\n".join(f"| {r['n_obs']} | {r['dt_ms']:.2f} | {r['method']} | {r['n_frames']} | {_f(r['psnr_T'], 2)} | {_f(r['ssim_T'], 3)} |" for r in rows) + "\n"

@@ -42,7 +42,7 @@ of the whole long span of spikes where that span identifies it (``span_level``; 
 FAST_WEIGHTS = Path(__file__).resolve().parents[1] / "weights" / "polspike_fast.pt"
 """The real-time checkpoint (``--weights fast``, docs/realtime.md): the default's design with about a quarter of its
 channels, trained with RIR on camera motion and sensor randomisation; for ``polspike reconstruct --weights fast --fast
---compile --rir chained``."""
+--compile --bf16 --rir chained``."""
 NAMED_WEIGHTS = {"default": DEFAULT_WEIGHTS, "fast": FAST_WEIGHTS}
 """Shipped checkpoints by the name ``--weights`` takes in place of a path."""
 
