@@ -119,6 +119,8 @@ def evaluate_cmd(
         from polinfra.atomic import write_json, write_text
 
         rows = window_sweep(None, dataset, split, cfg, synthetic=syn, solver_cfg=solver_cfg)
+        if not rows:  # an empty table would read as a result
+            raise ConfigError("--sweep: no group is long enough for the sweep's windows (N up to 9 at dt up to 1.10 ms): no output frame; use longer groups (synthetic: --synthetic-frames 20)")
         write_json(out / "window_sweep.json", rows)
         write_text(out / "window_sweep.md", "# Window analysis (supp. Table 1)\n\n" + sweep_markdown(rows))
         con.print(sweep_markdown(rows))

@@ -97,6 +97,7 @@ class TrainConfig:
     max_skipped_frac: float = opt(0.0, "stop when more updates than this fraction of the steps so far (and more than 20) had a non-finite gradient and were skipped (a randomly initialised parameter branch's zeta can overflow the solver's backward now and then); 0 = after 20", lo=0.0, hi=0.5)
     teacher: str = opt("", "distil from this checkpoint (e.g. reconstruct/weights/polspike_v7.pt, or a shipped name): its T and R on the same windows and zeta feed (RIR as this network's [net] use_rir, no data floor) are a second target, L1 weighted lambda_teacher (l_teach in log.csv): a smaller network learns what the larger one learned; empty = none")
     lambda_teacher: float = opt(0.0, "weight of the teacher's L1 term (teacher)", lo=0.0, hi=100.0)
+    bf16: bool = opt(False, "the network's learned layers (and the teacher's) in bfloat16 through torch.autocast, the physics and the optimizer's weights in float32 (reconstruct.net.inference.accelerate): faster on a CPU with AMX or AVX-512 BF16; elsewhere float32 with a warning")
     init_from: str = opt("", "start from these weights (a checkpoint or exported .pt of the same [net] architecture; path relative to the working directory) instead of a random initialisation: fine-tuning")
 
 
@@ -440,6 +441,12 @@ def train(
         for p in teacher.parameters():
             p.requires_grad_(False)
         log.info("distilling from %s (lambda_teacher %g)", cfg.teacher, cfg.lambda_teacher)
+    if cfg.bf16:
+        from reconstruct.net.inference import accelerate
+
+        log.info("bfloat16 layers: %s", accelerate(model, bf16=True).bf16)
+        if teacher is not None:
+            accelerate(teacher, bf16=True)
     opt_ = torch.optim.Adam([p for p in model.parameters() if p.requires_grad], lr=cfg.lr)
     step = 0
     metrics: dict[str, float] = {}

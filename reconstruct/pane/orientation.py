@@ -130,7 +130,8 @@ def block_orientation_variance(s4: np.ndarray, s4_px: np.ndarray, block: int) ->
     u = np.exp(-1j * np.angle(s4))[:, None, :, None]
     perp = np.imag(sp * u)
     npx = b * b
-    v = (perp ** 2).sum(axis=(1, 3)) * npx / max(npx - 1, 1) / (16.0 * np.maximum(np.abs(s4), 1e-300) ** 2)
+    with np.errstate(divide="ignore", invalid="ignore"):  # a block with no modulation at all: nan (0 / 0), which the callers' v > 0 leaves out
+        v = (perp ** 2).sum(axis=(1, 3)) * npx / max(npx - 1, 1) / (16.0 * np.maximum(np.abs(s4), 1e-300) ** 2)
     a = np.abs(sp)
     n_eff = a.sum(axis=(1, 3)) ** 2 / np.maximum((a * a).sum(axis=(1, 3)), 1e-300)
     return v, n_eff

@@ -248,3 +248,12 @@ def test_cli_zeta_fallback_and_zeta_none_errors(tmp_path, polspike_cli, polspike
     assert not (tmp_path / "o").exists()
     r = polspike_main("evaluate", tmp_path, "--method", "full", "--net-fallback", "zero", "--out", tmp_path / "e")
     polspike_main.one_line_exit_2(r, "net_fallback")
+
+
+def test_cli_sweep_on_too_short_groups_is_an_error(tmp_path, polspike_cli):
+    """``evaluate --sweep`` on groups too short for any of its windows (N = 9 at dt = 1.10 ms needs more than two
+    frames) is a one-line error with exit 2, not an empty table that reads as a result.
+    """
+    r = polspike_cli("evaluate", "synthetic", "--method", "ls", "--sweep", "--synthetic-groups", 1, "--synthetic-frames", 2, "--synthetic-size", "48x32", "--quiet", "--out", tmp_path / "e")
+    polspike_cli.one_line_exit_2(r, "--sweep", "--synthetic-frames")
+    assert not (tmp_path / "e" / "window_sweep.json").exists()

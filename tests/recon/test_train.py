@@ -321,3 +321,20 @@ def test_teacher_term_is_the_distance_to_the_teachers_output(tmp_path, sets, tin
     assert all(float(r["loss"]) > 0 for r in rows)
     train(dataclasses.replace(cfg, teacher=""), tr, va, tmp_path / "n")
     assert not any(r["l_teach"] for r in csv.DictReader((tmp_path / "n" / "log.csv").open()))
+
+
+@pytest.mark.skipif(not __import__("reconstruct.net.inference", fromlist=["native_bf16"]).native_bf16(), reason="this CPU has no native bfloat16")
+def test_bf16_training_follows_the_float32_run_within_bfloat16_rounding(tmp_path, sets, tiny_run):
+    """``bf16 = true``: the same run with the learned layers in bfloat16 logs losses within bfloat16's rounding of the
+    float32 run's (not equal to them: the layers did run in bfloat16), and keeps float32 weights.
+    """
+    import csv
+
+    tr, va = sets
+    run, _ = tiny_run
+    train(dataclasses.replace(CFG, bf16=True), tr, va, tmp_path / "bf")
+    rows = [list(csv.DictReader(open(d / "log.csv"))) for d in (run, tmp_path / "bf")]
+    a, b = (float(r[0]["loss"]) for r in rows)
+    assert a != b and abs(a - b) <= 2e-2 * abs(a), (a, b)
+    sd = read_checkpoint(tmp_path / "bf" / "last.pt")["state_dict"]
+    assert all(t.dtype == torch.float32 for t in sd.values() if t.dtype.is_floating_point)
