@@ -561,7 +561,9 @@ class PolSpikeNet(nn.Module):
                 wsp = span_weights(I_mean, zs, phi, exposure, span_steps, I_peak=peak)
                 light = 2.0 * I_mean.double().clamp_min(0.0)  # tolerances relative to the pixel's light: any brightness scale gives the same move
                 tol_t = self.cfg.span_level_tol_t * light if self.cfg.span_level_tol_t > 0 else None
-                T, R = span_blend(T, R, I_mean, I_harm, zs, phi, wsp, self.cfg.span_level_px, self.cfg.span_level_tol * light, tol_t)
+                Ts, Rs = span_blend(T, R, I_mean, I_harm, zs, phi, wsp, self.cfg.span_level_px, self.cfg.span_level_tol * light, tol_t)
+            # in training the move is an input (no gradient through it), and T's and R's gradients pass on to the refinement
+            T, R = (T + (Ts - T.detach()), R + (Rs - R.detach())) if T.requires_grad else (Ts, Rs)
         keep = None
         if self.cfg.floor and not self.training:
             T, R, keep = self.data_floor(T, R, zeta_used, I, exposure, I_mean if self.cfg.use_mean else None, phi, external=zeta_gt is not None and alpha >= 1.0)

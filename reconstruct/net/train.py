@@ -517,6 +517,8 @@ def train(
             parts = {**parts, "loss": float(loss.detach()), "l_teach": float(l_teach.detach())}
         if not math.isfinite(parts["loss"]):
             raise FloatingPointError(f"non-finite loss at step {step}: {parts}")
+        if not loss.requires_grad:
+            raise ConfigError(f"step {step}: the loss depends on no trainable weight (trainable = {list(cfg.trainable)}, alpha {alpha}); train a part of the network that these steps' outputs pass through")
         opt_.zero_grad(set_to_none=True)
         loss.backward()
         for group in opt_.param_groups:

@@ -64,7 +64,12 @@ SIG = 2.0
 """A power counts as resolved where its pooled estimate exceeds the noise's expectation by SIG standard deviations of
 the pool's chi-square (sd = sqrt(2 / pool^2) of the mean; 2: ~2.5 % false detections where there is only noise)."""
 
-__all__ = ["AnchorResult", "physics_anchor", "SPAN_RATIO", "AnchorFloorConfig", "AnchoredFloorResult", "anchored_floor", "error_blend"]
+__all__ = ["AnchorResult", "physics_anchor", "SPAN_RATIO", "BLIND_T", "AnchorFloorConfig", "AnchoredFloorResult", "anchored_floor", "error_blend"]
+
+BLIND_T = 10.0
+"""Where the anchor's stated sd of T (its error power P_T, pooled) exceeds this many times the pixel's light 2 I, T
+counts as unobserved: the floor keeps the candidate's T (:func:`anchored_floor`).  At 1 - zeta = 0.015 with 2 % noise
+the stated sd is about twice the light, and a T ten times too bright still shows in the data there."""
 
 SPAN_RATIO = 351.0 / 13.0
 """Steps of the network's long span over the steps of one window: the span mean's variance is sigma^2 over this."""
@@ -259,12 +264,19 @@ def anchored_floor(T: torch.Tensor, R: torch.Tensor, zeta: torch.Tensor, I: torc
 
     s_d = frac(cfg.tol * s2, excess).masked_fill(bad, 0.0)
     dT, dR = Tn - fT, Rn - fR
+    # where the anchor itself states that it knows T only to more than BLIND_T times the pixel's light (zeta ~ 1 leaves
+    # T unobserved), no check can say the candidate's T is wrong, and the fallback's T is noise: the candidate's T stands
+    # (the blend ran to T = 39 from a candidate's 0.64 where 1 - zeta = 5e-4 on a view's corner).  One-sided: where
+    # the anchor understates its error, the floor acts as before
+    light2 = box_mean((Iw.mean(-3) * 2.0) ** 2, cfg.pool)
+    blind = (box_mean(a.P_T.to(torch.float64), cfg.pool) > BLIND_T**2 * light2) & ~bad
     if not cfg.layers:
-        return AnchoredFloorResult(T=(fT + s_d * dT).to(dt), R=(fR + s_d * dR).to(dt), keep_T=s_d.to(dt), keep_R=s_d.to(dt), anchor=a)
+        s_T = torch.where(blind, torch.ones_like(s_d), s_d)
+        return AnchoredFloorResult(T=torch.where(blind, Tn, fT + s_T * dT).to(dt), R=(fR + s_d * dR).to(dt), keep_T=s_T.to(dt), keep_R=s_d.to(dt), anchor=a)
     l_T = frac(cfg.tol_layer * box_mean(a.P_T_max, cfg.pool), box_mean(dT * dT, cfg.pool))
     l_R = frac(cfg.tol_layer * box_mean(a.P_R_max, cfg.pool), box_mean(dR * dR, cfg.pool))
     if counts is not None and cfg.layer_counts > 0:
         g = (box_mean(torch.broadcast_to(counts.to(torch.float64), l_T.shape), cfg.pool) / cfg.layer_counts).clamp(0.0, 1.0)
         l_T, l_R = (torch.where(g >= 1.0, x, 1.0 - g * (1.0 - x)) for x in (l_T, l_R))
-    s_T, s_R = torch.minimum(s_d, l_T), torch.minimum(s_d, l_R)
-    return AnchoredFloorResult(T=(fT + s_T * dT).to(dt), R=(fR + s_R * dR).to(dt), keep_T=s_T.to(dt), keep_R=s_R.to(dt), anchor=a)
+    s_T, s_R = torch.where(blind, torch.ones_like(s_d), torch.minimum(s_d, l_T)), torch.minimum(s_d, l_R)
+    return AnchoredFloorResult(T=torch.where(blind, Tn, fT + s_T * dT).to(dt), R=(fR + s_R * dR).to(dt), keep_T=s_T.to(dt), keep_R=s_R.to(dt), anchor=a)

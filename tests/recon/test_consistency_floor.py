@@ -516,3 +516,33 @@ def test_excess_less_a_gain_error_is_the_residual_difference_of_the_move_less_it
     np.testing.assert_allclose(got, want, rtol=1e-9, atol=1e-12)
     assert np.any(np.abs(alpha) == 3 * gs) and np.any(np.abs(alpha) < 3 * gs)  # both branches of the clip are met
 
+
+
+def test_where_zeta_leaves_t_unobserved_the_candidates_t_stands():
+    """Where zeta ~ 1 (a grazing view's corner: 1 - zeta = 1e-4), the windows see T through 1 - zeta only, so T's least
+    squares is noise far beyond the light and any fallback's T with it.  A candidate with the true T and a wrong R
+    there fails the data check (its R moves the observations), yet where the anchor states its T error beyond
+    BLIND_T times the light, the candidate's T must stand, not the fallback's, while R is floored as before; where zeta
+    is small the rule changes nothing (T's kept fraction is the joint check's, as R's).
+    """
+    from reconstruct.physics.anchor import BLIND_T, anchored_floor
+    from reconstruct.physics.consistency import box_mean
+
+    T, R, Z, I, Im, z0 = _closed_form(0.02, 0.02 / 250, seed=3)
+    corner = torch.zeros_like(T, dtype=torch.bool)
+    corner[:, 32:] = True
+    Zc = torch.where(corner, 0.9999 + 0.00002 * (Z - z0[None]) / 0.1, Z)
+    zbar = torch.where(corner, torch.full_like(z0, 0.9999), z0)
+    gen = np.random.default_rng(4)
+    b = (1 - Zc) * T + Zc * R + 0.02 * torch.tensor(gen.standard_normal(Zc.shape))
+    m = (1 - zbar) * T + zbar * R + 0.02 / 250 * torch.tensor(gen.standard_normal(T.shape))
+    Rn = torch.where(corner, R + 0.3, R)  # a wrong R where T is unobserved: the data check fails there
+    f = anchored_floor(T, Rn, Zc, b / 2, m / 2, zbar)
+    blind = box_mean(f.anchor.P_T, 5) > BLIND_T**2 * box_mean(b.mean(0) ** 2, 5)
+    assert float(blind[corner].double().mean()) > 0.3 and not bool(blind[:, :28].any())  # 45 % of the corner here
+    assert torch.equal(f.T[blind], T[blind])
+    assert float((f.T[blind] - f.anchor.T[blind]).abs().max()) > 5.0  # the fallback was far off there
+    assert float(f.keep_R[corner & blind].max()) < 0.5  # R was pulled: the check did fail there
+    plain = ~corner
+    plain[:, 28:] = False
+    assert torch.equal(f.keep_T[plain], f.keep_R[plain])

@@ -170,6 +170,24 @@ def test_span_level_network_moves_d_on_an_external_zeta_only_and_needs_the_expos
             on(I, phi, zeta_gt=Z, alpha=1.0, I_mean=Im, exposure=1.0, span_steps=SPAN)
 
 
+def test_span_level_passes_the_refinements_gradient_in_training():
+    """On a forced step (external zeta, alpha = 1) the span's move is an input: T's and R's gradients still reach the
+    refinement (before, the blend ran under no_grad and replaced T and R, so a forced step trained nothing of it),
+    and the values are the inference path's within float32 rounding of adding the move.
+    """
+    I, phi, Im, h, Z = _inputs()
+    kw = dict(I_mean=Im, I_harm=h, exposure=1.0, span_steps=SPAN)
+    net = _net(span_level=True, floor=False).train()
+    out = net(I, phi, zeta_gt=Z, alpha=1.0, **kw)
+    (out.T.mean() + out.R.mean()).backward()
+    for dec in (net.refine.dec_t, net.refine.dec_r):
+        assert dec.out.weight.grad is not None and float(dec.out.weight.grad.abs().max()) > 0
+    with torch.no_grad():
+        ref = net.eval()(I, phi, zeta_gt=Z, alpha=1.0, **kw)
+    torch.testing.assert_close(out.T.detach().to(ref.T.dtype), ref.T, rtol=0, atol=1e-6)
+    torch.testing.assert_close(out.R.detach().to(ref.R.dtype), ref.R, rtol=0, atol=1e-6)
+
+
 class _BlendOnly(torch.nn.Module):
     """A per-pixel separation followed by the span_level blend, as PolSpikeNet applies it (a stand-in: the network's
     own frame-wide statistics would hide what the tiles' margin must cover).
