@@ -297,7 +297,8 @@ def _plot(run: Path, rows: list[dict[str, Any]]) -> None:
         ax[0].set_yscale("log")
     ax[0].set_xlabel("step")
     ax[0].set_title("training losses (paper Eq. (8)-(12))")
-    ax[0].legend()
+    if tr:
+        ax[0].legend()
     if va:
         st = [int(r["step"]) for r in va]
         for k, lab in (("val_psnr_T", "full network"), ("val_psnr_T_base", "RWPS (learned zeta, w)"), ("val_psnr_T_oracle", "RWPS (GT zeta)")):
