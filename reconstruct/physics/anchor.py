@@ -269,14 +269,14 @@ def anchored_floor(T: torch.Tensor, R: torch.Tensor, zeta: torch.Tensor, I: torc
     # (the blend ran to T = 39 from a candidate's 0.64 where 1 - zeta = 5e-4 on a view's corner).  One-sided: where
     # the anchor understates its error, the floor acts as before
     light2 = box_mean((Iw.mean(-3) * 2.0) ** 2, cfg.pool)
-    blind = (box_mean(a.P_T.to(torch.float64), cfg.pool) > BLIND_T**2 * light2) & ~bad
-    if not cfg.layers:
-        s_T = torch.where(blind, torch.ones_like(s_d), s_d)
-        return AnchoredFloorResult(T=torch.where(blind, Tn, fT + s_T * dT).to(dt), R=(fR + s_d * dR).to(dt), keep_T=s_T.to(dt), keep_R=s_d.to(dt), anchor=a)
-    l_T = frac(cfg.tol_layer * box_mean(a.P_T_max, cfg.pool), box_mean(dT * dT, cfg.pool))
-    l_R = frac(cfg.tol_layer * box_mean(a.P_R_max, cfg.pool), box_mean(dR * dR, cfg.pool))
-    if counts is not None and cfg.layer_counts > 0:
-        g = (box_mean(torch.broadcast_to(counts.to(torch.float64), l_T.shape), cfg.pool) / cfg.layer_counts).clamp(0.0, 1.0)
-        l_T, l_R = (torch.where(g >= 1.0, x, 1.0 - g * (1.0 - x)) for x in (l_T, l_R))
-    s_T, s_R = torch.where(blind, torch.ones_like(s_d), torch.minimum(s_d, l_T)), torch.minimum(s_d, l_R)
+    blind = (box_mean(a.P_T, cfg.pool) > BLIND_T**2 * light2) & ~bad
+    s_T = s_R = s_d
+    if cfg.layers:
+        l_T = frac(cfg.tol_layer * box_mean(a.P_T_max, cfg.pool), box_mean(dT * dT, cfg.pool))
+        l_R = frac(cfg.tol_layer * box_mean(a.P_R_max, cfg.pool), box_mean(dR * dR, cfg.pool))
+        if counts is not None and cfg.layer_counts > 0:
+            g = (box_mean(torch.broadcast_to(counts.to(torch.float64), l_T.shape), cfg.pool) / cfg.layer_counts).clamp(0.0, 1.0)
+            l_T, l_R = (torch.where(g >= 1.0, x, 1.0 - g * (1.0 - x)) for x in (l_T, l_R))
+        s_T, s_R = torch.minimum(s_d, l_T), torch.minimum(s_d, l_R)
+    s_T = torch.where(blind, torch.ones_like(s_T), s_T)
     return AnchoredFloorResult(T=torch.where(blind, Tn, fT + s_T * dT).to(dt), R=(fR + s_R * dR).to(dt), keep_T=s_T.to(dt), keep_R=s_R.to(dt), anchor=a)

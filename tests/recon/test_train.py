@@ -13,6 +13,7 @@ from scipy import ndimage
 
 from polinfra.errors import CheckpointError, ConfigError
 from reconstruct.net.checkpoint import load_model, read_checkpoint
+from reconstruct.net.inference import native_bf16
 from reconstruct.net.onthefly import ITEM_KEYS, OnTheFlyWindows, WindowConfig, item_from_stream
 from reconstruct.net.train import TINY, TrainConfig, alpha_at, train
 
@@ -323,7 +324,7 @@ def test_teacher_term_is_the_distance_to_the_teachers_output(tmp_path, sets, tin
     assert not any(r["l_teach"] for r in csv.DictReader((tmp_path / "n" / "log.csv").open()))
 
 
-@pytest.mark.skipif(not __import__("reconstruct.net.inference", fromlist=["native_bf16"]).native_bf16(), reason="this CPU has no native bfloat16")
+@pytest.mark.skipif(not native_bf16(), reason="this CPU has no native bfloat16")
 def test_bf16_training_follows_the_float32_run_within_bfloat16_rounding(tmp_path, sets, tiny_run):
     """``bf16 = true``: the same run with the learned layers in bfloat16 logs losses within bfloat16's rounding of the
     float32 run's (not equal to them: the layers did run in bfloat16), and keeps float32 weights.
