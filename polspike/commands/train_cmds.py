@@ -154,7 +154,7 @@ def reconstruct_cmd(
     floor: bool = typer.Option(True, "--floor/--no-floor", help="the network's data-consistency floor: its (T, R) must predict the 7 aligned windows within the noise of the physics-only RWPS's fit, else it is pulled back toward the physics (--floor-anchor; reconstruct/physics/consistency.py)"),
     floor_anchor: Optional[str] = typer.Option(None, "--floor-anchor", help="what the floor falls back to where the data check fails: blend (per pixel the RWPS and the best closed-form physics weighed by their error powers; on a self-calibrated or given zeta) | rwps (the physics-only RWPS) | best (per pixel the best closed-form physics alone: least squares, the spike mean or a blend, reconstruct/physics/anchor.py) [default: the checkpoint's, blend]"),
     floor_layers: Optional[bool] = typer.Option(None, "--floor-layers/--no-floor-layers", help="with --floor-anchor best or blend: also judge T and R by their own move from the anchor against its stated error (docs/motion.md) [default: the checkpoint's, off]"),
-    gain_spread: Optional[str] = typer.Option(None, "--gain-spread", help="the floor's allowance for the sensor's per-pixel gain spread: auto (a stored group's own, its simulator's fixed pattern; 0 for a .dat) | a relative sd from 0 to 0.5 [default: the checkpoint's, 0: none]"),
+    gain_spread: Optional[str] = typer.Option(None, "--gain-spread", help="the floor's allowance for the sensor's per-pixel gain spread: auto (a stored group's own, its simulator's fixed pattern; 0 for a .dat) | estimate (from the windows, its pixel-white part) | a relative sd from 0 to 0.5 [default: the checkpoint's, estimate; 0: none]"),
     max_frames: int = typer.Option(0, "--max-frames", help="stop after this many output frames (0 = all)"),
     device: str = typer.Option("auto", "--device", help="auto | cpu | cuda"),
     quiet: bool = typer.Option(False, "--quiet", help="no progress bar"),
@@ -299,7 +299,7 @@ def reconstruct_cmd(
     else:
         speed = {}
     gs_used = None if net_model is None else net_model.cfg.floor_gain_spread
-    if gs_used is not None and gs_used < 0:  # --gain-spread auto: a stored group's own sensor, 0 for a .dat
+    if gs_used == -1.0:  # --gain-spread auto: a stored group's own sensor, 0 for a .dat
         from reconstruct.net.checkpoint import set_stream_gain_spread
         from spike_sim.config import pixel_gain_spread
         from spike_sim.store import open_group

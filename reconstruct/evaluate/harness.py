@@ -472,7 +472,7 @@ def evaluate_groups(
                 t0 = time.perf_counter()
                 zn = None if Znet is None else np.stack([np.ascontiguousarray(Znet[i - K : i + K + 1], np.float32) for i in cb])
                 x = network_inputs(g, model, raw.float().cpu().numpy(), Pw.float().cpu().numpy(), cb, K)  # with the long span it reads; ConfigError where the group lacks it
-                if b0 == 0 and model.cfg.floor_gain_spread < 0:  # once per group: the floor's allowance for its own sensor (--gain-spread auto)
+                if b0 == 0 and model.cfg.floor_gain_spread == -1.0:  # once per group: the floor's allowance for its own sensor (--gain-spread auto)
                     set_stream_gain_spread(model, float(((share or {}).get("noise") or group_noise(g, cfg) or {}).get("rel_sigma", 0.0)))
                 o = run_model_on_windows(model, x, device=next(model.parameters()).device, tile=cfg.net_tile, zeta=zn)
                 est[net_rows[0]] = (o["T"], o["R"])

@@ -20,7 +20,7 @@ __all__ = ["network_floor"]
 
 @torch.no_grad()
 def network_floor(cfg, T: torch.Tensor, R: torch.Tensor, zeta: torch.Tensor, I: torch.Tensor, exposure=None, I_mean=None, phi=None,
-                  external: bool = True, gain_spread: float = 0.0) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+                  external: bool = True, gain_spread: float | None = 0.0) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """The floor of a network configuration ``cfg`` (:class:`reconstruct.net.network.NetConfig`) -> (T, R, T's kept fraction).
 
     Given the stream's ``exposure``, the noise is capped at the windows' Poisson noise, var(2 I) = 4 I / (exposure L)
@@ -33,7 +33,8 @@ def network_floor(cfg, T: torch.Tensor, R: torch.Tensor, zeta: torch.Tensor, I: 
     polarizer-cycle mean zeta of ``phi``); ``floor_layers`` adds its layer checks.  Only on an ``external`` zeta
     (self-calibrated or given): least squares on the unchecked learned zeta can be far off (the anchor's T erred by
     0.8-1.2 on a 0.3-0.7 layer).  ``gain_spread``: the sensor's photo-gain spread the check allows for
-    (:func:`reconstruct.physics.consistency.move_excess`).
+    (:func:`reconstruct.physics.consistency.move_excess`); None: estimated from the windows, its pixel-white part
+    (:func:`reconstruct.physics.consistency.estimate_gain_spread`).
     """
     z, Iw = zeta.detach().float(), I.detach().float()
     Im = None if I_mean is None else I_mean.detach().float()

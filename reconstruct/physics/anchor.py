@@ -57,7 +57,7 @@ import dataclasses
 import torch
 
 from polinfra.config import opt
-from reconstruct.physics.consistency import _check, bounded_noise, box_mean, finite_or, move_excess, observation_noise
+from reconstruct.physics.consistency import _check, bounded_noise, box_mean, estimate_gain_spread, finite_or, move_excess, observation_noise
 from reconstruct.physics.rir import _quantile
 
 SIG = 2.0
@@ -214,7 +214,7 @@ def anchored_floor(T: torch.Tensor, R: torch.Tensor, zeta: torch.Tensor, I: torc
                    zbar_span: torch.Tensor | None = None, cfg: AnchorFloorConfig = AnchorFloorConfig(), model_var: torch.Tensor | None = None,
                    span_ratio: float = SPAN_RATIO, reference: tuple[torch.Tensor, torch.Tensor] | None = None,
                    noise_floor: torch.Tensor | float | None = None, counts: torch.Tensor | None = None,
-                   gain_spread: float = 0.0, fallback: str = "anchor") -> AnchoredFloorResult:
+                   gain_spread: float | None = 0.0, fallback: str = "anchor") -> AnchoredFloorResult:
     """Floor a candidate (T, R) (..., H, W) at the best physics (:func:`physics_anchor`) by the windows ``I`` on ``zeta``.
 
     Two checks, each a kept fraction of the candidate's move from the anchor (x = x_a + s (x_n - x_a)):
@@ -236,7 +236,7 @@ def anchored_floor(T: torch.Tensor, R: torch.Tensor, zeta: torch.Tensor, I: torc
     check counts in proportion g = min(1, counts / layer_counts): s_T -> 1 - g (1 - s_T), and below one spike the data
     check alone stands, as in :func:`reconstruct.physics.consistency.consistency_floor`.  ``model_var`` caps sigma^2 at the spikes' own noise (the floor's
     ``combine = "min"``); ``noise_floor`` bounds it from below whatever the cap (the noise of counts below one spike,
-    :func:`reconstruct.physics.consistency.count_quantum_variance`); ``gain_spread`` frees a rescaling of the reference within the sensor's gain spread (:func:`reconstruct.physics.consistency.move_excess`).
+    :func:`reconstruct.physics.consistency.count_quantum_variance`); ``gain_spread`` frees a rescaling of the reference within the sensor's gain spread (:func:`reconstruct.physics.consistency.move_excess`); None: the spread the data show, its pixel-white part only (:func:`reconstruct.physics.consistency.estimate_gain_spread`).
     ``fallback``: where the checks pull the candidate, ``"anchor"`` (the anchor) or ``"blend"`` (with a ``reference``:
     per pixel the anchor and the reference weighed by their error powers, :func:`error_blend`; the moves and the
     layer checks are then measured from that blend).
@@ -257,7 +257,8 @@ def anchored_floor(T: torch.Tensor, R: torch.Tensor, zeta: torch.Tensor, I: torc
     elif fallback not in ("anchor", "blend"):
         raise ValueError(f"fallback {fallback!r}: anchor or blend")
     Tn, Rn, bad = finite_or(Tn, Rn, fT, fR)  # a candidate pixel that is no number: the fallback, kept 0
-    excess = box_mean(move_excess(Tn, Rn, Tr, Rr, z, Iw, gain_spread), cfg.pool)  # RSS(candidate) - RSS(reference), less a gain error
+    gs, white = (estimate_gain_spread(Tn, Rn, Tr, Rr, z, Iw, s2, cfg.pool), cfg.pool) if gain_spread is None else (gain_spread, 0)
+    excess = box_mean(move_excess(Tn, Rn, Tr, Rr, z, Iw, gs, white), cfg.pool)  # RSS(candidate) - RSS(reference), less a gain error
 
     def frac(allow, move):
         return torch.where(move <= allow, torch.ones_like(move), allow / move.clamp_min(1e-300)).clamp(0.0, 1.0)

@@ -56,7 +56,7 @@ from polinfra.config import opt
 from polinfra.errors import ShapeError
 from reconstruct.physics.solvers import _box
 
-__all__ = ["FloorConfig", "FloorResult", "observation_noise", "bounded_noise", "count_quantum_variance", "spike_noise_bounds", "window_counts", "move_excess", "consistency_floor", "box_mean", "finite_or"]
+__all__ = ["FloorConfig", "FloorResult", "observation_noise", "bounded_noise", "count_quantum_variance", "spike_noise_bounds", "window_counts", "move_excess", "gain_rescale", "estimate_gain_spread", "consistency_floor", "box_mean", "finite_or"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -140,14 +140,67 @@ def window_counts(I: torch.Tensor, exposure, steps: int = 13) -> torch.Tensor | 
     return I.mean(1).clamp_min(0.0) * e * float(steps)
 
 
+def _rescale(p, q, T_ref, e_ref, n: float, sz, szz):
+    """Alpha = <A d, u> / |u|^2 and |u|^2, u = A x_ref = T_ref + zeta_k e_ref the reference's predicted observations and
+    A_k d = p + zeta_k q the move's, from the windows' moments sum zeta (``sz``) and sum zeta^2 (``szz``) over N = ``n``.
+    """
+    sdu = n * p * T_ref + (p * e_ref + q * T_ref) * sz + q * e_ref * szz
+    suu = n * T_ref * T_ref + 2.0 * T_ref * e_ref * sz + e_ref * e_ref * szz
+    return sdu / suu.clamp_min(torch.finfo(suu.dtype).tiny ** 0.5), suu
+
+
+def gain_rescale(T: torch.Tensor, R: torch.Tensor, T_ref: torch.Tensor, R_ref: torch.Tensor, zeta: torch.Tensor, I: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The rescaling of the reference that the candidate's move holds, in the metric of the data, and the reference's
+    predicted signal power: (alpha, |A x_ref|^2), each (..., H, W), for windows ``I`` and ``zeta`` (..., N, H, W).
+    """
+    _check(zeta, I)
+    e_ref = R_ref - T_ref
+    p = T - T_ref
+    return _rescale(p, (R - R_ref) - p, T_ref, e_ref, float(zeta.shape[-3]), zeta.sum(-3), (zeta * zeta).sum(-3))
+
+
+def estimate_gain_spread(T: torch.Tensor, R: torch.Tensor, T_ref: torch.Tensor, R_ref: torch.Tensor, zeta: torch.Tensor, I: torch.Tensor,
+                         sigma2: torch.Tensor, pool: int = 5, max_noise: float = 0.05, min_pixels: int = 256, cap: float = 0.15) -> torch.Tensor:
+    """The sensor's per-pixel photo-gain spread (relative sd) as the data show it, one per image: (..., 1, 1).
+
+    A gain error rescales a pixel's N observations alike (:func:`move_excess`), so between a fit to the windows (the
+    reference) and layers free of the sensor's pattern (a candidate that is close to the truth) the per-pixel rescaling
+    alpha (:func:`gain_rescale`) is the pattern, plus the windows' noise in it, sigma^2 / |A x_ref|^2, plus the
+    candidate's own error.  The pattern is white from pixel to pixel, the candidate's error mostly is not: alpha less
+    its ``pool`` box mean keeps the pattern (times sqrt(1 - 1 / pool^2)) and drops a smooth error.  On the pixels whose
+    alpha the noise blurs by less than ``max_noise`` (sd; bright light), the spread is the robust sd of that white part
+    (1.4826 x its median absolute value) with the median noise taken off in quadrature; 0 where fewer than
+    ``min_pixels`` pixels qualify (dim light, where the windows' noise hides any pattern and the allowance would not
+    matter), and at most ``cap``.  ``sigma2``: the noise variance of one observation (..., H, W), as the floor weighs it.
+    """
+    alpha, suu = gain_rescale(T, R, T_ref, R_ref, zeta, I)
+    white = alpha - box_mean(alpha, pool)
+    v = sigma2.to(alpha.dtype) / suu.clamp_min(torch.finfo(suu.dtype).tiny ** 0.5)
+    lead = alpha.shape[:-2]
+    w2, v2 = white.reshape(-1, alpha.shape[-2] * alpha.shape[-1]), torch.broadcast_to(v, alpha.shape).reshape(-1, alpha.shape[-2] * alpha.shape[-1])
+    out = torch.zeros(w2.shape[0], dtype=alpha.dtype, device=alpha.device)
+    shrink = 1.0 - 1.0 / float(pool * pool)
+    for i in range(w2.shape[0]):
+        sel = (v2[i] < max_noise * max_noise) & torch.isfinite(w2[i]) & (suu.reshape(w2.shape)[i] > 0)
+        if int(sel.sum()) < min_pixels:
+            continue
+        var = (1.4826 * w2[i][sel].abs().median()) ** 2 / shrink - v2[i][sel].median()
+        out[i] = var.clamp_min(0.0).sqrt().clamp_max(cap)
+    return out.reshape(*lead, 1, 1)
+
+
 def move_excess(T: torch.Tensor, R: torch.Tensor, T_ref: torch.Tensor, R_ref: torch.Tensor, zeta: torch.Tensor, I: torch.Tensor,
-                gain_spread: float = 0.0) -> torch.Tensor:
+                gain_spread: float | torch.Tensor = 0.0, white_pool: int = 0) -> torch.Tensor:
     """RSS(T, R) - RSS(T_ref, R_ref) on the windows ``I`` (..., N, H, W) on ``zeta``, per pixel (..., H, W), less what
     a photo-gain error explains: a pixel's gain g scales its N observations alike, so the true layers differ from a
     fit by the factor 1 + g, along the reference itself.  The candidate's move d = x - x_ref loses its component along
-    x_ref in the metric of the data, alpha = <A d, A x_ref> / |A x_ref|^2, as far as |alpha| <= 3 ``gain_spread`` (three
-    sd of the sensor's spread: the pooled check carries a pixel beyond it into its neighbours), before the excess is taken: a candidate that is the reference rescaled within the
-    spread passes, any other move is measured in full.
+    x_ref in the metric of the data, alpha = <A d, A x_ref> / |A x_ref|^2 (:func:`gain_rescale`), as far as
+    |alpha| <= 3 ``gain_spread`` (three sd of the sensor's spread: the pooled check carries a pixel beyond it into its
+    neighbours; a number, or a tensor that broadcasts over (..., H, W), e.g. one per image), before the excess is
+    taken: a candidate that is the reference rescaled within the spread passes, any other move is measured in full.
+    ``white_pool`` > 1 frees only alpha's part that is white at that scale, alpha less its ``white_pool`` box mean: a
+    sensor's fixed pattern is independent from pixel to pixel, so its box mean over 25 pixels is a fifth of it, while
+    a candidate's own brightness error over a neighbourhood (a smooth rescaling of the reference) is measured in full.
 
     In closed form from the windows' moments over N (no (..., N, H, W) temporaries): A_k d = p + zeta_k q with
     p = T - T_ref, q = (R - R_ref) - p, and the reference's residual r_k = b_k - T_ref - zeta_k (R_ref - T_ref), so the
@@ -163,10 +216,12 @@ def move_excess(T: torch.Tensor, R: torch.Tensor, T_ref: torch.Tensor, R_ref: to
     szr = szb - sz * T_ref - szz * e_ref  # sum_k zeta_k r_k
     p = T - T_ref
     q = (R - R_ref) - p
-    if gain_spread > 0:  # A x_ref, the reference's predicted observations: T_ref + zeta_k e_ref
-        sdu = n * p * T_ref + (p * e_ref + q * T_ref) * sz + q * e_ref * szz
-        suu = n * T_ref * T_ref + 2.0 * T_ref * e_ref * sz + e_ref * e_ref * szz
-        alpha = (sdu / suu.clamp_min(torch.finfo(suu.dtype).tiny ** 0.5)).clamp(-3.0 * gain_spread, 3.0 * gain_spread)
+    if torch.is_tensor(gain_spread) or gain_spread > 0:
+        alpha, _ = _rescale(p, q, T_ref, e_ref, n, sz, szz)
+        if white_pool > 1:
+            alpha = alpha - box_mean(alpha, white_pool)
+        lim = 3.0 * torch.as_tensor(gain_spread, dtype=alpha.dtype, device=alpha.device)
+        alpha = torch.maximum(torch.minimum(alpha, lim), -lim)
         p, q = p - alpha * T_ref, q - alpha * e_ref  # A (d - alpha x_ref), A being linear
     return n * p * p + 2.0 * p * q * sz + q * q * szz - 2.0 * (p * sr + q * szr)
 
@@ -218,7 +273,7 @@ def finite_or(T: torch.Tensor, R: torch.Tensor, T_f: torch.Tensor, R_f: torch.Te
 
 def consistency_floor(T: torch.Tensor, R: torch.Tensor, T_p: torch.Tensor, R_p: torch.Tensor, zeta: torch.Tensor, I: torch.Tensor,
                       cfg: FloorConfig = FloorConfig(), model_var: torch.Tensor | None = None, combine: str = "max",
-                      noise_floor: torch.Tensor | float | None = None, gain_spread: float = 0.0) -> FloorResult:
+                      noise_floor: torch.Tensor | float | None = None, gain_spread: float | None = 0.0) -> FloorResult:
     """Floor a candidate (T, R) at the physics (T_p, R_p) by the N observations ``I`` (..., N, H, W) on ``zeta``.
 
     Args:
@@ -233,7 +288,8 @@ def consistency_floor(T: torch.Tensor, R: torch.Tensor, T_p: torch.Tensor, R_p: 
             (..., H, W)): the noise of counts below one spike (:func:`count_quantum_variance`), which no residual of
             windows that all count 0 can show.
         gain_spread: the sensor's relative photo-gain spread: a move along the physics itself within two of it is
-            free (:func:`move_excess`).
+            free (:func:`move_excess`); None: the spread the data show, its pixel-white part only
+            (:func:`estimate_gain_spread`).
 
     Returns:
         :class:`FloorResult` (module docstring).
@@ -244,7 +300,8 @@ def consistency_floor(T: torch.Tensor, R: torch.Tensor, T_p: torch.Tensor, R_p: 
     sigma2 = bounded_noise(zeta, I, cfg.pool, model_var, combine, noise_floor).clamp_min(torch.finfo(T.dtype).tiny ** 0.5)
     dT, dR = T - T_p, R - R_p
     allow = cfg.tol * sigma2
-    e1 = box_mean(move_excess(T, R, T_p, R_p, zeta, I, gain_spread), cfg.pool)
+    gs, white = (estimate_gain_spread(T, R, T_p, R_p, zeta, I, sigma2, cfg.pool), cfg.pool) if gain_spread is None else (gain_spread, 0)
+    e1 = box_mean(move_excess(T, R, T_p, R_p, zeta, I, gs, white), cfg.pool)
     ok = e1 <= allow
     if cfg.mode == "hard":
         s = ok.to(T.dtype)

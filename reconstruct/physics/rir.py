@@ -33,7 +33,7 @@ from polinfra.config import opt
 from polinfra.errors import ConfigError, ShapeError
 from reconstruct.physics.harmonic_fit import dop, harmonic_fit
 
-__all__ = ["RirConfig", "registration_mask", "warp", "estimate_shifts", "align_window", "ChainedRir"]
+__all__ = ["RirConfig", "registration_mask", "warp", "estimate_shifts", "steady_shifts", "align_window", "ChainedRir"]
 
 log = logging.getLogger(__name__)
 
@@ -54,6 +54,8 @@ class RirConfig:
     coarse_factor: int = opt(2, "block size of the whole-pixel masked phase correlation (1 = full resolution)", lo=1, hi=16)
     refine_points: int = opt(20000, "at most this many mask pixels in the sub-pixel refinement", lo=16, hi=10**8)
     overlap_ratio: float = opt(0.3, "minimum overlap for skimage's masked correlation", lo=0.0, hi=1.0)
+    steady: bool = opt(True, "hold a window's shifts to one constant velocity where its registrations scatter about it (steady_shifts): frames that follow it within steady_px keep their shifts as registered and the others get the velocity's; where none does (noise-limited registration: dim light), the velocity fitted to all, shrunk toward 0 by its standard error. False: every registration as it is (a failed one 0)")
+    steady_px: float = opt(0.2, "rms (pixels per component) within which frames follow the constant velocity (steady)", lo=0.0, hi=100.0)
 
 
 def registration_mask(I: torch.Tensor, phi: torch.Tensor, config: RirConfig = RirConfig()) -> torch.Tensor:
@@ -259,6 +261,7 @@ def estimate_shifts(
     # erode its mask so no excluded (reflection) pixel or image border leaks in
     m_t = torch.from_numpy(_erode(m_np, config.erode_px))
     out = torch.zeros(N, 2, dtype=torch.float64)
+    valid = torch.zeros(N, dtype=torch.bool)
     for k in range(N):
         if k == c or not m_np.any():
             continue
@@ -273,8 +276,53 @@ def estimate_shifts(
         if not torch.isfinite(s0).all() or float(s0.abs().max()) > config.max_shift_px:
             log.debug("frame %d: registration failed (shift %s), using 0", k, s0.tolist())
             s0 = torch.zeros(2, dtype=torch.float64)
+        else:
+            valid[k] = True
         out[k] = s0
-    return out.to(I.device)
+    return (steady_shifts(out, c, valid, config.steady_px) if config.steady else out).to(I.device)
+
+
+def steady_shifts(shifts: torch.Tensor, center: int, valid: torch.Tensor | None = None, steady_px: float = 0.2, inlier_px: float = 0.5) -> torch.Tensor:
+    """A window's registered ``shifts`` (N, 2) onto frame ``center``, held to one constant velocity where the
+    registrations scatter about it: the frames lie equally spaced in time (18 ms for the 7 windows), over which a pan,
+    a shake or a layer's motion is close to steady, while a registration of noise-limited frames (dim light: a third
+    of a spike per pixel per window) scatters by a pixel or more about any velocity.
+
+    The velocity is the median of the ``valid`` frames' slopes (a failed registration does not pull it), refitted by
+    least squares through the centre on the frames within ``inlier_px`` of it.  Where at least half the frames
+    besides the centre follow it and their residual is within ``steady_px`` rms per component, they keep their shifts
+    as registered and every other frame gets v t (a frame whose registration failed, e.g. the outer ones of a fast pan
+    whose texture the low-DoP mask leaves out).  Otherwise the registrations are noise about any velocity: the shifts
+    are the least-squares v t over all valid frames with v shrunk by its standard error se = r / sqrt(sum t^2),
+    v (1 - 2 se^2 / |v|^2)^+ (its power less the noise's): a registration of noise gives shifts near 0, one of a real
+    motion under noise keeps most of it.
+    """
+    s = shifts.to(torch.float64)
+    N = s.shape[0]
+    t = torch.arange(N, dtype=torch.float64) - float(center)
+    use = (t != 0) if valid is None else (valid.to(torch.bool) & (t != 0))
+    n = int(use.sum())
+    if n == 0:
+        return torch.zeros_like(s)
+
+    def fit(m):
+        tm = t[m]
+        stt = float((tm * tm).sum())
+        v = (tm[:, None] * s[m]).sum(0) / stt
+        res = s[m] - tm[:, None] * v[None, :]
+        dof = 2 * int(m.sum()) - 2
+        return v, (float((res * res).sum()) / dof if dof > 0 else 0.0), stt
+
+    v_med = (s[use] / t[use][:, None]).median(0).values
+    inl = use & (torch.linalg.vector_norm(s - t[:, None] * v_med[None, :], dim=1) <= inlier_px)
+    if 2 * int(inl.sum()) >= N - 1:
+        v, r2, _ = fit(inl)
+        if r2 <= steady_px * steady_px:
+            return torch.where((inl | (t == 0))[:, None], s, t[:, None] * v[None, :])
+    v, r2, stt = fit(use)
+    v2 = float((v * v).sum())
+    f = max(0.0, 1.0 - 2.0 * (r2 / stt) / v2) if v2 > 0 else 0.0
+    return f * t[:, None] * v[None, :]
 
 
 def align_window(

@@ -312,7 +312,8 @@ def test_layer_checks_count_from_one_spike_per_window():
 
 def test_anchor_floor_is_the_data_check_falling_back_to_the_best_physics():
     """floor_anchor = "best" (floor_layers off) on an external zeta is anchored_floor's data check against the RWPS's
-    residual with the best physics as fallback: the network's output equals it, recomputed here from the unfloored
+    residual with the best physics as fallback (the gain allowance estimated from the windows, the default): the
+    network's output equals it, recomputed here from the unfloored
     network; and a garbage refinement ends within 1 dB of the anchor's PSNR on T and R.
     """
     from reconstruct.physics.anchor import AnchorFloorConfig, anchored_floor, physics_anchor
@@ -325,7 +326,7 @@ def test_anchor_floor_is_the_data_check_falling_back_to_the_best_physics():
         on = net(I[None], phi, zeta_gt=Z[None], alpha=1.0)
         net.cfg = dataclasses.replace(net.cfg, floor=False)
         off = net(I[None], phi, zeta_gt=Z[None], alpha=1.0)
-    f = anchored_floor(off.T, off.R, Z[None], I[None], cfg=AnchorFloorConfig(layers=False), reference=(Tp[None], Rp[None]))
+    f = anchored_floor(off.T, off.R, Z[None], I[None], cfg=AnchorFloorConfig(layers=False), reference=(Tp[None], Rp[None]), gain_spread=None)  # the default: estimated
     assert torch.allclose(on.T, f.T, atol=1e-5) and torch.allclose(on.R, f.R, atol=1e-5)
     a = physics_anchor(Z.double(), I.double())
     for key, ref, gt in (("T", a.T, g.T[4]), ("R", a.R, g.R[4])):

@@ -112,11 +112,12 @@ def test_streamed_part_sums_give_the_compensated_span_of_the_spikes():
 def test_part_shifts_from_the_windows_rir_match_the_registered_parts():
     """On a 400 px/s pan the 7 windows' RIR shifts (13-step windows 57 steps apart), read as one velocity over the
     span, give the parts' shifts within 0.3 px of their own registration and of the closed form, even where the outer
-    windows fail to register, and the span built with them is as sharp.
+    windows fail to register, and the span built with them is as sharp.  Held to one velocity (the default), the
+    windows that registered keep their shifts and the outer ones get the pan's.
     """
     import torch
 
-    from reconstruct.physics.rir import estimate_shifts
+    from reconstruct.physics.rir import RirConfig, estimate_shifts
     from reconstruct.stream.groups import harmonic_design
     from reconstruct.stream.motion_span import compensate_part_sums, part_shifts_from_windows
 
@@ -125,9 +126,13 @@ def test_part_shifts_from_the_windows_rir_match_the_registered_parts():
     c = pad + L // 2
     wc = c + 57 * np.arange(-3, 4)
     I = np.stack([spikes[k - 6 : k + 7].mean(0) / 2.0 for k in wc])
-    wsh = estimate_shifts(torch.from_numpy(I).double(), torch.from_numpy(phi[wc]).double()).numpy()
+    It, pt = torch.from_numpy(I).double(), torch.from_numpy(phi[wc]).double()
+    wsh = estimate_shifts(It, pt, config=RirConfig(steady=False)).numpy()  # the registrations as they are
     good = np.abs(wsh[:, 1] - v * (c - wc) / RATE) < 0.3  # the windows that follow the pan (the closed form)
     assert good.sum() >= 4 and not good.all()  # the outer windows' registration fails here (the mask leaves the texture out)
+    held = estimate_shifts(It, pt).numpy()  # steady (the default): the failed windows get the others' velocity
+    np.testing.assert_allclose(held[:, 1], v * (c - wc) / RATE, atol=0.3)
+    np.testing.assert_array_equal(held[good], wsh[good])
     lo, hi = c - L // 2, c + L // 2 + 1
     parts = [(lo + a, lo + b) for a, b in span_part_edges(hi - lo, 7)]
     sh = part_shifts_from_windows(wsh, wc, parts)

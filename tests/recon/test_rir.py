@@ -77,3 +77,46 @@ def test_align_window_registers_frames_and_coefficient_maps_by_the_known_shift()
     right = (slice(None), slice(4, -4), slice(W // 2 + 4, -4))  # T-only half (weak, static reflection)
     f_before, f_after = np.abs(frames - frames[N // 2])[right].mean(), np.abs(sI.numpy() - sI.numpy()[N // 2])[right].mean()
     assert f_after < 0.3 * f_before, (f_before, f_after)
+
+
+def test_steady_shifts_keep_a_clean_registration_and_fill_a_failed_frame():
+    """Shifts within 0.2 px rms of one velocity are kept as registered (a slight acceleration survives); a frame whose
+    registration failed (set to 0, not valid) gets the velocity's v t."""
+    from reconstruct.physics.rir import steady_shifts
+
+    t = torch.arange(7, dtype=torch.float64) - 3
+    s = torch.stack([0.4 * t + 0.01 * t * t, -0.7 * t], 1)
+    assert torch.equal(steady_shifts(s, 3), s)
+    failed = s.clone()
+    failed[0] = 0.0
+    valid = torch.ones(7, dtype=torch.bool)
+    valid[0] = False
+    out = steady_shifts(failed, 3, valid)
+    assert torch.equal(out[1:], s[1:])
+    assert torch.allclose(out[0], torch.tensor([-1.2, 2.1], dtype=torch.float64), atol=0.05)
+
+
+def test_steady_shifts_of_noise_shrink_to_rest_and_of_a_noisy_pan_keep_its_velocity():
+    """Registrations of noise (sd 0.8 px, no motion) end 3 x closer to the truth (0) in rms over 200 draws; a 1 px per
+    frame pan under the same scatter keeps its velocity within 10 % on average, and its shifts end closer to the truth
+    than the raw registrations."""
+    from reconstruct.physics.rir import steady_shifts
+
+    gen = torch.Generator().manual_seed(0)
+    t = torch.arange(7, dtype=torch.float64) - 3
+    pan = torch.stack([1.0 * t, 0.0 * t], 1)
+    err_raw = {"rest": 0.0, "pan": 0.0}
+    err_out = dict(err_raw)
+    slopes = []
+    for _ in range(200):
+        noise = 0.8 * torch.randn(7, 2, generator=gen, dtype=torch.float64)
+        noise[3] = 0.0
+        for key, truth in (("rest", torch.zeros(7, 2, dtype=torch.float64)), ("pan", pan)):
+            out = steady_shifts(truth + noise, 3)
+            err_raw[key] += float(((noise) ** 2).mean())
+            err_out[key] += float(((out - truth) ** 2).mean())
+            if key == "pan":
+                slopes.append(float(out[6, 0] - out[0, 0]) / 6.0)
+    assert err_out["rest"] < err_raw["rest"] / 9.0, (err_out, err_raw)
+    assert err_out["pan"] < err_raw["pan"] / 2.0, (err_out, err_raw)
+    assert abs(np.mean(slopes) - 1.0) < 0.1
