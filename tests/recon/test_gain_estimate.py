@@ -28,7 +28,8 @@ def _scene(H: int = 64, W: int = 64, N: int = 7):
 
 def _windows(spread: float, exposure: float, seed: int):
     """13-step integrate-and-fire windows (a residue uniform over one threshold) of pixels whose gain is 1 + spread x
-    N(0, 1), fixed over the 7 windows; the RWPS on them (layers >= 0) and sigma^2 as the floor measures it."""
+    N(0, 1), fixed over the 7 windows; the RWPS on them (layers >= 0) and sigma^2 as the floor measures it.
+    """
     gen = torch.Generator().manual_seed(seed)
     T, R, Z = _scene()
     gain = 1.0 + spread * torch.randn(T.shape, generator=gen, dtype=T.dtype)
@@ -42,7 +43,8 @@ def _windows(spread: float, exposure: float, seed: int):
 @pytest.mark.parametrize("exposure", [1.0, 5.0])
 def test_the_estimate_recovers_a_known_fixed_pattern(spread, exposure):
     """With 2.7 and 13.6 spikes per window, the spread estimated between the truth and the RWPS is the drawn one
-    within 15 %; without a pattern it is below 0.01."""
+    within 15 %; without a pattern it is below 0.01.
+    """
     T, R, Z, I, Tp, Rp, s2 = _windows(spread, exposure, seed=1)
     est = float(estimate_gain_spread(T, R, Tp, Rp, Z, I, s2))
     assert est == pytest.approx(spread, rel=0.15)
@@ -67,7 +69,8 @@ def test_one_estimate_per_image_of_a_batch():
 
 def test_excess_less_the_white_part_of_a_gain_error_matches_numpy():
     """move_excess with ``white_pool``: RSS(x_ref + d') - RSS(x_ref), d' = d - alpha' x_ref, alpha' the data metric's
-    projection of d on x_ref less its 5 x 5 box mean, clipped to 3 spreads (numpy, box mean over the pixels inside)."""
+    projection of d on x_ref less its 5 x 5 box mean, clipped to 3 spreads (numpy, box mean over the pixels inside).
+    """
     rng = np.random.default_rng(9)
     N, H, W, gs, k = 7, 12, 13, 0.02, 5
     z, I = rng.uniform(0.02, 0.6, (N, H, W)), rng.uniform(0.0, 1.0, (N, H, W))
@@ -96,7 +99,8 @@ def test_the_estimated_allowance_passes_the_truth_and_still_catches_a_smooth_res
     """Bright windows (13.6 spikes each) behind a 7.35 % pattern: without an allowance the floor pulls the truth toward
     the physics on most pixels; with the estimated one the truth passes on >= 90 %.  A candidate 10 % too bright over
     the whole view (a smooth error along the physics, which a known spread of 5.8 % would let through) and one off by
-    noise of sd 0.05 are still pulled back on most pixels."""
+    noise of sd 0.05 are still pulled back on most pixels.
+    """
     T, R, Z, I, Tp, Rp, _ = _windows(0.0735, 5.0, seed=6)
     assert float((consistency_floor(T, R, Tp, Rp, Z, I).keep == 1).double().mean()) < 0.5
     assert float((consistency_floor(T, R, Tp, Rp, Z, I, gain_spread=None).keep == 1).double().mean()) >= 0.9

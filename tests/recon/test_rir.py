@@ -81,7 +81,8 @@ def test_align_window_registers_frames_and_coefficient_maps_by_the_known_shift()
 
 def test_steady_shifts_keep_a_clean_registration_and_fill_a_failed_frame():
     """Shifts within 0.2 px rms of one velocity are kept as registered (a slight acceleration survives); a frame whose
-    registration failed (set to 0, not valid) gets the velocity's v t."""
+    registration failed (set to 0, not valid) gets the velocity's v t.
+    """
     from reconstruct.physics.rir import steady_shifts
 
     t = torch.arange(7, dtype=torch.float64) - 3
@@ -99,7 +100,8 @@ def test_steady_shifts_keep_a_clean_registration_and_fill_a_failed_frame():
 def test_steady_shifts_of_noise_shrink_to_rest_and_of_a_noisy_pan_keep_its_velocity():
     """Registrations of noise (sd 0.8 px, no motion) end 3 x closer to the truth (0) in rms over 200 draws; a 1 px per
     frame pan under the same scatter keeps its velocity within 10 % on average, and its shifts end closer to the truth
-    than the raw registrations."""
+    than the raw registrations.
+    """
     from reconstruct.physics.rir import steady_shifts
 
     gen = torch.Generator().manual_seed(0)
