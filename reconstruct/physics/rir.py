@@ -55,7 +55,7 @@ class RirConfig:
     refine_points: int = opt(20000, "at most this many mask pixels in the sub-pixel refinement", lo=16, hi=10**8)
     overlap_ratio: float = opt(0.3, "minimum overlap for skimage's masked correlation", lo=0.0, hi=1.0)
     steady: bool = opt(True, "hold a window's shifts to one constant velocity where its registrations scatter about it (steady_shifts): frames that follow it within steady_px keep their shifts as registered and the others get the velocity's; where none does (noise-limited registration: dim light), the velocity fitted to all, shrunk toward 0 by its standard error. False: every registration as it is (a failed one 0)")
-    steady_px: float = opt(0.2, "rms (pixels per component) within which frames follow the constant velocity (steady)", lo=0.0, hi=100.0)
+    steady_px: float = opt(0.1, "rms (pixels per component) within which frames follow the constant velocity (steady)", lo=0.0, hi=100.0)
 
 
 def registration_mask(I: torch.Tensor, phi: torch.Tensor, config: RirConfig = RirConfig()) -> torch.Tensor:
@@ -469,4 +469,6 @@ class ChainedRir:
         c = N // 2
         qc = self.q[int(index[c])]
         out = torch.from_numpy(np.stack([self.q[int(j)] - qc for j in index]))
+        if self.config.steady:  # held to one velocity as estimate_shifts' are (the chain's errors add up like a walk)
+            out = steady_shifts(out, c, None, self.config.steady_px)
         return out.to(I.device) if torch.is_tensor(I) else out
