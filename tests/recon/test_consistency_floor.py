@@ -312,8 +312,7 @@ def test_layer_checks_count_from_one_spike_per_window():
 
 def test_anchor_floor_is_the_data_check_falling_back_to_the_best_physics():
     """floor_anchor = "best" (floor_layers off) on an external zeta is anchored_floor's data check against the RWPS's
-    residual with the best physics as fallback (the gain allowance estimated from the windows, the default): the
-    network's output equals it, recomputed here from the unfloored
+    residual with the best physics as fallback: the network's output equals it, recomputed here from the unfloored
     network; and a garbage refinement ends within 1 dB of the anchor's PSNR on T and R.
     """
     from reconstruct.physics.anchor import AnchorFloorConfig, anchored_floor, physics_anchor
@@ -326,7 +325,7 @@ def test_anchor_floor_is_the_data_check_falling_back_to_the_best_physics():
         on = net(I[None], phi, zeta_gt=Z[None], alpha=1.0)
         net.cfg = dataclasses.replace(net.cfg, floor=False)
         off = net(I[None], phi, zeta_gt=Z[None], alpha=1.0)
-    f = anchored_floor(off.T, off.R, Z[None], I[None], cfg=AnchorFloorConfig(layers=False), reference=(Tp[None], Rp[None]), gain_spread=None)  # the default: estimated
+    f = anchored_floor(off.T, off.R, Z[None], I[None], cfg=AnchorFloorConfig(layers=False), reference=(Tp[None], Rp[None]))  # the default: the stream's own spread, none set here
     assert torch.allclose(on.T, f.T, atol=1e-5) and torch.allclose(on.R, f.R, atol=1e-5)
     a = physics_anchor(Z.double(), I.double())
     for key, ref, gt in (("T", a.T, g.T[4]), ("R", a.R, g.R[4])):
@@ -407,20 +406,20 @@ def test_pixel_gain_spread_adds_the_fixed_pattern_in_quadrature():
 def test_the_floor_allows_the_streams_own_gain_spread():
     """A candidate that is the physics rescaled by 10 % (a pixel gain error, which the fit absorbs): on bright windows
     the floor (``floor_gain_spread = -1``: the stream's own) pulls it back to the physics when the stream has no gain
-    spread, and keeps it when the reader set the stream's spread to 5.8 % (three spreads cover 10 %); the default
-    ``floor_gain_spread = 0`` ignores the stream's.
+    spread, and keeps it when the reader set the stream's spread to 5.8 % (three spreads cover 10 %); ``-1`` is the
+    default, and ``floor_gain_spread = 0`` ignores the stream's.
     """
     from reconstruct.net.checkpoint import set_stream_gain_spread
 
     g, I, Z, Tp, Rp = _window("poisson", 200.0)
-    net = _garbage_net(floor_anchor="rwps", floor_gain_spread=-1.0)
+    net = _garbage_net(floor_anchor="rwps")  # the default: -1
     T, R = 1.1 * Tp, 1.1 * Rp
     keep = {}
     for label, spread in (("none", 0.0), ("sensor", 0.058)):
         set_stream_gain_spread(net, spread)
         keep[label] = float(net.data_floor(T[None], R[None], Z[None], I[None], 200.0)[2].mean())
     assert keep["none"] < 0.5 < 0.95 < keep["sensor"], keep
-    pinned = _garbage_net(floor_anchor="rwps")
+    pinned = _garbage_net(floor_anchor="rwps", floor_gain_spread=0.0)
     set_stream_gain_spread(pinned, 0.058)
     assert float(pinned.data_floor(T[None], R[None], Z[None], I[None], 200.0)[2].mean()) == pytest.approx(keep["none"])
 

@@ -138,7 +138,10 @@ def test_cli_group_store_end_to_end(tmp_path):
     err = [np.abs(read_exr(tmp_path / "o" / "frames" / f"{i:06d}.exr", ["T"])["T"] - T).mean() for i in range(s["frames"])]
     assert max(err) < 0.1
     assert s["floor"] is True and s["floor_anchor"] == "blend" and s["floor_layers"] is False  # the network's defaults
-    assert s["floor_gain_spread"] == 0.0  # no allowance for the sensor's gain spread unless asked
+    from spike_sim.config import DEFAULT
+
+    sensor = pytest.approx((DEFAULT.gain_sigma**2 + DEFAULT.offset_sigma**2 + DEFAULT.threshold_sigma**2) ** 0.5)
+    assert s["floor_gain_spread"] == sensor  # auto, the default: the group's own sensor, its fixed pattern in quadrature
     # the floor at the RWPS alone: recorded; this 16 x 20 view does not self-calibrate (ambiguous), so the network runs
     # on its learned zeta, where the best-physics anchor (least squares on that zeta) is not trusted and the RWPS floor
     # stands either way: the same frames (with the anchor, its T erred by 0.34 on the last frame)
@@ -150,19 +153,17 @@ def test_cli_group_store_end_to_end(tmp_path):
     assert "learned" in s["zeta"] and err_b == err
     # the motion-compensated spans on a still scene: recorded, T as near the layer
     # (and the windows' RIR shifts, estimated once per window, by either estimator: recorded)
-    # (--gain-spread auto on the last: the group's own sensor, its simulator's fixed pattern in quadrature, recorded;
-    # and the real-time network by name, recorded as its file)
-    from spike_sim.config import DEFAULT
-
+    # (the floor's gain allowance asked for, recorded: estimated from the windows (-2), or none; and the real-time
+    # network by name, recorded as its file)
     for span, est in (("compensated", "window"), ("rir", "window"), ("plain", "chained")):
-        gs = ["--gain-spread", "auto", "--weights", "fast"] if span == "plain" else []
+        gs = {"plain": ["--gain-spread", "0", "--weights", "fast"], "rir": ["--gain-spread", "estimate"]}.get(span, [])
         r = CliRunner().invoke(get_app(), ["reconstruct", str(tmp_path / "g"), "--out", str(tmp_path / span), "--frames", "exr", "--quiet", "--span", span, "--rir", est, *gs])
         assert r.exit_code == 0, r.output
         sc = json.loads((tmp_path / span / "reconstruct.json").read_text())
         assert sc["span"] == span and s["span"] == "auto" and sc["frames"] == s["frames"]
-        assert sc["floor_gain_spread"] == (pytest.approx((DEFAULT.gain_sigma**2 + DEFAULT.offset_sigma**2 + DEFAULT.threshold_sigma**2) ** 0.5) if gs else 0.0)
+        assert sc["floor_gain_spread"] == {"plain": 0.0, "rir": -2.0}.get(span, sensor)
         assert sc["rir_shifts"] == est and s["rir_shifts"] == "window"
-        assert Path(sc["weights"]).name == ("polspike_fast.pt" if gs else "polspike_v7.pt")
+        assert Path(sc["weights"]).name == ("polspike_fast.pt" if span == "plain" else "polspike_v7.pt")
         assert sc["span_auto"] is None and sum(s["span_auto"].values()) == s["frames"]  # auto, the default: its choice per window counted
         assert max(np.abs(read_exr(tmp_path / span / "frames" / f"{i:06d}.exr", ["T"])["T"] - T).mean() for i in range(sc["frames"])) < 0.1
 
