@@ -33,7 +33,7 @@ from polinfra.config import opt
 from polinfra.errors import ConfigError, ShapeError
 from reconstruct.physics.harmonic_fit import dop, harmonic_fit
 
-__all__ = ["RirConfig", "registration_mask", "warp", "estimate_shifts", "steady_shifts", "align_window", "ChainedRir"]
+__all__ = ["RIR_SD_SCALE", "RirConfig", "registration_mask", "warp", "estimate_shifts", "steady_shifts", "align_window", "ChainedRir"]
 
 log = logging.getLogger(__name__)
 
@@ -54,8 +54,8 @@ class RirConfig:
     coarse_factor: int = opt(2, "block size of the whole-pixel masked phase correlation (1 = full resolution)", lo=1, hi=16)
     refine_points: int = opt(20000, "at most this many mask pixels in the sub-pixel refinement", lo=16, hi=10**8)
     overlap_ratio: float = opt(0.3, "minimum overlap for skimage's masked correlation", lo=0.0, hi=1.0)
-    steady: bool = opt(True, "hold a window's shifts to one constant velocity where its registrations scatter about it (steady_shifts): frames that follow it within steady_px keep their shifts as registered and the others get the velocity's; where none does (noise-limited registration: dim light), the velocity fitted to all, shrunk toward 0 by its standard error. False: every registration as it is (a failed one 0)")
-    steady_px: float = opt(0.1, "rms (pixels per component) within which frames follow the constant velocity (steady)", lo=0.0, hi=100.0)
+    steady: bool = opt(True, "hold a window's shifts toward one constant velocity as far as their registrations are noise (steady_shifts): each frame keeps its shift by its precision against steady_px, a failed one gets the velocity's, and a velocity within its noise shrinks toward rest. False: every registration as it is (a failed one 0)")
+    steady_px: float = opt(0.2, "how far (pixels) a real motion departs from one constant velocity over a window (steady): a frame registered more precisely keeps its own shift, a noisier one moves toward the velocity's", lo=0.0, hi=100.0)
 
 
 def registration_mask(I: torch.Tensor, phi: torch.Tensor, config: RirConfig = RirConfig()) -> torch.Tensor:
@@ -180,7 +180,8 @@ def _sample(img: torch.Tensor, yx: torch.Tensor) -> torch.Tensor:
 
 
 def _refine(ref: torch.Tensor, mov: torch.Tensor, mask: torch.Tensor, s0: torch.Tensor, iters: int, max_points: int = 20000) -> torch.Tensor:
-    """Masked Gauss-Newton on normalised intensities: min_s sum_mask (n(warp(mov, s)) - n(ref))^2, from s0.
+    """Masked Gauss-Newton on normalised intensities: min_s sum_mask (n(warp(mov, s)) - n(ref))^2, from s0 -> (s, the
+    fit's stated sd of a component, :func:`_stated_sd`; inf where the mask holds too few pixels).
 
     Works on the mask's pixels only (at most ``max_points``, evenly strided):
     the moving image and its gradients are sampled there with the same
@@ -188,8 +189,10 @@ def _refine(ref: torch.Tensor, mov: torch.Tensor, mask: torch.Tensor, s0: torch.
     """
     pts = _mask_points(mask, max_points).to(ref.dtype)
     if pts.shape[0] < 16:
-        return s0
-    return _gauss_newton(ref[pts[:, 0].long(), pts[:, 1].long()], _with_gradient(mov), pts, s0, iters)
+        return s0, float("inf")
+    r_ref, stack = ref[pts[:, 0].long(), pts[:, 1].long()], _with_gradient(mov)
+    s = _gauss_newton(r_ref, stack, pts, s0, iters)
+    return s, _stated_sd(r_ref, stack, pts, s)
 
 
 def _mask_points(mask: torch.Tensor, max_points: int) -> torch.Tensor:
@@ -228,6 +231,21 @@ def _gauss_newton(r_ref: torch.Tensor, stack: torch.Tensor, pts: torch.Tensor, s
     return s
 
 
+def _stated_sd(r_ref: torch.Tensor, stack: torch.Tensor, pts: torch.Tensor, s: torch.Tensor) -> float:
+    """The Gauss-Newton fit's own sd of a shift component at ``s`` (pixels): sqrt(<r^2> tr (A'A)^-1 / 2), the residual
+    r and Jacobian A of :func:`_gauss_newton` there.  It counts the mask's pixels as independent; the pre-smoothing
+    correlates their noise, so the shifts scatter about RIR_SD_SCALE times more (measured, :func:`steady_shifts`).
+    """
+    r_ref = (r_ref - r_ref.mean()) / r_ref.std().clamp_min(1e-30)
+    J, Jy, Jx = _sample(stack, pts - s)
+    sd = J.std().clamp_min(1e-30)
+    r = r_ref - (J - J.mean()) / sd
+    A = -torch.stack([Jy, Jx], -1) / sd
+    Hm = A.T @ A
+    Hm = Hm + (1e-9 * Hm.diagonal().sum() + 1e-30) * torch.eye(2, dtype=Hm.dtype)
+    return float((float((r * r).mean()) * torch.linalg.inv(Hm).diagonal().sum() / 2.0) ** 0.5)
+
+
 def estimate_shifts(
     I: torch.Tensor, phi: torch.Tensor, center: int | None = None, mask: torch.Tensor | None = None, config: RirConfig = RirConfig()
 ) -> torch.Tensor:
@@ -262,6 +280,7 @@ def estimate_shifts(
     m_t = torch.from_numpy(_erode(m_np, config.erode_px))
     out = torch.zeros(N, 2, dtype=torch.float64)
     valid = torch.zeros(N, dtype=torch.bool)
+    sd = torch.full((N,), float("nan"), dtype=torch.float64)  # the refinement's stated sd per frame (nan: none)
     for k in range(N):
         if k == c or not m_np.any():
             continue
@@ -272,57 +291,81 @@ def estimate_shifts(
             shift = phase_cross_correlation(sm[c], sm[k], reference_mask=m_np, moving_mask=m_np, overlap_ratio=config.overlap_ratio)[0]
         s0 = torch.as_tensor(np.asarray(shift, dtype=np.float64))
         if config.refine_iters > 0:
-            s0 = _refine(ref_t, torch.from_numpy(sm[k]), m_t, s0, config.refine_iters, config.refine_points)
+            s0, sd[k] = _refine(ref_t, torch.from_numpy(sm[k]), m_t, s0, config.refine_iters, config.refine_points)
         if not torch.isfinite(s0).all() or float(s0.abs().max()) > config.max_shift_px:
             log.debug("frame %d: registration failed (shift %s), using 0", k, s0.tolist())
             s0 = torch.zeros(2, dtype=torch.float64)
         else:
             valid[k] = True
         out[k] = s0
-    return (steady_shifts(out, c, valid, config.steady_px) if config.steady else out).to(I.device)
+    return (steady_shifts(out, c, valid, config.steady_px, sd=sd if bool(torch.isfinite(sd[valid]).all()) else None) if config.steady else out).to(I.device)
 
 
-def steady_shifts(shifts: torch.Tensor, center: int, valid: torch.Tensor | None = None, steady_px: float = 0.2, inlier_px: float = 0.5) -> torch.Tensor:
-    """A window's registered ``shifts`` (N, 2) onto frame ``center``, held to one constant velocity where the
-    registrations scatter about it: the frames lie equally spaced in time (18 ms for the 7 windows), over which a pan,
-    a shake or a layer's motion is close to steady, while a registration of noise-limited frames (dim light: a third
-    of a spike per pixel per window) scatters by a pixel or more about any velocity.
+RIR_SD_SCALE = 3.0
+"""How many times the Gauss-Newton fit's stated sd the registered shifts scatter by (:func:`_stated_sd` counts the
+pre-smoothed mask's pixels as independent): 2.7-4.9 measured on the RIR test stack at noise 0.003-0.04, about 4 on a
+dim paper-profile stream (0.023 spikes per pixel per step, 85 mask pixels)."""
 
-    The velocity is the median of the ``valid`` frames' slopes (a failed registration does not pull it), refitted by
-    least squares through the centre on the frames within ``inlier_px`` of it.  Where at least half the frames
-    besides the centre follow it and their residual is within ``steady_px`` rms per component, they keep their shifts
-    as registered and every other frame gets v t (a frame whose registration failed, e.g. the outer ones of a fast pan
-    whose texture the low-DoP mask leaves out).  Otherwise the registrations are noise about any velocity: the shifts
-    are the least-squares v t over all valid frames with v shrunk by its standard error se = r / sqrt(sum t^2),
-    v (1 - 2 se^2 / |v|^2)^+ (its power less the noise's): a registration of noise gives shifts near 0, one of a real
-    motion under noise keeps most of it.
+
+def steady_shifts(shifts: torch.Tensor, center: int, valid: torch.Tensor | None = None, steady_px: float = 0.2,
+                  inlier_px: float = 0.5, sd: torch.Tensor | None = None) -> torch.Tensor:
+    """A window's registered ``shifts`` (N, 2) onto frame ``center``, held toward one constant velocity as far as the
+    registrations are noise: the frames lie equally spaced in time (18 ms for the 7 windows), over which a pan, a
+    shake or a layer's motion departs from a steady one by about ``steady_px`` (tau) or less, while a registration of
+    noise-limited frames (dim light: a third of a spike per pixel per window) scatters by a pixel or more.
+
+    With each frame's precision ``sd`` (N,) (the refinement's stated sd, :func:`_stated_sd`, times RIR_SD_SCALE =
+    sigma_k): the velocity is the least-squares fit through the centre weighted by 1 / sigma_k^2 on the ``valid``
+    frames that lie within 3 (sigma_k + tau) of the median slope (a failed or wrong registration does not pull it),
+    shrunk by its variance, v (1 - 2 var(v) / |v|^2)^+ (its power less the noise's); each such frame then keeps
+    w_k = tau^2 / (tau^2 + sigma_k^2) of its own departure from v t (a precise frame its shift, a noisy one the
+    velocity's), any other frame gets v t.
+
+    Without ``sd`` (an estimator that states none), the frames within ``inlier_px`` of the median slope, at least half
+    of them, keep their shifts where their residual about the refitted velocity is within ``steady_px`` rms, the
+    others get v t; else the velocity fitted to all valid frames, shrunk by its standard error from their scatter.
     """
     s = shifts.to(torch.float64)
     N = s.shape[0]
     t = torch.arange(N, dtype=torch.float64) - float(center)
     use = (t != 0) if valid is None else (valid.to(torch.bool) & (t != 0))
-    n = int(use.sum())
-    if n == 0:
+    if int(use.sum()) == 0:
         return torch.zeros_like(s)
-
-    def fit(m):
-        tm = t[m]
-        stt = float((tm * tm).sum())
-        v = (tm[:, None] * s[m]).sum(0) / stt
-        res = s[m] - tm[:, None] * v[None, :]
-        dof = 2 * int(m.sum()) - 2
-        return v, (float((res * res).sum()) / dof if dof > 0 else 0.0), stt
-
     v_med = (s[use] / t[use][:, None]).median(0).values
-    inl = use & (torch.linalg.vector_norm(s - t[:, None] * v_med[None, :], dim=1) <= inlier_px)
+    dev = torch.linalg.vector_norm(s - t[:, None] * v_med[None, :], dim=1)
+    tau2 = steady_px * steady_px
+
+    def fit(m, w):
+        stw = float((w[m] * t[m] * t[m]).sum())
+        return (w[m, None] * t[m, None] * s[m]).sum(0) / stw, stw
+
+    def shrunk(v, var):
+        v2 = float((v * v).sum())
+        return v * (max(0.0, 1.0 - 2.0 * var / v2) if v2 > 0 else 0.0)
+
+    if sd is not None:
+        sig2 = (RIR_SD_SCALE * sd.to(torch.float64)) ** 2
+        inl = use & (dev <= 3.0 * (sig2.sqrt() + steady_px))
+        if int(inl.sum()) == 0:
+            inl = use
+        w = 1.0 / sig2.clamp_min(1e-12)
+        v, stw = fit(inl, w)
+        line = t[:, None] * shrunk(v, 1.0 / stw)[None, :]
+        keep = torch.where(inl, tau2 / (tau2 + sig2), torch.zeros_like(sig2))[:, None]
+        return torch.where((t == 0)[:, None], s, line + keep * (s - line))
+    ones = torch.ones(N, dtype=torch.float64)
+    inl = use & (dev <= inlier_px)
     if 2 * int(inl.sum()) >= N - 1:
-        v, r2, _ = fit(inl)
-        if r2 <= steady_px * steady_px:
+        v, stw = fit(inl, ones)
+        res = s[inl] - t[inl, None] * v[None, :]
+        dof = 2 * int(inl.sum()) - 2
+        if (float((res * res).sum()) / dof if dof > 0 else 0.0) <= tau2:
             return torch.where((inl | (t == 0))[:, None], s, t[:, None] * v[None, :])
-    v, r2, stt = fit(use)
-    v2 = float((v * v).sum())
-    f = max(0.0, 1.0 - 2.0 * (r2 / stt) / v2) if v2 > 0 else 0.0
-    return f * t[:, None] * v[None, :]
+    v, stw = fit(use, ones)
+    res = s[use] - t[use, None] * v[None, :]
+    dof = 2 * int(use.sum()) - 2
+    r2 = float((res * res).sum()) / dof if dof > 0 else 0.0
+    return t[:, None] * shrunk(v, r2 / stw)[None, :]
 
 
 def align_window(
@@ -342,7 +385,6 @@ def align_window(
     sI = warp(I, shifts.to(I.dtype))
     sc = None if coeffs is None else warp(coeffs, shifts.to(coeffs.dtype))
     return sI, sc, shifts
-
 
 
 class ChainedRir:

@@ -132,7 +132,7 @@ def test_part_shifts_from_the_windows_rir_match_the_registered_parts():
     assert good.sum() >= 4 and not good.all()  # the outer windows' registration fails here (the mask leaves the texture out)
     held = estimate_shifts(It, pt).numpy()  # steady (the default): the failed windows get the others' velocity
     np.testing.assert_allclose(held[:, 1], v * (c - wc) / RATE, atol=0.3)
-    np.testing.assert_array_equal(held[good], wsh[good])
+    np.testing.assert_allclose(held[good], wsh[good], atol=0.02)  # a precise registration keeps its shift
     lo, hi = c - L // 2, c + L // 2 + 1
     parts = [(lo + a, lo + b) for a, b in span_part_edges(hi - lo, 7)]
     sh = part_shifts_from_windows(wsh, wc, parts)
