@@ -54,8 +54,8 @@ class RirConfig:
     coarse_factor: int = opt(2, "block size of the whole-pixel masked phase correlation (1 = full resolution)", lo=1, hi=16)
     refine_points: int = opt(20000, "at most this many mask pixels in the sub-pixel refinement", lo=16, hi=10**8)
     overlap_ratio: float = opt(0.3, "minimum overlap for skimage's masked correlation", lo=0.0, hi=1.0)
-    steady: bool = opt(True, "hold a window's shifts toward one constant velocity as far as their registrations are noise (steady_shifts): each frame keeps its shift by its precision against steady_px, a failed one gets the velocity's, and a velocity within its noise shrinks toward rest. False: every registration as it is (a failed one 0)")
-    steady_px: float = opt(0.2, "how far (pixels) a real motion departs from one constant velocity over a window (steady): a frame registered more precisely keeps its own shift, a noisier one moves toward the velocity's", lo=0.0, hi=100.0)
+    steady: bool = opt(True, "hold a window's shifts to one constant velocity where its registrations are noise (steady_shifts): where at least half the frames are precise they keep their shifts and the others get their velocity's; otherwise the velocity fitted to all, shrunk toward rest by its standard error. False: every registration as it is (a failed one 0)")
+    steady_px: float = opt(0.2, "a frame is precise where its stated precision (the refinement's sd times RIR_SD_SCALE) is within this many pixels (steady)", lo=0.0, hi=100.0)
 
 
 def registration_mask(I: torch.Tensor, phi: torch.Tensor, config: RirConfig = RirConfig()) -> torch.Tensor:
@@ -309,21 +309,20 @@ dim paper-profile stream (0.023 spikes per pixel per step, 85 mask pixels)."""
 
 def steady_shifts(shifts: torch.Tensor, center: int, valid: torch.Tensor | None = None, steady_px: float = 0.2,
                   inlier_px: float = 0.5, sd: torch.Tensor | None = None) -> torch.Tensor:
-    """A window's registered ``shifts`` (N, 2) onto frame ``center``, held toward one constant velocity as far as the
+    """A window's registered ``shifts`` (N, 2) onto frame ``center``, held to one constant velocity where the
     registrations are noise: the frames lie equally spaced in time (18 ms for the 7 windows), over which a pan, a
-    shake or a layer's motion departs from a steady one by about ``steady_px`` (tau) or less, while a registration of
-    noise-limited frames (dim light: a third of a spike per pixel per window) scatters by a pixel or more.
+    shake or a layer's motion is close to steady, while a registration of noise-limited frames (dim light: a third of
+    a spike per pixel per window) scatters by a pixel or more about any velocity.
 
-    With each frame's precision ``sd`` (N,) (the refinement's stated sd, :func:`_stated_sd`, times RIR_SD_SCALE =
-    sigma_k): the velocity is the least-squares fit through the centre weighted by 1 / sigma_k^2 on the ``valid``
-    frames that lie within 3 (sigma_k + tau) of the median slope (a failed or wrong registration does not pull it),
-    shrunk by its variance, v (1 - 2 var(v) / |v|^2)^+ (its power less the noise's); each such frame then keeps
-    w_k = tau^2 / (tau^2 + sigma_k^2) of its own departure from v t (a precise frame its shift, a noisy one the
-    velocity's), any other frame gets v t.
-
-    Without ``sd`` (an estimator that states none), the frames within ``inlier_px`` of the median slope, at least half
-    of them, keep their shifts where their residual about the refitted velocity is within ``steady_px`` rms, the
-    others get v t; else the velocity fitted to all valid frames, shrunk by its standard error from their scatter.
+    A frame is precise where it lies within ``inlier_px`` of the median slope of the ``valid`` frames (a failed or
+    wrong registration does not pull it) and its own stated precision, the refinement's sd (``sd`` (N,),
+    :func:`_stated_sd`) times RIR_SD_SCALE, is within ``steady_px``; without ``sd`` (an estimator that states none),
+    where the frames within ``inlier_px`` scatter about their refitted velocity by at most ``steady_px`` rms.  Where at
+    least half the frames besides the centre are precise, they keep their shifts as registered (a shake's curve
+    too) and every other frame gets the velocity fitted to them, v t.  Otherwise the registrations are noise: the
+    shifts are the least-squares v t over all valid frames with v shrunk by its standard error se^2 = r^2 / sum t^2
+    (r^2 the frames' scatter about v per component), v (1 - 2 se^2 / |v|^2)^+ (its power less the noise's): a
+    still scene's noise gives shifts near 0, not a velocity that would move the long span.
     """
     s = shifts.to(torch.float64)
     N = s.shape[0]
@@ -331,41 +330,26 @@ def steady_shifts(shifts: torch.Tensor, center: int, valid: torch.Tensor | None 
     use = (t != 0) if valid is None else (valid.to(torch.bool) & (t != 0))
     if int(use.sum()) == 0:
         return torch.zeros_like(s)
+
+    def fit(m):
+        tm = t[m]
+        stt = float((tm * tm).sum())
+        v = (tm[:, None] * s[m]).sum(0) / stt
+        res = s[m] - tm[:, None] * v[None, :]
+        dof = 2 * int(m.sum()) - 2
+        return v, (float((res * res).sum()) / dof if dof > 0 else 0.0), stt
+
     v_med = (s[use] / t[use][:, None]).median(0).values
-    dev = torch.linalg.vector_norm(s - t[:, None] * v_med[None, :], dim=1)
-    tau2 = steady_px * steady_px
-
-    def fit(m, w):
-        stw = float((w[m] * t[m] * t[m]).sum())
-        return (w[m, None] * t[m, None] * s[m]).sum(0) / stw, stw
-
-    def shrunk(v, var):
-        v2 = float((v * v).sum())
-        return v * (max(0.0, 1.0 - 2.0 * var / v2) if v2 > 0 else 0.0)
-
+    precise = use & (torch.linalg.vector_norm(s - t[:, None] * v_med[None, :], dim=1) <= inlier_px)
     if sd is not None:
-        sig2 = (RIR_SD_SCALE * sd.to(torch.float64)) ** 2
-        inl = use & (dev <= 3.0 * (sig2.sqrt() + steady_px))
-        if int(inl.sum()) == 0:
-            inl = use
-        w = 1.0 / sig2.clamp_min(1e-12)
-        v, stw = fit(inl, w)
-        line = t[:, None] * shrunk(v, 1.0 / stw)[None, :]
-        keep = torch.where(inl, tau2 / (tau2 + sig2), torch.zeros_like(sig2))[:, None]
-        return torch.where((t == 0)[:, None], s, line + keep * (s - line))
-    ones = torch.ones(N, dtype=torch.float64)
-    inl = use & (dev <= inlier_px)
-    if 2 * int(inl.sum()) >= N - 1:
-        v, stw = fit(inl, ones)
-        res = s[inl] - t[inl, None] * v[None, :]
-        dof = 2 * int(inl.sum()) - 2
-        if (float((res * res).sum()) / dof if dof > 0 else 0.0) <= tau2:
-            return torch.where((inl | (t == 0))[:, None], s, t[:, None] * v[None, :])
-    v, stw = fit(use, ones)
-    res = s[use] - t[use, None] * v[None, :]
-    dof = 2 * int(use.sum()) - 2
-    r2 = float((res * res).sum()) / dof if dof > 0 else 0.0
-    return t[:, None] * shrunk(v, r2 / stw)[None, :]
+        precise &= RIR_SD_SCALE * torch.nan_to_num(sd.to(torch.float64), nan=float("inf")) <= steady_px
+    if 2 * int(precise.sum()) >= N - 1:
+        v, r2, _ = fit(precise)
+        if sd is not None or r2 <= steady_px * steady_px:
+            return torch.where((precise | (t == 0))[:, None], s, t[:, None] * v[None, :])
+    v, r2, stt = fit(use)
+    v2 = float((v * v).sum())
+    return t[:, None] * (v * (max(0.0, 1.0 - 2.0 * (r2 / stt) / v2) if v2 > 0 else 0.0))[None, :]
 
 
 def align_window(
