@@ -198,9 +198,11 @@ def move_excess(T: torch.Tensor, R: torch.Tensor, T_ref: torch.Tensor, R_ref: to
     |alpha| <= 3 ``gain_spread`` (three sd of the sensor's spread: the pooled check carries a pixel beyond it into its
     neighbours; a number, or a tensor that broadcasts over (..., H, W), e.g. one per image), before the excess is
     taken: a candidate that is the reference rescaled within the spread passes, any other move is measured in full.
-    ``white_pool`` > 1 frees only alpha's part that is white at that scale, alpha less its ``white_pool`` box mean: a
-    sensor's fixed pattern is independent from pixel to pixel, so its box mean over 25 pixels is a fifth of it, while
-    a candidate's own brightness error over a neighbourhood (a smooth rescaling of the reference) is measured in full.
+    ``white_pool`` > 1 (the floors' setting) frees alpha as a fixed pattern can make it: its part that is white at that
+    scale (alpha less its ``white_pool`` box mean m) within 3 spreads, and m itself within 3 spreads / ``white_pool``
+    only: a sensor's pattern is independent from pixel to pixel, so its box mean over 25 pixels is a fifth of it,
+    while a candidate's own brightness error over a neighbourhood (a smooth rescaling of the reference) is measured
+    beyond that (a 10 % rescaling of a view behind a 5.8 % pattern: 6.5 % of it counted).
 
     In closed form from the windows' moments over N (no (..., N, H, W) temporaries): A_k d = p + zeta_k q with
     p = T - T_ref, q = (R - R_ref) - p, and the reference's residual r_k = b_k - T_ref - zeta_k (R_ref - T_ref), so the
@@ -218,10 +220,12 @@ def move_excess(T: torch.Tensor, R: torch.Tensor, T_ref: torch.Tensor, R_ref: to
     q = (R - R_ref) - p
     if torch.is_tensor(gain_spread) or gain_spread > 0:
         alpha, _ = _rescale(p, q, T_ref, e_ref, n, sz, szz)
-        if white_pool > 1:
-            alpha = alpha - box_mean(alpha, white_pool)
         lim = 3.0 * torch.as_tensor(gain_spread, dtype=alpha.dtype, device=alpha.device)
-        alpha = torch.maximum(torch.minimum(alpha, lim), -lim)
+        if white_pool > 1:  # the white part within 3 sd, its box mean within 3 sd of a mean of white_pool^2 pixels
+            m = box_mean(alpha, white_pool)
+            alpha = torch.maximum(torch.minimum(alpha - m, lim), -lim) + torch.maximum(torch.minimum(m, lim / white_pool), -lim / white_pool)
+        else:
+            alpha = torch.maximum(torch.minimum(alpha, lim), -lim)
         p, q = p - alpha * T_ref, q - alpha * e_ref  # A (d - alpha x_ref), A being linear
     return n * p * p + 2.0 * p * q * sz + q * q * szz - 2.0 * (p * sr + q * szr)
 
@@ -300,7 +304,7 @@ def consistency_floor(T: torch.Tensor, R: torch.Tensor, T_p: torch.Tensor, R_p: 
     sigma2 = bounded_noise(zeta, I, cfg.pool, model_var, combine, noise_floor).clamp_min(torch.finfo(T.dtype).tiny ** 0.5)
     dT, dR = T - T_p, R - R_p
     allow = cfg.tol * sigma2
-    gs, white = (estimate_gain_spread(T, R, T_p, R_p, zeta, I, sigma2, cfg.pool), cfg.pool) if gain_spread is None else (gain_spread, 0)
+    gs, white = (estimate_gain_spread(T, R, T_p, R_p, zeta, I, sigma2, cfg.pool), cfg.pool) if gain_spread is None else (gain_spread, cfg.pool)
     e1 = box_mean(move_excess(T, R, T_p, R_p, zeta, I, gs, white), cfg.pool)
     ok = e1 <= allow
     if cfg.mode == "hard":

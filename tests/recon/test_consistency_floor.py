@@ -404,21 +404,25 @@ def test_pixel_gain_spread_adds_the_fixed_pattern_in_quadrature():
 
 
 def test_the_floor_allows_the_streams_own_gain_spread():
-    """A candidate that is the physics rescaled by 10 % (a pixel gain error, which the fit absorbs): on bright windows
-    the floor (``floor_gain_spread = -1``: the stream's own) pulls it back to the physics when the stream has no gain
-    spread, and keeps it when the reader set the stream's spread to 5.8 % (three spreads cover 10 %); ``-1`` is the
-    default, and ``floor_gain_spread = 0`` ignores the stream's.
+    """A candidate that is the physics rescaled pixel by pixel by a pattern of sd 5 % (what a pixel gain error does,
+    which the fit absorbs): on bright windows the floor (``floor_gain_spread = -1``: the stream's own) pulls it back to
+    the physics when the stream has no gain spread, and keeps it when the reader set the stream's spread to 5.8 %;
+    a smooth 10 % rescaling is pulled back either way; ``-1`` is the default, and ``floor_gain_spread = 0`` ignores
+    the stream's.
     """
     from reconstruct.net.checkpoint import set_stream_gain_spread
 
     g, I, Z, Tp, Rp = _window("poisson", 200.0)
     net = _garbage_net(floor_anchor="rwps")  # the default: -1
-    T, R = 1.1 * Tp, 1.1 * Rp
+    pattern = 1.0 + 0.05 * torch.randn(Tp.shape, generator=torch.Generator().manual_seed(5)).clamp(-2.0, 2.0)
+    T, R = pattern * Tp, pattern * Rp
     keep = {}
     for label, spread in (("none", 0.0), ("sensor", 0.058)):
         set_stream_gain_spread(net, spread)
         keep[label] = float(net.data_floor(T[None], R[None], Z[None], I[None], 200.0)[2].mean())
+        keep[label + " smooth"] = float(net.data_floor(1.1 * Tp[None], 1.1 * Rp[None], Z[None], I[None], 200.0)[2].mean())
     assert keep["none"] < 0.5 < 0.95 < keep["sensor"], keep
+    assert keep["sensor smooth"] < 0.5, keep  # a smooth 10 % rescaling is no fixed pattern: pulled back all the same
     pinned = _garbage_net(floor_anchor="rwps", floor_gain_spread=0.0)
     set_stream_gain_spread(pinned, 0.058)
     assert float(pinned.data_floor(T[None], R[None], Z[None], I[None], 200.0)[2].mean()) == pytest.approx(keep["none"])
