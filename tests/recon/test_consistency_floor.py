@@ -496,14 +496,16 @@ def test_noise_estimate_is_the_least_squares_residual_per_pixel():
             assert got[y, x] == pytest.approx(want, rel=1e-9, abs=1e-12), (y, x)
 
 
-def test_excess_less_a_gain_error_is_the_residual_difference_of_the_move_less_its_part_along_the_reference():
-    """move_excess with a gain spread: RSS(x_ref + d') - RSS(x_ref) in numpy, d' = d - alpha x_ref, alpha the data
-    metric's projection of d on x_ref clipped to 3 spreads.
+@pytest.mark.parametrize("white", [0, 5])
+def test_excess_less_a_gain_error_is_the_residual_difference_of_the_move_less_its_part_along_the_reference(white):
+    """move_excess with a gain spread: RSS(x_ref + d') - RSS(x_ref) in numpy, d' = d - alpha' x_ref, alpha the data
+    metric's projection of d on x_ref: clipped to 3 spreads, or (``white_pool`` 5) its part less its 5 x 5 box mean m
+    clipped to 3 spreads plus m clipped to 3 spreads / 5 (box mean over the pixels inside).
     """
     from reconstruct.physics.consistency import move_excess
 
     rng = np.random.default_rng(9)
-    N, H, W, gs = 7, 8, 9, 0.02
+    N, H, W, gs = 7, 12, 13, 0.02
     z, I = rng.uniform(0.02, 0.6, (N, H, W)), rng.uniform(0.0, 1.0, (N, H, W))
     Tr, Rr = rng.uniform(0.1, 1.0, (H, W)), rng.uniform(0.0, 1.0, (H, W))
     T, R = Tr * (1 + rng.uniform(-0.1, 0.1, (H, W))), Rr * (1 + rng.uniform(-0.1, 0.1, (H, W)))
@@ -513,13 +515,18 @@ def test_excess_less_a_gain_error_is_the_residual_difference_of_the_move_less_it
         return z * R_ + (1 - z) * T_
 
     u, Ad = A(Tr, Rr), A(T - Tr, R - Rr)
-    alpha = np.clip((Ad * u).sum(0) / (u * u).sum(0), -3 * gs, 3 * gs)
-    T2, R2 = T - alpha * Tr, R - alpha * Rr
+    alpha = (Ad * u).sum(0) / (u * u).sum(0)
+    if white:
+        m = np.array([[alpha[max(0, y - 2) : y + 3, max(0, x - 2) : x + 3].mean() for x in range(W)] for y in range(H)])
+        part, a2 = alpha - m, np.clip(alpha - m, -3 * gs, 3 * gs) + np.clip(m, -3 * gs / white, 3 * gs / white)
+    else:
+        part = alpha
+        a2 = np.clip(alpha, -3 * gs, 3 * gs)
+    T2, R2 = T - a2 * Tr, R - a2 * Rr
     want = ((b - A(T2, R2)) ** 2).sum(0) - ((b - A(Tr, Rr)) ** 2).sum(0)
-    got = move_excess(*(torch.tensor(v) for v in (T, R, Tr, Rr, z, I)), gain_spread=gs).numpy()
+    got = move_excess(*(torch.tensor(v) for v in (T, R, Tr, Rr, z, I)), gain_spread=gs, white_pool=white).numpy()
     np.testing.assert_allclose(got, want, rtol=1e-9, atol=1e-12)
-    assert np.any(np.abs(alpha) == 3 * gs) and np.any(np.abs(alpha) < 3 * gs)  # both branches of the clip are met
-
+    assert np.any(np.abs(part) >= 3 * gs) and np.any(np.abs(part) < 3 * gs)  # both branches of the clip are met
 
 
 def test_where_zeta_leaves_t_unobserved_the_candidates_t_stands():
