@@ -199,10 +199,13 @@ def move_excess(T: torch.Tensor, R: torch.Tensor, T_ref: torch.Tensor, R_ref: to
     neighbours; a number, or a tensor that broadcasts over (..., H, W), e.g. one per image), before the excess is
     taken: a candidate that is the reference rescaled within the spread passes, any other move is measured in full.
     ``white_pool`` > 1 (the floors' setting) frees alpha as a fixed pattern can make it: its part that is white at that
-    scale (alpha less its ``white_pool`` box mean m) within 3 spreads, and m itself within 3 spreads / ``white_pool``
-    only: a sensor's pattern is independent from pixel to pixel, so its box mean over 25 pixels is a fifth of it,
-    while a candidate's own brightness error over a neighbourhood (a smooth rescaling of the reference) is measured
-    beyond that (a 10 % rescaling of a view behind a 5.8 % pattern: 6.5 % of it counted).
+    scale (alpha less its ``white_pool`` box mean m) within 3 spreads and with at most twice the pattern's variance
+    over the box (scaled down where its box mean square is larger: a candidate's error that is no pattern, e.g. a
+    constant added to T, has a white part that follows the scene's texture and can be far larger), and m itself
+    within 3 spreads / ``white_pool`` only: a sensor's pattern is independent from pixel to pixel, so its box mean
+    over 25 pixels is a fifth of it, while a candidate's own brightness error over a neighbourhood (a smooth
+    rescaling of the reference) is measured beyond that (a 10 % rescaling of a view behind a 5.8 % pattern: 6.5 % of
+    it counted).
 
     In closed form from the windows' moments over N (no (..., N, H, W) temporaries): A_k d = p + zeta_k q with
     p = T - T_ref, q = (R - R_ref) - p, and the reference's residual r_k = b_k - T_ref - zeta_k (R_ref - T_ref), so the
@@ -221,9 +224,12 @@ def move_excess(T: torch.Tensor, R: torch.Tensor, T_ref: torch.Tensor, R_ref: to
     if torch.is_tensor(gain_spread) or gain_spread > 0:
         alpha, _ = _rescale(p, q, T_ref, e_ref, n, sz, szz)
         lim = 3.0 * torch.as_tensor(gain_spread, dtype=alpha.dtype, device=alpha.device)
-        if white_pool > 1:  # the white part within 3 sd, its box mean within 3 sd of a mean of white_pool^2 pixels
+        if white_pool > 1:  # the white part within 3 sd, with at most a pattern's power per box; its box mean within 3 sd of a mean of white_pool^2 pixels
             m = box_mean(alpha, white_pool)
-            alpha = torch.maximum(torch.minimum(alpha - m, lim), -lim) + torch.maximum(torch.minimum(m, lim / white_pool), -lim / white_pool)
+            w = alpha - m
+            cap = 2.0 * (lim / 3.0) ** 2  # twice the pattern's variance: a box of the truth's pattern stays below it but for chi-square's tail
+            w = w * (cap / box_mean(w * w, white_pool).clamp_min(torch.finfo(w.dtype).tiny)).clamp(max=1.0).sqrt()
+            alpha = torch.maximum(torch.minimum(w, lim), -lim) + torch.maximum(torch.minimum(m, lim / white_pool), -lim / white_pool)
         else:
             alpha = torch.maximum(torch.minimum(alpha, lim), -lim)
         p, q = p - alpha * T_ref, q - alpha * e_ref  # A (d - alpha x_ref), A being linear

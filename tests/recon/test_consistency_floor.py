@@ -499,8 +499,9 @@ def test_noise_estimate_is_the_least_squares_residual_per_pixel():
 @pytest.mark.parametrize("white", [0, 5])
 def test_excess_less_a_gain_error_is_the_residual_difference_of_the_move_less_its_part_along_the_reference(white):
     """move_excess with a gain spread: RSS(x_ref + d') - RSS(x_ref) in numpy, d' = d - alpha' x_ref, alpha the data
-    metric's projection of d on x_ref: clipped to 3 spreads, or (``white_pool`` 5) its part less its 5 x 5 box mean m
-    clipped to 3 spreads plus m clipped to 3 spreads / 5 (box mean over the pixels inside).
+    metric's projection of d on x_ref: clipped to 3 spreads, or (``white_pool`` 5) its part less its 5 x 5 box mean m,
+    scaled to at most twice the spread's variance in the box and clipped to 3 spreads, plus m clipped to 3 spreads / 5
+    (box mean over the pixels inside).
     """
     from reconstruct.physics.consistency import move_excess
 
@@ -517,8 +518,13 @@ def test_excess_less_a_gain_error_is_the_residual_difference_of_the_move_less_it
     u, Ad = A(Tr, Rr), A(T - Tr, R - Rr)
     alpha = (Ad * u).sum(0) / (u * u).sum(0)
     if white:
-        m = np.array([[alpha[max(0, y - 2) : y + 3, max(0, x - 2) : x + 3].mean() for x in range(W)] for y in range(H)])
-        part, a2 = alpha - m, np.clip(alpha - m, -3 * gs, 3 * gs) + np.clip(m, -3 * gs / white, 3 * gs / white)
+
+        def box(a):
+            return np.array([[a[max(0, y - 2) : y + 3, max(0, x - 2) : x + 3].mean() for x in range(W)] for y in range(H)])
+
+        m = box(alpha)
+        part = (alpha - m) * np.sqrt(np.minimum(1.0, 2 * gs**2 / box((alpha - m) ** 2)))  # at most twice a pattern's power per box
+        a2 = np.clip(part, -3 * gs, 3 * gs) + np.clip(m, -3 * gs / white, 3 * gs / white)
     else:
         part = alpha
         a2 = np.clip(alpha, -3 * gs, 3 * gs)

@@ -95,3 +95,13 @@ def test_box_mean_of_a_white_pattern_is_a_fifth_of_it():
     """The premise of the white part: the 5 x 5 box mean of an independent pattern has a fifth of its sd."""
     x = torch.randn(256, 256, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
     assert float(box_mean(x, 5)[4:-4, 4:-4].std()) == pytest.approx(0.2, rel=0.05)
+
+
+def test_a_constant_added_to_the_layers_is_no_pattern():
+    """T + 0.05 and R - 0.05 behind a 7.35 % pattern, bright windows: the move's rescaling alpha follows the scene's
+    texture, so part of it is white, but far beyond a pattern's power in a box; with the stream's known spread the
+    floor still keeps under half of the move on average and no pixel whole.
+    """
+    T, R, Z, I, Tp, Rp, _ = _windows(0.0735, 5.0, seed=6)
+    f = consistency_floor(T + 0.05, R - 0.05, Tp, Rp, Z, I, gain_spread=0.0735)
+    assert float(f.keep.mean()) < 0.5 and float((f.keep == 1).double().mean()) == 0.0
