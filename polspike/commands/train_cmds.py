@@ -299,7 +299,9 @@ def reconstruct_cmd(
     else:
         speed = {}
     gs_used = None if net_model is None else net_model.cfg.floor_gain_spread
-    if gs_used == -1.0:  # --gain-spread auto: a stored group's own sensor, 0 for a .dat
+    from reconstruct.net.network import GAIN_SPREAD_AUTO
+
+    if gs_used == GAIN_SPREAD_AUTO:  # a stored group's own sensor, 0 for a .dat
         from reconstruct.net.checkpoint import set_stream_gain_spread
         from spike_sim.config import pixel_gain_spread
         from spike_sim.store import open_group

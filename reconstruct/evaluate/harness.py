@@ -59,7 +59,7 @@ from reconstruct.evaluate.metrics import LPIPS_NA, lpips_status, masked_psnr, ma
 from reconstruct.net.checkpoint import FLOOR_ANCHORS
 from reconstruct.net.learned_zeta import zeta_learned
 from reconstruct.net.net_zeta import NET_FALLBACKS, fallback_for
-from reconstruct.net.network import SYMMETRY_CODES
+from reconstruct.net.network import GAIN_SPREAD_AUTO, SYMMETRY_CODES
 from reconstruct.physics.identifiability import SHARE_MIN, bound_psnr, ls_layer_variance, reflected_share, window_mean_variance
 from reconstruct.physics.rir import RirConfig, estimate_shifts, warp
 from reconstruct.physics.solvers import PHYSICS_SOLVER_CONFIG, SOLVERS, SolverConfig, solve
@@ -472,7 +472,7 @@ def evaluate_groups(
                 t0 = time.perf_counter()
                 zn = None if Znet is None else np.stack([np.ascontiguousarray(Znet[i - K : i + K + 1], np.float32) for i in cb])
                 x = network_inputs(g, model, raw.float().cpu().numpy(), Pw.float().cpu().numpy(), cb, K)  # with the long span it reads; ConfigError where the group lacks it
-                if b0 == 0 and model.cfg.floor_gain_spread == -1.0:  # once per group: the floor's allowance for its own sensor (--gain-spread auto)
+                if b0 == 0 and model.cfg.floor_gain_spread == GAIN_SPREAD_AUTO:  # once per group: the floor's allowance for its own sensor (--gain-spread auto)
                     set_stream_gain_spread(model, float(((share or {}).get("noise") or group_noise(g, cfg) or {}).get("rel_sigma", 0.0)))
                 o = run_model_on_windows(model, x, device=next(model.parameters()).device, tile=cfg.net_tile, zeta=zn)
                 est[net_rows[0]] = (o["T"], o["R"])

@@ -24,7 +24,7 @@ import torch
 from polinfra.atomic import atomic_path
 from polinfra.config import from_dict, to_dict
 from polinfra.errors import CheckpointError, ConfigError
-from reconstruct.net.network import GAIN_SPREAD_ESTIMATE, NetConfig, PolSpikeNet
+from reconstruct.net.network import GAIN_SPREAD_AUTO, GAIN_SPREAD_ESTIMATE, NetConfig, PolSpikeNet
 from reconstruct.physics.solvers import SolverConfig
 
 __all__ = ["CKPT_FORMAT", "DEFAULT_WEIGHTS", "V1_WEIGHTS", "V2_WEIGHTS", "V2_MEAN_WEIGHTS", "V3_WEIGHTS", "V4_WEIGHTS", "V5_WEIGHTS", "V6_WEIGHTS", "save_checkpoint", "read_checkpoint", "load_model", "export_weights", "set_stream_gain_spread", "gain_spread_option", "floor_overrides", "FLOOR_ANCHORS", "FAST_WEIGHTS", "NAMED_WEIGHTS", "resolve_weights"]
@@ -164,7 +164,7 @@ def gain_spread_option(text: str | None, flag: str = "--gain-spread") -> float |
     if text is None or text == "":
         return None
     if text == "auto":
-        return -1.0
+        return GAIN_SPREAD_AUTO
     if text == "estimate":
         return GAIN_SPREAD_ESTIMATE
     try:

@@ -59,12 +59,17 @@ from reconstruct.physics.span import anchor_to_mean, gaussian_blur, gaussian_rad
 from reconstruct.physics.symmetry import symmetry_angles, symmetry_harmonic, symmetry_image
 from reconstruct.stream.window_inputs import WindowInputs
 
-__all__ = ["GAIN_SPREAD_ESTIMATE", "NetConfig", "NetOutput", "AngleAttention", "ParameterBranch", "LowResParameterBranch", "Refinement", "window_scale", "PolSpikeNet", "count_parameters", "init_weights", "predict_parameters", "SYMMETRY_CODES", "check_ensemble_size", "SymmetryEnsemble"]
+__all__ = ["GAIN_SPREAD_AUTO", "GAIN_SPREAD_ESTIMATE", "NetConfig", "NetOutput", "AngleAttention", "ParameterBranch", "LowResParameterBranch", "Refinement", "window_scale", "PolSpikeNet", "count_parameters", "init_weights", "predict_parameters", "SYMMETRY_CODES", "check_ensemble_size", "SymmetryEnsemble"]
 
+
+GAIN_SPREAD_AUTO = -1.0
+"""``NetConfig.floor_gain_spread`` (``--gain-spread auto``, the default): the stream's own spread where its reader knows
+it (:func:`reconstruct.net.checkpoint.set_stream_gain_spread`), else 0."""
 
 GAIN_SPREAD_ESTIMATE = -2.0
 """``NetConfig.floor_gain_spread`` (``--gain-spread estimate``): the floor's allowance for the sensor's gain spread as the
 windows show it (:func:`reconstruct.physics.consistency.estimate_gain_spread`)."""
+
 
 @dataclasses.dataclass(frozen=True)
 class NetConfig:
@@ -108,7 +113,7 @@ class NetConfig:
     floor_tol: float = opt(4.0, "the floor's allowed excess residual, in noise variances of one observation (4: the floored error is the smaller of the refinement's and the physics', reconstruct.physics.consistency)", lo=0.0, hi=1e6)
     floor_anchor: str = opt("blend", "what the floor falls back to where the data check fails: blend (per pixel the physics-only RWPS and the best closed-form physics weighed by their error powers, reconstruct.physics.anchor.error_blend; on an external zeta, else rwps) | rwps (the physics-only RWPS) | best (the best closed-form physics alone, reconstruct.physics.anchor: far below the RWPS where zeta barely modulates under a bright reflection; docs/motion.md)", choices=("rwps", "best", "blend"))
     floor_layers: bool = opt(False, "with floor_anchor = best or blend: also judge T and R by their own move from the anchor against its stated error power (in proportion to the windows' expected spikes up to one per window). It lifts bright strong-reflection motion cells by 0.3-0.6 dB but costs 1.0 dB on the paper-profile test windows (RIR on), where the anchor errs 2-4 x more than it states")
-    floor_gain_spread: float = opt(-1.0, "the sensor's per-pixel gain spread (relative sd) the floor allows for: a gain error scales a pixel's 7 observations alike and a fit absorbs it, so a move along the physics itself within three spreads is not counted (reconstruct.physics.consistency.move_excess). -1 (the default): the stream's own where it is known (a stored simulation's fixed pattern, set by the reader: reconstruct.net.checkpoint.set_stream_gain_spread; a recording's calibration is given as a number), else 0. -2: estimated from the windows, per image, only its pixel-white part freed (reconstruct.physics.consistency.estimate_gain_spread; it reads the network's own pixel-level errors as a pattern where the sensor has none: docs/motion.md). 0: none", lo=-2.0, hi=0.5)
+    floor_gain_spread: float = opt(GAIN_SPREAD_AUTO, "the sensor's per-pixel gain spread (relative sd) the floor allows for: a gain error scales a pixel's 7 observations alike and a fit absorbs it, so a move along the physics itself within three spreads is not counted (reconstruct.physics.consistency.move_excess). -1 (the default): the stream's own where it is known (a stored simulation's fixed pattern, set by the reader: reconstruct.net.checkpoint.set_stream_gain_spread; a recording's calibration is given as a number), else 0. -2: estimated from the windows, per image, only its pixel-white part freed (reconstruct.physics.consistency.estimate_gain_spread; it reads the network's own pixel-level errors as a pattern where the sensor has none: docs/motion.md). 0: none", lo=-2.0, hi=0.5)
     floor_mode: str = opt("shrink", "the floor: shrink (keep the fraction min(1, floor_tol sigma^2 / excess) of the refinement's move from the physics) | hard (the physics wherever the excess exceeds floor_tol sigma^2)", choices=("shrink", "hard"))
 
     def __post_init__(self) -> None:

@@ -257,8 +257,8 @@ def anchored_floor(T: torch.Tensor, R: torch.Tensor, zeta: torch.Tensor, I: torc
     elif fallback not in ("anchor", "blend"):
         raise ValueError(f"fallback {fallback!r}: anchor or blend")
     Tn, Rn, bad = finite_or(Tn, Rn, fT, fR)  # a candidate pixel that is no number: the fallback, kept 0
-    gs, white = (estimate_gain_spread(Tn, Rn, Tr, Rr, z, Iw, s2, cfg.pool), cfg.pool) if gain_spread is None else (gain_spread, cfg.pool)
-    excess = box_mean(move_excess(Tn, Rn, Tr, Rr, z, Iw, gs, white), cfg.pool)  # RSS(candidate) - RSS(reference), less a gain error
+    gs = estimate_gain_spread(Tn, Rn, Tr, Rr, z, Iw, s2, cfg.pool) if gain_spread is None else gain_spread
+    excess = box_mean(move_excess(Tn, Rn, Tr, Rr, z, Iw, gs, cfg.pool), cfg.pool)  # RSS(candidate) - RSS(reference), less a gain error
 
     def frac(allow, move):
         return torch.where(move <= allow, torch.ones_like(move), allow / move.clamp_min(1e-300)).clamp(0.0, 1.0)

@@ -177,11 +177,11 @@ def estimate_gain_spread(T: torch.Tensor, R: torch.Tensor, T_ref: torch.Tensor, 
     white = alpha - box_mean(alpha, pool)
     v = sigma2.to(alpha.dtype) / suu.clamp_min(torch.finfo(suu.dtype).tiny ** 0.5)
     lead = alpha.shape[:-2]
-    w2, v2 = white.reshape(-1, alpha.shape[-2] * alpha.shape[-1]), torch.broadcast_to(v, alpha.shape).reshape(-1, alpha.shape[-2] * alpha.shape[-1])
+    w2, v2, u2 = (torch.broadcast_to(x, alpha.shape).reshape(-1, alpha.shape[-2] * alpha.shape[-1]) for x in (white, v, suu))
     out = torch.zeros(w2.shape[0], dtype=alpha.dtype, device=alpha.device)
     shrink = 1.0 - 1.0 / float(pool * pool)
     for i in range(w2.shape[0]):
-        sel = (v2[i] < max_noise * max_noise) & torch.isfinite(w2[i]) & (suu.reshape(w2.shape)[i] > 0)
+        sel = (v2[i] < max_noise * max_noise) & torch.isfinite(w2[i]) & (u2[i] > 0)
         if int(sel.sum()) < min_pixels:
             continue
         var = (1.4826 * w2[i][sel].abs().median()) ** 2 / shrink - v2[i][sel].median()
@@ -310,8 +310,8 @@ def consistency_floor(T: torch.Tensor, R: torch.Tensor, T_p: torch.Tensor, R_p: 
     sigma2 = bounded_noise(zeta, I, cfg.pool, model_var, combine, noise_floor).clamp_min(torch.finfo(T.dtype).tiny ** 0.5)
     dT, dR = T - T_p, R - R_p
     allow = cfg.tol * sigma2
-    gs, white = (estimate_gain_spread(T, R, T_p, R_p, zeta, I, sigma2, cfg.pool), cfg.pool) if gain_spread is None else (gain_spread, cfg.pool)
-    e1 = box_mean(move_excess(T, R, T_p, R_p, zeta, I, gs, white), cfg.pool)
+    gs = estimate_gain_spread(T, R, T_p, R_p, zeta, I, sigma2, cfg.pool) if gain_spread is None else gain_spread
+    e1 = box_mean(move_excess(T, R, T_p, R_p, zeta, I, gs, cfg.pool), cfg.pool)
     ok = e1 <= allow
     if cfg.mode == "hard":
         s = ok.to(T.dtype)

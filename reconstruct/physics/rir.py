@@ -208,22 +208,33 @@ def _with_gradient(img: torch.Tensor) -> torch.Tensor:
     return torch.stack([img, gy, gx])
 
 
+def _normalised(x: torch.Tensor) -> torch.Tensor:
+    """Zero mean, unit variance over the mask's points."""
+    return (x - x.mean()) / x.std().clamp_min(1e-30)
+
+
+def _linearised(r_ref: torch.Tensor, stack: torch.Tensor, pts: torch.Tensor, s: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The normalised fit at ``s``: residual r (P,), Jacobian A (P, 2) and A'A with a tiny ridge, for the normalised
+    reference values ``r_ref`` at ``pts`` and the moving image with its gradient ``stack`` (3, H, W).
+    """
+    J, Jy, Jx = _sample(stack, pts - s)  # warp(mov, s)(p) = mov(p - s) and its gradient there
+    # photometric normalisation on the mask (zero mean, unit variance): the polarizer changes
+    # each frame's gain a little; normalising (rather than fitting a gain) keeps the step well
+    # scaled when the frames are noisy
+    sd = J.std().clamp_min(1e-30)
+    r = r_ref - (J - J.mean()) / sd
+    # warp(mov, s + d) ~= J - grad J . d   =>   r ~= -(Jy dy + Jx dx) / sd
+    A = -torch.stack([Jy, Jx], -1) / sd  # (P, 2)
+    Hm = A.T @ A
+    return r, A, Hm + (1e-9 * Hm.diagonal().sum() + 1e-30) * torch.eye(2, dtype=Hm.dtype)
+
+
 def _gauss_newton(r_ref: torch.Tensor, stack: torch.Tensor, pts: torch.Tensor, s0: torch.Tensor, iters: int) -> torch.Tensor:
     """The iterations of :func:`_refine`: reference values at ``pts``, the moving image with its gradient (3, H, W)."""
     s = s0.clone()
-    eye = torch.eye(2, dtype=r_ref.dtype)
-    r_ref = (r_ref - r_ref.mean()) / r_ref.std().clamp_min(1e-30)
+    r_ref = _normalised(r_ref)
     for _ in range(iters):
-        J, Jy, Jx = _sample(stack, pts - s)  # warp(mov, s)(p) = mov(p - s) and its gradient there
-        # photometric normalisation on the mask (zero mean, unit variance): the polarizer changes
-        # each frame's gain a little; normalising (rather than fitting a gain) keeps the step well
-        # scaled when the frames are noisy
-        sd = J.std().clamp_min(1e-30)
-        r = r_ref - (J - J.mean()) / sd
-        # warp(mov, s + d) ~= J - grad J . d   =>   r ~= -(Jy dy + Jx dx) / sd
-        A = -torch.stack([Jy, Jx], -1) / sd  # (P, 2)
-        Hm = A.T @ A
-        Hm = Hm + (1e-9 * Hm.diagonal().sum() + 1e-30) * eye
+        r, A, Hm = _linearised(r_ref, stack, pts, s)
         d = torch.linalg.solve(Hm, A.T @ r).clamp(-0.5, 0.5)
         s = s + d
         if float(d.abs().max()) < 1e-4:
@@ -236,13 +247,7 @@ def _stated_sd(r_ref: torch.Tensor, stack: torch.Tensor, pts: torch.Tensor, s: t
     r and Jacobian A of :func:`_gauss_newton` there.  It counts the mask's pixels as independent; the pre-smoothing
     correlates their noise, so the shifts scatter about RIR_SD_SCALE times more (measured, :func:`steady_shifts`).
     """
-    r_ref = (r_ref - r_ref.mean()) / r_ref.std().clamp_min(1e-30)
-    J, Jy, Jx = _sample(stack, pts - s)
-    sd = J.std().clamp_min(1e-30)
-    r = r_ref - (J - J.mean()) / sd
-    A = -torch.stack([Jy, Jx], -1) / sd
-    Hm = A.T @ A
-    Hm = Hm + (1e-9 * Hm.diagonal().sum() + 1e-30) * torch.eye(2, dtype=Hm.dtype)
+    r, _, Hm = _linearised(_normalised(r_ref), stack, pts, s)
     return float((float((r * r).mean()) * torch.linalg.inv(Hm).diagonal().sum() / 2.0) ** 0.5)
 
 
