@@ -215,6 +215,11 @@ class GeneratorWindows:
             base = self.sims[j]
             lo, hi = (math.log(v) for v in w.exposure_jitter)
             exposure = float(base.exposure * math.exp(rng.uniform(lo, hi)))
+            if w.bright_prob > 0 and rng.random() < w.bright_prob:  # bright light the manifest may lack (sampler's formula)
+                from polspike.pipeline.sampler import NOMINAL_CONTENT_MEAN
+
+                rate = math.exp(rng.uniform(*(math.log(v) for v in w.bright_rate)))
+                exposure = rate / (0.5 * NOMINAL_CONTENT_MEAN * max(scene.layers.transmission.brightness, 1e-3))
         else:
             base = self.sim
             exposure = float(rng.uniform(*w.exposure_range))

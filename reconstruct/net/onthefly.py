@@ -61,6 +61,8 @@ class WindowConfig:
     sim_preset: str = opt("default", "on-the-fly: spike_sim noise preset (ideal | default | noisy; group = each manifest group's own preset)", choices=("ideal", "default", "noisy", "group"))
     exposure_source: str = opt("range", "on-the-fly: range = exposure drawn from exposure_range; group = the manifest group's own exposure (its light level) times a log-uniform factor in exposure_jitter", choices=("range", "group"))
     exposure_jitter: tuple[float, float] = opt((1.0, 1.0), "on-the-fly, exposure_source = group: range of the log-uniform factor on the group's exposure", lo=1e-3, hi=1000.0)
+    bright_prob: float = opt(0.0, "on-the-fly, exposure_source = group: probability that an item's light level is redrawn log-uniformly in bright_rate (spikes per pixel per step of the mean T content, the sampler's light formula) instead of the group's own; a manifest whose groups are all dim still trains for bright light", lo=0.0, hi=1.0)
+    bright_rate: tuple[float, float] = opt((0.03, 0.3), "on-the-fly: range of the redrawn light level of bright_prob, spikes per pixel per step (the sampler's bright light)", lo=1e-4, hi=10.0)
     mean_steps: int = opt(0, "steps of the long spike mean I_mean given to a use_mean network, centred on the output frame (350 = 17.5 ms at 20 kHz, about half a polarizer turn); 0 = none", lo=0, hi=100001)
     wide_steps: int = opt(0, "also give each item its N observations over the wide window of this many steps (odd; 57 = the whole 31.5 deg stride at 20 kHz and 30 rev/s, reconstruct.stream.groups.wide_window_steps): the input I_wide of a network with NetConfig.wide_input; 0 = none", lo=0, hi=10001)
     assumed_n: float = opt(0.0, "also give each item the window's zeta under an assumed glass of this index (the self-calibration's prior, 1.5) for each pane model it can assume, zeta_a_single and zeta_a_thin_slab (paper Eq. (2) from the maps' theta and phi_perp): training for the errors of --zeta self, whose index and model are assumed where the spikes do not identify them; 0 = off", lo=0.0, hi=4.0)
@@ -75,6 +77,10 @@ class WindowConfig:
             raise ConfigError(f"window.wide_steps = {self.wide_steps} must be odd (centred windows); use {self.wide_steps - 1}")
         if self.exposure_jitter[0] > self.exposure_jitter[1]:
             raise ConfigError(f"window.exposure_jitter = {list(self.exposure_jitter)} must be [low, high] with low <= high")
+        if self.bright_rate[0] > self.bright_rate[1]:
+            raise ConfigError(f"window.bright_rate = {list(self.bright_rate)} must be [low, high] with low <= high")
+        if self.bright_prob > 0 and self.exposure_source != "group":
+            raise ConfigError("window.bright_prob redraws the group's light level: it needs window.exposure_source = 'group'")
         if (self.sim_preset == "group") != (self.exposure_source == "group"):
             raise ConfigError("window.sim_preset = 'group' and window.exposure_source = 'group' go together (both take the manifest group's sensor)")
         if self.crop % 4:

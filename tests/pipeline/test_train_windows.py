@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 import torch
 
+from polinfra.errors import ConfigError
 from polspike.pipeline.train_windows import TEST_CONTENT, GeneratorWindows, sample_scene, scene_pool, train_content
 from reconstruct.net.onthefly import ITEM_KEYS, OnTheFlyWindows, WindowConfig
 
@@ -140,6 +141,37 @@ def test_group_sensor_light_level_and_flips():
     assert float(a["exposure"]) == pytest.approx(src.window_group(0, 2)["config"].exposure)
     with pytest.raises(SceneError, match="manifest sensor"):
         GeneratorWindows(scenes, w)
+
+
+def test_bright_prob_redraws_the_light_level_and_leaves_other_items_alone():
+    """window.bright_prob: that share of the items takes a light level drawn in bright_rate spikes per pixel per
+    step by the sampler's formula (exposure = rate / (0.5 * content mean * T brightness)); the rest are the
+    items of the same config without it, draw for draw, so older configs keep their windows.
+    """
+    from polspike.pipeline.sampler import NOMINAL_CONTENT_MEAN
+    from polspike.pipeline.train_windows import manifest_scenes
+
+    man = str(Path(__file__).resolve().parents[2] / "datasets" / "manifests" / "small.toml")
+    scenes, sims = manifest_scenes(man, "train", with_sensor=True)
+    sims = [dataclasses.replace(s, exposure=0.05) for s in sims]  # dim groups: 0.05 * 0.5 * 0.25 * b <= 0.00625 spikes/px/step
+    kw = dict(crop=16, keyframe_hz=1000.0, sim_preset="group", exposure_source="group", exposure_jitter=(0.8, 1.25))
+    plain = GeneratorWindows(scenes, WindowConfig(**kw), sims=sims)
+    bright = GeneratorWindows(scenes, WindowConfig(**kw, bright_prob=0.5, bright_rate=(0.05, 0.2)), sims=sims)
+    n_bright = 0
+    for i in range(40):
+        g, p = bright.window_group(3, i), plain.window_group(3, i)
+        assert (g["scene"], g["t0_s"], g["crop"]) == (p["scene"], p["t0_s"], p["crop"])
+        rate = g["config"].exposure * 0.5 * NOMINAL_CONTENT_MEAN * scenes[g["scene"]].layers.transmission.brightness
+        if g["config"].exposure == p["config"].exposure:
+            assert rate < 0.01
+        else:
+            assert 0.05 - 1e-9 <= rate <= 0.2 + 1e-9
+            n_bright += 1
+    assert 10 <= n_bright <= 30  # binomial(40, 0.5): outside this with probability < 0.2 %
+    with pytest.raises(ConfigError, match="exposure_source"):
+        WindowConfig(crop=16, bright_prob=0.3)
+    with pytest.raises(ConfigError, match="low <= high"):
+        WindowConfig(**kw, bright_prob=0.3, bright_rate=(0.3, 0.03))
 
 
 def test_validation_from_another_manifest_never_draws_the_test_groups():
