@@ -20,7 +20,7 @@ def on_the_fly_sets(cfg):
     """(train set, validation set) of on-the-fly windows: generator analytic tier + spike_sim, disjoint scenes and content."""
     from polspike.pipeline.train_windows import window_sets
 
-    return window_sets(cfg.window, cfg.train_items, cfg.val_items, cfg.seed, cfg.train_scenes, cfg.test_scenes, cfg.scene_seed, cfg.manifest, cfg.val_manifest, cfg.val_split)
+    return window_sets(cfg.window, cfg.train_items, cfg.val_items, cfg.seed, cfg.train_scenes, cfg.test_scenes, cfg.scene_seed, cfg.manifest, cfg.val_manifest, cfg.val_split, cfg.mix_manifests)
 
 ARCH_BASE_PRESETS = {"v1": "v1_base.toml", "v2": "v2_lowres_branch.toml"}
 """The training preset each architecture was first trained with (its data and window settings)."""
@@ -95,7 +95,7 @@ def train_cmd(
         quiet = quiet or not ranks.is_writer
     if data is None:
         train_set, val_set = on_the_fly_sets(cfg)
-        src = f"on-the-fly windows ({('scenes of ' + cfg.manifest) if cfg.manifest else f'{cfg.train_scenes} train / {cfg.test_scenes} validation sampled scenes'}, generator analytic tier + spike_sim)"
+        src = f"on-the-fly windows ({('scenes of ' + ', '.join((cfg.manifest, *cfg.mix_manifests))) if cfg.manifest else f'{cfg.train_scenes} train / {cfg.test_scenes} validation sampled scenes'}, generator analytic tier + spike_sim)"
     else:
         from reconstruct.net.windows import open_window_datasets
 

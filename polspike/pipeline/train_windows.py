@@ -304,21 +304,27 @@ def manifest_scenes(path: str, split: str, with_sensor: bool = False) -> list:
     return (out, sims) if with_sensor else out
 
 
-def window_sets(window, train_items: int, val_items: int, seed: int, n_train_scenes: int = 40, n_test_scenes: int = 10, scene_seed: int = 0, manifest: str = "", val_manifest: str = "", val_split: str = "train"):
+def window_sets(window, train_items: int, val_items: int, seed: int, n_train_scenes: int = 40, n_test_scenes: int = 10, scene_seed: int = 0, manifest: str = "", val_manifest: str = "", val_split: str = "train", mix_manifests: Sequence[str] = ()):
     """(train, validation) :class:`reconstruct.net.onthefly.OnTheFlyWindows` on disjoint scenes and content.
 
     With ``manifest``: the scenes of its "train" and "test" groups (e.g. ``paper.toml``: 40 / 10).
     Else training windows come from ``n_train_scenes`` scenes drawn with seed ``scene_seed``
     (the paper's 40 training groups) and validation windows from ``n_test_scenes`` test scenes.
     With ``val_manifest``: validation windows from its ``val_split`` groups instead (a validation split
-    apart from the test groups).
+    apart from the test groups). ``mix_manifests``: their "train" groups join ``manifest``'s.
     """
+    from polinfra.errors import ConfigError
     from reconstruct.net.onthefly import OnTheFlyWindows
 
     if manifest:
         sc_tr, si_tr = manifest_scenes(manifest, "train", with_sensor=True)
+        for extra in mix_manifests:
+            sc, si = manifest_scenes(extra, "train", with_sensor=True)
+            sc_tr, si_tr = sc_tr + sc, si_tr + si
         tr = GeneratorWindows(sc_tr, window, sims=si_tr)
     else:
+        if mix_manifests:
+            raise ConfigError("mix_manifests joins the train groups of manifest: set manifest too")
         tr = GeneratorWindows(scene_pool(n_train_scenes, scene_seed, "train"), window)
     if val_manifest or manifest:
         sc_va, si_va = manifest_scenes(val_manifest, val_split, with_sensor=True) if val_manifest else manifest_scenes(manifest, "test", with_sensor=True)

@@ -83,6 +83,7 @@ class TrainConfig:
     test_scenes: int = opt(10, "on-the-fly: validation / test scenes, disjoint layer content (paper: 10 test groups)", lo=1, hi=100000)
     scene_seed: int = opt(0, "on-the-fly: seed of the scene pools", lo=0, hi=2**31 - 1)
     manifest: str = opt("", "on-the-fly: take the scenes of this dataset manifest's train / test groups (e.g. datasets/manifests/paper.toml); empty = sample train_scenes / test_scenes")
+    mix_manifests: tuple[str, ...] = opt((), "on-the-fly, with manifest: also train on the train groups of these manifests (each group drawn alike, so the mix follows the group counts: e.g. paper.toml's still and bright scenes beside paper_motion.toml's camera motion)")
     val_manifest: str = opt("", "validation windows from this manifest's val_split groups instead of the test groups of manifest (a validation split that never touches the test groups); empty = the test groups")
     val_split: str = opt("train", "split of val_manifest whose groups validate")
     val_ssim: bool = opt(False, "also score SSIM of T at each validation (val_ssim_T, val_ssim_T_forced in log.csv; scikit-image)")

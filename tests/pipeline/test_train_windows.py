@@ -174,6 +174,25 @@ def test_bright_prob_redraws_the_light_level_and_leaves_other_items_alone():
         WindowConfig(**kw, bright_prob=0.3, bright_rate=(0.3, 0.03))
 
 
+def test_mix_manifests_join_the_train_groups_only():
+    """mix_manifests: the training windows draw from manifest's train groups and each mixed manifest's, no test
+    group joins, and a mix without a manifest is refused.
+    """
+    from polspike.pipeline.train_windows import manifest_scenes, window_sets
+
+    root = Path(__file__).resolve().parents[2] / "datasets" / "manifests"
+    man, extra = str(root / "small.toml"), str(root / "paper_val.toml")
+    w = WindowConfig(crop=16, keyframe_hz=1000.0, sim_preset="group", exposure_source="group")
+    tr, _ = window_sets(w, 4, 2, 0, manifest=man, mix_manifests=(extra,))
+    want = [repr(s) for s in manifest_scenes(man, "train") + manifest_scenes(extra, "train")]
+    assert [repr(s) for s in tr.source.scenes] == want
+    assert len(tr.source.sims) == len(want)
+    drawn = {tr.source.window_group(0, i)["scene"] for i in range(60)}
+    assert drawn & set(range(len(manifest_scenes(man, "train")), len(want)))  # the mixed groups are drawn
+    with pytest.raises(ConfigError, match="set manifest"):
+        window_sets(w, 4, 2, 0, mix_manifests=(extra,))
+
+
 def test_validation_from_another_manifest_never_draws_the_test_groups():
     """val_manifest: the validation windows come from that manifest's val_split groups, not the test groups."""
     from polspike.pipeline.train_windows import manifest_scenes, window_sets
