@@ -27,7 +27,7 @@ from polinfra.errors import CheckpointError, ConfigError
 from reconstruct.net.network import GAIN_SPREAD_AUTO, GAIN_SPREAD_ESTIMATE, NetConfig, PolSpikeNet
 from reconstruct.physics.solvers import SolverConfig
 
-__all__ = ["CKPT_FORMAT", "DEFAULT_WEIGHTS", "V1_WEIGHTS", "V2_WEIGHTS", "V2_MEAN_WEIGHTS", "V3_WEIGHTS", "V4_WEIGHTS", "V5_WEIGHTS", "V6_WEIGHTS", "save_checkpoint", "read_checkpoint", "load_model", "export_weights", "set_stream_gain_spread", "gain_spread_option", "floor_overrides", "FLOOR_ANCHORS", "FAST_WEIGHTS", "NAMED_WEIGHTS", "resolve_weights"]
+__all__ = ["CKPT_FORMAT", "DEFAULT_WEIGHTS", "V1_WEIGHTS", "V2_WEIGHTS", "V2_MEAN_WEIGHTS", "V3_WEIGHTS", "V4_WEIGHTS", "V5_WEIGHTS", "V6_WEIGHTS", "V7_WEIGHTS", "save_checkpoint", "read_checkpoint", "load_model", "export_weights", "set_stream_gain_spread", "gain_spread_option", "floor_overrides", "FLOOR_ANCHORS", "FAST_WEIGHTS", "NAMED_WEIGHTS", "resolve_weights"]
 
 CKPT_FORMAT = "polspike-ckpt/1"
 V1_WEIGHTS = Path(__file__).resolve().parents[1] / "weights" / "polspike_v1.pt"
@@ -36,9 +36,12 @@ V2_WEIGHTS = Path(__file__).resolve().parents[1] / "weights" / "polspike_v2.pt"
 """The v2 checkpoint trained on the weak-reflection paper_v1 data (issue 19), the default before issue 16."""
 V2_MEAN_WEIGHTS = Path(__file__).resolve().parents[1] / "weights" / "polspike_v2_mean.pt"
 """v2 with the long spike mean as a refinement input (issue 16, first round), the default before v3."""
-DEFAULT_WEIGHTS = Path(__file__).resolve().parents[1] / "weights" / "polspike_v7.pt"
-"""The shipped checkpoint (see ``docs/MODEL_CARD.md``): v7, v6 with the difference R - T moved toward the first harmonic
-of the whole long span of spikes where that span identifies it (``span_level``; on an external zeta only)."""
+DEFAULT_WEIGHTS = Path(__file__).resolve().parents[1] / "weights" / "polspike_v12.pt"
+"""The shipped checkpoint (see ``docs/MODEL_CARD.md``): v12, v7 fine-tuned with RIR in the loop on camera motion, sensor
+randomisation and bright light, its T decoder kept at v7's."""
+V7_WEIGHTS = Path(__file__).resolve().parents[1] / "weights" / "polspike_v7.pt"
+"""v7: v6 with the difference R - T moved toward the first harmonic of the whole long span of spikes where that span
+identifies it (``span_level``; on an external zeta only); the default before v12."""
 FAST_WEIGHTS = Path(__file__).resolve().parents[1] / "weights" / "polspike_fast.pt"
 """The real-time checkpoint (``--weights fast``, docs/realtime.md): the default's design with about a quarter of its
 channels, trained with RIR on camera motion and sensor randomisation; for ``polspike reconstruct --weights fast --fast

@@ -163,7 +163,7 @@ def test_cli_group_store_end_to_end(tmp_path):
         assert sc["span"] == span and s["span"] == "auto" and sc["frames"] == s["frames"]
         assert sc["floor_gain_spread"] == {"plain": 0.0, "rir": -2.0}.get(span, sensor)
         assert sc["rir_shifts"] == est and s["rir_shifts"] == "window"
-        assert Path(sc["weights"]).name == ("polspike_fast.pt" if span == "plain" else "polspike_v7.pt")
+        assert Path(sc["weights"]).name == ("polspike_fast.pt" if span == "plain" else "polspike_v12.pt")
         assert sc["span_auto"] is None and sum(s["span_auto"].values()) == s["frames"]  # auto, the default: its choice per window counted
         assert max(np.abs(read_exr(tmp_path / span / "frames" / f"{i:06d}.exr", ["T"])["T"] - T).mean() for i in range(sc["frames"])) < 0.1
 

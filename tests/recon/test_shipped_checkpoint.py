@@ -26,7 +26,7 @@ CARD = REPO / "docs" / "MODEL_CARD.md"
 #: architecture means updating this number on purpose (and the model card).
 EXPECTED_PARAMS = {"v1": 510_454, "v2": 395_230}
 #: Exact trainable-parameter count of each shipped default checkpoint (by file name).
-EXPECTED_SHIPPED = {"polspike_v1.pt": 510_454, "polspike_v2.pt": 395_230, "polspike_v2_mean.pt": 395_806, "polspike_v3.pt": 395_806, "polspike_v4.pt": 395_806, "polspike_v5.pt": 395_806, "polspike_v6.pt": 395_806, "polspike_v7.pt": 395_806}  # v2_mean: + 2 x 32 x 3 x 3 refinement inputs; v3-v7: same layers
+EXPECTED_SHIPPED = {"polspike_v1.pt": 510_454, "polspike_v2.pt": 395_230, "polspike_v2_mean.pt": 395_806, "polspike_v3.pt": 395_806, "polspike_v4.pt": 395_806, "polspike_v5.pt": 395_806, "polspike_v6.pt": 395_806, "polspike_v7.pt": 395_806, "polspike_v12.pt": 395_806}  # v2_mean: + 2 x 32 x 3 x 3 refinement inputs; v3-v12: same layers
 
 pytestmark = [pytest.mark.skipif(not DEFAULT_WEIGHTS.is_file(), reason=f"shipped checkpoint {DEFAULT_WEIGHTS} not present"), pytest.mark.usefixtures("one_thread")]
 
