@@ -38,6 +38,8 @@ class LossConfig:
     lambda_ex: float = opt(4.0, "tanh scale lambda_ex of the exclusion loss, paper Eq. (11), per radiance unit per pixel", lo=0.0, hi=1e4)
     lambda_base: float = opt(0.5, "weight of L1 on the solver outputs (T^, R^), times (0.2 + 0.8 alpha): supervision shifts to the refined output as alpha drops", lo=0.0, hi=100.0)
     lambda_ssim: float = opt(0.0, "weight of 1 - SSIM(T) (skimage's 7x7 uniform-window SSIM at data range 1, the evaluation metric, on the estimate clipped to [0, 1]): a structure term beside the L1 terms (0 = off, the paper's objective)", lo=0.0, hi=100.0)
+    lambda_logmse: float = opt(0.0, "weight of the mean over windows of ln(1 + MSE(T) / logmse_eps): each window's T error on the scale PSNR reads, so a bright, near noise-free window whose T is off by a little weighs as much as a dim one whose T is off by a lot (the L1 terms barely see the first); 0 = off", lo=0.0, hi=100.0)
+    logmse_eps: float = opt(1e-5, "MSE at which the lambda_logmse term turns from linear to logarithmic (1e-5: 50 dB PSNR at peak 1)", lo=1e-12, hi=1.0)
     r_floor: float = opt(1.0, "weight of the R term where the reflection carries none of the light: the R term is weighted by r_floor + (1 - r_floor) clip(rho / rho_ref, 0, 1) (1 = unweighted, the paper's Eq. (8); lower values train R where the spikes identify it, not its level where they cannot)", lo=0.0, hi=1.0)
     m_floor: float = opt(0.5, "reflection mask M value where there is no reflection", lo=0.0, hi=1.0)
     rho_ref: float = opt(0.3, "reflected share of the mixed light at which M reaches 1", lo=1e-6, hi=1.0)
@@ -144,5 +146,10 @@ def total_loss(out, T_gt: torch.Tensor, R_gt: torch.Tensor, alpha: float, cfg: L
         l_ssim = 1.0 - ssim_map(out.T.clamp(0, 1), T_gt).mean()
         total = total + cfg.lambda_ssim * l_ssim
         extra["l_ssim"] = float(l_ssim.detach())
+    if cfg.lambda_logmse > 0:
+        mse = (out.T - T_gt).pow(2).flatten(1).mean(1)
+        l_logmse = torch.log1p(mse / cfg.logmse_eps).mean()
+        total = total + cfg.lambda_logmse * l_logmse
+        extra["l_logmse"] = float(l_logmse.detach())
     parts = {"loss": float(total.detach()), "l_rec": float(l_rec.detach()), "l_grad": float(l_grad.detach()), "l_phys": float(l_phys.detach()), "l_excl": float(l_excl.detach()), "l_base": float(l_base.detach()), **extra}
     return total, parts

@@ -266,7 +266,7 @@ REFL_SHARE = SHARE_MIN
 """Reflected share of the mixed light above which a pixel counts as reflection-affected (evaluation; the same 20 %
 as :data:`reconstruct.physics.identifiability.SHARE_MIN`, here with the centre window's zeta)."""
 
-_LOG_FIELDS = ["step", "epoch", "alpha", "loss", "l_rec", "l_grad", "l_phys", "l_excl", "l_base", "l_ssim", "l_teach", "val_psnr_T", "val_psnr_T_base", "val_psnr_T_oracle", "val_psnr_T_forced", "val_ssim_T", "val_ssim_T_forced", "val_score", "seconds"]
+_LOG_FIELDS = ["step", "epoch", "alpha", "loss", "l_rec", "l_grad", "l_phys", "l_excl", "l_base", "l_ssim", "l_teach", "l_logmse", "val_psnr_T", "val_psnr_T_base", "val_psnr_T_oracle", "val_psnr_T_forced", "val_ssim_T", "val_ssim_T_forced", "val_score", "seconds"]
 
 
 def _write_log(run: Path, rows: list[dict[str, Any]]) -> None:

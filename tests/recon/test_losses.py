@@ -177,3 +177,28 @@ def test_total_equals_eq12_written_out_in_numpy(alpha):
     eq12 = rec(T, R) + 0.7 * l_grad + 0.2 * l_phys + 0.05 * l_excl  # Eq. (12)
     want = eq12 + 0.4 * (0.2 + 0.8 * alpha) * rec(Tb, Rb)
     assert float(tot) == pytest.approx(want, rel=1e-12)
+
+
+def test_logmse_term_weighs_each_windows_error_on_the_psnr_scale():
+    """lambda_logmse: the term is the mean over windows of ln(1 + MSE(T) / eps), closed form on two windows; it is
+    off by default; and, unlike L1, its pull on a window grows as that window's error shrinks (the gradient per unit
+    error is 2 / (N (MSE + eps))), so a near-perfect bright window is not drowned by a noisy dim one.
+    """
+    T = torch.zeros(2, 4, 4)
+    err = torch.zeros(2, 4, 4)
+    err[0] += 0.003  # a bright, clean window: MSE 9e-6
+    err[1] += 0.1  # a dim, noisy one: MSE 1e-2
+    R = torch.zeros_like(T)
+    z = torch.full((2, 7, 4, 4), 0.1)
+    out = SimpleNamespace(T=(T + err).requires_grad_(True), R=R, T_base=T, R_base=R, zeta_hat=z, zeta_gt=z, I=0.5 * (1 - z) * T[:, None])
+    assert LossConfig().lambda_logmse == 0.0
+    _, p0 = total_loss(out, T, R, 0.0, LossConfig())
+    assert "l_logmse" not in p0
+    cfg = LossConfig(lambda_logmse=0.5, logmse_eps=1e-5)
+    tot, p = total_loss(out, T, R, 0.0, cfg)
+    want = (math.log1p(9e-6 / 1e-5) + math.log1p(1e-2 / 1e-5)) / 2
+    assert math.isclose(p["l_logmse"], want, rel_tol=1e-4)
+    assert math.isclose(p["loss"] - p0["loss"], 0.5 * want, rel_tol=1e-4)
+    (g,) = torch.autograd.grad(0.5 * torch.log1p((out.T - T).pow(2).flatten(1).mean(1) / 1e-5).mean(), out.T)
+    per_unit = g.flatten(1).mean(1) / err.flatten(1).mean(1)  # gradient per unit of error, per window
+    assert float(per_unit[0]) > 100 * float(per_unit[1])
