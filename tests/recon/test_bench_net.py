@@ -58,5 +58,5 @@ def test_cli_bench_with_the_shipped_default_times_its_training(tmp_path, polspik
                      "--no-variants", "--threads", "1", "--json", out, timeout=900)
     assert r.returncode == 0, r.stderr[-2000:]
     res = json.loads(out.read_text())
-    new = [m for name, m in res["models"].items() if "v1" not in name][0]
+    new = [m for name, m in res["models"].items() if "polspike_v1.pt" not in name][0]
     assert new["train_1thr"] and new["reconstruct"] and new["gflop_per_frame"] > 0
