@@ -97,7 +97,7 @@ from polinfra.errors import ConfigError, SceneError
 from polspike.pipeline.manifest import MANIFEST_FORMAT, checked_manifest_text
 from polspike.pipeline.sampler_motion import STRESS_CAMERA, add_camera_motion, camera_motion, camera_tag, sensor_preset
 
-__all__ = ["sample_manifest", "sample_manifest_text", "RANGES", "RANGES_V1", "PROFILES", "CONTENT_POOLS"]
+__all__ = ["sample_manifest", "sample_manifest_text", "RANGES", "RANGES_V1", "PROFILES", "CONTENT_POOLS", "exposure_for_rate"]
 
 RANGES_V1: dict[str, tuple[float, float]] = {
     "fov_deg": (35.0, 55.0),
@@ -179,6 +179,14 @@ PAN_PROB = 0.3
 NOMINAL_CONTENT_MEAN = 0.25
 R_MEAN_MAX = 0.85
 """Mean linear radiance of a layer's content at brightness 1 (gamma-decoded images and textures), for the light level."""
+
+
+def exposure_for_rate(rate: float, t_brightness: float) -> float:
+    """spike_sim exposure at which the mean T content (brightness ``t_brightness``, behind the polarizer's half) fires
+    ``rate`` spikes per pixel per step: the light level of a sampled group and of a training window's redraw.
+    """
+    return rate / (0.5 * NOMINAL_CONTENT_MEAN * max(t_brightness, 1e-3))
+
 CONTENT_POOLS: dict[str, dict] = {
     "train": {
         "images": [
@@ -412,7 +420,7 @@ def _group_paper(rng: np.random.Generator, name: str, split: str, width: int, he
         tags.append(camera_tag(cam))
     # light: exposure such that the mean T content fires `rate` spikes per pixel per step
     rate = _lu(rng, "log_rate_dim" if rng.random() < DIM_PROB else "log_rate_bright")
-    exposure = rate / (0.5 * NOMINAL_CONTENT_MEAN * max(t_b, 1e-3))
+    exposure = exposure_for_rate(rate, t_b)
     tags.append(f"{rate:.3f} spikes/px/step")
     sensor = sensor_preset(rng) if motion else "noisy" if rng.random() < NOISY_PROB else "default"
     tags.append(f"{sensor} sensor")
@@ -607,7 +615,7 @@ def _stress_group(rng: np.random.Generator, d: dict[str, str], width: int, heigh
     refl = {"source": r_src, "seed": r_seed, "distance_m": 2.0, "brightness": _r(r_b, 3), "motion": mr}
     if r_mean - r_b * NOMINAL_CONTENT_MEAN > 0:
         refl["offset"] = _r(r_mean - r_b * NOMINAL_CONTENT_MEAN, 4)
-    exposure = float(STRESS_LEVELS["light"][d["light"]]) / (0.5 * NOMINAL_CONTENT_MEAN * t_b)
+    exposure = exposure_for_rate(float(STRESS_LEVELS["light"][d["light"]]), t_b)
     return {
         "name": name,
         "split": "test",

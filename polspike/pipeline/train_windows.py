@@ -42,7 +42,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from polinfra.config import opt
-from polinfra.errors import SceneError
+from polinfra.errors import ConfigError, SceneError
 
 log = logging.getLogger(__name__)
 
@@ -157,6 +157,11 @@ class _SceneCache:
         )
 
 
+def _log_uniform(rng: np.random.Generator, bounds: tuple[float, float]) -> float:
+    """One log-uniform draw in [low, high]."""
+    return math.exp(rng.uniform(math.log(bounds[0]), math.log(bounds[1])))
+
+
 class GeneratorWindows:
     """A :data:`reconstruct.net.onthefly.WindowSource` over a scene pool (module docstring).
 
@@ -213,13 +218,11 @@ class GeneratorWindows:
         x0 = int(rng.integers(0, W - S + 1))
         if w.exposure_source == "group":  # the group's light level, jittered log-uniformly
             base = self.sims[j]
-            lo, hi = (math.log(v) for v in w.exposure_jitter)
-            exposure = float(base.exposure * math.exp(rng.uniform(lo, hi)))
+            exposure = float(base.exposure * _log_uniform(rng, w.exposure_jitter))
             if w.bright_prob > 0 and rng.random() < w.bright_prob:  # bright light the manifest may lack (sampler's formula)
-                from polspike.pipeline.sampler import NOMINAL_CONTENT_MEAN
+                from polspike.pipeline.sampler import exposure_for_rate
 
-                rate = math.exp(rng.uniform(*(math.log(v) for v in w.bright_rate)))
-                exposure = rate / (0.5 * NOMINAL_CONTENT_MEAN * max(scene.layers.transmission.brightness, 1e-3))
+                exposure = exposure_for_rate(_log_uniform(rng, w.bright_rate), scene.layers.transmission.brightness)
         else:
             base = self.sim
             exposure = float(rng.uniform(*w.exposure_range))
@@ -288,7 +291,6 @@ def manifest_scenes(path: str, split: str, with_sensor: bool = False) -> list:
     """
     from generator.scene import scene_from_dict
     from polinfra.config import from_dict
-    from polinfra.errors import ConfigError
     from polspike.pipeline.manifest import load_manifest
     from spike_sim.config import SpikeSimConfig
 
@@ -313,7 +315,6 @@ def window_sets(window, train_items: int, val_items: int, seed: int, n_train_sce
     With ``val_manifest``: validation windows from its ``val_split`` groups instead (a validation split
     apart from the test groups). ``mix_manifests``: their "train" groups join ``manifest``'s.
     """
-    from polinfra.errors import ConfigError
     from reconstruct.net.onthefly import OnTheFlyWindows
 
     if manifest:
